@@ -1,0 +1,138 @@
+"""RBF kernel, its derivative blocks, and Gram builders for value and gradient observations.
+
+Paper, Section "Gaussian Processes with Gradient Information": for the base kernel
+``k00(x, x') = σ exp(-½ Σ_d (x_d - x'_d)² / l_d²)`` the covariances between function values and
+partial derivatives are
+
+* ``kn0(x, x') = ∂k/∂x_n``        (derivative observation at ``x``, value at ``x'``),
+* ``k0m(x, x') = ∂k/∂x'_m``       (value at ``x``, derivative observation at ``x'``),
+* ``knm(x, x') = ∂²k/∂x_n ∂x'_m`` (two derivative observations),
+
+Eq. (kernel_gradient). Here they are obtained by automatic differentiation of :func:`rbf`, so
+isotropic (scalar ``l``) and ARD (one ``l_d`` per input) lengthscales are handled alike, and
+the closed forms are a test, not the implementation.
+
+Row layout of every Gram matrix (paper Eq. barK): all value rows first, then one block of ``N``
+rows per gradient dimension, in the order given by ``dims``: ``[f(X); ∂_{d0} f(X); ∂_{d1} f(X);
+...]``. A point's gradient rows are therefore ``i + N * (1 + g)`` for ``g = 0..G-1``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+
+class KernelBlocks(NamedTuple):
+    """The four covariance blocks between ``(f(x), ∂f(x))`` and ``(f(x'), ∂f(x'))``."""
+
+    k00: Float[Array, ""]
+    k0m: Float[Array, " D"]
+    kn0: Float[Array, " D"]
+    knm: Float[Array, "D D"]
+
+
+def rbf(
+    x1: Float[ArrayLike, " D"],
+    x2: Float[ArrayLike, " D"],
+    variance: Float[ArrayLike, ""],
+    lengthscale: Float[ArrayLike, "*L"],
+) -> Float[Array, ""]:
+    """Squared-exponential kernel, paper Eq. (kernel 00).
+
+    ``variance`` is the paper's signal variance σ; ``lengthscale`` is its radius scale ``l``,
+    a scalar (isotropic) or one value per input dimension (ARD).
+    """
+    r = (jnp.asarray(x1) - jnp.asarray(x2)) / lengthscale
+    return variance * jnp.exp(-0.5 * jnp.dot(r, r))
+
+
+def gradient_blocks(
+    x1: Float[ArrayLike, " D"],
+    x2: Float[ArrayLike, " D"],
+    variance: Float[ArrayLike, ""],
+    lengthscale: Float[ArrayLike, "*L"],
+) -> KernelBlocks:
+    """``k00, k0m, kn0, knm`` of paper Eq. (kernel_gradient), by ``jax.grad``/``jax.hessian``.
+
+    ``knm`` is the mixed block of ``jax.hessian`` of :func:`rbf` in ``(x1, x2)``:
+    ``knm[n, m] = ∂²k/∂x1_n ∂x2_m``.
+    """
+    x1 = jnp.asarray(x1)
+    x2 = jnp.asarray(x2)
+
+    def k(a, b):
+        return rbf(a, b, variance, lengthscale)
+
+    k00, (kn0, k0m) = jax.value_and_grad(k, argnums=(0, 1))(x1, x2)
+    knm = jax.hessian(k, argnums=(0, 1))(x1, x2)[0][1]
+    return KernelBlocks(k00=k00, k0m=k0m, kn0=kn0, knm=knm)
+
+
+def check_dims(dims: Sequence[int], n_inputs: int, name: str = "grad_dims") -> tuple[int, ...]:
+    """Validate a tuple of gradient dimensions against ``n_inputs`` and return it."""
+    dims = tuple(dims) if isinstance(dims, (list, tuple)) else dims
+    if not isinstance(dims, tuple) or not all(
+        isinstance(d, (int, np.integer)) and not isinstance(d, bool) for d in dims
+    ):
+        raise ValueError(f"{name} must be a sequence of integers, got {dims!r}")
+    out = tuple(int(d) for d in dims)
+    bad = [d for d in out if not 0 <= d < n_inputs]
+    if bad:
+        raise ValueError(f"{name} has dimensions {bad} out of range for {n_inputs} inputs")
+    if len(set(out)) != len(out):
+        raise ValueError(f"{name} repeats a dimension: {out}")
+    return out
+
+
+def pair_block(
+    x1: Float[Array, " D"],
+    x2: Float[Array, " D"],
+    variance: Float[ArrayLike, ""],
+    lengthscale: Float[ArrayLike, "*L"],
+    dims1: tuple[int, ...],
+    dims2: tuple[int, ...],
+) -> Float[Array, "G1p1 G2p1"]:
+    """Covariance of ``(f, ∂_{dims1} f)(x1)`` with ``(f, ∂_{dims2} f)(x2)``: (1+G1, 1+G2)."""
+    b = gradient_blocks(x1, x2, variance, lengthscale)
+    i1 = np.asarray(dims1, dtype=np.int32)
+    i2 = np.asarray(dims2, dtype=np.int32)
+    top = jnp.concatenate([b.k00[None], b.k0m[i2]])
+    rest = jnp.concatenate([b.kn0[i1][:, None], b.knm[i1][:, i2]], axis=1)
+    return jnp.concatenate([top[None, :], rest], axis=0)
+
+
+@partial(jax.jit, static_argnames=("dims1", "dims2"))
+def gram(
+    X1: Float[Array, "N1 D"],
+    X2: Float[Array, "N2 D"],
+    variance: Float[ArrayLike, ""],
+    lengthscale: Float[ArrayLike, "*L"],
+    dims1: tuple[int, ...] = (),
+    dims2: tuple[int, ...] = (),
+) -> Float[Array, "R1 R2"]:
+    """Gram matrix ``K̄(X1, X2)`` with value rows and gradient rows for ``dims1``/``dims2``.
+
+    Shape ``((1+G1)·N1, (1+G2)·N2)`` in the layout of the module docstring. With
+    ``dims1 = dims2 = ()`` it is the plain kernel matrix ``k(X1, X2)``.
+    """
+    inner = jax.vmap(pair_block, in_axes=(None, 0, None, None, None, None), out_axes=2)
+    outer = jax.vmap(inner, in_axes=(0, None, None, None, None, None), out_axes=1)
+    # (1+G1, N1, 1+G2, N2): the reshape below is free and gives the dimension-major layout.
+    blocks = outer(X1, X2, variance, lengthscale, dims1, dims2)
+    return blocks.reshape((1 + len(dims1)) * X1.shape[0], (1 + len(dims2)) * X2.shape[0])
+
+
+def correlation(
+    X1: Float[Array, "N1 D"], X2: Float[Array, "N2 D"], lengthscale: Float[ArrayLike, "*L"]
+) -> Float[Array, "N1 N2"]:
+    """Kernel correlation ``k(x, x') / σ`` in [0, 1], used to pick near sets."""
+    return jax.vmap(jax.vmap(rbf, (None, 0, None, None)), (0, None, None, None))(
+        X1, X2, 1.0, lengthscale
+    )

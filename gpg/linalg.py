@@ -1,0 +1,70 @@
+"""Dense factorisations done in place, for the large offline solves.
+
+Why not ``jax.scipy.linalg.cho_factor`` here: on the CPU backend JAX's ``potrf`` runs on one
+core and needs an output copy plus a masking pass, so an 8000x8000 factorisation takes 2.6 s and
+two copies of the matrix, against 1.6 s and one copy for LAPACK's ``dpotrf`` called in place
+(both measured on the 2-core development machine with ``experiments/bench.py``). For the 40000-row
+matrices of ``data=paper`` (12.8 GB each) a second copy does not fit in memory at all. The
+differentiable small-matrix path (hyperparameter fits) still uses ``jax.scipy.linalg``.
+
+Storage convention: matrices are C-ordered NumPy arrays. A C-ordered symmetric ``K`` read as a
+Fortran array is the same ``K``; LAPACK's upper factor ``U`` (``UᵀU = K``) of that Fortran view,
+read back in C order, is the lower factor ``L = Uᵀ`` with ``L Lᵀ = K``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg.lapack as lapack
+
+
+class NotPositiveDefiniteError(ValueError):
+    """A Gram matrix that should be positive definite is not, numerically."""
+
+
+def _check_square_c(name: str, a: np.ndarray) -> None:
+    if a.ndim != 2 or a.shape[0] != a.shape[1]:
+        raise ValueError(f"{name} must be a square matrix, got shape {a.shape}")
+    if a.dtype != np.float64 or not a.flags.c_contiguous or not a.flags.writeable:
+        raise ValueError(f"{name} must be a writeable C-contiguous float64 array")
+
+
+def cholesky_inplace(a: np.ndarray, *, what: str = "K̄") -> np.ndarray:
+    """Overwrite the symmetric positive definite ``a`` with its lower Cholesky factor ``L``.
+
+    Returns ``a`` itself (strict upper triangle zeroed). Raises
+    :class:`NotPositiveDefiniteError` naming the first failing pivot.
+    """
+    _check_square_c(what, a)
+    # clean=1: LAPACK's wrapper zeroes the other triangle, so L is a plain dense lower matrix.
+    u, info = lapack.dpotrf(a.T, lower=0, overwrite_a=1, clean=1)
+    if info > 0:
+        raise NotPositiveDefiniteError(
+            f"{what} ({a.shape[0]} rows) is not numerically positive definite: the Cholesky "
+            f"factorisation failed at pivot {info - 1}. Increase the jitter / gradient noise, or "
+            "check for duplicated inputs."
+        )
+    if info < 0:  # pragma: no cover - argument error inside LAPACK
+        raise ValueError(f"dpotrf rejected argument {-info}")
+    if not np.may_share_memory(u, a):  # pragma: no cover - the wrapper copied after all
+        a[...] = u.T
+    return a
+
+
+def cho_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve ``K x = b`` given the lower factor ``chol`` of ``K``; ``b`` is (R,) or (R, M)."""
+    x, info = lapack.dpotrs(chol.T, np.asarray(b, dtype=np.float64), lower=0)
+    if info != 0:  # pragma: no cover
+        raise ValueError(f"dpotrs rejected argument {-info}")
+    return x
+
+
+def triangular_inverse_inplace(chol: np.ndarray) -> np.ndarray:
+    """Overwrite the lower-triangular ``chol`` with ``chol⁻¹`` (also lower triangular)."""
+    _check_square_c("chol", chol)
+    inv, info = lapack.dtrtri(chol.T, lower=0, overwrite_c=1)
+    if info != 0:
+        raise NotPositiveDefiniteError(f"triangular factor is singular at pivot {info - 1}")
+    if not np.may_share_memory(inv, chol):  # pragma: no cover
+        chol[...] = inv.T
+    return chol

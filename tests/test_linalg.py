@@ -1,0 +1,39 @@
+"""gpg.linalg: in-place LAPACK factorisations against NumPy."""
+
+import numpy as np
+import pytest
+
+from gpg import linalg
+
+
+def spd(rng, n):
+    A = rng.standard_normal((n, n))
+    return A @ A.T + n * np.eye(n)
+
+
+def test_cholesky_inplace(rng):
+    K = spd(rng, 60)
+    K0 = K.copy()
+    L = linalg.cholesky_inplace(K)
+    assert L is K  # no second copy of the matrix
+    np.testing.assert_allclose(L, np.linalg.cholesky(K0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(np.triu(L, 1), 0.0)
+
+
+def test_cho_solve_and_triangular_inverse(rng):
+    K = spd(rng, 40)
+    B = rng.standard_normal((40, 3))
+    L = linalg.cholesky_inplace(K.copy())
+    np.testing.assert_allclose(K @ linalg.cho_solve(L, B), B, atol=1e-10)
+    Linv = linalg.triangular_inverse_inplace(L.copy())
+    np.testing.assert_allclose(Linv @ L, np.eye(40), atol=1e-12)
+    np.testing.assert_array_equal(np.triu(Linv, 1), 0.0)
+
+
+def test_rejects_bad_buffers(rng):
+    with pytest.raises(ValueError, match="square"):
+        linalg.cholesky_inplace(np.ones((3, 4)))
+    with pytest.raises(ValueError, match="C-contiguous"):
+        linalg.cholesky_inplace(np.asfortranarray(spd(rng, 5))[:, ::1].T.copy(order="F"))
+    with pytest.raises(linalg.NotPositiveDefiniteError, match="pivot 1"):
+        linalg.cholesky_inplace(np.array([[1.0, 2.0], [2.0, 1.0]]))
