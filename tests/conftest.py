@@ -1,11 +1,60 @@
-"""Shared test set-up: float64 (importing gpg enables it) and fixed seeds."""
+"""Shared test set-up: float64 (importing gpg enables it), fixed seeds, and the physics fixtures
+that are compiled once per session (the generator takes seconds to compile)."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import gpg  # noqa: F401  (enables jax_enable_x64 before any test builds an array)
+from gpg.quadrotor import bemt
+from gpg.quadrotor.frames import R_WB
+from gpg.quadrotor.generator import Generator, evaluate, jacobian
+from gpg.quadrotor.simple_model import fit_to_generator
+from gpg.quadrotor.vehicle import load_vehicle
 
 
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261121)
+
+
+@pytest.fixture(scope="session")
+def vehicle():
+    return load_vehicle("sui_endurance")
+
+
+@pytest.fixture(scope="session")
+def gen(vehicle):
+    return Generator(vehicle)
+
+
+@pytest.fixture(scope="session")
+def simple(gen):
+    """M fitted to the generator's hover sweep (compiles the sweep once per session)."""
+    return fit_to_generator(gen)
+
+
+@pytest.fixture(scope="session")
+def aero(gen):
+    """``aero(rpm, euler, V)`` -> AeroResult in the dataset frame (airflow along +x)."""
+    f = jax.jit(
+        lambda rpm, euler, V: bemt.aero(
+            gen.vehicle, gen.bemt, rpm, R_WB(euler), jnp.stack([V, 0.0, 0.0])
+        )
+    )
+    return lambda rpm, euler, V: f(
+        jnp.asarray(rpm, float), jnp.asarray(euler, float), jnp.asarray(V, float)
+    )
+
+
+@pytest.fixture(scope="session")
+def y_of(gen):
+    f = jax.jit(lambda x: evaluate(gen, x))
+    return lambda x: f(jnp.asarray(x, float))
+
+
+@pytest.fixture(scope="session")
+def jac_of(gen):
+    f = jax.jit(lambda x: jacobian(gen, x))
+    return lambda x: f(jnp.asarray(x, float))

@@ -1,0 +1,17 @@
+"""Generate a dataset: ``python -m experiments.generate_data data=smoke|default|paper``."""
+
+import hydra
+from omegaconf import DictConfig
+
+import gpg  # noqa: F401  (float64)
+from experiments._hydra import plain, run_dir
+from gpg.runs import generate_data
+
+
+@hydra.main(config_path="../conf", config_name="generate_data", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    generate_data.run(plain(cfg), run_dir())
+
+
+if __name__ == "__main__":
+    main()

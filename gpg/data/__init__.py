@@ -1,0 +1,18 @@
+"""Datasets: schema and files, sampling, preprocessing."""
+
+from gpg.data.dataset import Dataset, from_csv
+from gpg.data.preprocess import Normalizer, Training, prepare, restore
+from gpg.data.sampling import Bounds, FDSteps, generate, latin_hypercube
+
+__all__ = [
+    "Bounds",
+    "Dataset",
+    "FDSteps",
+    "Normalizer",
+    "Training",
+    "from_csv",
+    "generate",
+    "latin_hypercube",
+    "prepare",
+    "restore",
+]

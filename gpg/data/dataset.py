@@ -1,0 +1,402 @@
+"""The dataset file: one ``.npz`` of arrays plus a JSON sidecar (DESIGN "Dataset file").
+
+Arrays: ``x (N, 8)``, ``y_aero (N, 6)``, ``jac_aero (N, 6, 7)``, ``y_noise (N, 3)``,
+``jac_noise (N, 3, 7)``, and the raw finite-difference samples ``x_raw (8N, 8)``,
+``y_raw (8N, 6 or 9)`` for the 8X baselines (point-major: rows ``8i..8i+7`` are point ``i``
+and its seven perturbations). Noise, gradients and raw samples may each be absent (a user's
+own CHARM, wind-tunnel or flight data); :attr:`Dataset.missing` says what is.
+
+Sidecar: schema version, units, column names, bounds, generator and its parameters, seed.
+Files are written atomically (temporary files, then rename) and deterministically (fixed zip
+timestamps, sorted JSON), so the same data gives bit-identical files.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import tempfile
+import zipfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpg._checks import bad_rows
+
+SCHEMA_VERSION = 1
+INPUTS = ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll", "airspeed")
+GRAD_INPUTS = INPUTS[:7]
+AERO = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+NOISE = ("L1", "L2", "L3")
+UNITS = {
+    **{r: "rpm" for r in INPUTS[:4]},
+    **{a: "rad" for a in ("yaw", "pitch", "roll")},
+    "airspeed": "m/s",
+    **{f: "N" for f in AERO[:3]},
+    **{m: "N*m" for m in AERO[3:]},
+    **{n: "dB" for n in NOISE},
+}
+_ARRAYS = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "x_raw", "y_raw")
+_OPTIONAL = {
+    "noise": ("y_noise",),
+    "gradients": ("jac_aero",),
+    "noise gradients": ("jac_noise",),
+    "raw samples": ("x_raw", "y_raw"),
+}
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """Arrays and metadata of one dataset; see the module docstring for shapes and units."""
+
+    x: np.ndarray
+    y_aero: np.ndarray
+    jac_aero: np.ndarray | None = None
+    y_noise: np.ndarray | None = None
+    jac_noise: np.ndarray | None = None
+    x_raw: np.ndarray | None = None
+    y_raw: np.ndarray | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        for name in _ARRAYS:
+            v = getattr(self, name)
+            if v is not None:
+                object.__setattr__(self, name, np.asarray(v, dtype=np.float64))
+        self.validate()
+
+    # -- structure ------------------------------------------------------------------------------
+
+    @property
+    def n(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def has_noise(self) -> bool:
+        return self.y_noise is not None
+
+    @property
+    def has_gradients(self) -> bool:
+        return self.jac_aero is not None and (not self.has_noise or self.jac_noise is not None)
+
+    @property
+    def has_raw(self) -> bool:
+        return self.x_raw is not None
+
+    @property
+    def missing(self) -> tuple[str, ...]:
+        """What this dataset lacks: "noise", "gradients", "noise gradients", "raw samples"."""
+        out = []
+        for what, names in _OPTIONAL.items():
+            if what == "noise gradients" and not self.has_noise:
+                continue
+            if all(getattr(self, nm) is None for nm in names):
+                out.append(what)
+        return tuple(out)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return AERO + NOISE if self.has_noise else AERO
+
+    @property
+    def y(self) -> np.ndarray:
+        """All outputs (N, 6 or 9)."""
+        return self.y_aero if not self.has_noise else np.concatenate([self.y_aero, self.y_noise], 1)
+
+    @property
+    def jac(self) -> np.ndarray | None:
+        """All output gradients (N, 6 or 9, 7), or None without gradients."""
+        if not self.has_gradients:
+            return None
+        return (
+            self.jac_aero
+            if not self.has_noise
+            else np.concatenate([self.jac_aero, self.jac_noise], 1)
+        )
+
+    def summary(self) -> str:
+        lacks = ", ".join(self.missing) or "nothing"
+        src = self.meta.get("generator", {}).get("name", self.meta.get("source", "unknown source"))
+        return f"{self.n} points, outputs {list(self.output_names)}, from {src}; lacks: {lacks}"
+
+    def validate(self) -> None:
+        """Shapes and finiteness; ``ValueError`` names the array and, for NaN/inf, the rows."""
+        n = _require(self.x, "x", (None, 8))
+        _require(self.y_aero, "y_aero", (n, 6))
+        if self.jac_aero is not None:
+            _require(self.jac_aero, "jac_aero", (n, 6, 7))
+        if self.y_noise is not None:
+            _require(self.y_noise, "y_noise", (n, 3))
+        if self.jac_noise is not None:
+            if self.y_noise is None:
+                raise ValueError("jac_noise given without y_noise")
+            _require(self.jac_noise, "jac_noise", (n, 3, 7))
+        if (self.x_raw is None) != (self.y_raw is None):
+            raise ValueError("x_raw and y_raw must be given together")
+        if self.x_raw is not None:
+            m = _require(self.x_raw, "x_raw", (None, 8))
+            _require(self.y_raw, "y_raw", (m, 9 if self.has_noise else 6))
+        for name in _ARRAYS:
+            v = getattr(self, name)
+            if v is not None:
+                rows = bad_rows(v)
+                if rows.size:
+                    shown = ", ".join(str(int(r)) for r in rows[:10])
+                    more = f" (and {rows.size - 10} more)" if rows.size > 10 else ""
+                    raise ValueError(f"{name} holds NaN or inf in row(s) {shown}{more}")
+        if np.any(self.x[:, :4] < 0):
+            rows = np.flatnonzero(np.any(self.x[:, :4] < 0, axis=1))
+            raise ValueError(f"x has negative rotor speeds in row(s) {rows[:10].tolist()}")
+
+    def subset(self, index: np.ndarray) -> Dataset:
+        """The points ``index`` (and their raw samples)."""
+        index = np.asarray(index)
+        kw = {
+            k: (None if getattr(self, k) is None else getattr(self, k)[index]) for k in _ARRAYS[:5]
+        }
+        if self.has_raw:
+            per = self.x_raw.shape[0] // self.n
+            raw = (index[:, None] * per + np.arange(per)).ravel()
+            kw["x_raw"], kw["y_raw"] = self.x_raw[raw], self.y_raw[raw]
+        return Dataset(**kw, meta={**self.meta, "subset_of": self.meta.get("name")})
+
+    def without(self, *what: str) -> Dataset:
+        """A copy without some optional parts: "noise", "gradients", "raw samples"."""
+        bad = [w for w in what if w not in ("noise", "gradients", "raw samples")]
+        if bad:
+            raise ValueError(f"unknown parts {bad}; valid: noise, gradients, raw samples")
+        kw: dict[str, Any] = {}
+        if "noise" in what:
+            kw.update(y_noise=None, jac_noise=None)
+            if self.has_raw:
+                kw["y_raw"] = self.y_raw[:, :6]
+        if "gradients" in what:
+            kw.update(jac_aero=None, jac_noise=None)
+        if "raw samples" in what:
+            kw.update(x_raw=None, y_raw=None)
+        return replace(self, **kw)
+
+    # -- files ----------------------------------------------------------------------------------
+
+    def save(self, path: str | Path) -> tuple[Path, Path]:
+        """Write ``<path>.npz`` and ``<path>.json`` atomically; returns both paths."""
+        self.validate()
+        npz, side = _paths(path)
+        npz.parent.mkdir(parents=True, exist_ok=True)
+        meta = {
+            **self.meta,
+            "schema_version": SCHEMA_VERSION,
+            "n": self.n,
+            "inputs": list(INPUTS),
+            "outputs": list(self.output_names),
+            "units": {k: UNITS[k] for k in INPUTS + self.output_names},
+            "arrays": [k for k in _ARRAYS if getattr(self, k) is not None],
+            "missing": list(self.missing),
+        }
+        zbytes = _npz_bytes({k: getattr(self, k) for k in meta["arrays"]})
+        jbytes = (json.dumps(_jsonable(meta), indent=2, sort_keys=True) + "\n").encode()
+        tmp = []
+        try:
+            for target, data in ((npz, zbytes), (side, jbytes)):
+                fd, name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
+                tmp.append(name)
+                with os.fdopen(fd, "wb") as f:
+                    f.write(data)
+            os.replace(tmp[0], npz)
+            os.replace(tmp[1], side)
+        except BaseException:
+            for name in tmp:
+                if os.path.exists(name):
+                    os.unlink(name)
+            raise
+        return npz, side
+
+    @classmethod
+    def load(cls, path: str | Path) -> Dataset:
+        """Read ``<path>.npz`` + ``<path>.json``; a clear ``ValueError`` if missing or broken."""
+        npz, side = _paths(path)
+        for p in (npz, side):
+            if not p.is_file():
+                raise ValueError(f"dataset file {p} does not exist")
+        try:
+            meta = json.loads(side.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{side} is not valid JSON: {exc}") from exc
+        version = meta.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise ValueError(
+                f"{side} has schema version {version}; this gpg reads {SCHEMA_VERSION}"
+            )
+        try:
+            with np.load(npz, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, OSError, ValueError) as exc:
+            raise ValueError(f"{npz} is not a readable .npz file: {exc}") from exc
+        unknown = sorted(set(arrays) - set(_ARRAYS))
+        if unknown:
+            raise ValueError(f"{npz} holds unknown arrays {unknown}")
+        for k in ("x", "y_aero"):
+            if k not in arrays:
+                raise ValueError(f"{npz} lacks the required array {k!r}")
+        for k in ("schema_version", "n", "inputs", "outputs", "units", "arrays", "missing"):
+            meta.pop(k, None)
+        return cls(**arrays, meta=meta)
+
+
+def _require(a: np.ndarray, name: str, shape: tuple) -> int:
+    ok = a.ndim == len(shape) and all(
+        s is None or s == d for s, d in zip(shape, a.shape, strict=True)
+    )
+    if not ok:
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+    return a.shape[0]
+
+
+def _paths(path: str | Path) -> tuple[Path, Path]:
+    p = Path(path)
+    if p.suffix in (".npz", ".json"):
+        p = p.with_suffix("")
+    return p.with_name(p.name + ".npz"), p.with_name(p.name + ".json")
+
+
+def _npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    """An ``.npz`` (zip of ``.npy``) with fixed timestamps, so equal data give equal bytes."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            body = io.BytesIO()
+            np.lib.format.write_array(body, np.ascontiguousarray(arr), allow_pickle=False)
+            zf.writestr(info, body.getvalue())
+    return buf.getvalue()
+
+
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, Mapping):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    return o
+
+
+# ----------------------------------------------------------------------------------------------
+# CSV import
+# ----------------------------------------------------------------------------------------------
+
+# Conversion factors to the schema's units (SI, rpm, rad), by quantity.
+_UNIT_FACTORS = {
+    "rpm": {"rpm": 1.0, "rad/s": 60.0 / (2 * np.pi), "hz": 60.0, "rps": 60.0},
+    "rad": {"rad": 1.0, "deg": np.pi / 180.0},
+    "m/s": {"m/s": 1.0, "km/h": 1 / 3.6, "kn": 1852.0 / 3600.0, "ft/s": 0.3048},
+    "N": {"N": 1.0, "lbf": 4.4482216152605},
+    "N*m": {
+        "N*m": 1.0,
+        "Nm": 1.0,
+        "N.m": 1.0,
+        "lbf*ft": 1.3558179483314,
+        "lbf*in": 0.1129848290276,
+    },
+    "dB": {"dB": 1.0},
+}
+GRADIENT_COLUMNS = tuple(f"d{o}/d{i}" for o in AERO + NOISE for i in GRAD_INPUTS)
+
+
+def _factor(field: str, unit: str | None) -> float:
+    base = UNITS[field]
+    if unit is None:
+        return 1.0
+    table = _UNIT_FACTORS[base]
+    if unit not in table:
+        raise ValueError(f"unknown unit {unit!r} for {field}; valid: {sorted(table)}")
+    return table[unit]
+
+
+def from_csv(
+    path: str | Path,
+    columns: Mapping[str, str],
+    *,
+    units: Mapping[str, str] | None = None,
+    meta: Mapping[str, Any] | None = None,
+) -> Dataset:
+    """Import a CSV file by mapping schema fields to its column names.
+
+    ``columns`` maps schema fields (``r1..r4, yaw, pitch, roll, airspeed, Fx..Mz, L1..L3`` and
+    gradients ``"dFx/dr1"`` …) to CSV headers; inputs and the six aerodynamic outputs are
+    required, noise and gradients optional (gradients must be complete if present). ``units``
+    maps a field to its unit in the file (e.g. ``{"yaw": "deg", "airspeed": "km/h"}``);
+    gradients are converted with the units of their output and input.
+    """
+    units = dict(units or {})
+    known = set(UNITS) | set(GRADIENT_COLUMNS)
+    unknown = sorted(set(columns) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown schema fields {unknown}; valid: {list(INPUTS + AERO + NOISE)} "
+            "and gradients like 'dFx/dr1'"
+        )
+    bad_units = sorted(set(units) - set(UNITS))
+    if bad_units:
+        raise ValueError(f"units given for unknown fields {bad_units}")
+    for f, u in units.items():
+        _factor(f, u)
+    missing = [f for f in INPUTS + AERO if f not in columns]
+    if missing:
+        raise ValueError(f"columns mapping lacks required fields {missing}")
+    noise = [f for f in NOISE if f in columns]
+    if noise and len(noise) != 3:
+        raise ValueError(f"noise needs all of {list(NOISE)}, got {noise}")
+    outs = AERO + (NOISE if noise else ())
+    grads = [g for g in GRADIENT_COLUMNS if g in columns]
+    want_grads = [f"d{o}/d{i}" for o in outs for i in GRAD_INPUTS]
+    if grads and sorted(grads) != sorted(want_grads):
+        lacking = sorted(set(want_grads) - set(grads))
+        raise ValueError(f"gradients must be complete; missing {lacking[:6]} ...")
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"CSV file {path} does not exist")
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        header = reader.fieldnames or []
+        absent = sorted(c for c in columns.values() if c not in header)
+        if absent:
+            raise ValueError(f"CSV columns {absent} not in {path.name}; it has {header}")
+        rows = []
+        for lineno, row in enumerate(reader, start=2):
+            try:
+                rows.append([float(row[columns[k]]) for k in columns])
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{path.name} line {lineno}: non-numeric value ({exc})") from exc
+    data = np.asarray(rows, dtype=float).reshape(-1, len(columns))
+    col = {k: data[:, j] for j, k in enumerate(columns)}
+
+    def get(fields):
+        return np.stack([col[k] * _factor(k, units.get(k)) for k in fields], axis=1)
+
+    def grad(outputs):
+        out = np.empty((data.shape[0], len(outputs), 7))
+        for a, o in enumerate(outputs):
+            for b, i in enumerate(GRAD_INPUTS):
+                out[:, a, b] = (
+                    col[f"d{o}/d{i}"] * _factor(o, units.get(o)) / _factor(i, units.get(i))
+                )
+        return out
+
+    return Dataset(
+        x=get(INPUTS),
+        y_aero=get(AERO),
+        y_noise=get(NOISE) if noise else None,
+        jac_aero=grad(AERO) if grads else None,
+        jac_noise=grad(NOISE) if grads and noise else None,
+        meta={"source": f"csv:{path.name}", **dict(meta or {})},
+    )

@@ -1,0 +1,198 @@
+"""From a :class:`Dataset` to the GP's targets, and back (paper, Section "Data Processing").
+
+1. Residuals against the simplified model ``M``: ``y_c = y_aero − y_M``,
+   ``J_c = J_aero − J_M``; the noise outputs are kept as they are (``M`` has no noise).
+2. Normalisation (Eqs. normalize_x/y/g): inputs min-max to [−1, 1], outputs z-scored,
+   gradient ``∂_j y_m`` scaled by ``(max−min)_j / 2 / std(y_m)``.
+3. Gradient noise ``λ_j² = s · Var(∂_j Ỹ)`` over all points and outputs (``s = 0.3``).
+
+Every transform has an exact inverse on :class:`Normalizer`, so predictions return in
+physical units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from gpg.data.dataset import Dataset
+from gpg.gp import gradient_noise
+from gpg.quadrotor.simple_model import SimpleModel, fit_coefficients
+from gpg.quadrotor.vehicle import Vehicle
+
+GRAD_DIMS = tuple(range(7))  # rpm and Euler angles; no gradient along airspeed
+
+
+class Normalizer(eqx.Module):
+    """Input box, output mean/std, and the gradient scaling built from them.
+
+    A constant input (``max = min``) or output (``std = 0``) gets scale 1, so a dataset that
+    never varies airspeed still normalises (and the GP simply learns nothing along it).
+    """
+
+    x_lo: Float[Array, " D"]
+    x_hi: Float[Array, " D"]
+    y_mean: Float[Array, " M"]
+    y_std: Float[Array, " M"]
+    grad_dims: tuple[int, ...] = eqx.field(static=True, default=GRAD_DIMS)
+
+    @classmethod
+    def fit(cls, x: np.ndarray, y: np.ndarray, grad_dims=GRAD_DIMS) -> Normalizer:
+        lo, hi = x.min(0), x.max(0)
+        hi = np.where(hi > lo, hi, lo + 2.0)  # constant input: half-range 1 about lo + 1
+        std = y.std(0)
+        return cls(
+            x_lo=jnp.asarray(lo),
+            x_hi=jnp.asarray(hi),
+            y_mean=jnp.asarray(y.mean(0)),
+            y_std=jnp.asarray(np.where(std > 0, std, 1.0)),
+            grad_dims=tuple(grad_dims),
+        )
+
+    @property
+    def half_range(self) -> Float[Array, " D"]:
+        return 0.5 * (self.x_hi - self.x_lo)
+
+    def x(self, x: Float[ArrayLike, "... D"]) -> Float[Array, "... D"]:
+        """Eq. normalize_x: ``2 (x − min)/(max − min) − 1``."""
+        return (jnp.asarray(x) - self.x_lo) / self.half_range - 1.0
+
+    def x_inv(self, xn: Float[ArrayLike, "... D"]) -> Float[Array, "... D"]:
+        return (jnp.asarray(xn) + 1.0) * self.half_range + self.x_lo
+
+    def y(self, y: Float[ArrayLike, "... M"]) -> Float[Array, "... M"]:
+        """Eq. normalize_y: ``(y − mean)/std``."""
+        return (jnp.asarray(y) - self.y_mean) / self.y_std
+
+    def y_inv(self, yn: Float[ArrayLike, "... M"]) -> Float[Array, "... M"]:
+        return jnp.asarray(yn) * self.y_std + self.y_mean
+
+    def grad_scale(self) -> Float[Array, "M G"]:
+        """Eq. normalize_g: ``(max−min)_j / 2 / std(y_m)`` for output m, gradient dim j."""
+        return self.half_range[jnp.asarray(self.grad_dims)][None, :] / self.y_std[:, None]
+
+    def grad(self, J: Float[ArrayLike, "... M G"]) -> Float[Array, "... M G"]:
+        return jnp.asarray(J) * self.grad_scale()
+
+    def grad_inv(self, Jn: Float[ArrayLike, "... M G"]) -> Float[Array, "... M G"]:
+        return jnp.asarray(Jn) / self.grad_scale()
+
+    def var_inv(self, var: Float[ArrayLike, "..."]) -> Float[Array, "... M"]:
+        """Per-output variance in physical units from the shared latent variance."""
+        return jnp.asarray(var)[..., None] * self.y_std**2
+
+
+@dataclass(frozen=True)
+class Training:
+    """The GP's view of a dataset: normalised residual targets and what produced them.
+
+    ``X`` (N, 8), ``Y`` (N, M), ``dY`` (N, M, 7) or None, ``grad_noise`` the paper's ``λ²``
+    (7,) or None, ``X_raw``/``Y_raw`` the normalised raw 8X samples or None.
+    """
+
+    X: np.ndarray
+    Y: np.ndarray
+    dY: np.ndarray | None
+    grad_noise: np.ndarray | None
+    X_raw: np.ndarray | None
+    Y_raw: np.ndarray | None
+    normalizer: Normalizer
+    simple: SimpleModel | None
+    output_names: tuple[str, ...]
+
+    @property
+    def has_gradients(self) -> bool:
+        return self.dY is not None
+
+
+def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
+    """``M`` for a dataset: ``P_F``, ``T_z`` from its metadata (written by the generator), or a
+    least-squares fit to the data itself (``−F_zB ≈ P_F Σr²``, ``τ_zB ≈ −T_z Σ d_i r_i²``).
+    """
+    coeffs = ds.meta.get("simple_model")
+    if coeffs is not None:
+        return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
+    import jax
+
+    from gpg.quadrotor.frames import R_WB  # local: only this fallback needs it
+
+    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(ds.x[:, 4:7])))
+    F_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, :3])
+    tau_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, 3:])
+    r2 = ds.x[:, :4] ** 2
+    spin = np.asarray(vehicle.spin)
+    s_thrust, s_yaw = r2.sum(1), r2 @ spin
+    P_F = float(np.sum(-F_B[:, 2] * s_thrust) / np.sum(s_thrust**2))
+    T_z = float(-np.sum(tau_B[:, 2] * s_yaw) / max(np.sum(s_yaw**2), 1e-300))
+    return SimpleModel.from_vehicle(vehicle, P_F, T_z)
+
+
+def residuals(
+    ds: Dataset, simple: SimpleModel | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``(y, J, y_raw)`` with ``M`` subtracted from the six aerodynamic outputs (and their
+    Jacobians and raw samples); unchanged when ``simple`` is None."""
+    y, J = ds.y.copy(), None if ds.jac is None else ds.jac.copy()
+    y_raw = None if ds.y_raw is None else ds.y_raw.copy()
+    if simple is None:
+        return y, J, y_raw
+    yM, JM = (np.asarray(a) for a in simple.batch(ds.x[:, :7]))
+    y[:, :6] -= yM
+    if J is not None:
+        J[:, :6] -= JM
+    if y_raw is not None:
+        y_raw[:, :6] -= np.asarray(simple.batch(ds.x_raw[:, :7])[0])
+    return y, J, y_raw
+
+
+def prepare(
+    ds: Dataset,
+    simple: SimpleModel | None,
+    *,
+    s: float = 0.3,
+    use_gradients: bool = True,
+) -> Training:
+    """Residuals, normalisation and ``λ²`` for ``ds``; the statistics come from its base points."""
+    y, J, y_raw = residuals(ds, simple)
+    norm = Normalizer.fit(ds.x, y)
+    X = np.asarray(norm.x(ds.x))
+    Y = np.asarray(norm.y(y))
+    dY = lam = None
+    if use_gradients and J is not None:
+        dY = np.asarray(norm.grad(J))
+        lam = np.asarray(gradient_noise(dY, s))
+    X_raw = Y_raw = None
+    if ds.has_raw:
+        X_raw = np.asarray(norm.x(ds.x_raw))
+        Y_raw = np.asarray(norm.y(y_raw))
+    return Training(
+        X=X,
+        Y=Y,
+        dY=dY,
+        grad_noise=lam,
+        X_raw=X_raw,
+        Y_raw=Y_raw,
+        normalizer=norm,
+        simple=simple,
+        output_names=ds.output_names,
+    )
+
+
+def restore(
+    training: Training, x: Float[ArrayLike, "N 8"], y_norm: Float[ArrayLike, "N M"]
+) -> np.ndarray:
+    """Inverse of :func:`prepare` for outputs: de-normalise and add ``M`` back."""
+    y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
+    if training.simple is not None:
+        y[:, :6] += np.asarray(training.simple.batch(np.asarray(x)[:, :7])[0])
+    return y
+
+
+def fit_simple_from_sweep(rpm, thrust, torque, vehicle: Vehicle) -> SimpleModel:
+    """``M`` from a measured hover sweep (per-rotor thrust and torque versus rpm)."""
+    P_F, T_z = fit_coefficients(rpm, thrust, torque)
+    return SimpleModel.from_vehicle(vehicle, P_F, T_z)

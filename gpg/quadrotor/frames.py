@@ -1,0 +1,114 @@
+"""Rotations: body attitude, Euler angles and the airflow-aligned frame H.
+
+Conventions (DESIGN "Conventions"): world/dataset frame x forward, y right, z down; body frame
+FRD; ``R_WB = Rz(yaw) @ Ry(pitch) @ Rx(roll)``; Euler vectors are ordered ``(yaw, pitch, roll)``
+as in the input vector ``x = (r1..r4, yaw, pitch, roll, airspeed)``.
+
+The airflow frame ``H`` (paper, Section "Real-time Simulation") has its x axis along the
+airspeed vector ``v_air = v_vehicle − v_wind``, so that in ``H`` every query looks like a dataset
+case (airflow along +x). The paper builds ``R_WH`` as a single Householder matrix
+``I − 2uuᵀ``, which is a *reflection* (det −1): used as a change of frame it mirrors the vehicle
+and swaps left and right rotors. Here ``R_WH`` is a proper rotation ("wind axes"):
+``R_WH = Rz(χ) Ry(γ)`` with heading ``χ = atan2(v_y, v_x)`` and climb angle
+``γ = atan2(−v_z, ‖v_xy‖)``. It satisfies ``R_WH e_x = v̂`` (equivalently ``R_WHᵀ v̂ = e_x``;
+for the symmetric Householder matrix the two statements coincide, for a rotation only these
+do). Unlike the minimal (Rodrigues) rotation from ``e_x`` to ``v̂`` it commutes with rotations
+about the world z axis, ``R_WH(Rz v) = Rz R_WH(v)``, so yawing a whole query yaws its prediction
+for every airspeed, climbing or not; it keeps ``y_H`` horizontal like the dataset frame. It is
+defined everywhere: ``v = 0`` gives the identity, vertical airflow a heading of zero, and the
+gradients stay finite there (guarded ``atan2`` and ``sqrt``).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+# Below this horizontal speed (m/s) the heading is taken as zero. Far below any physical
+# airspeed; only there to keep atan2 and its gradient defined at the origin.
+_TINY_SPEED = 1e-9
+
+
+def rot_x(a: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
+    """Rotation about x by ``a`` (rad)."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.array([[o, z, z], [z, c, -s], [z, s, c]])
+
+
+def rot_y(a: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
+    """Rotation about y by ``a`` (rad); positive pitch raises the nose (x toward −z)."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.array([[c, z, s], [z, o, z], [-s, z, c]])
+
+
+def rot_z(a: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
+    """Rotation about z by ``a`` (rad); positive yaw turns the nose right (x toward +y)."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.array([[c, -s, z], [s, c, z], [z, z, o]])
+
+
+def R_WB(euler: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
+    """Body-to-world rotation ``Rz(yaw) Ry(pitch) Rx(roll)`` from ``euler = (yaw, pitch, roll)``."""
+    euler = jnp.asarray(euler)
+    return rot_z(euler[0]) @ rot_y(euler[1]) @ rot_x(euler[2])
+
+
+def safe_atan2(
+    y: Float[ArrayLike, ""], x: Float[ArrayLike, ""], tiny: float = 0.0
+) -> Float[Array, ""]:
+    """``atan2(y, x)``, but 0 with a zero gradient where ``|x|, |y| <= tiny`` instead of NaN."""
+    at_origin = (jnp.abs(x) <= tiny) & (jnp.abs(y) <= tiny)
+    xs = jnp.where(at_origin, 1.0, x)
+    ys = jnp.where(at_origin, 0.0, y)
+    return jnp.where(at_origin, 0.0, jnp.arctan2(ys, xs))
+
+
+def safe_norm(v: Float[ArrayLike, "*n"]) -> Float[Array, ""]:
+    """Euclidean norm with a zero (not NaN) gradient at ``v = 0``."""
+    v = jnp.asarray(v)
+    sq = jnp.sum(v * v)
+    zero = sq <= 0.0
+    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
+
+
+def euler_from_R(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
+    """``(yaw, pitch, roll)`` with ``R_WB(euler) = R``; pitch in [−π/2, π/2].
+
+    Pitch comes from ``atan2(−R31, ‖(R11, R21)‖)``, which stays accurate near ±90° where
+    ``asin`` loses half its digits. At gimbal lock (``cos pitch = 0``) yaw and roll are not
+    separable; roll is then set to zero and yaw read from the second column.
+    """
+    R = jnp.asarray(R)
+    cp = jnp.hypot(R[0, 0], R[1, 0])
+    pitch = safe_atan2(-R[2, 0], cp)
+    locked = cp < 1e-12
+    yaw_free = safe_atan2(R[1, 0], R[0, 0])
+    roll_free = safe_atan2(R[2, 1], R[2, 2])
+    yaw_locked = safe_atan2(-R[0, 1], R[1, 1])
+    yaw = jnp.where(locked, yaw_locked, yaw_free)
+    roll = jnp.where(locked, 0.0, roll_free)
+    return jnp.stack([yaw, pitch, roll])
+
+
+def R_WH(v_air: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
+    """Airflow frame: a proper rotation with ``R_WH @ e_x = v̂_air`` (wind axes, see module doc)."""
+    v = jnp.asarray(v_air)
+    heading = safe_atan2(v[1], v[0], _TINY_SPEED)
+    climb = safe_atan2(-v[2], safe_norm(v[:2]), _TINY_SPEED)
+    return rot_z(heading) @ rot_y(climb)
+
+
+def to_airflow_frame(
+    euler_W: Float[ArrayLike, "3"], v_air_W: Float[ArrayLike, "3"]
+) -> tuple[Float[Array, "3"], Float[Array, ""], Float[Array, "3 3"]]:
+    """Attitude in the airflow frame and airspeed: ``(euler_H, ‖v‖, R_WH)``.
+
+    ``R_HB = R_WHᵀ R_WB`` (paper, Section "Real-time Simulation"); ``euler_H`` are its
+    ``(yaw, pitch, roll)``, the angles a dataset case with the same relative airflow would have.
+    """
+    rwh = R_WH(v_air_W)
+    r_hb = rwh.T @ R_WB(euler_W)
+    return euler_from_R(r_hb), safe_norm(v_air_W), rwh

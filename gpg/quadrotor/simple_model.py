@@ -1,0 +1,120 @@
+"""The paper's simplified model ``M`` (Section "Simple Quadrotor Aerodynamic Model").
+
+Body-frame thrust ``P_F r_i²`` along ``−z_B`` at each hub and reaction torque ``T_z r_i²``
+opposing each rotor's spin; world-frame wrench ``y_M = (R_WB F_B, R_WB τ_B)`` and its
+Jacobian ``J_M`` with respect to ``x_M = (r1..r4, yaw, pitch, roll)`` by ``jax.jacfwd``.
+
+The allocation matrix ``A`` (``(ΣT, τx, τy, τz) = A r²``) is derived from the hub positions
+and spin directions rather than typed in. The paper prints identical sign patterns for ``τx``
+and ``τz``, which makes ``A`` singular (pitfall 3 in DESIGN); with the diagonal pairs (r1, r3)
+and (r2, r4) spinning alike, ``τz ∝ (−r1² + r2² − r3² + r4²)`` and ``A`` is invertible.
+
+``P_F`` (N/rpm²) and ``T_z`` (N·m/rpm²) are least-squares fits to the generator's own hover
+sweep (:func:`fit_to_generator`), so the residual the GP learns is what ``M`` misses.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from gpg.quadrotor.frames import R_WB
+from gpg.quadrotor.vehicle import Vehicle
+
+
+class SimpleModel(eqx.Module):
+    """``M``: thrust and drag-torque coefficients plus the rotor layout (body FRD)."""
+
+    P_F: Float[Array, ""]  # N/rpm²
+    T_z: Float[Array, ""]  # N·m/rpm²
+    positions: Float[Array, "4 3"]  # m
+    spin: Float[Array, " 4"]  # +1: rotation about +z_B
+
+    @classmethod
+    def from_vehicle(cls, vehicle: Vehicle, P_F: float, T_z: float) -> SimpleModel:
+        return cls(
+            P_F=jnp.asarray(P_F, dtype=float),
+            T_z=jnp.asarray(T_z, dtype=float),
+            positions=vehicle.positions,
+            spin=vehicle.spin,
+        )
+
+    @property
+    def allocation(self) -> Float[Array, "4 4"]:
+        """``A`` with ``(ΣT, τx, τy, τz) = A r²``; thrust ``T_i`` acts along ``−z_B`` at ``p_i``."""
+        p = self.positions
+        ones = jnp.ones(4)
+        # p × (0, 0, −T) = (−p_y T, p_x T, 0); reaction torque −d T_z r² about z_B.
+        return jnp.stack(
+            [self.P_F * ones, -self.P_F * p[:, 1], self.P_F * p[:, 0], -self.T_z * self.spin]
+        )
+
+    def wrench_body(
+        self, rpm: Float[ArrayLike, " 4"]
+    ) -> tuple[Float[Array, " 3"], Float[Array, " 3"]]:
+        """Body-frame force (N) and torque (N·m) at rotor speeds ``rpm``."""
+        u = self.allocation @ jnp.asarray(rpm) ** 2
+        return jnp.stack([0.0, 0.0, -u[0]]), u[1:]
+
+    def __call__(self, x_M: Float[ArrayLike, " 7"]) -> Float[Array, " 6"]:
+        """``y_M = (F_W, τ_W)`` at ``x_M = (r1..r4, yaw, pitch, roll)``."""
+        x_M = jnp.asarray(x_M)
+        F, tau = self.wrench_body(x_M[:4])
+        R = R_WB(x_M[4:7])
+        return jnp.concatenate([R @ F, R @ tau])
+
+    def jacobian(self, x_M: Float[ArrayLike, " 7"]) -> Float[Array, "6 7"]:
+        """``J_M = ∂y_M/∂x_M`` (6, 7), by forward-mode autodiff."""
+        return jax.jacfwd(self.__call__)(jnp.asarray(x_M))
+
+    def batch(
+        self, X_M: Float[ArrayLike, "N 7"]
+    ) -> tuple[Float[Array, "N 6"], Float[Array, "N 6 7"]]:
+        """``y_M`` and ``J_M`` for many states."""
+        X_M = jnp.asarray(X_M)
+        return jax.vmap(self.__call__)(X_M), jax.vmap(self.jacobian)(X_M)
+
+    def hover_rpm(self, weight: float) -> Float[Array, ""]:
+        """Equal rotor speed at which ``M``'s thrust balances ``weight`` (N)."""
+        return jnp.sqrt(weight / (4.0 * self.P_F))
+
+
+@eqx.filter_jit
+def _batch(model: SimpleModel, X_M: Array):
+    return jax.vmap(model.__call__)(X_M), jax.vmap(model.jacobian)(X_M)
+
+
+def fit_coefficients(
+    rpm: Float[ArrayLike, " S"], thrust: Float[ArrayLike, " S"], torque: Float[ArrayLike, " S"]
+) -> tuple[float, float]:
+    """Least-squares ``P_F``, ``T_z`` for per-rotor ``T ≈ P_F r²`` and ``Q ≈ T_z r²``."""
+    r2 = np.asarray(rpm, dtype=float) ** 2
+    if not np.any(r2 > 0):
+        raise ValueError("the hover sweep needs at least one non-zero rpm")
+    den = float(np.sum(r2 * r2))
+    return float(np.sum(r2 * np.asarray(thrust)) / den), float(
+        np.sum(r2 * np.asarray(torque)) / den
+    )
+
+
+def fit_to_generator(generator, rpm: Float[ArrayLike, " S"] | None = None) -> SimpleModel:
+    """Fit ``P_F`` and ``T_z`` on the generator's hover sweep (level, zero airspeed).
+
+    ``generator`` is a :class:`gpg.quadrotor.generator.Generator`; the sweep defaults to
+    2000–6000 rpm in 500 rpm steps, the range of the paper's hover condition and its margins.
+    """
+    from gpg.quadrotor import bemt  # local: the generator module imports this one
+
+    rpm = np.arange(2000.0, 6001.0, 500.0) if rpm is None else np.asarray(rpm, dtype=float)
+
+    @jax.jit
+    def sweep(r):
+        res = bemt.aero(generator.vehicle, generator.bemt, jnp.full(4, r), jnp.eye(3), jnp.zeros(3))
+        return res.rotors.thrust, res.rotors.torque
+
+    T, Q = jax.vmap(sweep)(jnp.asarray(rpm))
+    P_F, T_z = fit_coefficients(np.repeat(rpm, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())
+    return SimpleModel.from_vehicle(generator.vehicle, P_F, T_z)

@@ -1,0 +1,201 @@
+"""Dataset generation (``python -m experiments.generate_data data=<scale> vehicle=<name>``).
+
+Writes the training and test datasets into the run directory and into a cache keyed by the
+configuration (so ``experiments.compare`` reuses them), plus sanity figures: thrust vs rpm,
+forces and moments vs airspeed, OASPL vs rpm, and finite-difference vs exact gradients.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpg.data.dataset import Dataset
+from gpg.data.sampling import Bounds, FDSteps, generate
+from gpg.quadrotor import acoustics, bemt
+from gpg.quadrotor.generator import GENERATOR_VERSION, Generator, evaluate_batch, jacobian
+from gpg.quadrotor.simple_model import SimpleModel, fit_to_generator
+from gpg.quadrotor.vehicle import Vehicle
+from gpg.runs.common import write_json
+
+_GEN_KEYS = {"n_radial", "n_azimuth", "interference", "wake_gain", "n_harmonics"}
+
+
+def build_generator(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> Generator:
+    """The generator described by a ``data`` config group and a ``vehicle`` config group."""
+    g = dict(data_cfg.get("generator", {}))
+    unknown = sorted(set(g) - _GEN_KEYS)
+    if unknown:
+        raise ValueError(f"unknown data.generator keys {unknown}; valid: {sorted(_GEN_KEYS)}")
+    cfg = bemt.BEMTConfig(
+        n_radial=int(g.get("n_radial", 14)),
+        n_azimuth=int(g.get("n_azimuth", 24)),
+        interference=bool(g.get("interference", True)),
+        wake_gain=float(g.get("wake_gain", 1.0)),
+    )
+    ac = acoustics.AcousticsConfig(n_harmonics=int(g.get("n_harmonics", 10)))
+    return Generator(Vehicle.from_config(vehicle_cfg), cfg, ac)
+
+
+def dataset_key(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> str:
+    """Cache key: hash of everything that determines the data (not ``chunk``, which does not)."""
+    relevant = {k: v for k, v in data_cfg.items() if k not in ("chunk",)}
+    blob = json.dumps(
+        {"data": relevant, "vehicle": vehicle_cfg, "generator_version": GENERATOR_VERSION},
+        sort_keys=True,
+        default=str,
+    )
+    return f"{data_cfg.get('name', 'data')}-{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
+
+
+def _generate_pair(gen: Generator, data_cfg: Mapping[str, Any], simple: SimpleModel, progress):
+    bounds = Bounds.from_config(data_cfg.get("bounds", {}))
+    fd = FDSteps(**data_cfg.get("fd", {}))
+    meta = {
+        "name": data_cfg.get("name"),
+        "generator": {
+            "name": "gpg BEMT + tonal acoustics",
+            "version": GENERATOR_VERSION,
+            "vehicle": gen.vehicle.name,
+            "settings": dict(data_cfg.get("generator", {})),
+        },
+        "simple_model": {"P_F": float(simple.P_F), "T_z": float(simple.T_z)},
+    }
+    chunk = int(data_cfg.get("chunk", 512))
+    train = generate(
+        gen,
+        int(data_cfg["n_train"]),
+        bounds=bounds,
+        seed=int(data_cfg["train_seed"]),
+        gradients=data_cfg.get("gradients", "fd"),
+        fd=fd,
+        keep_raw=bool(data_cfg.get("keep_raw", True)),
+        noise=bool(data_cfg.get("noise", True)),
+        chunk=chunk,
+        progress="train set" if progress else False,
+        meta={**meta, "split": "train"},
+    )
+    test = generate(
+        gen,
+        int(data_cfg["n_test"]),
+        bounds=bounds,
+        seed=int(data_cfg["test_seed"]),
+        gradients="none",
+        keep_raw=False,
+        noise=bool(data_cfg.get("noise", True)),
+        chunk=chunk,
+        progress="test set" if progress else False,
+        meta={**meta, "split": "test"},
+    )
+    return train, test
+
+
+def ensure_datasets(
+    data_cfg: Mapping[str, Any],
+    vehicle_cfg: Mapping[str, Any],
+    cache_dir: str | Path,
+    *,
+    progress: bool = True,
+) -> tuple[Dataset, Dataset, Path, dict[str, Any]]:
+    """Load the train/test pair from the cache, generating (and caching) it when absent.
+
+    Returns ``(train, test, cache_path, info)``; ``info`` has the key, whether it was cached,
+    and the generation time.
+    """
+    if data_cfg["train_seed"] == data_cfg["test_seed"]:
+        raise ValueError("data.train_seed and data.test_seed must differ (held-out test set)")
+    # Validate everything before any work or any file: bad bounds fail in milliseconds.
+    Bounds.from_config(data_cfg.get("bounds", {}))
+    FDSteps(**data_cfg.get("fd", {}))
+    gen = build_generator(data_cfg, vehicle_cfg)
+    key = dataset_key(data_cfg, vehicle_cfg)
+    where = Path(cache_dir) / key
+    info: dict[str, Any] = {"key": key, "cache": str(where)}
+    if (where / "train.npz").is_file() and (where / "test.npz").is_file():
+        info.update(cached=True, generate_s=None)
+        return Dataset.load(where / "train"), Dataset.load(where / "test"), where, info
+    t0 = time.perf_counter()
+    simple = fit_to_generator(gen)
+    train, test = _generate_pair(gen, data_cfg, simple, progress)
+    info.update(cached=False, generate_s=time.perf_counter() - t0)
+    tmp = where.with_name(where.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    train.save(tmp / "train")
+    test.save(tmp / "test")
+    shutil.rmtree(where, ignore_errors=True)
+    tmp.rename(where)  # the cache entry appears complete or not at all
+    return train, test, where, info
+
+
+def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
+    """Finite-difference gradients of the dataset against exact ones on ``n`` of its points."""
+    if ds.jac is None:
+        return {}
+    idx = np.arange(min(n, ds.n))
+    _, exact = evaluate_batch(gen, ds.x[idx], chunk=32, with_jacobian=True)
+    fd = ds.jac[idx]
+    exact = exact[:, : fd.shape[1]]
+    scale = np.std(exact, axis=0, keepdims=True) + 1e-12  # per output and input
+    err = np.abs(fd - exact) / scale
+    return {"idx": idx, "fd": fd, "exact": exact, "scaled_error": err}
+
+
+def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
+    """Generate (or load from cache) the configured datasets, copy them to ``outdir``, plot."""
+    outdir = Path(outdir)
+    data_cfg, vehicle_cfg = cfg["data"], cfg["vehicle"]
+    train, test, where, info = ensure_datasets(data_cfg, vehicle_cfg, cfg["cache_dir"])
+    for split in ("train", "test"):
+        for ext in (".npz", ".json"):
+            shutil.copyfile(where / f"{split}{ext}", outdir / f"{split}{ext}")
+    gen = build_generator(data_cfg, vehicle_cfg)
+    simple = SimpleModel.from_vehicle(gen.vehicle, **train.meta["simple_model"])
+    result: dict[str, Any] = {
+        "dataset": info,
+        "train": train.summary(),
+        "test": test.summary(),
+        "simple_model": train.meta["simple_model"],
+        "hover_rpm_simple_model": float(simple.hover_rpm(float(gen.vehicle.weight))),
+    }
+    if cfg.get("figures", True):
+        from gpg import plots
+
+        check = _gradient_check(gen, train, int(cfg.get("sanity_points", 200)))
+        figs = plots.data_sanity(gen, simple, check, outdir / "figures")
+        result["figures"] = [str(p.relative_to(outdir)) for p in figs]
+        if check:
+            med = np.median(check["scaled_error"], axis=0)  # (M, 7)
+            result["fd_vs_exact_median_scaled_error"] = {
+                name: med[m].round(5).tolist() for m, name in enumerate(train.output_names)
+            }
+    write_json(outdir / "results.json", {"config": cfg, **result})
+    print(f"dataset {info['key']}: {result['train']}")
+    if info["generate_s"] is not None:
+        print(f"generated in {info['generate_s']:.1f} s; cached at {where}")
+    else:
+        print(f"loaded from cache {where}")
+    return result
+
+
+def hover_sweep(gen: Generator, rpm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-rotor thrust and torque at hover (level, zero airspeed) for each rpm."""
+
+    @jax.jit
+    def one(r):
+        res = bemt.aero(gen.vehicle, gen.bemt, jnp.full(4, r), jnp.eye(3), jnp.zeros(3))
+        return res.rotors.thrust[0], res.rotors.torque[0]
+
+    T, Q = jax.vmap(one)(jnp.asarray(rpm))
+    return np.asarray(T), np.asarray(Q)
+
+
+__all__ = ["build_generator", "dataset_key", "ensure_datasets", "hover_sweep", "jacobian", "run"]

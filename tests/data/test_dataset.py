@@ -1,0 +1,238 @@
+"""Dataset files: exact round trips, partial datasets, CSV import, and clear errors."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from gpg.data.dataset import Dataset, from_csv
+
+
+def make(rng, n=12, noise=True, grads=True, raw=True):
+    x = np.column_stack(
+        [rng.uniform(0, 7000, (n, 4)), rng.uniform(-1, 1, (n, 3)), rng.uniform(0, 20, n)]
+    )
+    return Dataset(
+        x=x,
+        y_aero=rng.normal(size=(n, 6)),
+        jac_aero=rng.normal(size=(n, 6, 7)) if grads else None,
+        y_noise=rng.normal(50, 5, (n, 3)) if noise else None,
+        jac_noise=rng.normal(size=(n, 3, 7)) if noise and grads else None,
+        x_raw=np.repeat(x, 8, axis=0) if raw else None,
+        y_raw=rng.normal(size=(8 * n, 9 if noise else 6)) if raw else None,
+        meta={"seed": 3, "bounds": {"rpm": [0.0, 7000.0]}},
+    )
+
+
+ARRAYS = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "x_raw", "y_raw")
+
+
+def test_round_trip_exact_and_deterministic(rng, tmp_path):
+    ds = make(rng)
+    ds.save(tmp_path / "a")
+    back = Dataset.load(tmp_path / "a")
+    for k in ARRAYS:
+        np.testing.assert_array_equal(getattr(back, k), getattr(ds, k))
+    assert back.meta == ds.meta
+    ds.save(tmp_path / "b.npz")  # suffix is optional
+    for ext in (".npz", ".json"):
+        assert (tmp_path / f"a{ext}").read_bytes() == (tmp_path / f"b{ext}").read_bytes()
+    side = json.loads((tmp_path / "a.json").read_text())
+    assert side["schema_version"] == 1 and side["units"]["yaw"] == "rad" and side["n"] == 12
+
+
+@pytest.mark.parametrize(
+    "kw, lacks",
+    [
+        (dict(noise=False), ("noise",)),
+        (dict(grads=False), ("gradients", "noise gradients")),
+        (dict(raw=False), ("raw samples",)),
+        (dict(noise=False, grads=False, raw=False), ("noise", "gradients", "raw samples")),
+    ],
+)
+def test_partial_datasets_load_and_say_what_they_lack(rng, tmp_path, kw, lacks):
+    ds = make(rng, **kw)
+    ds.save(tmp_path / "p")
+    back = Dataset.load(tmp_path / "p")
+    assert back.missing == lacks
+    assert "lacks: " + ", ".join(lacks) in back.summary()
+    assert back.y.shape[1] == (6 if "noise" in lacks else 9)
+    assert (back.jac is None) == ("gradients" in lacks)
+
+
+def test_without_and_subset(rng):
+    ds = make(rng)
+    assert ds.without("noise").missing == ("noise",)
+    assert ds.without("noise").y_raw.shape == (96, 6)
+    sub = ds.subset(np.array([2, 5]))
+    np.testing.assert_array_equal(sub.x_raw, ds.x_raw[16:24].tolist() + ds.x_raw[40:48].tolist())
+    with pytest.raises(ValueError, match="unknown parts"):
+        ds.without("colour")
+
+
+@pytest.mark.parametrize(
+    "field, bad_row", [("x", 3), ("y_aero", 0), ("jac_aero", 7), ("y_noise", 11), ("y_raw", 40)]
+)
+def test_nan_rows_reported_by_index(rng, field, bad_row):
+    ds = make(rng)
+    arrays = {k: getattr(ds, k) for k in ARRAYS}
+    arrays[field] = arrays[field].copy()
+    arrays[field][bad_row].flat[0] = np.inf if bad_row % 2 else np.nan
+    with pytest.raises(ValueError, match=rf"{field} holds NaN or inf in row\(s\) {bad_row}\b"):
+        Dataset(**arrays)
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda a: a.update(x=a["x"][:, :7]), r"x must have shape \(N, 8\)"),
+        (lambda a: a.update(y_aero=a["y_aero"][:5]), r"y_aero must have shape \(12, 6\)"),
+        (lambda a: a.update(jac_aero=a["jac_aero"][:, :, :6]), r"jac_aero must have shape"),
+        (lambda a: a.update(y_raw=None), r"x_raw and y_raw must be given together"),
+        (
+            lambda a: a.update(y_noise=None, y_raw=a["y_raw"][:, :6]),
+            r"jac_noise given without y_noise",
+        ),
+    ],
+)
+def test_wrong_shapes(rng, edit, match):
+    ds = make(rng)
+    arrays = {k: getattr(ds, k) for k in ARRAYS}
+    edit(arrays)
+    with pytest.raises(ValueError, match=match):
+        Dataset(**arrays)
+
+
+def test_negative_rpm_rejected(rng):
+    ds = make(rng)
+    x = ds.x.copy()
+    x[4, 2] = -1.0
+    with pytest.raises(ValueError, match=r"negative rotor speeds in row\(s\) \[4\]"):
+        Dataset(x=x, y_aero=ds.y_aero)
+
+
+def test_load_errors(rng, tmp_path):
+    with pytest.raises(ValueError, match="does not exist"):
+        Dataset.load(tmp_path / "nothing")
+    make(rng).save(tmp_path / "d")
+    side = json.loads((tmp_path / "d.json").read_text())
+    side["schema_version"] = 99
+    (tmp_path / "d.json").write_text(json.dumps(side))
+    with pytest.raises(ValueError, match="schema version 99"):
+        Dataset.load(tmp_path / "d")
+    make(rng).save(tmp_path / "e")
+    (tmp_path / "e.npz").write_bytes((tmp_path / "e.npz").read_bytes()[:100])
+    with pytest.raises(ValueError, match="not a readable .npz"):
+        Dataset.load(tmp_path / "e")
+
+
+def test_nothing_written_on_failure(rng, tmp_path):
+    (tmp_path / "blocker").write_text("a file where a directory should be")
+    with pytest.raises(OSError):
+        make(rng).save(tmp_path / "blocker" / "d")
+    ds = make(rng)
+    object.__setattr__(ds, "y_aero", ds.y_aero[:3])  # corrupt after construction
+    with pytest.raises(ValueError):
+        ds.save(tmp_path / "bad")
+    assert sorted(os.listdir(tmp_path)) == ["blocker"]
+
+
+# ----------------------------------------------------------------------------------------------
+# CSV import
+# ----------------------------------------------------------------------------------------------
+
+COLUMNS = {
+    "r1": "rpm_1",
+    "r2": "rpm_2",
+    "r3": "rpm_3",
+    "r4": "rpm_4",
+    "yaw": "yaw_deg",
+    "pitch": "pitch_deg",
+    "roll": "roll_deg",
+    "airspeed": "V_kmh",
+    "Fx": "fx",
+    "Fy": "fy",
+    "Fz": "fz",
+    "Mx": "mx",
+    "My": "my",
+    "Mz": "mz",
+}
+UNITS = {"yaw": "deg", "pitch": "deg", "roll": "deg", "airspeed": "km/h", "Fz": "lbf"}
+
+
+def write_csv(path, rows, header):
+    path.write_text(
+        ",".join(header) + "\n" + "\n".join(",".join(str(v) for v in r) for r in rows) + "\n"
+    )
+
+
+def test_csv_import_converts_units(rng, tmp_path):
+    n = 5
+    raw = np.column_stack(
+        [
+            rng.uniform(0, 7000, (n, 4)),
+            rng.uniform(-80, 80, (n, 3)),
+            rng.uniform(0, 70, n),
+            rng.normal(size=(n, 6)),
+        ]
+    )
+    header = list(COLUMNS.values()) + ["dFx/dyaw_per_deg"]
+    dfx = rng.normal(size=n)
+    write_csv(tmp_path / "t.csv", np.column_stack([raw, dfx]), header)
+    ds = from_csv(tmp_path / "t.csv", COLUMNS, units=UNITS)
+    np.testing.assert_allclose(ds.x[:, 4:7], np.deg2rad(raw[:, 4:7]), rtol=1e-15)
+    np.testing.assert_allclose(ds.x[:, 7], raw[:, 7] / 3.6, rtol=1e-15)
+    np.testing.assert_allclose(ds.y_aero[:, 2], raw[:, 10] * 4.4482216152605, rtol=1e-15)
+    assert ds.missing == ("noise", "gradients", "raw samples")
+    assert ds.meta["source"] == "csv:t.csv"
+
+
+def test_csv_gradients_converted(rng, tmp_path):
+    n = 3
+    cols = dict(COLUMNS)
+    grads = {
+        f"d{o}/d{i}": f"g_{o}_{i}"
+        for o in ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+        for i in ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll")
+    }
+    cols.update(grads)
+    data = rng.normal(size=(n, len(cols))) + 100
+    write_csv(tmp_path / "g.csv", data, list(cols.values()))
+    ds = from_csv(tmp_path / "g.csv", cols, units={"yaw": "deg", "Fz": "lbf"})
+    j = list(cols).index("dFz/dyaw")
+    np.testing.assert_allclose(
+        ds.jac_aero[:, 2, 4], data[:, j] * 4.4482216152605 / (np.pi / 180), rtol=1e-14
+    )
+    assert ds.missing == ("noise", "raw samples")
+
+
+@pytest.mark.parametrize(
+    "cols, units, match",
+    [
+        ({**COLUMNS, "Fw": "fw"}, {}, r"unknown schema fields \['Fw'\]"),
+        ({**COLUMNS, "Fx": "force_x"}, {}, r"CSV columns \['force_x'\] not in"),
+        (COLUMNS, {"yaw": "gradians"}, r"unknown unit 'gradians' for yaw"),
+        (COLUMNS, {"wind": "m/s"}, r"units given for unknown fields \['wind'\]"),
+        ({k: v for k, v in COLUMNS.items() if k != "Mz"}, {}, r"lacks required fields \['Mz'\]"),
+        ({**COLUMNS, "L1": "fx"}, {}, r"noise needs all of"),
+    ],
+)
+def test_csv_errors(rng, tmp_path, cols, units, match):
+    write_csv(tmp_path / "e.csv", rng.uniform(1, 2, (3, 14)), list(COLUMNS.values()))
+    with pytest.raises(ValueError, match=match):
+        from_csv(tmp_path / "e.csv", cols, units=units)
+
+
+def test_csv_bad_values(rng, tmp_path):
+    rows = rng.uniform(1, 2, (4, 14)).astype(object)
+    rows[2, 9] = "nan"
+    write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
+    with pytest.raises(ValueError, match=r"y_aero holds NaN or inf in row\(s\) 2"):
+        from_csv(tmp_path / "n.csv", COLUMNS)
+    rows[2, 9] = "abc"
+    write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
+    with pytest.raises(ValueError, match=r"line 4: non-numeric"):
+        from_csv(tmp_path / "n.csv", COLUMNS)
+    with pytest.raises(ValueError, match="does not exist"):
+        from_csv(tmp_path / "missing.csv", COLUMNS)

@@ -1,0 +1,77 @@
+"""Latin hypercube, finite-difference steps, raw samples, and deterministic generation."""
+
+import numpy as np
+import pytest
+
+from gpg.data.sampling import Bounds, FDSteps, generate, latin_hypercube, raw_samples
+
+
+def test_latin_hypercube_stratified_and_in_bounds():
+    b = Bounds()
+    x = latin_hypercube(50, b, seed=4)
+    lo, hi = b.arrays()
+    assert x.shape == (50, 8) and np.all(x >= lo) and np.all(x <= hi)
+    for j in range(8):  # one point per stratum in every dimension
+        strata = np.floor((x[:, j] - lo[j]) / (hi[j] - lo[j]) * 50).astype(int)
+        assert sorted(strata) == list(range(50))
+    np.testing.assert_array_equal(x, latin_hypercube(50, b, seed=4))
+    assert not np.array_equal(x, latin_hypercube(50, b, seed=5))
+    np.testing.assert_allclose(hi[4:7], np.deg2rad([90, 60, 90]))
+
+
+@pytest.mark.parametrize(
+    "cfg, match",
+    [
+        ({"rpm": [7000.0, 0.0]}, r"bounds.rpm is inverted"),
+        ({"pitch_deg": [10.0, 10.0]}, r"bounds.pitch_deg is inverted or empty"),
+        ({"yaw": [0, 1]}, r"unknown bounds keys \['yaw'\]"),
+        ({"airspeed": [-5.0, 5.0]}, r"must start at >= 0"),
+        ({"roll_deg": [0.0]}, r"must be \[lower, upper\]"),
+        ({"roll_deg": [0.0, float("inf")]}, r"must be finite"),
+    ],
+)
+def test_bad_bounds(cfg, match):
+    with pytest.raises(ValueError, match=match):
+        Bounds.from_config(cfg)
+
+
+def test_fd_steps_and_raw_layout():
+    x = np.array([[0.0, 100.0, 3000.0, 7000.0, 0.1, 0.2, 0.3, 5.0]])
+    raw, h = raw_samples(x, FDSteps())
+    np.testing.assert_allclose(h[0], [10.0, 10.0, 300.0, 700.0] + [np.pi / 180] * 3)
+    assert raw.shape == (8, 8)
+    np.testing.assert_array_equal(raw[0], x[0])
+    for k in range(7):
+        d = raw[1 + k] - x[0]
+        assert np.count_nonzero(d) == 1 and np.isclose(d[k], h[0, k], rtol=1e-12)
+    with pytest.raises(ValueError, match="fd.rpm_rel must be > 0"):
+        FDSteps(rpm_rel=0.0)
+
+
+def test_generate_fd_is_paper_forward_difference(gen):
+    ds = generate(gen, 4, seed=2, chunk=32)
+    y8 = ds.y_raw.reshape(4, 8, 9)
+    _, h = raw_samples(ds.x, FDSteps())
+    np.testing.assert_allclose(
+        ds.jac_aero[:, 0, 5], (y8[:, 6, 0] - y8[:, 0, 0]) / h[:, 5], rtol=1e-12
+    )
+    np.testing.assert_array_equal(ds.y_aero, y8[:, 0, :6])
+    assert ds.missing == ()
+
+
+def test_generate_is_bit_identical(gen, tmp_path):
+    for name in ("a", "b"):
+        generate(gen, 4, seed=2, chunk=32, meta={"simple_model": {"P_F": 1.0, "T_z": 1.0}}).save(
+            tmp_path / name
+        )
+    for ext in (".npz", ".json"):
+        assert (tmp_path / f"a{ext}").read_bytes() == (tmp_path / f"b{ext}").read_bytes()
+
+
+def test_generate_options(gen):
+    with pytest.raises(ValueError, match="gradients must be"):
+        generate(gen, 2, gradients="adjoint")
+    with pytest.raises(ValueError, match="raw 8X samples come from the finite differences"):
+        generate(gen, 2, gradients="none")
+    ds = generate(gen, 3, gradients="none", keep_raw=False, noise=False, chunk=32)
+    assert ds.missing == ("noise", "gradients", "raw samples")

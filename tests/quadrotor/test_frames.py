@@ -1,0 +1,116 @@
+"""Frames: Euler round trips, proper rotations, the airflow frame H and its special points."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg.quadrotor import frames
+
+
+def random_euler(rng, n):
+    return np.column_stack(
+        [rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-np.pi, np.pi, n)]
+    )
+
+
+def test_rotation_properties(rng):
+    for e in random_euler(rng, 20):
+        R = np.asarray(frames.R_WB(e))
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
+        np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-14)
+
+
+def test_conventions():
+    # Positive pitch raises the nose (body x toward world −z); positive yaw turns it right (+y).
+    np.testing.assert_allclose(
+        frames.R_WB([0, 0.3, 0]) @ np.array([1.0, 0, 0]), [np.cos(0.3), 0, -np.sin(0.3)], atol=1e-15
+    )
+    np.testing.assert_allclose(
+        frames.R_WB([0.3, 0, 0]) @ np.array([1.0, 0, 0]), [np.cos(0.3), np.sin(0.3), 0], atol=1e-15
+    )
+    # Positive roll lowers the right side (body y toward world +z).
+    np.testing.assert_allclose(
+        frames.R_WB([0, 0, 0.3]) @ np.array([0, 1.0, 0]), [0, np.cos(0.3), np.sin(0.3)], atol=1e-15
+    )
+
+
+def test_euler_round_trip(rng):
+    for e in random_euler(rng, 50):
+        back = np.asarray(frames.euler_from_R(frames.R_WB(e)))
+        np.testing.assert_allclose(back, e, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "pitch", [np.pi / 2, -np.pi / 2, np.pi / 2 - 1e-7, -np.pi / 2 + 1e-9, 1.5707]
+)
+def test_round_trip_near_pitch_limits(rng, pitch):
+    for yaw, roll in rng.uniform(-3, 3, (10, 2)):
+        R = frames.R_WB([yaw, pitch, roll])
+        e = frames.euler_from_R(R)
+        np.testing.assert_allclose(frames.R_WB(e), R, atol=1e-9)  # same rotation, any split
+        assert abs(float(e[1]) - pitch) < 1e-9
+
+
+def test_airflow_frame_takes_airflow_to_x(rng):
+    for v in rng.normal(size=(30, 3)) * 7:
+        R = np.asarray(frames.R_WH(v))
+        vhat = v / np.linalg.norm(v)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
+        np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-14)  # a rotation, not a mirror
+        np.testing.assert_allclose(R @ [1.0, 0, 0], vhat, atol=1e-14)  # R_WH e_x = v̂
+        np.testing.assert_allclose(R.T @ vhat, [1.0, 0, 0], atol=1e-14)  # i.e. R_HW v̂ = e_x
+        assert abs(R[2, 1]) < 1e-14  # y_H stays horizontal
+
+
+def test_householder_would_mirror():
+    """The paper's lone Householder matrix is a reflection: det −1 (pitfall 2)."""
+    v = np.array([3.0, 4.0, 0.0]) / 5
+    u = (v - [1, 0, 0]) / np.linalg.norm(v - [1, 0, 0])
+    H = np.eye(3) - 2 * np.outer(u, u)
+    assert np.isclose(np.linalg.det(H), -1.0)
+    assert np.isclose(np.linalg.det(frames.R_WH(v)), 1.0)
+
+
+def test_airflow_frame_commutes_with_world_yaw(rng):
+    for v in rng.normal(size=(10, 3)) * 5:
+        a = rng.uniform(-np.pi, np.pi)
+        Rz = np.asarray(frames.rot_z(a))
+        np.testing.assert_allclose(frames.R_WH(Rz @ v), Rz @ frames.R_WH(v), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "v",
+    [
+        [0.0, 0, 0],
+        [5.0, 0, 0],
+        [1e-12, 0, 0],
+        [0, 0, -4.0],
+        [0, 0, 3.0],
+        [-2.0, 0, 0],
+        [0, 1e-10, 0],
+    ],
+)
+def test_airflow_frame_special_points_finite(v):
+    v = jnp.asarray(v)
+    R = frames.R_WH(v)
+    assert np.all(np.isfinite(R))
+    np.testing.assert_allclose(np.asarray(R) @ np.asarray(R).T, np.eye(3), atol=1e-14)
+    J = jax.jacfwd(frames.R_WH)(v)
+    assert np.all(np.isfinite(J))
+    g = jax.grad(lambda w: jnp.sum(frames.to_airflow_frame(jnp.array([0.1, 0.2, 0.3]), w)[0]))(v)
+    assert np.all(np.isfinite(g))
+    if float(jnp.linalg.norm(v)) == 0.0:
+        np.testing.assert_array_equal(R, np.eye(3))
+
+
+def test_dataset_airflow_keeps_euler(rng):
+    """With airflow along +x (the dataset frame), H = W and the Euler angles are unchanged."""
+    for e in random_euler(rng, 10) * [0.5, 0.6, 0.5]:
+        eh, speed, R = frames.to_airflow_frame(e, [7.0, 0, 0])
+        np.testing.assert_allclose(eh, e, atol=1e-12)
+        assert float(speed) == 7.0
+
+
+def test_safe_norm_gradient_at_zero():
+    assert np.all(np.asarray(jax.grad(frames.safe_norm)(jnp.zeros(3))) == 0)

@@ -1,0 +1,56 @@
+"""Vehicle parameters from YAML, and clear errors for bad files."""
+
+import copy
+
+import numpy as np
+import pytest
+import yaml
+
+from gpg.quadrotor.vehicle import VEHICLE_DIR, Vehicle, load_vehicle
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    with open(VEHICLE_DIR / "sui_endurance.yaml") as f:
+        return yaml.safe_load(f)
+
+
+def test_loads_public_numbers(vehicle):
+    assert vehicle.rotor.n_blades == 2
+    np.testing.assert_allclose(vehicle.rotor.radius, 0.1905)
+    np.testing.assert_allclose(vehicle.weight, 2.72 * 9.81)
+    # X layout, hubs 0.36 m from the centre: l_x = l_y = 0.255 m; r1 rear-right ... r4 front-right.
+    p = np.asarray(vehicle.positions)
+    np.testing.assert_allclose(np.hypot(p[:, 0], p[:, 1]), 0.36)
+    assert np.all(np.sign(p[:, :2]) == [[-1, 1], [-1, -1], [1, -1], [1, 1]])
+    spin = np.asarray(vehicle.spin)
+    assert spin[0] == spin[2] and spin[1] == spin[3] and spin[0] == -spin[1]
+    np.testing.assert_allclose(np.linalg.norm(vehicle.mic_positions, axis=1), 20 * 0.1905)
+
+
+def test_unknown_vehicle_lists_known():
+    with pytest.raises(ValueError, match="known vehicles: .*sui_endurance"):
+        load_vehicle("no_such_quad")
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda c: c.pop("mass"), r"vehicle.mass is missing"),
+        (lambda c: c.update(colour="red"), r"vehicle has unknown keys \['colour'\]"),
+        (lambda c: c["rotor"].update(radius=-0.1), r"vehicle.rotor.radius must be > 0"),
+        (lambda c: c["layout"].update(spin=[1, 1, 0, -1]), r"vehicle.layout.spin"),
+        (lambda c: c["rotor"].update(chord_in=[1.0, 2.0]), r"twist_deg and chord_in"),
+        (
+            lambda c: c["airfoil"].update(lift_slope="fast"),
+            r"vehicle.airfoil.lift_slope must be a finite number",
+        ),
+        (lambda c: c["motor"].update(rpm_min=8000.0), r"rpm_min < rpm_max"),
+        (lambda c: c["rotor"].update(hub_height_mm=5), r"vehicle.rotor has unknown keys"),
+    ],
+)
+def test_bad_vehicle_config(cfg, edit, match):
+    bad = copy.deepcopy(cfg)
+    edit(bad)
+    with pytest.raises(ValueError, match=match):
+        Vehicle.from_config(bad)
