@@ -9,8 +9,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from gpg import kernels  # noqa: E402
+from gpg import checkpoint, kernels, models  # noqa: E402
 from gpg.gp import ExactGP, Hyper  # noqa: E402
+from gpg.surrogate import Prediction, Surrogate  # noqa: E402
 
-__all__ = ["ExactGP", "Hyper", "kernels"]
+__all__ = ["ExactGP", "Hyper", "Prediction", "Surrogate", "checkpoint", "kernels", "models"]
 __version__ = "0.1.0"

@@ -30,6 +30,8 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg import _checks, kernels, linalg
+from gpg.predictor import Predictor
+from gpg.tri import BlockTriangular
 
 
 class FitWarning(UserWarning):
@@ -198,15 +200,16 @@ def assemble_gram(
     return out
 
 
-class ExactGP(eqx.Module):
+class ExactGP(Predictor):
     """Exact GP with optional gradient observations (GP-G). Build with :meth:`ExactGP.fit`.
 
     Attributes:
         X: training inputs ``X_d`` (N, D).
         alpha: ``K̄⁻¹ Ȳ`` (R, M), ``R = N(1+G)``.
-        chol_inv: ``L⁻¹`` for the lower Cholesky factor ``L`` of ``K̄`` (R, R), so that the
-            variance is ``σ − ‖L⁻¹ k̄_q‖²``. A matrix-vector product with the stored inverse
-            reads the matrix once, row-major; a triangular solve in JAX first copies ``L`` to
+        chol_inv: ``L⁻¹`` for the lower Cholesky factor ``L`` of ``K̄`` (R, R), stored in row
+            bands (:class:`gpg.tri.BlockTriangular`), so that the variance is
+            ``σ − ‖L⁻¹ k̄_q‖²``. A matrix-vector product with the stored inverse reads the
+            triangle once, row-major; a triangular solve in JAX first copies ``L`` to
             column-major order and is over ten times slower per query at 8000 rows.
         hyper: the hyperparameters used.
         grad_dims: input dimensions with gradient observations (static).
@@ -215,7 +218,7 @@ class ExactGP(eqx.Module):
 
     X: Float[Array, "N D"]
     alpha: Float[Array, "R M"]
-    chol_inv: Float[Array, "R R"]
+    chol_inv: BlockTriangular
     hyper: Hyper
     log_marginal_likelihood: Float[Array, ""]
     grad_dims: tuple[int, ...] = eqx.field(static=True)
@@ -257,10 +260,12 @@ class ExactGP(eqx.Module):
             - 0.5 * m * r * math.log(2 * math.pi)
         )
         chol_inv = linalg.triangular_inverse_inplace(chol)  # overwrites the factor: one buffer
+        bands = BlockTriangular.from_dense(chol_inv, lower=True, n_blocks=8)
+        del chol, chol_inv
         return cls(
             X=Xj,
             alpha=jnp.asarray(alpha),
-            chol_inv=jnp.asarray(chol_inv),
+            chol_inv=bands,
             hyper=hyper,
             log_marginal_likelihood=jnp.asarray(lml),
             grad_dims=data.grad_dims,
@@ -269,6 +274,18 @@ class ExactGP(eqx.Module):
     @property
     def n_outputs(self) -> int:
         return self.alpha.shape[1]
+
+    @property
+    def n_inputs(self) -> int:
+        return self.X.shape[1]
+
+    def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        return (_cross(self, x[None]) @ self.alpha)[0]
+
+    def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
+        k = _cross(self, x[None])[0]
+        v = self.chol_inv.matvec(k)
+        return k @ self.alpha, jnp.maximum(self.hyper.variance - v @ v, 0.0)
 
     def predict(
         self, Xq: Float[ArrayLike, "Q D"]
@@ -307,9 +324,9 @@ def _predict(gp: ExactGP, Xq: Array, with_var: bool):
     mean = kq @ gp.alpha
     if not with_var:
         return mean, None
-    v = gp.chol_inv @ kq.T
+    v = gp.chol_inv.rmatmul(kq)
     # Rounding can push the difference a hair below zero for queries on training points.
-    var = jnp.maximum(gp.hyper.variance - jnp.sum(v * v, axis=0), 0.0)
+    var = jnp.maximum(gp.hyper.variance - jnp.sum(v * v, axis=1), 0.0)
     return mean, var
 
 

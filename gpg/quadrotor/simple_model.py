@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from gpg.quadrotor.frames import R_WB
+from gpg.quadrotor.frames import R_WB, matvec
 from gpg.quadrotor.vehicle import Vehicle
 
 
@@ -55,16 +55,26 @@ class SimpleModel(eqx.Module):
     def wrench_body(
         self, rpm: Float[ArrayLike, " 4"]
     ) -> tuple[Float[Array, " 3"], Float[Array, " 3"]]:
-        """Body-frame force (N) and torque (N·m) at rotor speeds ``rpm``."""
-        u = self.allocation @ jnp.asarray(rpm) ** 2
-        return jnp.stack([0.0, 0.0, -u[0]]), u[1:]
+        """Body-frame force (N) and torque (N·m) at rotor speeds ``rpm``: ``A r²`` row by row
+        (elementwise sums fuse into one kernel; see :func:`gpg.quadrotor.frames.matvec`)."""
+        r2 = jnp.asarray(rpm) ** 2
+        thrust = self.P_F * jnp.sum(r2)
+        tau = jnp.stack(
+            [
+                -self.P_F * jnp.sum(self.positions[:, 1] * r2),
+                self.P_F * jnp.sum(self.positions[:, 0] * r2),
+                -self.T_z * jnp.sum(self.spin * r2),
+            ]
+        )
+        zero = jnp.zeros_like(thrust)
+        return jnp.stack([zero, zero, -thrust]), tau
 
     def __call__(self, x_M: Float[ArrayLike, " 7"]) -> Float[Array, " 6"]:
         """``y_M = (F_W, τ_W)`` at ``x_M = (r1..r4, yaw, pitch, roll)``."""
         x_M = jnp.asarray(x_M)
         F, tau = self.wrench_body(x_M[:4])
         R = R_WB(x_M[4:7])
-        return jnp.concatenate([R @ F, R @ tau])
+        return jnp.concatenate([matvec(R, F), matvec(R, tau)])
 
     def jacobian(self, x_M: Float[ArrayLike, " 7"]) -> Float[Array, "6 7"]:
         """``J_M = ∂y_M/∂x_M`` (6, 7), by forward-mode autodiff."""

@@ -4,6 +4,11 @@ Suites:
 
 * ``exact_gp``: cost of assembling ``K̄`` and factorising it against the Cholesky of a ready
   matrix of the same size, and the latency of a jitted ``ExactGP.predict``.
+* ``models``: every model of :mod:`gpg.models` on a dataset (``data=default`` by default):
+  training time (hyperparameter fit, partition, factorisation/precompute), single-query
+  latency of the jitted mean+variance and mean-only predictors, mean-only throughput on
+  batches, the same for the full :class:`gpg.Surrogate` pipeline, and model bytes. Ratios
+  against ``gpg`` (exact GP-G) are taken within the run.
 """
 
 from __future__ import annotations
@@ -94,7 +99,129 @@ def bench_exact_gp(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-SUITES = {"exact_gp": bench_exact_gp}
+def _latency(fn, queries, n: int) -> dict[str, float]:
+    it = iter(range(10**9))
+    return stats(time_calls(lambda: fn(queries[next(it) % len(queries)]), n, warmup=3))
+
+
+def _surrogate_latency(sur, states, n: int) -> dict[str, Any]:
+    """The full pipeline: the realtime closures, and the plain method for comparison."""
+    full, fast = sur.realtime(with_var=True), sur.realtime(with_var=False)
+    return {
+        "surrogate_predict_1": _latency(lambda s: full(*s), states, n),
+        "surrogate_predict_mean_1": _latency(lambda s: fast(*s), states, n),
+        "surrogate_predict_mean_1_method": _latency(lambda s: sur.predict_mean(*s), states, n),
+    }
+
+
+def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
+    """Training time, latency and throughput of every model on one dataset."""
+    from gpg import models
+    from gpg.data.preprocess import prepare, simple_model_for
+    from gpg.quadrotor.vehicle import Vehicle
+    from gpg.runs.generate_data import ensure_datasets
+    from gpg.surrogate import Surrogate
+
+    train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
+    vehicle = Vehicle.from_config(cfg["vehicle"])
+    simple = simple_model_for(train, vehicle)
+    out: dict[str, Any] = {"dataset": info["key"], "n_train": train.n, "models": {}}
+    rng = np.random.default_rng(cfg["seed"])
+    hyper_cache: dict[tuple, Any] = {}
+    for name in tqdm(cfg["models"], desc="models"):
+        mcfg = models.resolve_config(name, cfg.get("model", {}))
+        training = prepare(train, simple, s=mcfg["hyper"]["grad_noise_scale"])
+        spec = models.SPECS[name]
+        key = (spec.raw, spec.gradients)
+        if key not in hyper_cache:
+            hyper_cache[key] = models.fit_hyper(name, training, mcfg)
+        hyper, fit_res, hyper_s = hyper_cache[key]
+        built = models.build(name, training, mcfg, hyper=hyper)
+        model = built.model
+        Xq = np.asarray(training.normalizer.x(test.x))
+        queries = [jnp.asarray(Xq[i]) for i in rng.permutation(len(Xq))[: cfg["n_queries"]]]
+        # The model's arrays are flattened once, as in Surrogate.realtime.
+        leaves, treedef = jax.tree_util.tree_flatten(model)
+        leaves = tuple(leaves)
+        mv = jax.jit(lambda lv, x, t=treedef: jax.tree_util.tree_unflatten(t, lv).mean_var_one(x))
+        mo = jax.jit(lambda lv, x, t=treedef: jax.tree_util.tree_unflatten(t, lv).mean_one(x))
+        res = {
+            "hyper_s": hyper_s,
+            **{k: v for k, v in built.timings.items() if k != "hyper_s"},
+            "mean_var_1": _latency(lambda x, f=mv, lv=leaves: f(lv, x), queries, cfg["n_queries"]),
+            "mean_1": _latency(lambda x, f=mo, lv=leaves: f(lv, x), queries, cfg["n_queries"]),
+            "model_bytes": model.nbytes(),
+            "near_fraction": None if built.near is None else float(np.mean(built.near.fraction)),
+        }
+        batch = jnp.asarray(Xq[: cfg["batch"]])
+        mb = jax.jit(
+            lambda lv, X, t=treedef: jax.vmap(jax.tree_util.tree_unflatten(t, lv).mean_one)(X)
+        )
+        tb = time_calls(lambda f=mb, lv=leaves, B=batch: f(lv, B), cfg["batch_repeats"], warmup=2)
+        res["mean_batch"] = stats(tb)
+        res["mean_batch_per_s"] = batch.shape[0] / float(np.median(tb))
+        sur = Surrogate(
+            model=model,
+            normalizer=training.normalizer,
+            simple=simple,
+            box_lo=jnp.asarray(train.x.min(0)),
+            box_hi=jnp.asarray(train.x.max(0)),
+            output_names=training.output_names,
+            model_name=name,
+            config_json="{}",
+        )
+        states = [
+            (jnp.asarray(x[:4]), jnp.asarray(x[4:7]), jnp.asarray([x[7], 0.0, 0.0]))
+            for x in test.x[: cfg["n_queries"]]
+        ]
+        res.update(_surrogate_latency(sur, states, cfg["n_queries"]))
+        out["models"][name] = res
+    ref = out["models"].get("gpg")
+    if ref is not None:
+        ref_fit = ref["fit_s"]
+        for res in out["models"].values():
+            res["fit_ratio_to_gpg"] = res["fit_s"] / ref_fit
+            res["mean_var_ratio_to_gpg"] = (
+                res["mean_var_1"]["median_s"] / ref["mean_var_1"]["median_s"]
+            )
+    return out
+
+
+def _models_table(res: dict[str, Any]) -> str:
+    rows = []
+    for name, r in res["models"].items():
+        rows.append(
+            {
+                "name": name,
+                "fit": r["fit_s"],
+                "ratio": r.get("fit_ratio_to_gpg"),
+                "mv": r["mean_var_1"]["median_s"] * 1e3,
+                "mvr": 100 * r["mean_var_ratio_to_gpg"] if "mean_var_ratio_to_gpg" in r else None,
+                "m": r["mean_1"]["median_s"] * 1e6,
+                "thr": r["mean_batch_per_s"],
+                "smv": r["surrogate_predict_1"]["median_s"] * 1e3,
+                "sm": r["surrogate_predict_mean_1"]["median_s"] * 1e6,
+                "smm": r["surrogate_predict_mean_1_method"]["median_s"] * 1e6,
+                "mb": r["model_bytes"] / 2**20,
+            }
+        )
+    cols = [
+        ("name", "model", ""),
+        ("fit", "factorise/precompute s", ".2f"),
+        ("ratio", "÷ gpg fit", ".2f"),
+        ("mv", "mean+var ms", ".3f"),
+        ("mvr", "% of gpg", ".1f"),
+        ("m", "mean µs", ".1f"),
+        ("thr", "batch mean /s", ",.0f"),
+        ("smv", "Surrogate.predict ms", ".3f"),
+        ("sm", "predict_mean µs", ".1f"),
+        ("smm", "(method) µs", ".1f"),
+        ("mb", "MiB", ".1f"),
+    ]
+    return f"dataset {res['dataset']} ({res['n_train']} training points)\n\n" + table(rows, cols)
+
+
+SUITES = {"exact_gp": bench_exact_gp, "models": bench_models}
 
 
 def _exact_gp_table(res: dict[str, Any]) -> str:
@@ -132,11 +259,16 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     unknown = [s for s in cfg["suites"] if s not in SUITES]
     if unknown:
         raise ValueError(f"unknown bench suite(s) {unknown}; valid: {sorted(SUITES)}")
+    # JAX runs CPU computations on a worker thread by default; waking the caller afterwards
+    # costs 10-50 µs of noisy latency per call on this kind of machine, more than a mean
+    # prediction. Real-time users should do the same (see the README).
+    jax.config.update("jax_cpu_enable_async_dispatch", not cfg.get("sync_dispatch", True))
     results: dict[str, Any] = {"machine": machine(), "config": cfg}
     for name in cfg["suites"]:
         results[name] = SUITES[name](cfg[name])
-        if name == "exact_gp":
-            print(_exact_gp_table(results[name]))
+        print(
+            _exact_gp_table(results[name]) if name == "exact_gp" else _models_table(results[name])
+        )
     write_json(Path(outdir) / cfg["output"], results)
     print(f"wrote {Path(outdir) / cfg['output']}")
     return results

@@ -1,0 +1,240 @@
+"""Bins, anchors and near sets (paper, Section "Partitioning (Selection of Near and Far Sets)").
+
+The input space is split into non-overlapping bins that cover all of it, with a jittable
+lookup for one query or a batch:
+
+* ``slab``: equal-count intervals along one input (airspeed by default);
+* ``kdtree``: balanced median splits, each node cutting the input of largest spread among its
+  points at the quantile that gives its two children bin counts in proportion.
+
+A query ``x`` belongs to the bin whose box ``(lo, hi]`` holds it (a value on a split goes to
+the lower side). The anchors of a bin are the training points inside it; its near set are the
+points whose kernel correlation with some anchor exceeds ``ε`` (anchors included), or, with a
+near-set budget, the ``⌈budget·N⌉`` most correlated points. The budget exists because with long
+lengthscales a fixed ``ε`` makes nearly every point near.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from gpg import kernels
+
+SCHEMES = ("slab", "kdtree")
+
+
+class Partition(eqx.Module):
+    """Bins as a binary tree of axis-aligned splits (a slab partition is a chain).
+
+    Internal node ``i`` sends ``x`` left when ``x[split_dim[i]] <= split_value[i]``; a child
+    index ``c >= 0`` is another internal node, ``c < 0`` is bin ``−c − 1``.
+    """
+
+    split_dim: Int[Array, " I"]
+    split_value: Float[Array, " I"]
+    left: Int[Array, " I"]
+    right: Int[Array, " I"]
+    n_bins: int = eqx.field(static=True)
+    depth: int = eqx.field(static=True)
+    scheme: str = eqx.field(static=True)
+
+    def lookup(self, x: Float[ArrayLike, " D"]) -> Int[Array, ""]:
+        """Bin of one query (jittable, vmappable)."""
+        x = jnp.asarray(x)
+        if self.n_bins == 1:
+            return jnp.zeros((), dtype=jnp.int32)
+        if self.scheme == "slab":  # increasing cuts on one input: count the cuts below x
+            return jnp.sum(x[self.split_dim[0]] > self.split_value).astype(jnp.int32)
+        node = jnp.zeros((), dtype=jnp.int32)
+        for _ in range(self.depth):  # static unroll: depth is at most ceil(log2 n_bins) or n-1
+            i = jnp.maximum(node, 0)
+            go_left = x[self.split_dim[i]] <= self.split_value[i]
+            child = jnp.where(go_left, self.left[i], self.right[i])
+            node = jnp.where(node >= 0, child, node)
+        return (-node - 1).astype(jnp.int32)
+
+    def lookup_batch(self, X: Float[ArrayLike, "Q D"]) -> Int[Array, " Q"]:
+        """Bins of a batch of queries."""
+        return jax.vmap(self.lookup)(jnp.asarray(X))
+
+    def boxes(self, n_inputs: int) -> tuple[np.ndarray, np.ndarray]:
+        """Each bin's box ``(lo, hi]`` as arrays (n_bins, D), with ±inf where unbounded."""
+        lo = np.full((self.n_bins, n_inputs), -np.inf)
+        hi = np.full((self.n_bins, n_inputs), np.inf)
+        if self.n_bins == 1:
+            return lo, hi
+        sd, sv = np.asarray(self.split_dim), np.asarray(self.split_value)
+        left, right = np.asarray(self.left), np.asarray(self.right)
+
+        def walk(node, a, b):
+            for child, is_left in ((left[node], True), (right[node], False)):
+                a2, b2 = a.copy(), b.copy()
+                if is_left:
+                    b2[sd[node]] = min(b2[sd[node]], sv[node])
+                else:
+                    a2[sd[node]] = max(a2[sd[node]], sv[node])
+                if child >= 0:
+                    walk(child, a2, b2)
+                else:
+                    lo[-child - 1], hi[-child - 1] = a2, b2
+
+        walk(0, lo[0].copy(), hi[0].copy())
+        return lo, hi
+
+
+def _tree(nodes: list[tuple[int, float, int, int]], n_bins: int, depth: int, scheme: str):
+    if not nodes:
+        nodes = [(0, 0.0, -1, -1)]  # placeholder, never used with one bin
+    sd, sv, le, ri = (np.array(c) for c in zip(*nodes, strict=True))
+    return Partition(
+        split_dim=jnp.asarray(sd, dtype=jnp.int32),
+        split_value=jnp.asarray(sv, dtype=float),
+        left=jnp.asarray(le, dtype=jnp.int32),
+        right=jnp.asarray(ri, dtype=jnp.int32),
+        n_bins=n_bins,
+        depth=max(depth, 1),
+        scheme=scheme,
+    )
+
+
+def _check(X: np.ndarray, n_bins: int) -> np.ndarray:
+    X = np.asarray(X, dtype=float)
+    if X.ndim != 2:
+        raise ValueError(f"X must be (N, D), got shape {X.shape}")
+    if not isinstance(n_bins, int | np.integer) or n_bins < 1:
+        raise ValueError(f"n_bins must be a positive integer, got {n_bins!r}")
+    if n_bins > X.shape[0]:
+        raise ValueError(f"n_bins={n_bins} exceeds the {X.shape[0]} training points")
+    return X
+
+
+def slab(X: Float[ArrayLike, "N D"], n_bins: int, dim: int = 7) -> Partition:
+    """Equal-count intervals along input ``dim`` (airspeed, the paper's dominant effect)."""
+    X = _check(X, n_bins)
+    if not 0 <= dim < X.shape[1]:
+        raise ValueError(f"slab dim {dim} out of range for {X.shape[1]} inputs")
+    v = np.sort(X[:, dim])
+    cuts = [v[(k * len(v)) // n_bins - 1] for k in range(1, n_bins)]
+    if len(set(cuts)) != len(cuts):
+        raise ValueError(f"input {dim} has too few distinct values for {n_bins} slabs")
+    # A chain: node i sends x <= cut_i to bin i, the rest to node i + 1 (or the last bin).
+    nodes = [
+        (dim, float(c), -(i + 1), i + 1 if i + 1 < n_bins - 1 else -(n_bins))
+        for i, c in enumerate(cuts)
+    ]
+    return _tree(nodes, n_bins, n_bins - 1, "slab")
+
+
+def kdtree(X: Float[ArrayLike, "N D"], n_bins: int) -> Partition:
+    """Balanced median splits into ``n_bins`` leaves (any count, not only powers of two)."""
+    X = _check(X, n_bins)
+    nodes: list[list] = []
+    bins = [0]
+    depth = [0]
+
+    def build(idx: np.ndarray, k: int, level: int) -> int:
+        if k == 1:
+            b = bins[0]
+            bins[0] += 1
+            depth[0] = max(depth[0], level)
+            return -(b + 1)
+        spread = X[idx].max(0) - X[idx].min(0)
+        d = int(np.argmax(spread))
+        order = idx[np.argsort(X[idx, d], kind="stable")]
+        k_left = k // 2
+        m = (len(order) * k_left) // k
+        cut = float(X[order[m - 1], d])
+        me = len(nodes)
+        nodes.append([d, cut, 0, 0])
+        # Ties at the cut all go left (x <= cut), keeping lookup and assignment identical.
+        go_left = X[idx, d] <= cut
+        if go_left.all() or not go_left.any():
+            raise ValueError(f"cannot split {len(idx)} points into {k} bins: repeated inputs")
+        nodes[me][2] = build(idx[go_left], k_left, level + 1)
+        nodes[me][3] = build(idx[~go_left], k - k_left, level + 1)
+        return me
+
+    build(np.arange(X.shape[0]), n_bins, 0)
+    return _tree([tuple(n) for n in nodes], n_bins, depth[0], "kdtree")
+
+
+def build(X: Float[ArrayLike, "N D"], scheme: str, n_bins: int, **kw) -> Partition:
+    """``slab`` or ``kdtree``; unknown schemes list the valid ones."""
+    if scheme == "slab":
+        return slab(X, n_bins, **kw)
+    if scheme == "kdtree":
+        if kw:
+            raise ValueError(f"kdtree takes no options, got {sorted(kw)}")
+        return kdtree(X, n_bins)
+    raise ValueError(f"unknown partition scheme {scheme!r}; valid: {list(SCHEMES)}")
+
+
+@dataclass(frozen=True)
+class NearSets:
+    """Per bin: anchor and near point indices (sorted), the near fraction, and the smallest
+    correlation admitted (the effective ``ε`` when a budget is used)."""
+
+    anchors: tuple[np.ndarray, ...]
+    near: tuple[np.ndarray, ...]
+    fraction: np.ndarray
+    epsilon: np.ndarray
+
+    @property
+    def n_bins(self) -> int:
+        return len(self.near)
+
+
+def near_sets(
+    X: Float[ArrayLike, "N D"],
+    partition: Partition,
+    lengthscale: Float[ArrayLike, "*L"],
+    *,
+    epsilon: float | None = None,
+    budget: float | None = None,
+    chunk: int = 2048,
+) -> NearSets:
+    """Near set of every bin by correlation threshold ``epsilon`` or by ``budget`` (a fraction).
+
+    The correlation of a point with a bin is its largest ``k(x, a)/σ`` over the bin's anchors.
+    Anchors are always near. Exactly one of ``epsilon`` and ``budget`` must be given.
+    """
+    if (epsilon is None) == (budget is None):
+        raise ValueError("give exactly one of epsilon (a correlation threshold) and budget")
+    if epsilon is not None and not 0 <= epsilon < 1:
+        raise ValueError(f"epsilon must be in [0, 1), got {epsilon}")
+    if budget is not None and not 0 < budget <= 1:
+        raise ValueError(f"budget must be a fraction in (0, 1], got {budget}")
+    X = np.asarray(X, dtype=float)
+    n = X.shape[0]
+    bins = np.asarray(partition.lookup_batch(jnp.asarray(X)))
+    corr_fn = jax.jit(lambda A, B: jnp.max(kernels.correlation(A, B, lengthscale), axis=1))
+    anchors, near, frac, eps = [], [], [], []
+    for b in range(partition.n_bins):
+        a = np.flatnonzero(bins == b)
+        if a.size == 0:
+            raise ValueError(f"bin {b} holds no training point; use fewer bins")
+        corr = np.empty(n)
+        for s in range(0, n, chunk):
+            corr[s : s + chunk] = np.asarray(
+                corr_fn(jnp.asarray(X[s : s + chunk]), jnp.asarray(X[a]))
+            )
+        corr[a] = np.inf  # anchors first, whatever the rounding
+        if epsilon is not None:
+            idx = np.flatnonzero(corr > epsilon)
+        else:
+            k = max(math.ceil(budget * n), a.size)
+            idx = np.argsort(-corr, kind="stable")[:k]
+        idx = np.sort(idx)
+        finite = corr[idx][np.isfinite(corr[idx])]
+        anchors.append(a)
+        near.append(idx)
+        frac.append(idx.size / n)
+        eps.append(float(finite.min()) if finite.size else 1.0)
+    return NearSets(tuple(anchors), tuple(near), np.array(frac), np.array(eps))

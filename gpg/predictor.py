@@ -1,0 +1,67 @@
+"""The one ``predict`` every model shares.
+
+A model answers a single normalised query ``x`` (D,) with ``mean_one`` (M,) or
+``mean_var_one`` (mean (M,), latent variance ()); these are written so that ``jax.vmap`` turns
+them into efficient batched code, and ``predict`` / ``predict_mean`` are exactly that, jitted,
+for a batch ``Xq`` (Q, D). The latent variance is shared by the M outputs (one kernel).
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+
+class Predictor(eqx.Module):
+    """Interface of every GP model in gpg (exact, partitioned, Schur-corrected)."""
+
+    @property
+    @abc.abstractmethod
+    def n_inputs(self) -> int: ...
+
+    @property
+    @abc.abstractmethod
+    def n_outputs(self) -> int: ...
+
+    @abc.abstractmethod
+    def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        """Posterior mean at one query."""
+
+    @abc.abstractmethod
+    def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
+        """Posterior mean and latent variance at one query."""
+
+    def predict(
+        self, Xq: Float[ArrayLike, "Q D"]
+    ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
+        """Mean (Q, M) and latent variance (Q,) at a batch of queries (jitted)."""
+        return _batch(self, jnp.asarray(Xq), True)
+
+    def predict_mean(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M"]:
+        """Mean only (Q, M): the fast path."""
+        return _batch(self, jnp.asarray(Xq), False)[0]
+
+    def nbytes(self) -> int:
+        """Bytes of the arrays the model holds (what a deployment has to load)."""
+        return int(
+            sum(np.asarray(x).nbytes for x in jax.tree.leaves(eqx.filter(self, eqx.is_array)))
+        )
+
+
+def check_query(Xq: Array, n_inputs: int) -> None:
+    if Xq.ndim != 2 or Xq.shape[1] != n_inputs:
+        raise ValueError(f"Xq must have shape (Q, {n_inputs}), got {Xq.shape}")
+
+
+@eqx.filter_jit
+def _batch(model: Predictor, Xq: Array, with_var: bool):
+    check_query(Xq, model.n_inputs)
+    Xq = eqx.error_if(Xq, ~jnp.all(jnp.isfinite(Xq)), "Xq holds NaN or inf")
+    if with_var:
+        return jax.vmap(model.mean_var_one)(Xq)
+    return jax.vmap(model.mean_one)(Xq), None

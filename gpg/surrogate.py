@@ -1,0 +1,250 @@
+"""The real-time surrogate (paper, Sections "Aerodynamic Surrogate" and "Real-time Simulation").
+
+``predict(rpm, euler, v_air)`` for one vehicle state in the world frame:
+
+1. airflow frame ``H`` (``R_WH e_x = v̂``, a proper rotation) and the attitude in it,
+   ``x_H = (r1..r4, ψ_H, θ_H, φ_H, ‖v_air‖)``;
+2. normalise, find the bin, evaluate the GP (mean, and the latent variance);
+3. de-normalise: force/moment residuals in ``H``, noise levels as they are;
+4. rotate the residual force and moment back to the world frame and add the simplified model
+   ``M`` evaluated at the world attitude: ``F_W = R_WH μ_F + F_M,W`` (likewise the moment).
+
+``in_domain`` is False when the state is not finite, an rpm is negative, or ``x_H`` leaves the
+training box (e.g. flying sideways or backwards puts ``ψ_H`` beyond ±90°): the prediction is
+still returned, but it is an extrapolation and says so (DESIGN pitfall 4).
+
+Everything is one jittable function of arrays: it vmaps over batches, runs inside
+``lax.scan``, and ``predict_batch`` processes large batches in chunks of bounded memory.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Mapping
+from functools import lru_cache, partial
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from gpg import models
+from gpg.data.dataset import Dataset
+from gpg.data.preprocess import Normalizer, prepare, simple_model_for
+from gpg.predictor import Predictor
+from gpg.quadrotor.frames import matvec, to_airflow_frame
+from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.vehicle import Vehicle, load_vehicle
+
+
+class Prediction(eqx.Module):
+    """World-frame prediction for one state (or a batch, with a leading axis).
+
+    ``force`` (3,) N and ``torque`` (3,) N·m about the centre of mass, aerodynamic only (add
+    gravity yourself); ``noise`` (K,) dB at the K microphones (K = 0 without noise data);
+    ``variance`` (6+K,) predictive variance of each of those components in the same frame and
+    units (None from ``predict_mean``); ``in_domain`` False for extrapolation or bad input.
+    """
+
+    force: Float[Array, "*batch 3"]
+    torque: Float[Array, "*batch 3"]
+    noise: Float[Array, "*batch K"]
+    variance: Float[Array, "*batch C"] | None
+    in_domain: Bool[Array, "*batch"]
+
+
+class Surrogate(eqx.Module):
+    """A fitted model plus everything to go from a world-frame state to world-frame outputs."""
+
+    model: Predictor
+    normalizer: Normalizer
+    simple: SimpleModel | None
+    box_lo: Float[Array, " 8"]  # training box of x_H (rpm, rad, m/s)
+    box_hi: Float[Array, " 8"]
+    output_names: tuple[str, ...] = eqx.field(static=True)
+    model_name: str = eqx.field(static=True)
+    config_json: str = eqx.field(static=True)  # resolved model config, for records
+
+    @classmethod
+    def fit(
+        cls,
+        dataset: Dataset,
+        model: str = "gpgs",
+        config: Mapping[str, Any] | None = None,
+        *,
+        vehicle: Vehicle | str | None = None,
+        residual: bool = True,
+    ) -> Surrogate:
+        """Preprocess ``dataset`` and build ``model`` (a name from :data:`gpg.models.NAMES`).
+
+        ``config`` overrides :data:`gpg.models.DEFAULTS`. ``vehicle`` supplies the rotor layout
+        of the simplified model (default: the dataset's generator vehicle, else SUI Endurance);
+        ``residual=False`` fits the raw outputs without ``M``.
+        """
+        built = cls._build(dataset, model, config, vehicle, residual)
+        return built[0]
+
+    @classmethod
+    def _build(cls, dataset, model, config, vehicle, residual):
+        cfg = models.resolve_config(model, config)
+        if vehicle is None:
+            vehicle = dataset.meta.get("generator", {}).get("vehicle", "sui_endurance")
+        if isinstance(vehicle, str):
+            vehicle = load_vehicle(vehicle)
+        simple = simple_model_for(dataset, vehicle) if residual else None
+        training = prepare(dataset, simple, s=cfg["hyper"]["grad_noise_scale"])
+        built = models.build(model, training, cfg)
+        sur = cls(
+            model=built.model,
+            normalizer=training.normalizer,
+            simple=simple,
+            box_lo=jnp.asarray(dataset.x.min(0)),
+            box_hi=jnp.asarray(dataset.x.max(0)),
+            output_names=training.output_names,
+            model_name=model,
+            config_json=json.dumps(cfg, sort_keys=True),
+        )
+        return sur, built, training
+
+    @property
+    def config(self) -> dict[str, Any]:
+        return json.loads(self.config_json)
+
+    @property
+    def n_noise(self) -> int:
+        return len(self.output_names) - 6
+
+    # -- prediction -------------------------------------------------------------------------
+
+    def predict(
+        self,
+        rpm: Float[ArrayLike, " 4"],
+        euler: Float[ArrayLike, " 3"],
+        v_air: Float[ArrayLike, " 3"],
+    ) -> Prediction:
+        """Force, torque, noise, their variances and ``in_domain`` for one state (jitted).
+
+        ``rpm`` rotor speeds r1..r4; ``euler`` = (yaw, pitch, roll) of the body in the world
+        frame (rad); ``v_air`` = vehicle velocity minus wind, world frame (m/s).
+        """
+        return _predict(self, *_as_state(rpm, euler, v_air), True)
+
+    def predict_mean(
+        self,
+        rpm: Float[ArrayLike, " 4"],
+        euler: Float[ArrayLike, " 3"],
+        v_air: Float[ArrayLike, " 3"],
+    ) -> Prediction:
+        """The fast path: as :meth:`predict` without the variance (``variance`` is None)."""
+        return _predict(self, *_as_state(rpm, euler, v_air), False)
+
+    def predict_batch(
+        self,
+        rpm: Float[ArrayLike, "N 4"],
+        euler: Float[ArrayLike, "N 3"],
+        v_air: Float[ArrayLike, "N 3"],
+        *,
+        mean_only: bool = False,
+        chunk: int = 1024,
+    ) -> Prediction:
+        """Many states, vmapped in chunks of ``chunk`` (bounded memory for any N)."""
+        rpm, euler, v_air = (jnp.asarray(a, dtype=float) for a in (rpm, euler, v_air))
+        for name, a, w in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
+            if a.ndim != 2 or a.shape[1] != w:
+                raise ValueError(f"{name} must have shape (N, {w}), got {a.shape}")
+        if not rpm.shape[0] == euler.shape[0] == v_air.shape[0]:
+            raise ValueError(
+                f"batch sizes differ: {rpm.shape[0]}, {euler.shape[0]}, {v_air.shape[0]}"
+            )
+        return _predict_batch(self, rpm, euler, v_air, not mean_only, int(chunk))
+
+    def realtime(self, *, with_var: bool = True) -> Callable[..., Prediction]:
+        """A compiled ``f(rpm, euler, v_air) -> Prediction`` for loops that call it per step.
+
+        Same result as :meth:`predict` (or :meth:`predict_mean` without ``with_var``), but the
+        surrogate's arrays are flattened once here instead of at every call: flattening an
+        equinox module costs more than the whole mean prediction (see ``experiments/bench.py``).
+        Inside your own ``jit``/``vmap``/``scan`` use :meth:`predict`, which costs nothing there.
+        """
+        leaves, treedef = jax.tree_util.tree_flatten(self)
+        fn = _realtime_fn(treedef, with_var)
+        leaves = tuple(leaves)
+
+        def predict(rpm, euler, v_air) -> Prediction:
+            return fn(leaves, *_as_state(rpm, euler, v_air))
+
+        return predict
+
+    def nbytes(self) -> int:
+        return self.model.nbytes()
+
+
+def _as_state(rpm, euler, v_air):
+    rpm, euler, v_air = (jnp.asarray(a, dtype=float) for a in (rpm, euler, v_air))
+    for name, a, n in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
+        if a.shape != (n,):
+            raise ValueError(
+                f"{name} must have shape ({n},) for one state, got {a.shape}; "
+                "use jax.vmap or Surrogate.predict_batch for batches"
+            )
+    return rpm, euler, v_air
+
+
+def predict_state(
+    sur: Surrogate, rpm: Array, euler: Array, v_air: Array, with_var: bool
+) -> Prediction:
+    """The un-jitted pipeline for one state (see module docstring); jit, vmap or scan it."""
+    euler_h, speed, R_WH = to_airflow_frame(euler, v_air)
+    x_h = jnp.concatenate([rpm, euler_h, speed[None]])
+    span = sur.box_hi - sur.box_lo
+    tol = 1e-9 * jnp.maximum(span, 1.0)
+    inside = jnp.all((x_h >= sur.box_lo - tol) & (x_h <= sur.box_hi + tol))
+    finite = (
+        jnp.all(jnp.isfinite(rpm)) & jnp.all(jnp.isfinite(euler)) & jnp.all(jnp.isfinite(v_air))
+    )
+    in_domain = finite & jnp.all(rpm >= 0) & inside
+
+    xn = sur.normalizer.x(x_h)
+    if with_var:
+        mean_n, var_n = sur.model.mean_var_one(xn)
+    else:
+        mean_n, var_n = sur.model.mean_one(xn), None
+    y = sur.normalizer.y_inv(mean_n)
+    force, torque = matvec(R_WH, y[:3]), matvec(R_WH, y[3:6])
+    if sur.simple is not None:
+        y_m = sur.simple(jnp.concatenate([rpm, euler]))  # M at the world attitude, world frame
+        force, torque = force + y_m[:3], torque + y_m[3:6]
+    variance = None
+    if with_var:
+        v = sur.normalizer.var_inv(var_n)  # per output, H frame (diagonal)
+        rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_WH, d, R_WH)  # diag(R diag(d) Rᵀ)  # noqa: E731
+        variance = jnp.concatenate([rot_var(v[:3]), rot_var(v[3:6]), v[6:]])
+    return Prediction(
+        force=force, torque=torque, noise=y[6:], variance=variance, in_domain=in_domain
+    )
+
+
+@lru_cache(maxsize=32)
+def _realtime_fn(treedef, with_var: bool):
+    def fn(leaves, rpm, euler, v_air):
+        return predict_state(
+            jax.tree_util.tree_unflatten(treedef, leaves), rpm, euler, v_air, with_var
+        )
+
+    return jax.jit(fn)
+
+
+# Plain jax.jit: every leaf of a Surrogate is an array, and jax.jit dispatches a call several
+# times faster than eqx.filter_jit, which matters at tens of microseconds per prediction.
+@partial(jax.jit, static_argnums=(4,))
+def _predict(sur: Surrogate, rpm, euler, v_air, with_var: bool) -> Prediction:
+    return predict_state(sur, rpm, euler, v_air, with_var)
+
+
+@partial(jax.jit, static_argnums=(4, 5))
+def _predict_batch(sur: Surrogate, rpm, euler, v_air, with_var: bool, chunk: int) -> Prediction:
+    def one(args):
+        return predict_state(sur, *args, with_var)
+
+    return jax.lax.map(one, (rpm, euler, v_air), batch_size=min(chunk, rpm.shape[0]))

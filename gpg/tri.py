@@ -1,0 +1,75 @@
+"""Triangular matrices stored as bands of rows, for the variance term ``‖F k‖²``.
+
+A dense ``n x n`` triangular factor wastes half its bytes on zeros, and a matrix-vector
+product with it reads all of them: at the sizes of a bin (1000 rows, 8 MB) or of an exact GP-G
+(8000 rows, 512 MB) that product is bound by memory. Cut into ``n_blocks`` bands of rows, each
+band keeps only the columns that can be non-zero (from its first row on for an upper factor,
+up to its last row for a lower one), so a product reads ``(1 + 1/n_blocks)/2`` of the dense
+bytes. Each band is its own array: the product never slices a larger buffer, which on the CPU
+would copy it first.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+
+class BlockTriangular(eqx.Module):
+    """Row bands of a triangular ``n x n`` matrix (``lower`` or upper)."""
+
+    blocks: tuple[Float[Array, "b c"], ...]
+    n: int = eqx.field(static=True)
+    lower: bool = eqx.field(static=True)
+
+    @classmethod
+    def from_dense(
+        cls, F: Float[ArrayLike, "n n"], *, lower: bool, n_blocks: int = 4
+    ) -> BlockTriangular:
+        """Bands of the triangular ``F``; entries on the other side of the diagonal are dropped."""
+        F = np.asarray(F)
+        n = F.shape[0]
+        if F.shape != (n, n):
+            raise ValueError(f"F must be square, got {F.shape}")
+        edges = np.linspace(0, n, min(n_blocks, max(n, 1)) + 1).astype(int)
+        blocks = []
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            band = F[a:b, :b] if lower else F[a:b, a:]
+            blocks.append(jnp.asarray(np.ascontiguousarray(band)))
+        return cls(blocks=tuple(blocks), n=n, lower=lower)
+
+    def _starts(self) -> list[int]:
+        out, a = [], 0
+        for blk in self.blocks:
+            out.append(a)
+            a += blk.shape[0]
+        return out
+
+    def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
+        """``F k``."""
+        parts = []
+        for a, blk in zip(self._starts(), self.blocks, strict=True):
+            parts.append(blk @ (k[: blk.shape[1]] if self.lower else k[a:]))
+        return jnp.concatenate(parts)
+
+    def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
+        """``K Fᵀ`` for a batch of rows ``K`` (each row's ``F k``)."""
+        parts = []
+        for a, blk in zip(self._starts(), self.blocks, strict=True):
+            Kp = K[:, : blk.shape[1]] if self.lower else K[:, a:]
+            # (B Kᵀ)ᵀ, not K Bᵀ: XLA's CPU dot transposes the big operand for the latter
+            # (measured: 31 ms against 1.3 ms for one row against a 1000 x 8000 band).
+            parts.append((blk @ Kp.T).T)
+        return jnp.concatenate(parts, axis=1)
+
+    def to_dense(self) -> np.ndarray:
+        out = np.zeros((self.n, self.n))
+        for a, blk in zip(self._starts(), self.blocks, strict=True):
+            b = a + blk.shape[0]
+            if self.lower:
+                out[a:b, : blk.shape[1]] = np.asarray(blk)
+            else:
+                out[a:b, a:] = np.asarray(blk)
+        return out

@@ -1,0 +1,91 @@
+"""Model registry: every baseline builds and predicts through the same interface."""
+
+import logging
+
+import jax
+import numpy as np
+import pytest
+
+from gpg import models
+from gpg.data.preprocess import prepare, simple_model_for
+from tests.helpers import synthetic_dataset
+
+FAST = {
+    "hyper": {"fit": False, "lengthscale": 1.0},
+    "partition": {"bins": 3},
+    "near": {"budget": 0.5},
+}
+
+
+@pytest.fixture(scope="module")
+def training(request):
+    from gpg.quadrotor.vehicle import load_vehicle
+
+    ds, _ = synthetic_dataset(40)
+    return prepare(ds, simple_model_for(ds, load_vehicle()))
+
+
+@pytest.mark.parametrize("name", models.NAMES)
+def test_every_model_builds_and_predicts(training, name):
+    built = models.build(name, training, FAST)
+    Xq = training.X[:7] * 0.9
+    mean, var = built.model.predict(Xq)
+    assert mean.shape == (7, 9) and var.shape == (7,)
+    assert np.all(np.isfinite(mean)) and np.all(np.asarray(var) >= 0)
+    np.testing.assert_allclose(built.model.predict_mean(Xq), mean, rtol=1e-12, atol=1e-12)
+    assert built.model.nbytes() > 0
+    assert set(built.timings) >= {"fit_s"}
+    if models.SPECS[name].partitioned:
+        assert built.near is not None and np.all(built.near.fraction >= 0.5)
+
+
+def test_exact_models_interpolate(training):
+    for name in ("gpg", "gp"):
+        cfg = {"hyper": {"fit": False, "lengthscale": 1.0, "jitter": 1e-10}}
+        m, _ = models.build(name, training, cfg).model.predict(training.X[:5])
+        np.testing.assert_allclose(m, training.Y[:5], atol=1e-3)
+
+
+def test_hyperparameter_fit_reports(training):
+    built = models.build("gpg", training, {"hyper": {"subset": 30, "max_steps": 50}})
+    assert built.hyper_fit is not None and built.hyper_fit.subset.size == 30
+    assert built.timings["hyper_s"] > 0 and built.train_s >= built.timings["fit_s"]
+
+
+def test_unknown_names_and_keys(training):
+    with pytest.raises(ValueError, match=r"unknown model 'gps_2x'; valid: \['gp', 'gpg', 'gps_1x'"):
+        models.build("gps_2x", training)
+    with pytest.raises(ValueError, match=r"unknown key 'bins'"):
+        models.build("gpgs", training, {"bins": 4})
+    with pytest.raises(ValueError, match=r"unknown key hyper.'sigma'"):
+        models.build("gpgs", training, {"hyper": {"sigma": 1.0}})
+    with pytest.raises(ValueError, match=r"unknown mean form"):
+        models.build("gpgs_schur", training, {**FAST, "mean": "median"})
+
+
+def test_missing_data_is_named(training):
+    from dataclasses import replace
+
+    no_grad = replace(training, dY=None, grad_noise=None)
+    with pytest.raises(
+        ValueError, match=r"model 'gpgs_schur' needs gradients, which the dataset lacks"
+    ):
+        models.build("gpgs_schur", no_grad, FAST)
+    no_raw = replace(training, X_raw=None, Y_raw=None)
+    with pytest.raises(ValueError, match=r"model 'gps_8x' trains on the raw 8X samples"):
+        models.build("gps_8x", no_raw, FAST)
+
+
+def test_predict_traces_once(training, caplog):
+    model = models.build("gpgs_schur", training, FAST).model
+    model.predict(training.X[:4])
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        for s in (0.1, 0.2, 0.3):
+            model.predict(training.X[:4] * s)
+    assert not [r for r in caplog.records if "Compiling jit(_batch)" in r.getMessage()]
+
+
+def test_kdtree_and_paper_mean_options(training):
+    cfg = {**FAST, "partition": {"scheme": "kdtree", "bins": 4}, "mean": "paper", "route": "direct"}
+    built = models.build("gpgs_schur", training, cfg)
+    assert built.model.partition.scheme == "kdtree" and built.config["mean"] == "paper"

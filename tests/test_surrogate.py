@@ -1,0 +1,145 @@
+"""Surrogate: frames, training labels, equivariance under world yaw, batching, scan, bad input."""
+
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg.quadrotor.frames import rot_z
+from gpg.surrogate import Surrogate
+from tests.helpers import synthetic_dataset
+
+EXACT = {"hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-10, "grad_noise_scale": 1e-6}}
+BINNED = {
+    "hyper": {"fit": False, "lengthscale": 0.8},
+    "partition": {"bins": 3},
+    "near": {"budget": 0.5},
+}
+
+
+@pytest.fixture(scope="module")
+def data():
+    return synthetic_dataset(50, seed=3)[0]
+
+
+@pytest.fixture(scope="module")
+def exact(data):
+    return Surrogate.fit(data, "gpg", EXACT)
+
+
+@pytest.fixture(scope="module")
+def binned(data):
+    return Surrogate.fit(data, "gpgs_schur", BINNED)
+
+
+def state(x):
+    """A dataset case as a world-frame query: airflow along +x."""
+    return x[:4], x[4:7], np.array([x[7], 0.0, 0.0])
+
+
+def test_training_point_returns_its_label(exact, data):
+    for i in (0, 7, 21):
+        p = exact.predict(*state(data.x[i]))
+        assert bool(p.in_domain)
+        np.testing.assert_allclose(p.force, data.y_aero[i, :3], rtol=1e-4, atol=1e-4 * 20)
+        np.testing.assert_allclose(p.torque, data.y_aero[i, 3:], rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(p.noise, data.y_noise[i], rtol=1e-5)
+        assert np.all(np.asarray(p.variance) >= 0) and p.variance.shape == (9,)
+
+
+@pytest.mark.parametrize("which", ["exact", "binned"])
+def test_world_yaw_rotates_force_and_torque(which, exact, binned, data, rng):
+    sur = exact if which == "exact" else binned
+    for x in data.x[:4]:
+        rpm, euler, v = state(x)
+        v = v + np.array([0.0, 1.5, -2.0])  # also off-axis, climbing airflow
+        a = rng.uniform(-np.pi, np.pi)
+        R = np.asarray(rot_z(a))
+        p = sur.predict(rpm, euler, v)
+        q = sur.predict(rpm, euler + np.array([a, 0, 0]), R @ v)
+        np.testing.assert_allclose(q.force, R @ np.asarray(p.force), atol=1e-9)
+        np.testing.assert_allclose(q.torque, R @ np.asarray(p.torque), atol=1e-9)
+        np.testing.assert_allclose(q.noise, p.noise, atol=1e-9)
+        assert bool(q.in_domain) == bool(p.in_domain)
+
+
+def test_mean_fast_path_and_batches(binned, data):
+    rpm, euler, v = (
+        data.x[:20, :4],
+        data.x[:20, 4:7],
+        np.column_stack([data.x[:20, 7], np.zeros((20, 2))]),
+    )
+    full = binned.predict_batch(rpm, euler, v, chunk=8)
+    vm = jax.vmap(binned.predict)(jnp.asarray(rpm), jnp.asarray(euler), jnp.asarray(v))
+    fast = binned.predict_batch(rpm, euler, v, mean_only=True, chunk=6)
+    np.testing.assert_allclose(full.force, vm.force, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(full.variance, vm.variance, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(fast.force, full.force, rtol=1e-12, atol=1e-12)
+    assert fast.variance is None and full.force.shape == (20, 3)
+    one = binned.predict_mean(*state(data.x[3]))
+    np.testing.assert_allclose(one.force, full.force[3], rtol=1e-12)
+
+
+def test_usable_inside_scan(binned, data):
+    rpm, euler = jnp.asarray(data.x[0, :4]), jnp.asarray(data.x[0, 4:7])
+
+    def step(v, _):
+        p = binned.predict_mean(rpm, euler, v)
+        return v + 0.01 * p.force, p.force[2]
+
+    _, fz = jax.lax.scan(step, jnp.array([5.0, 0.0, 0.0]), None, length=5)
+    assert fz.shape == (5,) and np.all(np.isfinite(fz))
+
+
+def test_traces_once(exact, data, caplog):
+    exact.predict(*state(data.x[1]))
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        for i in (2, 3, 4):
+            exact.predict(*state(data.x[i]))
+    assert not [r for r in caplog.records if "Compiling jit(_predict)" in r.getMessage()]
+
+
+def test_out_of_domain_and_bad_values(binned, data):
+    rpm, euler, v = state(data.x[5])
+    assert bool(binned.predict(rpm, euler, v).in_domain)
+    assert not bool(
+        binned.predict(rpm * np.array([1, -1, 1, 1]), euler, v).in_domain
+    )  # negative rpm
+    assert not bool(binned.predict(rpm, euler, -v).in_domain)  # flying backwards: yaw_H ≈ 180°
+    assert not bool(binned.predict(rpm * 10, euler, v).in_domain)  # beyond the rpm range
+    bad = binned.predict(rpm, euler * np.nan, v)
+    assert not bool(bad.in_domain)
+    hover = binned.predict(rpm, euler, np.zeros(3))  # zero airspeed: H = W, finite
+    assert np.all(np.isfinite(hover.force))
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        ((np.zeros(3), np.zeros(3), np.zeros(3)), r"rpm must have shape \(4,\)"),
+        (
+            (np.zeros(4), np.zeros((2, 3)), np.zeros(3)),
+            r"euler must have shape \(3,\) for one state",
+        ),
+        ((np.zeros(4), np.zeros(3), np.zeros(2)), r"v_air must have shape \(3,\)"),
+    ],
+)
+def test_wrong_shapes(binned, args, match):
+    with pytest.raises(ValueError, match=match):
+        binned.predict(*args)
+
+
+def test_batch_shape_errors(binned):
+    with pytest.raises(ValueError, match=r"rpm must have shape \(N, 4\)"):
+        binned.predict_batch(np.zeros(4), np.zeros((1, 3)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="batch sizes differ"):
+        binned.predict_batch(np.zeros((2, 4)), np.zeros((3, 3)), np.zeros((2, 3)))
+
+
+def test_without_noise_or_residual(data):
+    sur = Surrogate.fit(data.without("noise"), "gpg", EXACT, residual=False)
+    p = sur.predict(*state(data.x[0]))
+    assert p.noise.shape == (0,) and p.variance.shape == (6,) and sur.simple is None
+    np.testing.assert_allclose(p.force, data.y_aero[0, :3], rtol=1e-4, atol=2e-3)
