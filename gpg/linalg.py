@@ -15,7 +15,11 @@ read back in C order, is the lower factor ``L = Uᵀ`` with ``L Lᵀ = K``.
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg.blas as blas
 import scipy.linalg.lapack as lapack
+
+# Above this size the Cholesky factorisation is blocked by hand (see cholesky_inplace).
+BLOCKED_ABOVE = 8192
 
 
 class NotPositiveDefiniteError(ValueError):
@@ -29,26 +33,71 @@ def _check_square_c(name: str, a: np.ndarray) -> None:
         raise ValueError(f"{name} must be a writeable C-contiguous float64 array")
 
 
-def cholesky_inplace(a: np.ndarray, *, what: str = "K̄") -> np.ndarray:
+def cholesky_inplace(a: np.ndarray, *, what: str = "K̄", block: int = 2048) -> np.ndarray:
     """Overwrite the symmetric positive definite ``a`` with its lower Cholesky factor ``L``.
 
     Returns ``a`` itself (strict upper triangle zeroed). Raises
     :class:`NotPositiveDefiniteError` naming the first failing pivot.
+
+    Up to :data:`BLOCKED_ABOVE` rows this is one LAPACK ``dpotrf``. Above, it is a right-looking
+    blocked factorisation (``dpotrf`` on diagonal blocks, triangular solves for the panels,
+    matrix products for the trailing update): the multi-threaded ``dsyrk`` inside OpenBLAS's
+    own ``dpotrf`` crashed this machine (SIGSEGV) from 16000 rows up (scipy-openblas 0.3.31,
+    two threads), while its ``dgemm`` runs at any size.
     """
     _check_square_c(what, a)
+    n = a.shape[0]
+    if n > BLOCKED_ABOVE:
+        return _blocked_cholesky(a, what, block)
     # clean=1: LAPACK's wrapper zeroes the other triangle, so L is a plain dense lower matrix.
     u, info = lapack.dpotrf(a.T, lower=0, overwrite_a=1, clean=1)
     if info > 0:
-        raise NotPositiveDefiniteError(
-            f"{what} ({a.shape[0]} rows) is not numerically positive definite: the Cholesky "
-            f"factorisation failed at pivot {info - 1}. Increase the jitter / gradient noise, or "
-            "check for duplicated inputs."
-        )
+        raise _not_pd(what, n, info - 1)
     if info < 0:  # pragma: no cover - argument error inside LAPACK
         raise ValueError(f"dpotrf rejected argument {-info}")
     if not np.may_share_memory(u, a):  # pragma: no cover - the wrapper copied after all
         a[...] = u.T
     return a
+
+
+def _not_pd(what: str, n: int, pivot: int) -> NotPositiveDefiniteError:
+    return NotPositiveDefiniteError(
+        f"{what} ({n} rows) is not numerically positive definite: the Cholesky "
+        f"factorisation failed at pivot {pivot}. Increase the jitter / gradient noise, or "
+        "check for duplicated inputs."
+    )
+
+
+def _blocked_cholesky(a: np.ndarray, what: str, block: int) -> np.ndarray:
+    n = a.shape[0]
+    for k0 in range(0, n, block):
+        k1 = min(k0 + block, n)
+        d = np.ascontiguousarray(a[k0:k1, k0:k1])
+        u, info = lapack.dpotrf(d.T, lower=0, overwrite_a=1, clean=1)
+        if info > 0:
+            raise _not_pd(what, n, k0 + info - 1)
+        L_kk = u.T if not np.may_share_memory(u, d) else d
+        a[k0:k1, k0:k1] = L_kk
+        a[k0:k1, k1:] = 0.0
+        if k1 == n:
+            break
+        # Panel: P L_kkᵀ = A_{k1:, k0:k1}, i.e. Pᵀ = L_kk⁻¹ A_{k1:, k0:k1}ᵀ.
+        panel = np.ascontiguousarray(a[k1:, k0:k1])
+        pt = blas.dtrsm(1.0, L_kk, panel.T, lower=1, side=0, trans_a=0, overwrite_b=1)
+        panel = pt.T
+        a[k1:, k0:k1] = panel
+        # Trailing update of the lower triangle, one block row at a time: A_ij -= P_i P_jᵀ.
+        for r0 in range(k1, n, block):
+            r1 = min(r0 + block, n)
+            a[r0:r1, k1:r1] -= panel[r0 - k1 : r1 - k1] @ panel[: r1 - k1].T
+    return a
+
+
+def gram_t(a: np.ndarray) -> np.ndarray:
+    """``aᵀ a`` by ``dgemm``. NumPy would route ``a.T @ a`` to ``dsyrk``, which crashes in
+    OpenBLAS's threaded code for large outputs (see :func:`cholesky_inplace`)."""
+    f = np.asfortranarray(a.T) if not a.flags.c_contiguous else a.T  # F-ordered view of aᵀ
+    return np.ascontiguousarray(blas.dgemm(1.0, f, f, trans_b=1))
 
 
 def cho_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -123,4 +123,133 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     return paths
 
 
-__all__ = ["data_sanity", "save", "jnp"]
+def _boxes(ax, data, labels, title):
+    ax.boxplot(data, showfliers=False, whis=(5, 95))
+    ax.set_xticks(range(1, len(labels) + 1), labels, rotation=30, ha="right", fontsize=7)
+    ax.set_yscale("log")
+    ax.set_title(title)
+    ax.grid(alpha=0.3, axis="y")
+
+
+UNITS = {"F": "N", "M": "N m", "L": "dB"}
+
+
+def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> list[Path]:
+    """Error distributions (paper Fig. model comparison), all outputs, Schur vs no Schur,
+    error vs airspeed, and the two mean forms of ``gpgs_schur``."""
+    ok = {k: v for k, v in results.items() if "skipped" not in v}
+    labels = list(ok)
+    paths: list[Path] = []
+    key = [n for n in ("Fx", "Mx", "L1") if n in names]
+
+    def err(label, n):
+        return ok[label]["_abs_err"][:, names.index(n)]
+
+    fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
+    for ax, n in zip(np.atleast_1d(axes), key, strict=True):
+        _boxes(ax, [err(lab, n) for lab in labels], labels, f"|error| {n} [{UNITS[n[0]]}]")
+    fig.suptitle("Model comparison (boxes: quartiles, whiskers: 5-95 %)")
+    paths += save(fig, outdir / "model_compare")
+
+    cols = 3
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(13, 3.6 * rows))
+    for ax, n in zip(np.ravel(axes), names, strict=False):
+        _boxes(ax, [err(lab, n) for lab in labels], labels, f"|error| {n} [{UNITS[n[0]]}]")
+    for ax in np.ravel(axes)[len(names) :]:
+        ax.axis("off")
+    fig.tight_layout()
+    paths += save(fig, outdir / "model_compare_all_outputs")
+
+    pair = [lab for lab in ("gpgs", "gpgs_schur") if lab in ok]
+    if len(pair) == 2:
+        fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
+        for ax, n in zip(np.atleast_1d(axes), key, strict=True):
+            _boxes(ax, [err(lab, n) for lab in pair], ["no Schur (gpgs)", "Schur (gpgs_schur)"], n)
+        fig.suptitle("Schur complement comparison")
+        paths += save(fig, outdir / "schur_compare")
+
+    forms = [lab for lab in ok if lab.startswith("gpgs_schur")]
+    if len(forms) >= 2:
+        fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
+        for ax, n in zip(np.atleast_1d(axes), key, strict=True):
+            _boxes(ax, [err(lab, n) for lab in forms], forms, n)
+        fig.suptitle("gpgs_schur: mean forms (exact = k_qn·α_n, paper = k_qn·S⁻¹Ȳ_n)")
+        paths += save(fig, outdir / "schur_mean_forms")
+
+    fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
+    for ax, n in zip(np.atleast_1d(axes), key, strict=True):
+        j = names.index(n)
+        for lab in labels:
+            ev = ok[lab]["error_vs_airspeed"]
+            mid = 0.5 * (np.array(ev["edges"][1:]) + np.array(ev["edges"][:-1]))
+            vals = [np.nan if row is None else row[j] for row in ev["mean_abs_error"]]
+            ax.plot(mid, vals, marker="o", ms=3, label=lab)
+        ax.set(
+            xlabel="airspeed [m/s]", ylabel=f"mean |error| [{UNITS[n[0]]}]", title=n, yscale="log"
+        )
+        ax.grid(alpha=0.3)
+    np.atleast_1d(axes)[0].legend(fontsize=6)
+    fig.suptitle("Prediction error vs airspeed")
+    fig.tight_layout()
+    paths += save(fig, outdir / "error_vs_airspeed")
+    return paths
+
+
+def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -> list[Path]:
+    """Path in the y-z plane, tracking error, mean rotor speed, microphone levels."""
+    paths: list[Path] = []
+    style = {"simplified": ("tab:blue", "-"), "surrogate": ("tab:red", "-")}
+    wp = np.asarray(plan.waypoints)
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for name, tr in traces.items():
+        p = np.asarray(tr.p)
+        ax.plot(p[:, 1], -p[:, 2], color=style[name][0], label=f"{name} dynamics")
+    ref = np.asarray(next(iter(traces.values())).ref_p)
+    ax.plot(ref[:, 1], -ref[:, 2], "k--", lw=0.8, label="reference")
+    ax.plot(wp[:, 1], -wp[:, 2], "ks", ms=6, label="waypoints")
+    ax.set(xlabel="y [m]", ylabel="altitude −z [m]", title="Flight path, y-z plane")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    paths += save(fig, outdir / "path_yz")
+
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    for name, tr in traces.items():
+        err = np.linalg.norm(np.asarray(tr.p) - np.asarray(tr.ref_p), axis=1)
+        ax.plot(np.asarray(tr.t), err, color=style[name][0], label=name)
+    ax.set(xlabel="time [s]", ylabel="|p − p_ref| [m]", title="Tracking error")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    paths += save(fig, outdir / "tracking_error")
+
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    for name, tr in traces.items():
+        ax.plot(np.asarray(tr.t), np.asarray(tr.rpm).mean(1), color=style[name][0], label=name)
+    ax.set(xlabel="time [s]", ylabel="mean rotor speed [rpm]", title="Average rpm")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    paths += save(fig, outdir / "average_rpm")
+
+    sur = traces["surrogate"]
+    noise = np.asarray(sur.noise)
+    if noise.shape[-1]:
+        fig, ax = plt.subplots(figsize=(6, 3.4))
+        t = np.asarray(sur.t)
+        for j, c in zip(range(noise.shape[1]), ("tab:red", "tab:green", "tab:blue"), strict=False):
+            ax.plot(t, noise[:, j], color=c, label=f"L{j + 1}, surrogate flight")
+            ax.plot(
+                np.asarray(traces["simplified"].t),
+                noise_simple[:, j],
+                color=c,
+                ls=":",
+                label=f"L{j + 1}, simplified flight",
+            )
+        ax.set(xlabel="time [s]", ylabel="OASPL [dB]", title="Microphone levels (surrogate)")
+        ax.legend(fontsize=6, ncol=2)
+        ax.grid(alpha=0.3)
+        paths += save(fig, outdir / "microphone_levels")
+    return paths
+
+
+__all__ = ["compare_figures", "data_sanity", "flight_figures", "save", "jnp"]

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
 
-from gpg import linalg
+from gpg import linalg, memory
 from gpg.gp import Hyper, assemble_gram
 from gpg.partition import NearSets
 
@@ -89,6 +89,10 @@ def precompute(
     rows = [near_rows(nb, n, g) for nb in near.near]
     if route == "local":
         return [_local(X, Ybar, hyper, dims, nb, r) for nb, r in zip(near.near, rows, strict=True)]
+    R = n * (1 + g)
+    widest = max(r.size for r in rows)
+    extra = 2 * R * widest * 8 if route == "global" else 2 * R * R * 8
+    memory.require(f"the {route} Schur precompute over {R} rows", R * R * 8 + extra)
     K = assemble_gram(jnp.asarray(X), hyper, dims)
     if route == "direct":
         return [_direct(K, Ybar, r, mean) for r in rows]
@@ -112,7 +116,7 @@ def _gram_factor(Wn: np.ndarray) -> np.ndarray:
     rounding has made the Gram matrix indefinite, the QR factor instead, which never fails.
     """
     try:
-        return np.ascontiguousarray(linalg.cholesky_inplace(Wn.T @ Wn, what="[K̄⁻¹]_nn").T)
+        return np.ascontiguousarray(linalg.cholesky_inplace(linalg.gram_t(Wn), what="[K̄⁻¹]_nn").T)
     except linalg.NotPositiveDefiniteError:
         return np.ascontiguousarray(sla.qr(Wn, mode="r", check_finite=False)[0][: Wn.shape[1]])
 
@@ -124,7 +128,7 @@ def _direct(K: np.ndarray, Ybar: np.ndarray, r: np.ndarray, mean: str) -> BinFac
         L_ff = linalg.cholesky_inplace(K[np.ix_(far, far)], what="K̄_ff")
         V = sla.solve_triangular(L_ff, K[np.ix_(far, r)], lower=True, check_finite=False)
         u = sla.solve_triangular(L_ff, Ybar[far], lower=True, check_finite=False)
-        S = K_nn - V.T @ V
+        S = K_nn - linalg.gram_t(V)
         rhs = Ybar[r] - V.T @ u  # Ȳ_n − K̄_nf K̄_ff⁻¹ Ȳ_f
     else:
         S, rhs = K_nn, Ybar[r]

@@ -27,11 +27,12 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from gpg import models
 from gpg.data.dataset import Dataset
-from gpg.data.preprocess import Normalizer, prepare, simple_model_for
+from gpg.data.preprocess import Normalizer, Training, prepare, simple_model_for
 from gpg.predictor import Predictor
 from gpg.quadrotor.frames import matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
@@ -95,17 +96,30 @@ class Surrogate(eqx.Module):
         simple = simple_model_for(dataset, vehicle) if residual else None
         training = prepare(dataset, simple, s=cfg["hyper"]["grad_noise_scale"])
         built = models.build(model, training, cfg)
-        sur = cls(
-            model=built.model,
+        return cls.assemble(built.model, training, dataset, model, cfg), built, training
+
+    @classmethod
+    def assemble(
+        cls,
+        model: Predictor,
+        training: Training,
+        dataset: Dataset,
+        model_name: str,
+        config: Mapping[str, Any],
+    ) -> Surrogate:
+        """A surrogate around an already built ``model`` trained on ``training`` (the output
+        of :func:`gpg.data.prepare` for ``dataset``)."""
+        box_lo, box_hi = domain_box(dataset)
+        return cls(
+            model=model,
             normalizer=training.normalizer,
-            simple=simple,
-            box_lo=jnp.asarray(dataset.x.min(0)),
-            box_hi=jnp.asarray(dataset.x.max(0)),
+            simple=training.simple,
+            box_lo=jnp.asarray(box_lo),
+            box_hi=jnp.asarray(box_hi),
             output_names=training.output_names,
-            model_name=model,
-            config_json=json.dumps(cfg, sort_keys=True),
+            model_name=model_name,
+            config_json=json.dumps(config, sort_keys=True),
         )
-        return sur, built, training
 
     @property
     def config(self) -> dict[str, Any]:
@@ -178,6 +192,18 @@ class Surrogate(eqx.Module):
 
     def nbytes(self) -> int:
         return self.model.nbytes()
+
+
+def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """The input box the training data were meant to cover: the sampling bounds recorded by
+    the generator when present (so hover at exactly 0 m/s is inside), else the data's own
+    extent."""
+    bounds = dataset.meta.get("bounds")
+    if bounds:
+        from gpg.data.sampling import Bounds
+
+        return Bounds.from_config(bounds).arrays()
+    return dataset.x.min(0), dataset.x.max(0)
 
 
 def _as_state(rpm, euler, v_air):

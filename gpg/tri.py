@@ -40,6 +40,22 @@ class BlockTriangular(eqx.Module):
             blocks.append(jnp.asarray(np.ascontiguousarray(band)))
         return cls(blocks=tuple(blocks), n=n, lower=lower)
 
+    @classmethod
+    def from_buffer(cls, buf, *, lower: bool, n_blocks: int = 4) -> BlockTriangular:
+        """Bands of the lower-triangular matrix in a :class:`gpg.memory.SquareBuffer`, giving
+        each band's rows back to the system once copied, so that the dense matrix and its
+        bands are never both held in full."""
+        if not lower:
+            raise ValueError("from_buffer handles lower-triangular matrices (rows end at the band)")
+        F = buf.array
+        n = F.shape[0]
+        edges = np.linspace(0, n, min(n_blocks, max(n, 1)) + 1).astype(int)
+        blocks = []
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            blocks.append(jnp.array(F[a:b, :b]))  # a copy owned by JAX
+            buf.release_rows(a, b)
+        return cls(blocks=tuple(blocks), n=n, lower=True)
+
     def _starts(self) -> list[int]:
         out, a = [], 0
         for blk in self.blocks:

@@ -58,3 +58,36 @@ def y_of(gen):
 def jac_of(gen):
     f = jax.jit(lambda x: jacobian(gen, x))
     return lambda x: f(jnp.asarray(x, float))
+
+
+@pytest.fixture(scope="session")
+def smoke_cache(tmp_path_factory):
+    """A dataset cache holding the smoke train/test pair, generated once per session."""
+    from gpg.runs.common import conf
+    from gpg.runs.generate_data import ensure_datasets
+
+    cache = tmp_path_factory.mktemp("smoke_cache")
+    data = conf("smoke", "data")
+    data["chunk"] = 32
+    ensure_datasets(data, conf("sui_endurance", "vehicle"), cache, progress=False)
+    return cache
+
+
+@pytest.fixture(scope="session")
+def smoke_compare(smoke_cache, tmp_path_factory):
+    """One full comparison on smoke data: (run directory, results)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from experiments.compare import model_configs
+    from gpg.runs import compare
+    from gpg.runs.common import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(
+            config_name="compare",
+            overrides=["data=smoke", "data.chunk=32", f"cache_dir={smoke_cache}", "n_queries=20"],
+        )
+    values = OmegaConf.to_container(cfg, resolve=True)
+    out = tmp_path_factory.mktemp("smoke_compare")
+    return out, compare.run(values, out, model_configs(values))

@@ -37,3 +37,22 @@ def test_rejects_bad_buffers(rng):
         linalg.cholesky_inplace(np.asfortranarray(spd(rng, 5))[:, ::1].T.copy(order="F"))
     with pytest.raises(linalg.NotPositiveDefiniteError, match="pivot 1"):
         linalg.cholesky_inplace(np.array([[1.0, 2.0], [2.0, 1.0]]))
+
+
+def test_blocked_cholesky_equals_lapack(rng, monkeypatch):
+    K = spd(rng, 300)
+    want = np.linalg.cholesky(K)
+    monkeypatch.setattr(linalg, "BLOCKED_ABOVE", 100)
+    L = linalg.cholesky_inplace(K.copy(), block=64)
+    np.testing.assert_allclose(L, want, rtol=1e-10, atol=1e-10)
+    np.testing.assert_array_equal(np.triu(L, 1), 0.0)
+    bad = K.copy()
+    bad[200, 200] = -1.0
+    with pytest.raises(linalg.NotPositiveDefiniteError, match="pivot 200"):
+        linalg.cholesky_inplace(bad, block=64)
+
+
+def test_gram_t_is_ata(rng):
+    a = rng.standard_normal((70, 9))
+    np.testing.assert_allclose(linalg.gram_t(a), a.T @ a, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(linalg.gram_t(np.asfortranarray(a)), a.T @ a, rtol=1e-12)

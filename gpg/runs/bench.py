@@ -160,16 +160,7 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
         tb = time_calls(lambda f=mb, lv=leaves, B=batch: f(lv, B), cfg["batch_repeats"], warmup=2)
         res["mean_batch"] = stats(tb)
         res["mean_batch_per_s"] = batch.shape[0] / float(np.median(tb))
-        sur = Surrogate(
-            model=model,
-            normalizer=training.normalizer,
-            simple=simple,
-            box_lo=jnp.asarray(train.x.min(0)),
-            box_hi=jnp.asarray(train.x.max(0)),
-            output_names=training.output_names,
-            model_name=name,
-            config_json="{}",
-        )
+        sur = Surrogate.assemble(model, training, train, name, mcfg)
         states = [
             (jnp.asarray(x[:4]), jnp.asarray(x[4:7]), jnp.asarray([x[7], 0.0, 0.0]))
             for x in test.x[: cfg["n_queries"]]

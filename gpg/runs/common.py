@@ -14,6 +14,21 @@ from typing import Any
 import jax
 import numpy as np
 
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+def conf(name: str, group: str | None = None) -> dict[str, Any]:
+    """A config file of ``conf/`` as plain values, without Hydra (for notebooks and scripts):
+    ``conf("smoke", "data")`` reads ``conf/data/smoke.yaml``. Defaults lists are not composed."""
+    import yaml
+
+    path = CONF_DIR / (group or "") / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise ValueError(f"no config {path}; known: {known}")
+    with open(path) as f:
+        return yaml.safe_load(f)
+
 
 def block(x):
     """Wait for every array in ``x`` (JAX dispatch is asynchronous)."""

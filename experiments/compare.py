@@ -1,0 +1,42 @@
+"""The paper's comparison: ``python -m experiments.compare [+model=<name>] [data=<scale>]``."""
+
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+import gpg  # noqa: F401  (float64)
+from experiments._hydra import plain, run_dir
+from gpg.memory import InsufficientMemory
+from gpg.models import NAMES
+from gpg.runs import compare
+
+MODEL_DIR = Path(__file__).resolve().parents[1] / "conf" / "model"
+
+
+def model_configs(cfg: dict) -> dict[str, dict]:
+    """The model(s) to run: ``+model=<name>`` or every name in ``models``."""
+    if "model" in cfg:
+        return {cfg["model"]["name"]: cfg["model"]}
+    out = {}
+    for name in cfg["models"]:
+        path = MODEL_DIR / f"{name}.yaml"
+        if name not in NAMES or not path.is_file():
+            raise ValueError(f"unknown model {name!r} in models; valid: {list(NAMES)}")
+        out[name] = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    return out
+
+
+@hydra.main(config_path="../conf", config_name="compare", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    values = plain(cfg)
+    try:
+        compare.run(values, run_dir(), model_configs(values))
+    except (ValueError, InsufficientMemory) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

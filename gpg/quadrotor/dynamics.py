@@ -1,0 +1,230 @@
+"""6-DoF rigid-body quadrotor dynamics with motor lag, wind, and a pluggable aerodynamic wrench.
+
+World frame x forward, y right, z down; body frame FRD; gravity ``+g e_z``. State: position
+and velocity (world), attitude quaternion ``q`` (body to world, scalar first), body rates ``ω``
+and rotor speeds (rpm). Rotor speeds follow their commands with a first-order lag and are
+clipped to the motor range. The aerodynamic force and moment come from an :class:`AeroModel`:
+the paper's simplified model ``M`` (:class:`SimpleAero`) or a GP :class:`~gpg.Surrogate`
+(:class:`SurrogateAero`), behind one interface, so the same controller flies both.
+
+Integration is classical RK4 inside ``lax.scan``. By default the aerodynamic wrench is
+evaluated once per step at its start and held over the four stages (a zero-order hold at the
+simulation rate, as a simulator querying an aerodynamic model at a fixed rate does); with
+``hold_aero=False`` it is evaluated at every stage.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from gpg.quadrotor.frames import euler_from_R, matvec
+from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.vehicle import Vehicle
+
+
+class State(eqx.Module):
+    """``p`` (3,) m and ``v`` (3,) m/s in the world frame, ``q`` (4,) body-to-world quaternion
+    (w, x, y, z), ``w`` (3,) body rates rad/s, ``rpm`` (4,) rotor speeds."""
+
+    p: Float[Array, " 3"]
+    v: Float[Array, " 3"]
+    q: Float[Array, " 4"]
+    w: Float[Array, " 3"]
+    rpm: Float[Array, " 4"]
+
+    @classmethod
+    def hover(cls, p, rpm) -> State:
+        return cls(
+            p=jnp.asarray(p, dtype=float),
+            v=jnp.zeros(3),
+            q=jnp.array([1.0, 0.0, 0.0, 0.0]),
+            w=jnp.zeros(3),
+            rpm=jnp.broadcast_to(jnp.asarray(rpm, dtype=float), (4,)),
+        )
+
+    @property
+    def R(self) -> Float[Array, "3 3"]:
+        return quat_to_R(self.q)
+
+
+def quat_to_R(q: Float[Array, " 4"]) -> Float[Array, "3 3"]:
+    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.stack(
+        [
+            jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
+            jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
+            jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]),
+        ]
+    )
+
+
+def quat_from_euler(euler: Float[Array, " 3"]) -> Float[Array, " 4"]:
+    """Quaternion of ``R_WB = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    cy, sy = jnp.cos(euler[0] / 2), jnp.sin(euler[0] / 2)
+    cp, sp = jnp.cos(euler[1] / 2), jnp.sin(euler[1] / 2)
+    cr, sr = jnp.cos(euler[2] / 2), jnp.sin(euler[2] / 2)
+    return jnp.stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+def _quat_rate(q: Float[Array, " 4"], w: Float[Array, " 3"]) -> Float[Array, " 4"]:
+    """``q̇ = ½ q ⊗ (0, ω)`` for body rates ``ω``."""
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    return 0.5 * jnp.stack(
+        [
+            -qx * w[0] - qy * w[1] - qz * w[2],
+            qw * w[0] + qy * w[2] - qz * w[1],
+            qw * w[1] - qx * w[2] + qz * w[0],
+            qw * w[2] + qx * w[1] - qy * w[0],
+        ]
+    )
+
+
+class Wrench(eqx.Module):
+    """Aerodynamic force and moment (world frame, about the centre of mass), tonal noise levels
+    at the microphones (dB; empty without a noise model), and whether the model was queried
+    inside its domain."""
+
+    force: Float[Array, " 3"]
+    torque: Float[Array, " 3"]
+    noise: Float[Array, " K"]
+    in_domain: Bool[Array, ""]
+
+
+class AeroModel(eqx.Module):
+    """The aerodynamic wrench as a function of rotor speeds, attitude, airspeed and body rates."""
+
+    @abc.abstractmethod
+    def wrench(
+        self,
+        rpm: Float[Array, " 4"],
+        R_WB: Float[Array, "3 3"],
+        v_air: Float[Array, " 3"],
+        omega: Float[Array, " 3"],
+    ) -> Wrench: ...
+
+
+class SimpleAero(AeroModel):
+    """The paper's simplified model ``M``: rotor thrust and drag torque only, no airspeed."""
+
+    model: SimpleModel
+
+    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
+        F, tau = self.model.wrench_body(rpm)
+        return Wrench(matvec(R_WB, F), matvec(R_WB, tau), jnp.zeros(0), jnp.asarray(True))
+
+
+class SurrogateAero(AeroModel):
+    """A GP surrogate (mean prediction); body rates are not among its inputs."""
+
+    surrogate: eqx.Module  # gpg.Surrogate (not imported: the surrogate module imports this one)
+
+    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
+        from gpg.surrogate import predict_state
+
+        p = predict_state(self.surrogate, rpm, euler_from_R(R_WB), v_air, False)
+        return Wrench(p.force, p.torque, p.noise, p.in_domain)
+
+
+class Wind(eqx.Module):
+    """Constant wind plus a sinusoidal gust (world frame, m/s): ``mean + A sin(2πt/T + φ)``."""
+
+    mean: Float[Array, " 3"]
+    gust_amplitude: Float[Array, " 3"]
+    gust_period: Float[Array, ""]
+    gust_phase: Float[Array, ""]
+
+    @classmethod
+    def calm(cls) -> Wind:
+        return cls(jnp.zeros(3), jnp.zeros(3), jnp.asarray(1.0), jnp.asarray(0.0))
+
+    @classmethod
+    def constant(cls, mean) -> Wind:
+        return cls(jnp.asarray(mean, dtype=float), jnp.zeros(3), jnp.asarray(1.0), jnp.asarray(0.0))
+
+    def __call__(self, t: Float[Array, ""]) -> Float[Array, " 3"]:
+        return self.mean + self.gust_amplitude * jnp.sin(
+            2 * jnp.pi * t / self.gust_period + self.gust_phase
+        )
+
+
+class Quadrotor(eqx.Module):
+    """Rigid body + motors of a vehicle, with an aerodynamic model."""
+
+    aero: AeroModel
+    mass: Float[Array, ""]
+    inertia: Float[Array, " 3"]
+    gravity: Float[Array, ""]
+    motor_time_constant: Float[Array, ""]
+    rpm_min: Float[Array, ""]
+    rpm_max: Float[Array, ""]
+    hold_aero: bool = eqx.field(static=True, default=True)
+
+    @classmethod
+    def from_vehicle(
+        cls, vehicle: Vehicle, aero: AeroModel, *, hold_aero: bool = True
+    ) -> Quadrotor:
+        return cls(
+            aero=aero,
+            mass=vehicle.mass,
+            inertia=vehicle.inertia,
+            gravity=vehicle.gravity,
+            motor_time_constant=vehicle.motor_time_constant,
+            rpm_min=vehicle.rpm_min,
+            rpm_max=vehicle.rpm_max,
+            hold_aero=hold_aero,
+        )
+
+    def wrench(self, s: State, wind_velocity: Float[Array, " 3"]) -> Wrench:
+        return self.aero.wrench(s.rpm, s.R, s.v - wind_velocity, s.w)
+
+    def derivatives(self, s: State, rpm_cmd: Float[Array, " 4"], wr: Wrench) -> State:
+        """Time derivative of the state under a given aerodynamic wrench."""
+        R = s.R
+        acc = wr.force / self.mass + jnp.array([0.0, 0.0, 1.0]) * self.gravity
+        tau_b = matvec(R.T, wr.torque)
+        Jw = self.inertia * s.w
+        w_dot = (tau_b - jnp.cross(s.w, Jw)) / self.inertia
+        cmd = jnp.clip(rpm_cmd, self.rpm_min, self.rpm_max)
+        return State(
+            p=s.v,
+            v=acc,
+            q=_quat_rate(s.q, s.w),
+            w=w_dot,
+            rpm=(cmd - s.rpm) / self.motor_time_constant,
+        )
+
+    def step(
+        self, s: State, rpm_cmd: Float[Array, " 4"], t: Float[Array, ""], dt: float, wind: Wind
+    ) -> tuple[State, Wrench]:
+        """One RK4 step of length ``dt``; returns the new state and the wrench at the step start."""
+        wr0 = self.wrench(s, wind(t))
+
+        def f(x: State, tt) -> State:
+            wr = wr0 if self.hold_aero else self.wrench(x, wind(tt))
+            return self.derivatives(x, rpm_cmd, wr)
+
+        def add(x, k, h):
+            return jax.tree.map(lambda a, b: a + h * b, x, k)
+
+        k1 = f(s, t)
+        k2 = f(add(s, k1, dt / 2), t + dt / 2)
+        k3 = f(add(s, k2, dt / 2), t + dt / 2)
+        k4 = f(add(s, k3, dt), t + dt)
+        new = jax.tree.map(
+            lambda x, a, b, c, d: x + dt / 6 * (a + 2 * b + 2 * c + d), s, k1, k2, k3, k4
+        )
+        new = eqx.tree_at(lambda x: x.q, new, new.q / jnp.linalg.norm(new.q))
+        return new, wr0

@@ -1,0 +1,282 @@
+"""The paper's comparison (``python -m experiments.compare``): every baseline, one dataset.
+
+For each model: build it on the training set (hyperparameters by marginal likelihood, shared by
+models trained on the same points), predict the held-out test set, and record per-output MAE,
+RMSE, NLPD and 95 % coverage, the error against airspeed, training time, single-query
+prediction time (median and p95) with its ratio to ``gp`` as in the paper's Table
+"Computational Time Comparison", model bytes and the peak memory of the build. Writes
+``results.json``, ``results.md`` and the figures into the run directory.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from gpg import memory, models
+from gpg.data.dataset import Dataset
+from gpg.data.preprocess import prepare, restore, simple_model_for
+from gpg.quadrotor.vehicle import Vehicle
+from gpg.runs.common import machine, stats, table, time_calls, write_json
+from gpg.surrogate import Surrogate
+
+AIRSPEED_BINS = 10
+
+
+def load_data(cfg: dict[str, Any]) -> tuple[Dataset, Dataset, dict[str, Any]]:
+    """Train and test sets: user files (``dataset.train``/``dataset.test``) or generated."""
+    paths = cfg.get("dataset") or {}
+    if paths.get("train") or paths.get("test"):
+        if not (paths.get("train") and paths.get("test")):
+            raise ValueError("give both dataset.train and dataset.test (held-out test set)")
+        train, test = Dataset.load(paths["train"]), Dataset.load(paths["test"])
+        return train, test, {"key": None, "train": str(paths["train"]), "test": str(paths["test"])}
+    from gpg.runs.generate_data import ensure_datasets
+
+    train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
+    return train, test, info
+
+
+def metrics(y: np.ndarray, mean: np.ndarray, var: np.ndarray, names) -> dict[str, Any]:
+    """Per-output MAE, RMSE, NLPD (Gaussian) and 95 % interval coverage."""
+    err = mean - y
+    z = np.abs(err) / np.sqrt(var)
+    nlpd = 0.5 * np.log(2 * np.pi * var) + 0.5 * err**2 / var
+    return {
+        "mae": dict(zip(names, np.mean(np.abs(err), 0).tolist(), strict=True)),
+        "rmse": dict(zip(names, np.sqrt(np.mean(err**2, 0)).tolist(), strict=True)),
+        "nlpd": dict(zip(names, np.mean(nlpd, 0).tolist(), strict=True)),
+        "nlpd_mean": float(np.mean(nlpd)),
+        "coverage95": dict(zip(names, np.mean(z <= 1.959964, 0).tolist(), strict=True)),
+        "coverage95_mean": float(np.mean(z <= 1.959964)),
+    }
+
+
+def error_vs_airspeed(v: np.ndarray, abs_err: np.ndarray, lo: float, hi: float) -> dict[str, Any]:
+    edges = np.linspace(lo, hi, AIRSPEED_BINS + 1)
+    idx = np.clip(np.digitize(v, edges) - 1, 0, AIRSPEED_BINS - 1)
+    rows = [
+        np.mean(abs_err[idx == b], 0).tolist() if np.any(idx == b) else None  # empty bin
+        for b in range(AIRSPEED_BINS)
+    ]
+    return {"edges": edges.tolist(), "mean_abs_error": rows}
+
+
+def _predict_test(model, Xn: np.ndarray, chunk: int = 256):
+    means, vars_ = [], []
+    for s in range(0, Xn.shape[0], chunk):
+        m, v = model.predict(jnp.asarray(Xn[s : s + chunk]))
+        means.append(np.asarray(m))
+        vars_.append(np.asarray(v))
+    return np.concatenate(means), np.concatenate(vars_)
+
+
+def _latency(fn, states, n: int) -> dict[str, float]:
+    it = iter(range(10**9))
+    return stats(time_calls(lambda: fn(*states[next(it) % len(states)]), n, warmup=3))
+
+
+def evaluate(
+    label: str,
+    name: str,
+    mcfg: dict[str, Any],
+    train: Dataset,
+    test: Dataset,
+    simple,
+    hyper_cache: dict,
+    n_queries: int,
+) -> dict[str, Any]:
+    """Build one model and measure it (see module docstring)."""
+    spec = models.SPECS[name]
+    training = prepare(train, simple, s=mcfg["hyper"]["grad_noise_scale"])
+    key = (spec.raw, spec.gradients, json.dumps(mcfg["hyper"], sort_keys=True))
+    with memory.PeakRSS() as mem:
+        if key not in hyper_cache:
+            hyper_cache[key] = models.fit_hyper(name, training, mcfg)
+        hyper, fit_res, hyper_s = hyper_cache[key]
+        built = models.build(name, training, mcfg, hyper=hyper)
+    timings = {"hyper_s": hyper_s, **{k: v for k, v in built.timings.items() if k != "hyper_s"}}
+
+    norm = training.normalizer
+    mean_n, var_n = _predict_test(built.model, np.asarray(norm.x(test.x)))
+    y_pred = restore(training, test.x, mean_n)
+    y_std = np.asarray(norm.y_std)
+    # Predictive variance of an observation: latent variance plus the value-row jitter ν².
+    var_y = (var_n[:, None] + float(hyper.jitter)) * y_std[None, :] ** 2
+    y_true = test.y[:, : y_pred.shape[1]]
+    names = list(training.output_names)
+    res: dict[str, Any] = {
+        "model": name,
+        "title": models.SPECS[name].title,
+        "config": mcfg,
+        **timings,
+        "train_s": float(sum(timings.values())),
+        **metrics(y_true, y_pred, var_y, names),
+        "hyper_converged": None if fit_res is None else bool(fit_res.converged),
+        "lengthscale": np.asarray(hyper.lengthscale).tolist(),
+        "signal_variance": float(hyper.variance),
+        "near_fraction": None if built.near is None else float(np.mean(built.near.fraction)),
+        "model_bytes": built.model.nbytes(),
+        "peak_memory_bytes": mem.peak_delta,
+    }
+    lo, hi = float(train.x[:, 7].min()), float(train.x[:, 7].max())
+    res["error_vs_airspeed"] = error_vs_airspeed(test.x[:, 7], np.abs(y_pred - y_true), lo, hi)
+
+    sur = Surrogate.assemble(built.model, training, train, name, mcfg)
+    states = [
+        (jnp.asarray(x[:4]), jnp.asarray(x[4:7]), jnp.asarray([x[7], 0.0, 0.0]))
+        for x in test.x[: max(n_queries, 1)]
+    ]
+    lat = _latency(sur.realtime(with_var=True), states, n_queries)
+    fast = _latency(sur.realtime(with_var=False), states, n_queries)
+    res.update(
+        predict_ms_median=lat["median_s"] * 1e3,
+        predict_ms_p95=lat["p95_s"] * 1e3,
+        predict_mean_ms_median=fast["median_s"] * 1e3,
+        predict_mean_ms_p95=fast["p95_s"] * 1e3,
+    )
+    # Kept for the figures, not written to results.json.
+    res["_abs_err"] = np.abs(y_pred - y_true)
+    res["_label"] = label
+    return res
+
+
+def _variant_label(name: str, over: dict[str, Any]) -> str:
+    return name + "[" + ",".join(f"{k}={v}" for k, v in sorted(over.items())) + "]"
+
+
+def _table_md(results: dict[str, Any], names: list[str]) -> str:
+    rows = []
+    ref = results.get("gp", {}).get("predict_ms_median")
+    for label, r in results.items():
+        if "skipped" in r:
+            rows.append({"label": label, "skipped": r["skipped"]})
+            continue
+        row = {
+            "label": label,
+            "train": r["train_s"],
+            "pm": r["predict_ms_median"],
+            "p95": r["predict_ms_p95"],
+            "ratio": 100 * r["predict_ms_median"] / ref if ref else None,
+            "nlpd": r["nlpd_mean"],
+            "cov": r["coverage95_mean"],
+            "near": r["near_fraction"],
+            "mb": r["model_bytes"] / 2**20,
+            "peak": r["peak_memory_bytes"] / 2**20,
+        }
+        for n in names:
+            row[n] = r["mae"][n]
+        rows.append(row)
+    cols = [
+        ("label", "model", ""),
+        ("train", "train s", ".1f"),
+        ("pm", "predict ms", ".3f"),
+        ("p95", "p95 ms", ".3f"),
+        ("ratio", "% of gp", ".1f"),
+        *[(n, f"MAE {n}", ".3g") for n in names],
+        ("nlpd", "NLPD", ".3g"),
+        ("cov", "cover95", ".3f"),
+        ("near", "near", ".3f"),
+        ("mb", "model MiB", ".1f"),
+        ("peak", "peak MiB", ".0f"),
+    ]
+    main = table([r for r in rows if "skipped" not in r], cols)
+    skipped = [f"- {r['label']}: skipped ({r['skipped']})" for r in rows if "skipped" in r]
+    return main + ("\n\n" + "\n".join(skipped) if skipped else "")
+
+
+def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Compare the models of ``model_cfgs`` (name -> config) on the configured data."""
+    outdir = Path(outdir)
+    if not model_cfgs:
+        raise ValueError(f"no model to compare; valid names: {list(models.NAMES)}")
+    resolved = {}
+    for name, mc in model_cfgs.items():
+        resolved[name] = models.resolve_config(name, mc)  # unknown names and keys fail here
+    single = len(resolved) == 1
+    if cfg.get("sync_dispatch", True):
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    t_start = time.perf_counter()
+    train, test, data_info = load_data(cfg)
+    vehicle = Vehicle.from_config(cfg["vehicle"])
+    simple = simple_model_for(train, vehicle)
+    print(f"data: {train.summary()}\ntest: {test.n} points")
+
+    jobs = []
+    for name, mc in resolved.items():
+        jobs.append((name, name, mc))
+        for over in (cfg.get("variants") or {}).get(name, []):
+            jobs.append(
+                (_variant_label(name, over), name, models.resolve_config(name, {**mc, **over}))
+            )
+    results: dict[str, Any] = {}
+    hyper_cache: dict = {}
+    for label, name, mc in tqdm(jobs, desc="models", unit="model"):
+        try:
+            results[label] = evaluate(
+                label, name, mc, train, test, simple, hyper_cache, cfg["n_queries"]
+            )
+        except (ValueError, memory.InsufficientMemory) as exc:
+            if single:
+                raise
+            results[label] = {"model": name, "skipped": str(exc)}
+            tqdm.write(f"{label}: skipped: {exc}")
+    if all("skipped" in r for r in results.values()):
+        raise ValueError("no model could run: " + "; ".join(r["skipped"] for r in results.values()))
+
+    names = list(next(r for r in results.values() if "skipped" not in r)["mae"])
+    figures = []
+    if cfg.get("figures", True):
+        from gpg import plots
+
+        figures = plots.compare_figures(results, names, outdir / "figures")
+    clean = {
+        k: {kk: vv for kk, vv in v.items() if not kk.startswith("_")} for k, v in results.items()
+    }
+    ref = clean.get("gp", {}).get("predict_ms_median")
+    for r in clean.values():
+        if "skipped" not in r and ref:
+            r["predict_ratio_to_gp"] = r["predict_ms_median"] / ref
+    out = {
+        "machine": machine(),
+        "data": data_info,
+        "n_train": train.n,
+        "n_test": test.n,
+        "outputs": names,
+        "models": clean,
+        "figures": [str(p.relative_to(outdir)) for p in figures],
+        "wall_s": time.perf_counter() - t_start,
+        "config": {**cfg, "models": resolved},
+    }
+    write_json(outdir / "results.json", out)
+    md = _table_md(results, names)
+    header = (
+        f"# Comparison on {data_info.get('key') or data_info.get('train')}\n\n"
+        f"{train.n} training points, {test.n} test points; errors in N, N·m and dB; "
+        "predict = one world-frame query, mean and variance (`Surrogate.realtime`).\n\n"
+    )
+    (outdir / "results.md").write_text(header + md + "\n")
+    print(md)
+    print(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({out['wall_s']:.0f} s)")
+    return out
+
+
+def finite_numbers(obj: Any) -> bool:
+    """True when every number in a JSON-like structure is finite (None allowed)."""
+    if isinstance(obj, dict):
+        return all(finite_numbers(v) for v in obj.values())
+    if isinstance(obj, list):
+        return all(finite_numbers(v) for v in obj)
+    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
+        return True
+    if isinstance(obj, int | float):
+        return math.isfinite(obj)
+    return True

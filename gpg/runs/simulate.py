@@ -1,0 +1,191 @@
+"""Closed-loop flights (``python -m experiments.simulate``), as the paper's last section.
+
+The same geometric controller (designed on the simplified model ``M``) flies a two-waypoint
+round trip twice: with ``M`` as the dynamics, and with a GP surrogate of the mid-fidelity data.
+Recorded: time to reach each waypoint, overshoot, altitude loss, rotor speeds, the surrogate's
+microphone levels along both flights, and the share of the flight inside the surrogate's
+training domain. Then the throughput of the surrogate dynamics: one environment against real
+time, and a batch of environments with randomised targets and wind.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpg import checkpoint
+from gpg.data.preprocess import simple_model_for
+from gpg.quadrotor.control import GeometricController, WaypointPlan
+from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, SurrogateAero, Wind
+from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
+from gpg.quadrotor.vehicle import Vehicle
+from gpg.runs.common import machine, write_json
+from gpg.surrogate import Surrogate, predict_state
+
+
+def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> dict[str, Any]:
+    """Per leg: time from the leg's start to the first entry within ``radius`` of its waypoint
+    (None if never), overshoot past the waypoint along the leg, and the largest sink below the
+    reference altitude (z is down); rotor speed statistics over the flight."""
+    p, ref = np.asarray(tr.p), np.asarray(tr.ref_p)
+    t = np.asarray(tr.t)
+    w = np.asarray(plan.waypoints)
+    legs = []
+    for k in range(len(w) - 1):
+        t0 = float(plan.start_time) + k * float(plan.leg_time)
+        t1 = t0 + float(plan.leg_time) if k < len(w) - 2 else t[-1]
+        sel = (t >= t0) & (t <= t1 + (0 if k < len(w) - 2 else 0))
+        d = w[k + 1] - w[k]
+        u = d / (np.linalg.norm(d) + 1e-12)
+        dist = np.linalg.norm(p[sel] - w[k + 1], axis=1)
+        inside = np.flatnonzero(dist <= radius)
+        past = (p[sel] - w[k + 1]) @ u
+        legs.append(
+            {
+                "waypoint": w[k + 1].tolist(),
+                "time_to_reach_s": float(t[sel][inside[0]] - t0) if inside.size else None,
+                "overshoot_m": float(max(past.max(), 0.0)),
+            }
+        )
+    rpm = np.asarray(tr.rpm)
+    return {
+        "legs": legs,
+        "altitude_loss_m": float(max(np.max(p[:, 2] - ref[:, 2]), 0.0)),
+        "max_tracking_error_m": float(np.max(np.linalg.norm(p - ref, axis=1))),
+        "rms_tracking_error_m": float(np.sqrt(np.mean(np.sum((p - ref) ** 2, axis=1)))),
+        "mean_rpm": float(rpm.mean()),
+        "rpm_std": float(rpm.std()),
+        "in_domain_fraction": float(np.mean(np.asarray(tr.in_domain))),
+        "final_position": p[-1].tolist(),
+        "dt": dt,
+    }
+
+
+def _surrogate(cfg: dict[str, Any], vehicle: Vehicle):
+    if cfg.get("surrogate_checkpoint"):
+        sur = checkpoint.load(cfg["surrogate_checkpoint"])
+        return sur, sur.simple
+    from gpg.runs.compare import load_data
+
+    train, _, _ = load_data(cfg)
+    model = dict(cfg["model"])
+    name = model.pop("name")
+    sur = Surrogate.fit(train, name, model, vehicle=vehicle)
+    return sur, simple_model_for(train, vehicle)
+
+
+def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
+    outdir = Path(outdir)
+    if cfg.get("sync_dispatch", True):
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    vehicle = Vehicle.from_config(cfg["vehicle"])
+    sur, simple = _surrogate(cfg, vehicle)
+    if simple is None:
+        raise ValueError("the surrogate has no simplified model; the controller needs one")
+    ctrl = GeometricController.create(vehicle, simple, cfg["controller"])
+    fl = cfg["flight"]
+    plan = WaypointPlan.create(
+        fl["waypoints"], start_time=fl["start_time"], leg_time=fl["leg_time"]
+    )
+    dt = float(fl["dt"])
+    n_steps = int(round((float(plan.end_time) + fl["settle_time"]) / dt))
+    w = cfg["wind"]
+    wind = Wind(
+        jnp.asarray(w["mean"], dtype=float),
+        jnp.asarray(w["gust_amplitude"], dtype=float),
+        jnp.asarray(float(w["gust_period"])),
+        jnp.asarray(0.0),
+    )
+    s0 = State.hover(fl["waypoints"][0], simple.hover_rpm(float(vehicle.weight)))
+    hold = bool(fl.get("hold_aero", True))
+    quads = {
+        "simplified": Quadrotor.from_vehicle(vehicle, SimpleAero(simple), hold_aero=hold),
+        "surrogate": Quadrotor.from_vehicle(vehicle, SurrogateAero(sur), hold_aero=hold),
+    }
+    fly = jax.jit(lambda q, s: simulate(q, ctrl, plan, wind, s, dt, n_steps))
+    traces, flights = {}, {}
+    for name, quad in quads.items():
+        _, tr = fly(quad, s0)
+        traces[name] = jax.block_until_ready(tr)
+        flights[name] = flight_metrics(tr, plan, dt, fl["reach_radius"])
+
+    # The surrogate's microphone levels along the simplified flight (M has no noise model).
+    listen = jax.jit(
+        jax.vmap(
+            lambda r, e, v: predict_state(sur, r, e, v, False).noise,
+        )
+    )
+    tr = traces["simplified"]
+    wind_t = jax.vmap(wind)(tr.t)
+    noise_simple = np.asarray(listen(tr.rpm, tr.euler, tr.v - wind_t))
+
+    speed = {}
+    t0 = time.perf_counter()
+    _, tr = fly(quads["surrogate"], s0)
+    jax.block_until_ready(tr)
+    wall = time.perf_counter() - t0
+    speed["single_env_steps"] = n_steps
+    speed["single_env_wall_s"] = wall
+    speed["single_env_realtime_factor"] = n_steps * dt / wall
+    ro = cfg["rollouts"]
+    key = jax.random.key(int(ro["seed"]))
+    batch = jax.jit(
+        lambda q, k: batched_rollouts(
+            q,
+            ctrl,
+            k,
+            s0,
+            n_envs=int(ro["n_envs"]),
+            n_steps=int(ro["n_steps"]),
+            dt=dt,
+            target_range=float(ro["target_range"]),
+            wind_max=float(ro["wind_max"]),
+            gust_max=float(ro["gust_max"]),
+        )
+    )
+    jax.block_until_ready(batch(quads["surrogate"], key))  # compile
+    t0 = time.perf_counter()
+    _, btr = jax.block_until_ready(batch(quads["surrogate"], jax.random.fold_in(key, 1)))
+    wall = time.perf_counter() - t0
+    speed["batch_envs"] = int(ro["n_envs"])
+    speed["batch_steps"] = int(ro["n_steps"])
+    speed["batch_wall_s"] = wall
+    speed["batch_env_steps_per_s"] = ro["n_envs"] * ro["n_steps"] / wall
+    speed["batch_in_domain_fraction"] = float(np.mean(np.asarray(btr.in_domain)))
+    speed["batch_finite"] = bool(np.all(np.isfinite(np.asarray(btr.p))))
+
+    figures = []
+    if cfg.get("figures", True):
+        from gpg import plots
+
+        figures = plots.flight_figures(traces, noise_simple, plan, outdir / "figures")
+    out = {
+        "machine": machine(),
+        "surrogate": {"model": sur.model_name, "bytes": sur.nbytes()},
+        "flights": flights,
+        "speed": speed,
+        "figures": [str(p.relative_to(outdir)) for p in figures],
+        "config": cfg,
+    }
+    write_json(outdir / "results.json", out)
+    for name, f in flights.items():
+        reach = ", ".join(
+            "never" if leg["time_to_reach_s"] is None else f"{leg['time_to_reach_s']:.2f} s"
+            for leg in f["legs"]
+        )
+        print(
+            f"{name:11s} reach {reach}; overshoot "
+            + ", ".join(f"{leg['overshoot_m']:.2f} m" for leg in f["legs"])
+            + f"; altitude loss {f['altitude_loss_m']:.2f} m; mean rpm {f['mean_rpm']:.0f} "
+            f"(std {f['rpm_std']:.0f}); in domain {100 * f['in_domain_fraction']:.0f} %"
+        )
+    print(
+        f"one env: {speed['single_env_realtime_factor']:.0f}x real time; "
+        f"{speed['batch_envs']} envs: {speed['batch_env_steps_per_s']:,.0f} env-steps/s"
+    )
+    return out

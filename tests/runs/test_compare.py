@@ -1,0 +1,142 @@
+"""``experiments.compare`` on smoke data, composed with Hydra, and its error messages."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from experiments.compare import model_configs
+from gpg.runs import compare
+from gpg.runs.compare import finite_numbers
+from tests.helpers import synthetic_dataset
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def config(tmp_path, *extra):
+    overrides = [
+        "data=smoke",
+        "data.chunk=32",
+        f"cache_dir={tmp_path / 'cache'}",
+        "n_queries=20",
+        *extra,
+    ]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="compare", overrides=overrides)
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def test_whole_comparison_on_smoke(smoke_compare):
+    out, res = smoke_compare
+    saved = json.loads((out / "results.json").read_text())
+    labels = {"gp", "gpg", "gps_1x", "gps_8x", "gpgs", "gpgs_schur", "gpgs_schur[mean=paper]"}
+    assert set(saved["models"]) == labels
+    assert finite_numbers(saved)
+    for r in saved["models"].values():
+        for key in (
+            "train_s",
+            "predict_ms_median",
+            "predict_ms_p95",
+            "mae",
+            "rmse",
+            "nlpd",
+            "coverage95",
+            "near_fraction",
+            "model_bytes",
+            "peak_memory_bytes",
+        ):
+            assert key in r
+        assert set(r["mae"]) == {"Fx", "Fy", "Fz", "Mx", "My", "Mz", "L1", "L2", "L3"}
+        assert 0 <= r["coverage95_mean"] <= 1
+    assert saved["models"]["gp"]["predict_ratio_to_gp"] == 1.0
+    assert (out / "results.md").read_text().count("| gpgs_schur") == 2
+    for fig in (
+        "model_compare",
+        "model_compare_all_outputs",
+        "schur_compare",
+        "schur_mean_forms",
+        "error_vs_airspeed",
+    ):
+        assert (out / "figures" / f"{fig}.png").is_file()
+        assert (out / "figures" / f"{fig}.pdf").is_file()
+    assert res["n_train"] == 60 and res["n_test"] == 200
+
+
+def test_single_model_and_user_dataset(tmp_path):
+    train, _ = synthetic_dataset(30, seed=1)
+    test, _ = synthetic_dataset(12, seed=2, raw=False)
+    train.save(tmp_path / "train")
+    test.save(tmp_path / "test")
+    cfg = config(
+        tmp_path,
+        "+model=gpgs",
+        f"dataset.train={tmp_path / 'train'}",
+        f"dataset.test={tmp_path / 'test'}",
+        "figures=false",
+        "model.partition.bins=3",
+    )
+    out = tmp_path / "run"
+    out.mkdir()
+    res = compare.run(cfg, out, model_configs(cfg))
+    assert list(res["models"]) == ["gpgs"] and finite_numbers(res)
+
+
+def test_missing_gradients_single_model_is_an_error(tmp_path):
+    train, _ = synthetic_dataset(30, seed=1)
+    train.without("gradients").save(tmp_path / "train")
+    synthetic_dataset(12, seed=2, raw=False)[0].save(tmp_path / "test")
+    cfg = config(
+        tmp_path,
+        "+model=gpg",
+        f"dataset.train={tmp_path / 'train'}",
+        f"dataset.test={tmp_path / 'test'}",
+        "figures=false",
+    )
+    with pytest.raises(ValueError, match="model 'gpg' needs gradients, which the dataset lacks"):
+        compare.run(cfg, tmp_path, model_configs(cfg))
+    # Running every model instead skips those that cannot run, saying why.
+    cfg = config(
+        tmp_path,
+        f"dataset.train={tmp_path / 'train'}",
+        f"dataset.test={tmp_path / 'test'}",
+        "figures=false",
+        "models=[gpg,gps_1x]",
+        "n_queries=5",
+    )
+    res = compare.run(cfg, tmp_path, model_configs(cfg))
+    assert "needs gradients" in res["models"]["gpg"]["skipped"] and "mae" in res["models"]["gps_1x"]
+
+
+def test_unknown_model_in_list(tmp_path):
+    with pytest.raises(ValueError, match=r"unknown model 'gpgs_shur' in models; valid: \['gp'"):
+        model_configs(config(tmp_path, "models=[gpg,gpgs_shur]"))
+
+
+def cli(*args, cwd):
+    return subprocess.run(
+        [sys.executable, "-m", "experiments.compare", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_cli_errors_are_one_clear_message(tmp_path):
+    p = cli("+model=gpgs_shur", f"hydra.run.dir={tmp_path}", cwd=ROOT)
+    assert p.returncode != 0
+    assert "Could not find 'model/gpgs_shur'" in p.stderr and "gpgs_schur" in p.stderr
+    p = cli(
+        "dataset.train=/no/such/train",
+        "dataset.test=/no/such/test",
+        f"hydra.run.dir={tmp_path}",
+        cwd=ROOT,
+    )
+    assert p.returncode == 2
+    assert (
+        p.stderr.strip().splitlines()[-1] == "error: dataset file /no/such/train.npz does not exist"
+    )

@@ -1,0 +1,39 @@
+"""``experiments.simulate`` on smoke data, composed with Hydra."""
+
+import json
+
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from gpg.runs import simulate
+from gpg.runs.common import CONF_DIR
+from gpg.runs.compare import finite_numbers
+
+
+def test_simulate_run(smoke_cache, tmp_path):
+    overrides = [
+        "data=smoke",
+        "data.chunk=32",
+        f"cache_dir={smoke_cache}",
+        "model.partition.bins=4",
+        "flight.leg_time=4.0",
+        "flight.settle_time=2.0",
+        "rollouts.n_envs=16",
+        "rollouts.n_steps=50",
+    ]
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = OmegaConf.to_container(
+            compose(config_name="simulate", overrides=overrides), resolve=True
+        )
+    res = simulate.run(cfg, tmp_path)
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert finite_numbers({k: v for k, v in saved.items() if k != "flights"})
+    for name in ("simplified", "surrogate"):
+        f = saved["flights"][name]
+        assert len(f["legs"]) == 2 and f["mean_rpm"] > 0
+        assert f["max_tracking_error_m"] < 10.0  # a 60-point surrogate flies, if not well
+    simple = saved["flights"]["simplified"]
+    assert simple["legs"][0]["time_to_reach_s"] is not None and simple["max_tracking_error_m"] < 1.0
+    assert res["speed"]["batch_env_steps_per_s"] > 0 and res["speed"]["batch_finite"]
+    for fig in ("path_yz", "tracking_error", "average_rpm", "microphone_levels"):
+        assert (tmp_path / "figures" / f"{fig}.png").is_file()

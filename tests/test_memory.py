@@ -1,0 +1,41 @@
+"""Releasable square buffers, memory budgets and peak-RSS sampling."""
+
+import time
+
+import numpy as np
+import pytest
+
+from gpg import memory
+from gpg.tri import BlockTriangular
+
+
+def test_square_buffer_release_rows(rng):
+    buf = memory.square_buffer(600)
+    a = buf.array
+    assert a.shape == (600, 600) and a.flags.c_contiguous and a.flags.writeable
+    a[...] = rng.normal(size=(600, 600))
+    keep = a[400:].copy()
+    buf.release_rows(0, 300)
+    np.testing.assert_array_equal(a[400:], keep)  # rows outside the range are untouched
+    assert np.count_nonzero(a[10:290]) == 0  # whole pages inside the range read as zeros
+
+
+def test_bands_from_buffer_equal_dense(rng):
+    buf = memory.square_buffer(300)
+    F = np.tril(rng.normal(size=(300, 300)))
+    buf.array[...] = F
+    bt = BlockTriangular.from_buffer(buf, lower=True, n_blocks=5)
+    np.testing.assert_array_equal(bt.to_dense(), F)
+    with pytest.raises(ValueError, match="lower-triangular"):
+        BlockTriangular.from_buffer(buf, lower=False)
+
+
+def test_require_and_peak():
+    with pytest.raises(memory.InsufficientMemory, match=r"needs about .* GiB but only .* GiB"):
+        memory.require("a test", 1 << 62)
+    memory.require("a test", 1 << 10)
+    with memory.PeakRSS(interval=0.005) as p:
+        x = np.ones(50_000_000 // 8)  # 50 MB touched
+        time.sleep(0.05)  # long enough to be sampled
+        del x
+    assert p.peak_delta > 30_000_000
