@@ -174,7 +174,10 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
         fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
         for ax, n in zip(np.atleast_1d(axes), key, strict=True):
             _boxes(ax, [err(lab, n) for lab in forms], forms, n)
-        fig.suptitle("gpgs_schur: mean forms (exact = k_qn·α_n, paper = k_qn·S⁻¹Ȳ_n)")
+        fig.suptitle(
+            r"gpgs_schur: mean forms (exact = $k_{qn}^\top \alpha_n$, "
+            r"paper = $k_{qn}^\top S^{-1} \bar{Y}_n$)"
+        )
         paths += save(fig, outdir / "schur_mean_forms")
 
     fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))

@@ -2,7 +2,8 @@
 
 ``predict(rpm, euler, v_air)`` for one vehicle state in the world frame:
 
-1. airflow frame ``H`` (``R_WH e_x = v̂``, a proper rotation) and the attitude in it,
+1. airflow frame ``H`` (``R_WH e_x = v̂``, a proper rotation; below ``hover_speed`` it turns
+   toward the body heading, where the direction no longer matters) and the attitude in it,
    ``x_H = (r1..r4, ψ_H, θ_H, φ_H, ‖v_air‖)``;
 2. normalise, find the bin, evaluate the GP (mean, and the latent variance);
 3. de-normalise: force/moment residuals in ``H``, noise levels as they are;
@@ -55,6 +56,12 @@ class Prediction(eqx.Module):
     in_domain: Bool[Array, "*batch"]
 
 
+# Below this airspeed (m/s) the airflow frame follows the body heading. Small against the
+# hover induced velocity (about 5 m/s) and the 2 m/s airspeed bins, large against the drift a
+# position controller leaves in hover.
+HOVER_SPEED = 0.5
+
+
 class Surrogate(eqx.Module):
     """A fitted model plus everything to go from a world-frame state to world-frame outputs."""
 
@@ -66,6 +73,8 @@ class Surrogate(eqx.Module):
     output_names: tuple[str, ...] = eqx.field(static=True)
     model_name: str = eqx.field(static=True)
     config_json: str = eqx.field(static=True)  # resolved model config, for records
+    # m/s: below it the airflow frame turns toward the body heading (frames.airflow_direction)
+    hover_speed: float = eqx.field(static=True, default=HOVER_SPEED)
 
     @classmethod
     def fit(
@@ -76,18 +85,20 @@ class Surrogate(eqx.Module):
         *,
         vehicle: Vehicle | str | None = None,
         residual: bool = True,
+        hover_speed: float = HOVER_SPEED,
     ) -> Surrogate:
         """Preprocess ``dataset`` and build ``model`` (a name from :data:`gpg.models.NAMES`).
 
         ``config`` overrides :data:`gpg.models.DEFAULTS`. ``vehicle`` supplies the rotor layout
         of the simplified model (default: the dataset's generator vehicle, else SUI Endurance);
-        ``residual=False`` fits the raw outputs without ``M``.
+        ``residual=False`` fits the raw outputs without ``M``; ``hover_speed`` (m/s) is where
+        the airflow frame starts to follow the body heading (0: pure wind axes).
         """
-        built = cls._build(dataset, model, config, vehicle, residual)
+        built = cls._build(dataset, model, config, vehicle, residual, hover_speed)
         return built[0]
 
     @classmethod
-    def _build(cls, dataset, model, config, vehicle, residual):
+    def _build(cls, dataset, model, config, vehicle, residual, hover_speed=HOVER_SPEED):
         cfg = models.resolve_config(model, config)
         if vehicle is None:
             vehicle = dataset.meta.get("generator", {}).get("vehicle", "sui_endurance")
@@ -96,7 +107,8 @@ class Surrogate(eqx.Module):
         simple = simple_model_for(dataset, vehicle) if residual else None
         training = prepare(dataset, simple, s=cfg["hyper"]["grad_noise_scale"])
         built = models.build(model, training, cfg)
-        return cls.assemble(built.model, training, dataset, model, cfg), built, training
+        sur = cls.assemble(built.model, training, dataset, model, cfg, hover_speed=hover_speed)
+        return sur, built, training
 
     @classmethod
     def assemble(
@@ -106,9 +118,14 @@ class Surrogate(eqx.Module):
         dataset: Dataset,
         model_name: str,
         config: Mapping[str, Any],
+        *,
+        hover_speed: float = HOVER_SPEED,
     ) -> Surrogate:
         """A surrogate around an already built ``model`` trained on ``training`` (the output
         of :func:`gpg.data.prepare` for ``dataset``)."""
+        hover_speed = float(hover_speed)
+        if not np.isfinite(hover_speed) or hover_speed < 0.0:
+            raise ValueError(f"hover_speed must be a finite speed >= 0 m/s, got {hover_speed}")
         box_lo, box_hi = domain_box(dataset)
         return cls(
             model=model,
@@ -119,6 +136,7 @@ class Surrogate(eqx.Module):
             output_names=training.output_names,
             model_name=model_name,
             config_json=json.dumps(config, sort_keys=True),
+            hover_speed=hover_speed,
         )
 
     @property
@@ -221,7 +239,7 @@ def predict_state(
     sur: Surrogate, rpm: Array, euler: Array, v_air: Array, with_var: bool
 ) -> Prediction:
     """The un-jitted pipeline for one state (see module docstring); jit, vmap or scan it."""
-    euler_h, speed, R_WH = to_airflow_frame(euler, v_air)
+    euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
     x_h = jnp.concatenate([rpm, euler_h, speed[None]])
     span = sur.box_hi - sur.box_lo
     tol = 1e-9 * jnp.maximum(span, 1.0)

@@ -40,7 +40,9 @@ def queries(data):
 @pytest.mark.parametrize("name", ["gpgs_schur", "gpg"])
 def test_round_trip_bit_for_bit(data, surrogate, tmp_path, name):
     sur = (
-        surrogate if name == "gpgs_schur" else Surrogate.fit(data, "gpg", {"hyper": {"fit": False}})
+        surrogate
+        if name == "gpgs_schur"
+        else Surrogate.fit(data, "gpg", {"hyper": {"fit": False}}, hover_speed=0.3)
     )
     checkpoint.save(tmp_path / "ck", sur)
     back = checkpoint.load(tmp_path / "ck")
@@ -48,6 +50,7 @@ def test_round_trip_bit_for_bit(data, surrogate, tmp_path, name):
     for field in ("force", "torque", "noise", "variance", "in_domain"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
     assert back.config == sur.config and back.output_names == sur.output_names
+    assert back.hover_speed == sur.hover_speed
     meta = checkpoint.read_metadata(tmp_path / "ck")
     assert meta["model_name"] == name and meta["format_version"] == 1
     assert "y_std" in meta["normalisation"] and "lengthscale" in meta["hyperparameters"]

@@ -1,7 +1,9 @@
 """Surrogate: frames, training labels, equivariance under world yaw, batching, scan, bad input."""
 
+import dataclasses
 import logging
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -111,8 +113,23 @@ def test_out_of_domain_and_bad_values(binned, data):
     assert not bool(binned.predict(rpm * 10, euler, v).in_domain)  # beyond the rpm range
     bad = binned.predict(rpm, euler * np.nan, v)
     assert not bool(bad.in_domain)
-    hover = binned.predict(rpm, euler, np.zeros(3))  # zero airspeed: H = W, finite
+    hover = binned.predict(rpm, euler, np.zeros(3))  # zero airspeed: finite
     assert np.all(np.isfinite(hover.force))
+
+
+def test_hover_in_domain_whatever_the_yaw(binned, data):
+    """Hovering facing any direction is inside the training box (yaw ±90°): at rest H follows
+    the body heading. Pure wind axes (hover_speed=0) take H = W and flag a yaw of 150°."""
+    rpm, euler, _ = state(data.x[5])
+    euler = np.array([np.radians(150.0), euler[1], euler[2]])
+    drift = np.array([0.01, -0.02, 0.005])
+    # the synthetic data start at 0.27 m/s; a generated dataset's box starts at 0
+    sur = eqx.tree_at(lambda s: s.box_lo, binned, binned.box_lo.at[7].set(0.0))
+    assert bool(sur.predict(rpm, euler, drift).in_domain)
+    wind_axes = dataclasses.replace(sur, hover_speed=0.0)
+    assert not bool(wind_axes.predict(rpm, euler, drift).in_domain)
+    with pytest.raises(ValueError, match="hover_speed"):
+        Surrogate.fit(data, "gps_1x", BINNED, hover_speed=-1.0)
 
 
 @pytest.mark.parametrize(

@@ -124,14 +124,39 @@ def R_WH(v_air: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     return R_WB(jnp.stack([heading, climb, jnp.zeros_like(climb)]))  # Rz(χ) Ry(γ)
 
 
+def airflow_direction(
+    v_air_W: Float[ArrayLike, "3"], yaw: Float[ArrayLike, ""], hover_speed: float
+) -> Float[Array, "3"]:
+    """The vector whose direction ``H`` takes as its x axis: ``v_air`` itself above
+    ``hover_speed`` (m/s), blended toward the body's horizontal heading below it.
+
+    At zero airspeed the aerodynamic wrench does not depend on the direction of ``H`` at all,
+    so any choice is exact there; but wind axes alone then pick a heading of zero (or whatever
+    direction a few mm/s of drift point), which puts a hovering vehicle with a yaw beyond ±90°,
+    or a tilted one, outside the training box for no physical reason. Adding
+    ``c = h (1 − ‖v‖²/h²)²₊`` along the heading makes ``ψ_H → 0`` and ``γ → 0`` in hover;
+    ``c`` and its gradient vanish at ``‖v‖ = h``, so above that the frame is exactly wind
+    axes, and the result commutes with rotations about the world z axis like :func:`R_WH`.
+    """
+    v = jnp.asarray(v_air_W)
+    if hover_speed <= 0.0:
+        return v
+    h = float(hover_speed)
+    c = h * jnp.maximum(1.0 - jnp.sum(v * v) / h**2, 0.0) ** 2
+    return v + c * jnp.stack([jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw)])
+
+
 def to_airflow_frame(
-    euler_W: Float[ArrayLike, "3"], v_air_W: Float[ArrayLike, "3"]
+    euler_W: Float[ArrayLike, "3"], v_air_W: Float[ArrayLike, "3"], hover_speed: float = 0.0
 ) -> tuple[Float[Array, "3"], Float[Array, ""], Float[Array, "3 3"]]:
     """Attitude in the airflow frame and airspeed: ``(euler_H, ‖v‖, R_WH)``.
 
     ``R_HB = R_WHᵀ R_WB`` (paper, Section "Real-time Simulation"); ``euler_H`` are its
     ``(yaw, pitch, roll)``, the angles a dataset case with the same relative airflow would have.
+    ``hover_speed > 0`` (m/s, static) turns ``H`` toward the body heading at low airspeed, see
+    :func:`airflow_direction`; 0 gives pure wind axes.
     """
-    rwh = R_WH(v_air_W)
+    euler_W = jnp.asarray(euler_W)
+    rwh = R_WH(airflow_direction(v_air_W, euler_W[0], hover_speed))
     r_hb = matmul(rwh.T, R_WB(euler_W))
     return euler_from_R(r_hb), safe_norm(v_air_W), rwh

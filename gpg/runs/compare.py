@@ -124,6 +124,9 @@ def evaluate(
         "lengthscale": np.asarray(hyper.lengthscale).tolist(),
         "signal_variance": float(hyper.variance),
         "near_fraction": None if built.near is None else float(np.mean(built.near.fraction)),
+        # The smallest kernel correlation admitted to a near set (mean over bins): far points
+        # correlate up to about this with the bin, so the Schur forms' k_qf ≈ 0 needs it ≪ 1.
+        "near_epsilon": None if built.near is None else float(np.mean(built.near.epsilon)),
         "model_bytes": built.model.nbytes(),
         "peak_memory_bytes": mem.peak_delta,
     }
@@ -169,6 +172,7 @@ def _table_md(results: dict[str, Any], names: list[str]) -> str:
             "nlpd": r["nlpd_mean"],
             "cov": r["coverage95_mean"],
             "near": r["near_fraction"],
+            "eps": r["near_epsilon"],
             "mb": r["model_bytes"] / 2**20,
             "peak": r["peak_memory_bytes"] / 2**20,
         }
@@ -185,6 +189,7 @@ def _table_md(results: dict[str, Any], names: list[str]) -> str:
         ("nlpd", "NLPD", ".3g"),
         ("cov", "cover95", ".3f"),
         ("near", "near", ".3f"),
+        ("eps", "ε", ".2f"),
         ("mb", "model MiB", ".1f"),
         ("peak", "peak MiB", ".0f"),
     ]

@@ -114,3 +114,56 @@ def test_dataset_airflow_keeps_euler(rng):
 
 def test_safe_norm_gradient_at_zero():
     assert np.all(np.asarray(jax.grad(frames.safe_norm)(jnp.zeros(3))) == 0)
+
+
+def test_hover_blend_is_wind_axes_above_hover_speed(rng):
+    """Above ``hover_speed`` the blended frame is exactly wind axes (``R_WH e_x = v̂``)."""
+    for e in random_euler(rng, 10):
+        d = rng.normal(size=3)
+        v = d / np.linalg.norm(d) * rng.uniform(0.5, 15.0)
+        a = frames.to_airflow_frame(e, v, 0.5)
+        b = frames.to_airflow_frame(e, v, 0.0)
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
+        np.testing.assert_allclose(np.asarray(a[2])[:, 0], v / np.linalg.norm(v), atol=1e-14)
+
+
+def test_hover_blend_follows_body_heading_at_rest(rng):
+    """At zero airspeed H turns to the body heading: ψ_H = 0 and (θ, φ) unchanged, whatever
+    the yaw; without the blend a yaw beyond ±90° would leave the dataset's box."""
+    for e in random_euler(rng, 10) * [1.0, 0.6, 0.6]:
+        eh, speed, R = frames.to_airflow_frame(e, np.zeros(3), 0.5)
+        np.testing.assert_allclose(eh, [0.0, e[1], e[2]], atol=1e-12)
+        assert float(speed) == 0.0
+        eh0, _, _ = frames.to_airflow_frame(e, np.zeros(3), 0.0)
+        np.testing.assert_allclose(eh0, e, atol=1e-12)  # pure wind axes: H = W at rest
+
+
+def test_hover_blend_continuous_and_smooth():
+    """The blend weight and its gradient vanish at ‖v‖ = hover_speed (no jump in the frame or
+    its Jacobian), and the Jacobian is finite at rest."""
+    e = jnp.array([2.5, 0.2, -0.1])
+    u = jnp.array([0.6, 0.8, 0.0])
+
+    def euler_h(s):
+        return frames.to_airflow_frame(e, s * u, 0.5)[0]
+
+    below, above = euler_h(0.5 - 1e-7), euler_h(0.5 + 1e-7)
+    np.testing.assert_allclose(below, above, atol=1e-6)
+    d_below = jax.jacfwd(euler_h)(0.5 - 1e-7)
+    d_above = jax.jacfwd(euler_h)(0.5 + 1e-7)
+    np.testing.assert_allclose(d_below, d_above, atol=1e-5)
+    J = jax.jacfwd(lambda v: frames.to_airflow_frame(e, v, 0.5)[0])(jnp.zeros(3))
+    assert np.all(np.isfinite(J))
+
+
+def test_hover_blend_commutes_with_world_yaw(rng):
+    for _ in range(10):
+        e = random_euler(rng, 1)[0] * [1.0, 0.5, 0.5]
+        v = rng.normal(size=3) * 0.2  # inside the blend
+        a = rng.uniform(-np.pi, np.pi)
+        Rz = np.asarray(frames.rot_z(a))
+        eh, _, R = frames.to_airflow_frame(e, v, 0.5)
+        eh2, _, R2 = frames.to_airflow_frame(e + [a, 0, 0], Rz @ v, 0.5)
+        np.testing.assert_allclose(np.asarray(R2), Rz @ np.asarray(R), atol=1e-12)
+        np.testing.assert_allclose(eh2, eh, atol=1e-12)
