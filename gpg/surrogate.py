@@ -94,11 +94,6 @@ class Surrogate(eqx.Module):
         ``residual=False`` fits the raw outputs without ``M``; ``hover_speed`` (m/s) is where
         the airflow frame starts to follow the body heading (0: pure wind axes).
         """
-        built = cls._build(dataset, model, config, vehicle, residual, hover_speed)
-        return built[0]
-
-    @classmethod
-    def _build(cls, dataset, model, config, vehicle, residual, hover_speed=HOVER_SPEED):
         cfg = models.resolve_config(model, config)
         if vehicle is None:
             vehicle = dataset.meta.get("generator", {}).get("vehicle", "sui_endurance")
@@ -107,8 +102,7 @@ class Surrogate(eqx.Module):
         simple = simple_model_for(dataset, vehicle) if residual else None
         training = prepare(dataset, simple, s=cfg["hyper"]["grad_noise_scale"])
         built = models.build(model, training, cfg)
-        sur = cls.assemble(built.model, training, dataset, model, cfg, hover_speed=hover_speed)
-        return sur, built, training
+        return cls.assemble(built.model, training, dataset, model, cfg, hover_speed=hover_speed)
 
     @classmethod
     def assemble(
