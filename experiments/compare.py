@@ -1,30 +1,27 @@
 """The paper's comparison: ``python -m experiments.compare [+model=<name>] [data=<scale>]``."""
 
 import sys
-from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 import gpg  # noqa: F401  (float64)
 from experiments._hydra import plain, run_dir
 from gpg.memory import InsufficientMemory
 from gpg.models import NAMES
 from gpg.runs import compare
-
-MODEL_DIR = Path(__file__).resolve().parents[1] / "conf" / "model"
+from gpg.runs.common import conf
 
 
 def model_configs(cfg: dict) -> dict[str, dict]:
-    """The model(s) to run: ``+model=<name>`` or every name in ``models``."""
+    """The model(s) to run: ``+model=<name>`` or every name in ``models`` (conf/model/)."""
     if "model" in cfg:
         return {cfg["model"]["name"]: cfg["model"]}
     out = {}
     for name in cfg["models"]:
-        path = MODEL_DIR / f"{name}.yaml"
-        if name not in NAMES or not path.is_file():
+        if name not in NAMES:
             raise ValueError(f"unknown model {name!r} in models; valid: {list(NAMES)}")
-        out[name] = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+        out[name] = conf(name, "model")  # a known name without a file: conf lists the files
     return out
 
 

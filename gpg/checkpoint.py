@@ -29,7 +29,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import orbax.checkpoint as ocp
 
 import gpg
 
@@ -131,6 +130,8 @@ def _summary(sur) -> dict[str, Any]:
 
 def save(path: str | Path, surrogate, *, overwrite: bool = False) -> Path:
     """Write ``surrogate`` to the directory ``path`` (atomically); returns the path."""
+    import orbax.checkpoint as ocp  # here, not at module level: `import gpg` stays fast
+
     from gpg.surrogate import Surrogate
 
     if not isinstance(surrogate, Surrogate):
@@ -201,6 +202,8 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
 
 def load(path: str | Path):
     """Read a :class:`~gpg.surrogate.Surrogate` written by :func:`save`."""
+    import orbax.checkpoint as ocp  # here, not at module level: `import gpg` stays fast
+
     path = Path(path).absolute()
     meta = read_metadata(path)
     if not (path / "arrays").is_dir():

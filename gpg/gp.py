@@ -29,7 +29,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
-from gpg import _checks, kernels, linalg, memory
+from gpg import _checks, kernels, linalg, memory, predictor
 from gpg.predictor import Predictor
 from gpg.tri import BlockTriangular
 
@@ -285,65 +285,34 @@ class ExactGP(Predictor):
         return self.X.shape[1]
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        """Posterior mean (M,) at one query, Eq. (GPGmean): one kernel row and one product."""
         return (_cross(self, x[None]) @ self.alpha)[0]
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
+        """Posterior mean (M,) and latent variance () at one query: Eqs. (GPGmean, GPGvariance).
+
+        The batched, jitted :meth:`predict` / :meth:`predict_mean` are inherited from
+        :class:`gpg.predictor.Predictor`.
+        """
         k = _cross(self, x[None])[0]
         v = self.chol_inv.matvec(k)
+        # Rounding can push the difference a hair below zero for queries on training points.
         return k @ self.alpha, jnp.maximum(self.hyper.variance - v @ v, 0.0)
-
-    def predict(
-        self, Xq: Float[ArrayLike, "Q D"]
-    ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
-        """Posterior mean (Q, M) and latent variance (Q,) at ``Xq``: Eqs. (GPGmean, GPGvariance)."""
-        return _predict(self, jnp.asarray(Xq), True)
-
-    def predict_mean(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M"]:
-        """Posterior mean only (Q, M): one kernel row and one product per query."""
-        return _predict(self, jnp.asarray(Xq), False)[0]
 
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
         """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
         return _predict_gradient(self, jnp.asarray(Xq))
 
 
-def _check_query(gp: ExactGP, Xq: Array) -> None:
-    d = gp.X.shape[1]
-    if Xq.ndim != 2 or Xq.shape[1] != d:
-        raise ValueError(f"Xq must have shape (Q, {d}), got {Xq.shape}")
-
-
 def _cross(gp: ExactGP, Xq: Array) -> Float[Array, "Q R"]:
     return kernels.gram(Xq, gp.X, gp.hyper.variance, gp.hyper.lengthscale, (), gp.grad_dims)
 
 
-def _finite_query(Xq: Array) -> Array:
-    return eqx.error_if(Xq, ~jnp.all(jnp.isfinite(Xq)), "Xq holds NaN or inf")
-
-
-@eqx.filter_jit
-def _predict(gp: ExactGP, Xq: Array, with_var: bool):
-    _check_query(gp, Xq)
-    Xq = _finite_query(Xq)
-    kq = _cross(gp, Xq)
-    mean = kq @ gp.alpha
-    if not with_var:
-        return mean, None
-    v = gp.chol_inv.rmatmul(kq)
-    # Rounding can push the difference a hair below zero for queries on training points.
-    var = jnp.maximum(gp.hyper.variance - jnp.sum(v * v, axis=1), 0.0)
-    return mean, var
-
-
 @eqx.filter_jit
 def _predict_gradient(gp: ExactGP, Xq: Array):
-    _check_query(gp, Xq)
-    Xq = _finite_query(Xq)
-
-    def mean_one(x):
-        return (_cross(gp, x[None]) @ gp.alpha)[0]
-
-    return jax.vmap(jax.jacfwd(mean_one))(Xq)
+    predictor.check_query(Xq, gp.n_inputs)
+    Xq = eqx.error_if(Xq, ~jnp.all(jnp.isfinite(Xq)), "Xq holds NaN or inf")
+    return jax.vmap(jax.jacfwd(gp.mean_one))(Xq)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -393,7 +362,7 @@ class HyperFitResult:
     grad_noise_scale: float | None
 
 
-def _unpack(params, n_inputs: int, base: Hyper, grad_var):
+def _unpack(params, base: Hyper, grad_var):
     lengthscale = jnp.exp(params["log_lengthscale"])
     grad_noise = base.grad_noise
     if "log_s" in params:
@@ -468,7 +437,7 @@ def fit_hyperparameters(
         params["log_s"] = jnp.mean(jnp.log(lam / grad_var))
 
     def loss(p, _):
-        h = _unpack(p, d, init, grad_var)
+        h = _unpack(p, init, grad_var)
         nll = -log_marginal_likelihood(Xs, Ybar, h, data.grad_dims) / scale
         # A non-PD trial point gives NaN: report it as a bad step so the line search backs off.
         return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
@@ -481,7 +450,7 @@ def fit_hyperparameters(
         max_steps=max_steps,
         throw=False,
     )
-    hyper = _unpack(sol.value, d, init, grad_var)
+    hyper = _unpack(sol.value, init, grad_var)
     nll1 = float(loss(sol.value, None))
     ok = bool(sol.result == optx.RESULTS.successful)
     message = "converged" if ok else f"optimistix stopped: {_result_message(sol.result)}"

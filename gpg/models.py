@@ -227,7 +227,7 @@ def pack(
         p = nb.size
         Xn[b, :p] = X[nb]
         # Local row -> padded row is increasing, so a triangular factor stays triangular.
-        pos = (np.arange(1 + g)[:, None] * P + np.arange(p)[None, :]).ravel()
+        pos = schur.near_rows(np.arange(p), P, g)
         coef[b][:, pos] = f.coef.T
         dense = np.zeros((Rp, Rp))
         dense[np.ix_(pos, pos)] = f.factor

@@ -176,6 +176,14 @@ def build(X: Float[ArrayLike, "N D"], scheme: str, n_bins: int, **kw) -> Partiti
     raise ValueError(f"unknown partition scheme {scheme!r}; valid: {list(SCHEMES)}")
 
 
+@jax.jit
+def _max_correlation(
+    A: Float[Array, "N D"], B: Float[Array, "K D"], lengthscale: Float[Array, "*L"]
+) -> Float[Array, " N"]:
+    """Largest correlation of each row of ``A`` with any row of ``B``."""
+    return jnp.max(kernels.correlation(A, B, lengthscale), axis=1)
+
+
 @dataclass(frozen=True)
 class NearSets:
     """Per bin: anchor and near point indices (sorted), the near fraction, and the smallest
@@ -214,7 +222,7 @@ def near_sets(
     X = np.asarray(X, dtype=float)
     n = X.shape[0]
     bins = np.asarray(partition.lookup_batch(jnp.asarray(X)))
-    corr_fn = jax.jit(lambda A, B: jnp.max(kernels.correlation(A, B, lengthscale), axis=1))
+    ls = jnp.asarray(lengthscale, dtype=float)
     anchors, near, frac, eps = [], [], [], []
     for b in range(partition.n_bins):
         a = np.flatnonzero(bins == b)
@@ -223,7 +231,7 @@ def near_sets(
         corr = np.empty(n)
         for s in range(0, n, chunk):
             corr[s : s + chunk] = np.asarray(
-                corr_fn(jnp.asarray(X[s : s + chunk]), jnp.asarray(X[a]))
+                _max_correlation(jnp.asarray(X[s : s + chunk]), jnp.asarray(X[a]), ls)
             )
         corr[a] = np.inf  # anchors first, whatever the rounding
         if epsilon is not None:

@@ -8,7 +8,6 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -255,4 +254,4 @@ def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -
     return paths
 
 
-__all__ = ["compare_figures", "data_sanity", "flight_figures", "save", "jnp"]
+__all__ = ["compare_figures", "data_sanity", "flight_figures", "save"]

@@ -22,7 +22,7 @@ Routes to ``S⁻¹``:
 * ``local`` (the no-Schur baselines ``gpgs``, ``gps_*``): an exact GP on the near set alone,
   ``K̄_nn⁻¹``; the far set is discarded.
 
-Each route returns, per bin, the near rows, mean coefficients ``c`` and a triangular factor
+Each route returns, per bin, mean coefficients ``c`` and a triangular factor
 ``F`` such that ``mean = k_qnᵀ c`` and ``var = σ − ‖F k_qn‖²``; the factor is stored, never the
 dense inverse.
 """
@@ -46,11 +46,10 @@ MEAN_FORMS = ("exact", "paper")
 
 @dataclass(frozen=True)
 class BinFactors:
-    """One bin: global row indices ``rows`` of its near set (bin-local dimension-major order),
-    mean coefficients ``coef`` (r, M) and variance factor ``factor`` (r, r), triangular
-    (``lower`` or upper)."""
+    """One bin, over its near rows (:func:`near_rows`, bin-local dimension-major order): mean
+    coefficients ``coef`` (r, M) and variance factor ``factor`` (r, r), triangular (``lower`` or
+    upper)."""
 
-    rows: np.ndarray
     coef: np.ndarray
     factor: np.ndarray
     lower: bool
@@ -105,7 +104,7 @@ def precompute(
         Wn = W[r.min() :, r]
         R = _gram_factor(Wn)
         coef = alpha[r] if mean == "exact" else R.T @ (R @ Ybar[r])
-        out.append(BinFactors(rows=r, coef=coef, factor=R, lower=False))
+        out.append(BinFactors(coef=coef, factor=R, lower=False))
     return out
 
 
@@ -127,18 +126,19 @@ def _direct(K: np.ndarray, Ybar: np.ndarray, r: np.ndarray, mean: str) -> BinFac
     if far.size:
         L_ff = linalg.cholesky_inplace(K[np.ix_(far, far)], what="K̄_ff")
         V = sla.solve_triangular(L_ff, K[np.ix_(far, r)], lower=True, check_finite=False)
-        u = sla.solve_triangular(L_ff, Ybar[far], lower=True, check_finite=False)
         S = K_nn - linalg.gram_t(V)
-        rhs = Ybar[r] - V.T @ u  # Ȳ_n − K̄_nf K̄_ff⁻¹ Ȳ_f
+        target = Ybar[r]
+        if mean == "exact":  # Ȳ_n − K̄_nf K̄_ff⁻¹ Ȳ_f; the paper's form keeps Ȳ_n
+            u = sla.solve_triangular(L_ff, Ybar[far], lower=True, check_finite=False)
+            target = target - V.T @ u
     else:
-        S, rhs = K_nn, Ybar[r]
+        S, target = K_nn, Ybar[r]
     L_S = linalg.cholesky_inplace(np.ascontiguousarray(S), what="Schur complement S")
-    target = rhs if mean == "exact" else Ybar[r]
     coef = linalg.cho_solve(L_S, target)
-    return BinFactors(rows=r, coef=coef, factor=linalg.triangular_inverse_inplace(L_S), lower=True)
+    return BinFactors(coef=coef, factor=linalg.triangular_inverse_inplace(L_S), lower=True)
 
 
 def _local(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray) -> BinFactors:
     L = linalg.cholesky_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), what="K̄_nn")
     coef = linalg.cho_solve(L, Ybar[r])
-    return BinFactors(rows=r, coef=coef, factor=linalg.triangular_inverse_inplace(L), lower=True)
+    return BinFactors(coef=coef, factor=linalg.triangular_inverse_inplace(L), lower=True)

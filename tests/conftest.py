@@ -76,18 +76,12 @@ def smoke_cache(tmp_path_factory):
 @pytest.fixture(scope="session")
 def smoke_compare(smoke_cache, tmp_path_factory):
     """One full comparison on smoke data: (run directory, results)."""
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
     from experiments.compare import model_configs
     from gpg.runs import compare
-    from gpg.runs.common import CONF_DIR
+    from tests.helpers import compose_plain
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="compare",
-            overrides=["data=smoke", "data.chunk=32", f"cache_dir={smoke_cache}", "n_queries=20"],
-        )
-    values = OmegaConf.to_container(cfg, resolve=True)
+    values = compose_plain(
+        "compare", ["data=smoke", "data.chunk=32", f"cache_dir={smoke_cache}", "n_queries=20"]
+    )
     out = tmp_path_factory.mktemp("smoke_compare")
     return out, compare.run(values, out, model_configs(values))

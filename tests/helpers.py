@@ -1,4 +1,9 @@
-"""Synthetic datasets with analytic gradients (no generator needed, fast to build)."""
+"""Test helpers: synthetic datasets with analytic gradients (no generator needed, fast to
+build), configs composed as the entry points do, and a check of JSON results."""
+
+import math
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -39,3 +44,28 @@ def synthetic_dataset(n=60, seed=0, raw=True):
         meta={"simple_model": {"P_F": 5.3e-7, "T_z": 8.4e-9}, "name": "synthetic"},
         **kw,
     ), W
+
+
+def compose_plain(name: str, overrides: Sequence[str] = ()) -> dict[str, Any]:
+    """``conf/<name>.yaml`` composed by Hydra with ``overrides``, as plain values (what the
+    ``experiments`` entry points pass to ``gpg.runs``)."""
+    from hydra import compose, initialize_config_dir
+
+    from experiments._hydra import plain
+    from gpg.runs.common import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return plain(compose(config_name=name, overrides=list(overrides)))
+
+
+def finite_numbers(obj: Any) -> bool:
+    """True when every number in a JSON-like structure is finite (None allowed)."""
+    if isinstance(obj, dict):
+        return all(finite_numbers(v) for v in obj.values())
+    if isinstance(obj, list):
+        return all(finite_numbers(v) for v in obj)
+    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
+        return True
+    if isinstance(obj, int | float):
+        return math.isfinite(obj)
+    return True

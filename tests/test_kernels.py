@@ -80,11 +80,19 @@ def test_gram_symmetric_psd(rng):
     assert np.linalg.eigvalsh(K).min() > -1e-10
 
 
-def test_correlation(rng):
-    X = jnp.asarray(rng.uniform(-1, 1, (6, 2)))
-    C = np.asarray(kernels.correlation(X, X, 0.4))
+@pytest.mark.parametrize("lengthscale", [0.4, np.array([0.4, 1.1])], ids=["iso", "ard"])
+def test_correlation(rng, lengthscale):
+    X = rng.uniform(-1, 1, (6, 2))
+    C = np.asarray(kernels.correlation(jnp.asarray(X), jnp.asarray(X), lengthscale))
     np.testing.assert_allclose(np.diag(C), 1.0)
     assert np.all((C > 0) & (C <= 1))
+    # Closed form exp(-½‖Δ/l‖²), also for two different point sets.
+    X2 = rng.uniform(-1, 1, (4, 2))
+    for A, B in ((X, X), (X, X2)):
+        r = (A[:, None, :] - B[None, :, :]) / lengthscale
+        want = np.exp(-0.5 * np.sum(r * r, axis=-1))
+        got = np.asarray(kernels.correlation(jnp.asarray(A), jnp.asarray(B), lengthscale))
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.parametrize("dims", [(0, 5), (-1,), (1, 1), ("a",)])

@@ -34,7 +34,7 @@ def test_rejects_bad_buffers(rng):
     with pytest.raises(ValueError, match="square"):
         linalg.cholesky_inplace(np.ones((3, 4)))
     with pytest.raises(ValueError, match="C-contiguous"):
-        linalg.cholesky_inplace(np.asfortranarray(spd(rng, 5))[:, ::1].T.copy(order="F"))
+        linalg.cholesky_inplace(np.asfortranarray(spd(rng, 5)))
     with pytest.raises(linalg.NotPositiveDefiniteError, match="pivot 1"):
         linalg.cholesky_inplace(np.array([[1.0, 2.0], [2.0, 1.0]]))
 

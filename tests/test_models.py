@@ -1,6 +1,7 @@
 """Model registry: every baseline builds and predicts through the same interface."""
 
 import logging
+import math
 
 import jax
 import numpy as np
@@ -31,12 +32,28 @@ def test_every_model_builds_and_predicts(training, name):
     Xq = training.X[:7] * 0.9
     mean, var = built.model.predict(Xq)
     assert mean.shape == (7, 9) and var.shape == (7,)
-    assert np.all(np.isfinite(mean)) and np.all(np.asarray(var) >= 0)
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(var))
     np.testing.assert_allclose(built.model.predict_mean(Xq), mean, rtol=1e-12, atol=1e-12)
+    # The normalised latent variance: at most the signal variance, about zero on a training
+    # input (jitter 1e-8), the whole signal variance far from every training input.
+    X = models.training_arrays(name, training)[0]
+    sigma = float(built.hyper.variance)
+    _, var_train = built.model.predict(X[:5])
+    _, var_far = built.model.predict(np.array([[3.0] * 8, [-3.0] * 8]))
+    assert np.all(np.asarray(var) <= sigma)
+    assert np.all(np.asarray(var_train) < 1e-6 * sigma)
+    np.testing.assert_allclose(var_far, sigma, rtol=1e-6)
     assert built.model.nbytes() > 0
-    assert set(built.timings) >= {"fit_s"}
-    if models.SPECS[name].partitioned:
-        assert built.near is not None and np.all(built.near.fraction >= 0.5)
+    partitioned = models.SPECS[name].partitioned
+    want = {"hyper_s", "fit_s"} | ({"partition_s"} if partitioned else set())
+    assert set(built.timings) == want and built.timings["hyper_s"] == 0.0  # no fit
+    if partitioned:
+        # Every bin holds fewer than ⌈budget·N⌉ anchors, so each near set is exactly that size.
+        n = X.shape[0]
+        k = math.ceil(FAST["near"]["budget"] * n)
+        assert all(a.size < k for a in built.near.anchors)
+        assert all(nb.size == k for nb in built.near.near)
+        np.testing.assert_array_equal(built.near.fraction, k / n)
 
 
 def test_exact_models_interpolate(training):
@@ -49,7 +66,7 @@ def test_exact_models_interpolate(training):
 def test_hyperparameter_fit_reports(training):
     built = models.build("gpg", training, {"hyper": {"subset": 30, "max_steps": 50}})
     assert built.hyper_fit is not None and built.hyper_fit.subset.size == 30
-    assert built.timings["hyper_s"] > 0 and built.train_s >= built.timings["fit_s"]
+    assert set(built.timings) == {"hyper_s", "fit_s"} and built.timings["hyper_s"] > 0
 
 
 def test_unknown_names_and_keys(training):
@@ -89,3 +106,12 @@ def test_kdtree_and_paper_mean_options(training):
     cfg = {**FAST, "partition": {"scheme": "kdtree", "bins": 4}, "mean": "paper", "route": "direct"}
     built = models.build("gpgs_schur", training, cfg)
     assert built.model.partition.scheme == "kdtree" and built.config["mean"] == "paper"
+    # The direct route (a factorisation of K̄_ff per bin) and the global one (one of K̄) give
+    # the same predictor.
+    ref = models.build("gpgs_schur", training, {**cfg, "route": "global"})
+    Xq = np.concatenate([training.X[:7] * 0.9, np.random.default_rng(0).uniform(-1, 1, (20, 8))])
+    m, v = built.model.predict(Xq)
+    rm, rv = ref.model.predict(Xq)
+    assert np.all(np.isfinite(m)) and np.all(np.isfinite(v))
+    np.testing.assert_allclose(m, rm, rtol=1e-8, atol=1e-8 * np.abs(rm).max())
+    np.testing.assert_allclose(v, rv, rtol=1e-8, atol=1e-8 * float(ref.hyper.variance))

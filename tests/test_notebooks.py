@@ -14,17 +14,10 @@ def test_notebook_executes(path, smoke_cache, smoke_compare, tmp_path, monkeypat
     monkeypatch.setenv("GPG_CACHE_DIR", str(smoke_cache))
     monkeypatch.setenv("GPG_RESULTS_DIR", str(smoke_compare[0]))
     nb = nbformat.read(path, as_version=4)
+    # Raises CellExecutionError on the first cell that fails.
     NotebookClient(
         nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}
     ).execute()
-    errors = [
-        o
-        for c in nb.cells
-        if c.cell_type == "code"
-        for o in c.get("outputs", [])
-        if o.output_type == "error"
-    ]
-    assert not errors
 
 
 def test_notebooks_present():

@@ -48,7 +48,9 @@ def test_training_point_returns_its_label(exact, data):
         np.testing.assert_allclose(p.force, data.y_aero[i, :3], rtol=1e-4, atol=1e-4 * 20)
         np.testing.assert_allclose(p.torque, data.y_aero[i, 3:], rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose(p.noise, data.y_noise[i], rtol=1e-5)
-        assert np.all(np.asarray(p.variance) >= 0) and p.variance.shape == (9,)
+        assert p.variance.shape == (9,) and np.all(  # ~0 here, the signal variance far away
+            np.asarray(p.variance) < 1e-6 * exact.predict(*state(3 * data.x.max(0))).variance
+        )
 
 
 @pytest.mark.parametrize("which", ["exact", "binned"])

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from gpg._checks import bad_rows
+from gpg._checks import require_finite, require_shape
 
 SCHEMA_VERSION = 1
 INPUTS = ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll", "airspeed")
@@ -126,29 +126,27 @@ class Dataset:
 
     def validate(self) -> None:
         """Shapes and finiteness; ``ValueError`` names the array and, for NaN/inf, the rows."""
-        n = _require(self.x, "x", (None, 8))
-        _require(self.y_aero, "y_aero", (n, 6))
+        require_shape("x", self.x, (None, 8))
+        n = self.x.shape[0]
+        require_shape("y_aero", self.y_aero, (n, 6))
         if self.jac_aero is not None:
-            _require(self.jac_aero, "jac_aero", (n, 6, 7))
+            require_shape("jac_aero", self.jac_aero, (n, 6, 7))
         if self.y_noise is not None:
-            _require(self.y_noise, "y_noise", (n, 3))
+            require_shape("y_noise", self.y_noise, (n, 3))
         if self.jac_noise is not None:
             if self.y_noise is None:
                 raise ValueError("jac_noise given without y_noise")
-            _require(self.jac_noise, "jac_noise", (n, 3, 7))
+            require_shape("jac_noise", self.jac_noise, (n, 3, 7))
         if (self.x_raw is None) != (self.y_raw is None):
             raise ValueError("x_raw and y_raw must be given together")
         if self.x_raw is not None:
-            m = _require(self.x_raw, "x_raw", (None, 8))
-            _require(self.y_raw, "y_raw", (m, 9 if self.has_noise else 6))
+            require_shape("x_raw", self.x_raw, (None, 8))
+            m = self.x_raw.shape[0]
+            require_shape("y_raw", self.y_raw, (m, 9 if self.has_noise else 6))
         for name in _ARRAYS:
             v = getattr(self, name)
             if v is not None:
-                rows = bad_rows(v)
-                if rows.size:
-                    shown = ", ".join(str(int(r)) for r in rows[:10])
-                    more = f" (and {rows.size - 10} more)" if rows.size > 10 else ""
-                    raise ValueError(f"{name} holds NaN or inf in row(s) {shown}{more}")
+                require_finite(name, v)  # names the offending row indices
         if np.any(self.x[:, :4] < 0):
             rows = np.flatnonzero(np.any(self.x[:, :4] < 0, axis=1))
             raise ValueError(f"x has negative rotor speeds in row(s) {rows[:10].tolist()}")
@@ -246,16 +244,6 @@ class Dataset:
         for k in ("schema_version", "n", "inputs", "outputs", "units", "arrays", "missing"):
             meta.pop(k, None)
         return cls(**arrays, meta=meta)
-
-
-def _require(a: np.ndarray, name: str, shape: tuple) -> int:
-    ok = a.ndim == len(shape) and all(
-        s is None or s == d for s, d in zip(shape, a.shape, strict=True)
-    )
-    if not ok:
-        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
-        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
-    return a.shape[0]
 
 
 def _paths(path: str | Path) -> tuple[Path, Path]:

@@ -15,13 +15,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg.data.dataset import Dataset
 from gpg.gp import gradient_noise
-from gpg.quadrotor.simple_model import SimpleModel, fit_coefficients
+from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 
 GRAD_DIMS = tuple(range(7))  # rpm and Euler angles; no gradient along airspeed
@@ -116,8 +117,6 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
     coeffs = ds.meta.get("simple_model")
     if coeffs is not None:
         return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
-    import jax
-
     from gpg.quadrotor.frames import R_WB  # local: only this fallback needs it
 
     R = np.asarray(jax.vmap(R_WB)(jnp.asarray(ds.x[:, 4:7])))
@@ -145,7 +144,7 @@ def residuals(
     if J is not None:
         J[:, :6] -= JM
     if y_raw is not None:
-        y_raw[:, :6] -= np.asarray(simple.batch(ds.x_raw[:, :7])[0])
+        y_raw[:, :6] -= np.asarray(jax.vmap(simple)(jnp.asarray(ds.x_raw[:, :7])))
     return y, J, y_raw
 
 
@@ -188,11 +187,5 @@ def restore(
     """Inverse of :func:`prepare` for outputs: de-normalise and add ``M`` back."""
     y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
     if training.simple is not None:
-        y[:, :6] += np.asarray(training.simple.batch(np.asarray(x)[:, :7])[0])
+        y[:, :6] += np.asarray(jax.vmap(training.simple)(jnp.asarray(x)[:, :7]))
     return y
-
-
-def fit_simple_from_sweep(rpm, thrust, torque, vehicle: Vehicle) -> SimpleModel:
-    """``M`` from a measured hover sweep (per-rotor thrust and torque versus rpm)."""
-    P_F, T_z = fit_coefficients(rpm, thrust, torque)
-    return SimpleModel.from_vehicle(vehicle, P_F, T_z)

@@ -37,7 +37,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from gpg.quadrotor.bemt import AeroResult
+from gpg.quadrotor.bemt import AeroResult, radial_elements
 from gpg.quadrotor.vehicle import Vehicle
 
 P_REF = 20e-6  # Pa, reference pressure for dB
@@ -131,12 +131,9 @@ def harmonic_msq(
 
     # Thickness: compact monopole of the section area along the span.
     rot = vehicle.rotor
-    edges = jnp.linspace(rot.root_cutout, 1.0, cfg.thickness_stations + 1)
-    x = 0.5 * (edges[1:] + edges[:-1])
-    dr = jnp.diff(edges) * R
-    chord = jnp.interp(x, rot.stations, rot.chord)
+    x, dr, chord = radial_elements(rot, cfg.thickness_stations)
     area = (2.0 / 3.0) * chord**2 * rot.thickness_ratio  # (S,)
-    kr = (mB[None, None, :] * mach_e[:, None, None] * sin_t[:, :, None]) / cfg.effective_radius
+    kr = z / cfg.effective_radius  # (4, K, H): the loading argument per unit r/R
     Jt = bessel_j(mB[None, None, :, None], kr[..., None] * x)  # (4, K, H, S)
     integral = jnp.sum(area * dr * Jt, axis=-1)  # (4, K, H)
     thick = rho * (mB[None, None, :] * omega[:, None, None]) ** 2 * B / (2 * jnp.pi)

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from gpg.quadrotor.vehicle import Airfoil, Vehicle
+from gpg.quadrotor.vehicle import Airfoil, Rotor, Vehicle
 
 RPM_TO_RAD_S = 2.0 * jnp.pi / 60.0
 # Velocity floor (m/s) inside square roots and normalisations: keeps every expression and its
@@ -93,7 +93,6 @@ class AeroResult(eqx.Module):
     torque_B: Float[Array, " 3"]
     force_W: Float[Array, " 3"]
     torque_W: Float[Array, " 3"]
-    drag_B: Float[Array, " 3"]
     rotors: RotorLoads
     omega: Float[Array, " 4"]
 
@@ -133,16 +132,25 @@ class _Grid(eqx.Module):
     sin_psi: Float[Array, " P"]
 
 
+def radial_elements(
+    rot: Rotor, n: int
+) -> tuple[Float[Array, " R"], Float[Array, " R"], Float[Array, " R"]]:
+    """``n`` equal blade elements from the root cut-out to the tip: midpoints ``r/R``, widths
+    (m) and chords (m). Shared by the BEMT grid and the acoustics' thickness integral."""
+    edges = jnp.linspace(rot.root_cutout, 1.0, n + 1)
+    x = 0.5 * (edges[1:] + edges[:-1])
+    return x, jnp.diff(edges) * rot.radius, jnp.interp(x, rot.stations, rot.chord)
+
+
 def _grid(vehicle: Vehicle, n_radial: int, n_azimuth: int) -> _Grid:
     rot = vehicle.rotor
-    edges = jnp.linspace(rot.root_cutout, 1.0, n_radial + 1)
-    x = 0.5 * (edges[1:] + edges[:-1])
+    x, dr, chord = radial_elements(rot, n_radial)
     psi = 2.0 * jnp.pi * jnp.arange(n_azimuth) / n_azimuth
     twist = jnp.interp(x, rot.stations, rot.twist)
     return _Grid(
         x=x,
-        dr=jnp.diff(edges) * rot.radius,
-        chord=jnp.interp(x, rot.stations, rot.chord),
+        dr=dr,
+        chord=chord,
         sin_twist=jnp.sin(twist),
         cos_twist=jnp.cos(twist),
         cos_psi=jnp.cos(psi),
@@ -410,7 +418,6 @@ def aero(
         torque_B=torque_B,
         force_W=R_WB @ force_B,
         torque_W=R_WB @ torque_B,
-        drag_B=drag_B,
         rotors=rot,
         omega=omega,
     )

@@ -24,7 +24,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from gpg.quadrotor.dynamics import State
-from gpg.quadrotor.frames import matmul
+from gpg.quadrotor.frames import matmul, matvec
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 
@@ -194,7 +194,7 @@ class GeometricController(eqx.Module):
         leave its range (the rotors' drag torque is a weak yaw actuator, and spending thrust
         margin on it costs altitude and attitude)."""
         lo, hi = self.rpm_min**2, self.rpm_max**2
-        base = matvec4(self.alloc_inv, jnp.concatenate([thrust[None], tau[:2], jnp.zeros(1)]))
+        base = matvec(self.alloc_inv, jnp.concatenate([thrust[None], tau[:2], jnp.zeros(1)]))
         c = self.alloc_inv[:, 3]  # r² per unit yaw moment
         safe_c = jnp.where(jnp.abs(c) > 0, c, 1.0)
         a, b = (lo - base) / safe_c, (hi - base) / safe_c
@@ -205,20 +205,9 @@ class GeometricController(eqx.Module):
         return jnp.sqrt(r2)
 
 
-def matvec4(A: Float[Array, "4 4"], v: Float[Array, " 4"]) -> Float[Array, " 4"]:
-    """``A @ v`` as a fusible multiply-add (see :func:`gpg.quadrotor.frames.matvec`)."""
-    return jnp.sum(A * v[None, :], axis=1)
-
-
-def trim_rpm(simple: SimpleModel, weight: float) -> float:
-    """Equal rotor speed at which the simplified model hovers."""
-    return float(simple.hover_rpm(weight))
-
-
 __all__: Sequence[str] = [
     "GeometricController",
     "Reference",
     "WaypointPlan",
-    "trim_rpm",
     "vee",
 ]

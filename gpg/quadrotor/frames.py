@@ -50,9 +50,10 @@ def rot_z(a: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
     return jnp.array([[c, -s, z], [s, c, z], [z, z, o]])
 
 
-def matvec(R: Float[Array, "3 3"], v: Float[Array, "3"]) -> Float[Array, "3"]:
-    """``R @ v`` as a broadcast multiply-add: XLA fuses it with its neighbours, where a 3x3
-    ``dot`` would be a separate kernel launch (they add up in a 100 µs prediction)."""
+def matvec(R: Float[Array, "m n"], v: Float[Array, " n"]) -> Float[Array, " m"]:
+    """``R @ v`` as a broadcast multiply-add: XLA fuses it with its neighbours, where a small
+    ``dot`` (3x3 rotations, the 4x4 rotor allocation) would be a separate kernel launch (they
+    add up in a 100 µs prediction)."""
     return jnp.sum(R * v[None, :], axis=1)
 
 

@@ -55,19 +55,12 @@ class SimpleModel(eqx.Module):
     def wrench_body(
         self, rpm: Float[ArrayLike, " 4"]
     ) -> tuple[Float[Array, " 3"], Float[Array, " 3"]]:
-        """Body-frame force (N) and torque (N·m) at rotor speeds ``rpm``: ``A r²`` row by row
-        (elementwise sums fuse into one kernel; see :func:`gpg.quadrotor.frames.matvec`)."""
-        r2 = jnp.asarray(rpm) ** 2
-        thrust = self.P_F * jnp.sum(r2)
-        tau = jnp.stack(
-            [
-                -self.P_F * jnp.sum(self.positions[:, 1] * r2),
-                self.P_F * jnp.sum(self.positions[:, 0] * r2),
-                -self.T_z * jnp.sum(self.spin * r2),
-            ]
-        )
-        zero = jnp.zeros_like(thrust)
-        return jnp.stack([zero, zero, -thrust]), tau
+        """Body-frame force (N) and torque (N·m) at rotor speeds ``rpm``: ``A r²`` with ``A``
+        from :attr:`allocation`, the matrix the controller inverts, and the thrust along
+        ``−z_B``."""
+        u = matvec(self.allocation, jnp.asarray(rpm) ** 2)  # (ΣT, τx, τy, τz)
+        zero = jnp.zeros_like(u[0])
+        return jnp.stack([zero, zero, -u[0]]), u[1:]
 
     def __call__(self, x_M: Float[ArrayLike, " 7"]) -> Float[Array, " 6"]:
         """``y_M = (F_W, τ_W)`` at ``x_M = (r1..r4, yaw, pitch, roll)``."""
@@ -90,11 +83,6 @@ class SimpleModel(eqx.Module):
     def hover_rpm(self, weight: float) -> Float[Array, ""]:
         """Equal rotor speed at which ``M``'s thrust balances ``weight`` (N)."""
         return jnp.sqrt(weight / (4.0 * self.P_F))
-
-
-@eqx.filter_jit
-def _batch(model: SimpleModel, X_M: Array):
-    return jax.vmap(model.__call__)(X_M), jax.vmap(model.jacobian)(X_M)
 
 
 def fit_coefficients(

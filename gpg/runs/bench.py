@@ -24,7 +24,17 @@ from tqdm.auto import tqdm
 
 from gpg import linalg
 from gpg.gp import ExactGP, Hyper, assemble_gram
-from gpg.runs.common import machine, stats, table, time_calls, write_json
+from gpg.runs.common import (
+    fit_model,
+    latency,
+    machine,
+    set_dispatch,
+    stats,
+    table,
+    time_calls,
+    world_states,
+    write_json,
+)
 
 
 def _synthetic(n: int, d: int, dims: tuple[int, ...], n_out: int, seed: int):
@@ -84,14 +94,9 @@ def bench_exact_gp(cfg: dict[str, Any]) -> dict[str, Any]:
     model = models[-1]
 
     rng = np.random.default_rng(cfg["seed"] + 1)
-    queries = [jnp.asarray(rng.uniform(-1, 1, (1, d))) for _ in range(cfg["n_queries"])]
-    it = iter(range(10**9))
-
-    def one(fn):
-        return lambda: fn(queries[next(it) % len(queries)])
-
-    out["predict_mean_1"] = stats(time_calls(one(model.predict_mean), cfg["n_queries"], warmup=3))
-    out["predict_mean_var_1"] = stats(time_calls(one(model.predict), cfg["n_queries"], warmup=3))
+    queries = [(jnp.asarray(rng.uniform(-1, 1, (1, d))),) for _ in range(cfg["n_queries"])]
+    out["predict_mean_1"] = latency(model.predict_mean, queries, cfg["n_queries"])
+    out["predict_mean_var_1"] = latency(model.predict, queries, cfg["n_queries"])
     batch = jnp.asarray(rng.uniform(-1, 1, (cfg["batch"], d)))
     tb = time_calls(lambda: model.predict_mean(batch), 20, warmup=2)
     out[f"predict_mean_batch{cfg['batch']}"] = stats(tb)
@@ -99,25 +104,19 @@ def bench_exact_gp(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _latency(fn, queries, n: int) -> dict[str, float]:
-    it = iter(range(10**9))
-    return stats(time_calls(lambda: fn(queries[next(it) % len(queries)]), n, warmup=3))
-
-
 def _surrogate_latency(sur, states, n: int) -> dict[str, Any]:
     """The full pipeline: the realtime closures, and the plain method for comparison."""
-    full, fast = sur.realtime(with_var=True), sur.realtime(with_var=False)
     return {
-        "surrogate_predict_1": _latency(lambda s: full(*s), states, n),
-        "surrogate_predict_mean_1": _latency(lambda s: fast(*s), states, n),
-        "surrogate_predict_mean_1_method": _latency(lambda s: sur.predict_mean(*s), states, n),
+        "surrogate_predict_1": latency(sur.realtime(with_var=True), states, n),
+        "surrogate_predict_mean_1": latency(sur.realtime(with_var=False), states, n),
+        "surrogate_predict_mean_1_method": latency(sur.predict_mean, states, n),
     }
 
 
 def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
     """Training time, latency and throughput of every model on one dataset."""
     from gpg import models
-    from gpg.data.preprocess import prepare, simple_model_for
+    from gpg.data.preprocess import simple_model_for
     from gpg.quadrotor.vehicle import Vehicle
     from gpg.runs.generate_data import ensure_datasets
     from gpg.surrogate import Surrogate
@@ -130,26 +129,20 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
     hyper_cache: dict[tuple, Any] = {}
     for name in tqdm(cfg["models"], desc="models"):
         mcfg = models.resolve_config(name, cfg.get("model", {}))
-        training = prepare(train, simple, s=mcfg["hyper"]["grad_noise_scale"])
-        spec = models.SPECS[name]
-        key = (spec.raw, spec.gradients)
-        if key not in hyper_cache:
-            hyper_cache[key] = models.fit_hyper(name, training, mcfg)
-        hyper, fit_res, hyper_s = hyper_cache[key]
-        built = models.build(name, training, mcfg, hyper=hyper)
+        fitted = fit_model(name, mcfg, train, simple, hyper_cache)
+        training, built = fitted.training, fitted.built
         model = built.model
         Xq = np.asarray(training.normalizer.x(test.x))
-        queries = [jnp.asarray(Xq[i]) for i in rng.permutation(len(Xq))[: cfg["n_queries"]]]
+        queries = [(jnp.asarray(Xq[i]),) for i in rng.permutation(len(Xq))[: cfg["n_queries"]]]
         # The model's arrays are flattened once, as in Surrogate.realtime.
         leaves, treedef = jax.tree_util.tree_flatten(model)
         leaves = tuple(leaves)
         mv = jax.jit(lambda lv, x, t=treedef: jax.tree_util.tree_unflatten(t, lv).mean_var_one(x))
         mo = jax.jit(lambda lv, x, t=treedef: jax.tree_util.tree_unflatten(t, lv).mean_one(x))
         res = {
-            "hyper_s": hyper_s,
-            **{k: v for k, v in built.timings.items() if k != "hyper_s"},
-            "mean_var_1": _latency(lambda x, f=mv, lv=leaves: f(lv, x), queries, cfg["n_queries"]),
-            "mean_1": _latency(lambda x, f=mo, lv=leaves: f(lv, x), queries, cfg["n_queries"]),
+            **fitted.timings,
+            "mean_var_1": latency(lambda x, f=mv, lv=leaves: f(lv, x), queries, cfg["n_queries"]),
+            "mean_1": latency(lambda x, f=mo, lv=leaves: f(lv, x), queries, cfg["n_queries"]),
             "model_bytes": model.nbytes(),
             "near_fraction": None if built.near is None else float(np.mean(built.near.fraction)),
         }
@@ -161,10 +154,7 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
         res["mean_batch"] = stats(tb)
         res["mean_batch_per_s"] = batch.shape[0] / float(np.median(tb))
         sur = Surrogate.assemble(model, training, train, name, mcfg)
-        states = [
-            (jnp.asarray(x[:4]), jnp.asarray(x[4:7]), jnp.asarray([x[7], 0.0, 0.0]))
-            for x in test.x[: cfg["n_queries"]]
-        ]
+        states = world_states(test.x, cfg["n_queries"])
         res.update(_surrogate_latency(sur, states, cfg["n_queries"]))
         out["models"][name] = res
     ref = out["models"].get("gpg")
@@ -250,10 +240,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     unknown = [s for s in cfg["suites"] if s not in SUITES]
     if unknown:
         raise ValueError(f"unknown bench suite(s) {unknown}; valid: {sorted(SUITES)}")
-    # JAX runs CPU computations on a worker thread by default; waking the caller afterwards
-    # costs 10-50 µs of noisy latency per call on this kind of machine, more than a mean
-    # prediction. Real-time users should do the same (see the README).
-    jax.config.update("jax_cpu_enable_async_dispatch", not cfg.get("sync_dispatch", True))
+    set_dispatch(cfg)  # real-time users should do the same (see the README)
     results: dict[str, Any] = {"machine": machine(), "config": cfg}
     for name in cfg["suites"]:
         results[name] = SUITES[name](cfg[name])

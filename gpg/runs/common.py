@@ -1,18 +1,27 @@
-"""Small helpers shared by the experiment runners: timing, JSON output, tables."""
+"""Small helpers shared by the experiment runners: timing, model building, JSON output, tables."""
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
 import os
 import platform
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+
+if TYPE_CHECKING:
+    from gpg.data.dataset import Dataset
+    from gpg.data.preprocess import Training
+    from gpg.models import Built
+    from gpg.quadrotor.simple_model import SimpleModel
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -28,6 +37,13 @@ def conf(name: str, group: str | None = None) -> dict[str, Any]:
         raise ValueError(f"no config {path}; known: {known}")
     with open(path) as f:
         return yaml.safe_load(f)
+
+
+def set_dispatch(cfg: Mapping[str, Any]) -> None:
+    """Apply ``cfg['sync_dispatch']`` (default true): run JAX CPU computations on the calling
+    thread. JAX otherwise runs them on a worker thread, and waking the caller afterwards costs
+    10-50 µs of noisy latency per call, more than a mean prediction (see the README)."""
+    jax.config.update("jax_cpu_enable_async_dispatch", not cfg.get("sync_dispatch", True))
 
 
 def block(x):
@@ -56,6 +72,67 @@ def stats(seconds: np.ndarray) -> dict[str, float]:
         "mean_s": float(np.mean(seconds)),
         "n": int(seconds.size),
     }
+
+
+def latency(fn: Callable[..., Any], args_list: Sequence[tuple], n: int) -> dict[str, float]:
+    """:func:`stats` of ``n`` calls ``fn(*args)`` cycling through ``args_list``, after 3
+    untimed warm-up calls."""
+    calls = itertools.cycle(args_list)
+    return stats(time_calls(lambda: fn(*next(calls)), n, warmup=3))
+
+
+def world_states(x: np.ndarray, n: int) -> list[tuple[jax.Array, jax.Array, jax.Array]]:
+    """The first ``n`` (at least one) dataset inputs ``x`` (rpm, Euler angles, airspeed) as
+    world-frame states ``(rpm, euler, v_air)``, the airflow along +x."""
+    return [
+        (jnp.asarray(r[:4]), jnp.asarray(r[4:7]), jnp.asarray([r[7], 0.0, 0.0]))
+        for r in x[: max(n, 1)]
+    ]
+
+
+class Fitted(NamedTuple):
+    """A model built by :func:`fit_model`, with what went into it."""
+
+    training: Training
+    built: Built
+    hyper_fit: Any  # HyperFitResult, or None when the hyperparameters were not fitted
+    timings: dict[str, float]  # hyper_s (of the fit, also when shared), then build's own
+    peak_memory_bytes: int | None  # peak RSS growth of fit + build (if measured)
+
+
+def fit_model(
+    name: str,
+    mcfg: Mapping[str, Any],
+    train: Dataset,
+    simple: SimpleModel | None,
+    hyper_cache: dict,
+    *,
+    measure_memory: bool = False,
+) -> Fitted:
+    """Preprocess ``train`` and build model ``name`` with its resolved config ``mcfg``.
+
+    Hyperparameters are fitted once per training arrays (raw samples or not, gradients or not)
+    and hyperparameter config, and shared through ``hyper_cache`` by the models that match.
+    ``measure_memory`` samples the peak RSS of the fit and build.
+    """
+    from gpg import memory, models
+    from gpg.data.preprocess import prepare
+
+    spec = models.SPECS[name]
+    training = prepare(train, simple, s=mcfg["hyper"]["grad_noise_scale"])
+    key = (spec.raw, spec.gradients, json.dumps(mcfg["hyper"], sort_keys=True))
+    with memory.PeakRSS() if measure_memory else contextlib.nullcontext() as mem:
+        if key not in hyper_cache:
+            hyper_cache[key] = models.fit_hyper(name, training, mcfg)
+        hyper, fit_res, hyper_s = hyper_cache[key]
+        built = models.build(name, training, mcfg, hyper=hyper)
+    return Fitted(
+        training,
+        built,
+        fit_res,
+        {"hyper_s": hyper_s, **built.timings},
+        mem.peak_delta if measure_memory else None,
+    )
 
 
 def machine() -> dict[str, Any]:

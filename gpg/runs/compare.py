@@ -10,22 +10,27 @@ prediction time (median and p95) with its ratio to ``gp`` as in the paper's Tabl
 
 from __future__ import annotations
 
-import json
-import math
 import time
 from pathlib import Path
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
 from gpg import memory, models
 from gpg.data.dataset import Dataset
-from gpg.data.preprocess import prepare, restore, simple_model_for
+from gpg.data.preprocess import restore, simple_model_for
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import machine, stats, table, time_calls, write_json
+from gpg.runs.common import (
+    fit_model,
+    latency,
+    machine,
+    set_dispatch,
+    table,
+    world_states,
+    write_json,
+)
 from gpg.surrogate import Surrogate
 
 AIRSPEED_BINS = 10
@@ -43,6 +48,17 @@ def load_data(cfg: dict[str, Any]) -> tuple[Dataset, Dataset, dict[str, Any]]:
 
     train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
     return train, test, info
+
+
+def load_train(cfg: dict[str, Any]) -> Dataset:
+    """The training set alone: ``dataset.train``, else the generated one (as :func:`load_data`,
+    which also generates and caches its test set)."""
+    paths = cfg.get("dataset") or {}
+    if paths.get("train"):
+        return Dataset.load(paths["train"])
+    if paths.get("test"):
+        raise ValueError("dataset.test given without dataset.train (only the training set is used)")
+    return load_data(cfg)[0]
 
 
 def metrics(y: np.ndarray, mean: np.ndarray, var: np.ndarray, names) -> dict[str, Any]:
@@ -79,11 +95,6 @@ def _predict_test(model, Xn: np.ndarray, chunk: int = 256):
     return np.concatenate(means), np.concatenate(vars_)
 
 
-def _latency(fn, states, n: int) -> dict[str, float]:
-    it = iter(range(10**9))
-    return stats(time_calls(lambda: fn(*states[next(it) % len(states)]), n, warmup=3))
-
-
 def evaluate(
     label: str,
     name: str,
@@ -95,22 +106,15 @@ def evaluate(
     n_queries: int,
 ) -> dict[str, Any]:
     """Build one model and measure it (see module docstring)."""
-    spec = models.SPECS[name]
-    training = prepare(train, simple, s=mcfg["hyper"]["grad_noise_scale"])
-    key = (spec.raw, spec.gradients, json.dumps(mcfg["hyper"], sort_keys=True))
-    with memory.PeakRSS() as mem:
-        if key not in hyper_cache:
-            hyper_cache[key] = models.fit_hyper(name, training, mcfg)
-        hyper, fit_res, hyper_s = hyper_cache[key]
-        built = models.build(name, training, mcfg, hyper=hyper)
-    timings = {"hyper_s": hyper_s, **{k: v for k, v in built.timings.items() if k != "hyper_s"}}
+    fitted = fit_model(name, mcfg, train, simple, hyper_cache, measure_memory=True)
+    training, built, timings = fitted.training, fitted.built, fitted.timings
+    hyper, fit_res = built.hyper, fitted.hyper_fit
 
     norm = training.normalizer
     mean_n, var_n = _predict_test(built.model, np.asarray(norm.x(test.x)))
     y_pred = restore(training, test.x, mean_n)
-    y_std = np.asarray(norm.y_std)
     # Predictive variance of an observation: latent variance plus the value-row jitter ν².
-    var_y = (var_n[:, None] + float(hyper.jitter)) * y_std[None, :] ** 2
+    var_y = np.asarray(norm.var_inv(var_n + float(hyper.jitter)))
     y_true = test.y[:, : y_pred.shape[1]]
     names = list(training.output_names)
     res: dict[str, Any] = {
@@ -128,18 +132,15 @@ def evaluate(
         # correlate up to about this with the bin, so the Schur forms' k_qf ≈ 0 needs it ≪ 1.
         "near_epsilon": None if built.near is None else float(np.mean(built.near.epsilon)),
         "model_bytes": built.model.nbytes(),
-        "peak_memory_bytes": mem.peak_delta,
+        "peak_memory_bytes": fitted.peak_memory_bytes,
     }
     lo, hi = float(train.x[:, 7].min()), float(train.x[:, 7].max())
     res["error_vs_airspeed"] = error_vs_airspeed(test.x[:, 7], np.abs(y_pred - y_true), lo, hi)
 
     sur = Surrogate.assemble(built.model, training, train, name, mcfg)
-    states = [
-        (jnp.asarray(x[:4]), jnp.asarray(x[4:7]), jnp.asarray([x[7], 0.0, 0.0]))
-        for x in test.x[: max(n_queries, 1)]
-    ]
-    lat = _latency(sur.realtime(with_var=True), states, n_queries)
-    fast = _latency(sur.realtime(with_var=False), states, n_queries)
+    states = world_states(test.x, n_queries)
+    lat = latency(sur.realtime(with_var=True), states, n_queries)
+    fast = latency(sur.realtime(with_var=False), states, n_queries)
     res.update(
         predict_ms_median=lat["median_s"] * 1e3,
         predict_ms_p95=lat["p95_s"] * 1e3,
@@ -207,8 +208,7 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
     for name, mc in model_cfgs.items():
         resolved[name] = models.resolve_config(name, mc)  # unknown names and keys fail here
     single = len(resolved) == 1
-    if cfg.get("sync_dispatch", True):
-        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    set_dispatch(cfg)
     t_start = time.perf_counter()
     train, test, data_info = load_data(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
@@ -272,16 +272,3 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
     print(md)
     print(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({out['wall_s']:.0f} s)")
     return out
-
-
-def finite_numbers(obj: Any) -> bool:
-    """True when every number in a JSON-like structure is finite (None allowed)."""
-    if isinstance(obj, dict):
-        return all(finite_numbers(v) for v in obj.values())
-    if isinstance(obj, list):
-        return all(finite_numbers(v) for v in obj)
-    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
-        return True
-    if isinstance(obj, int | float):
-        return math.isfinite(obj)
-    return True

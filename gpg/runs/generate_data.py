@@ -20,29 +20,30 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpg.data.dataset import Dataset
+from gpg.data.preprocess import simple_model_for
 from gpg.data.sampling import Bounds, FDSteps, generate
 from gpg.quadrotor import acoustics, bemt
-from gpg.quadrotor.generator import GENERATOR_VERSION, Generator, evaluate_batch, jacobian
+from gpg.quadrotor.generator import GENERATOR_VERSION, Generator, evaluate_batch
 from gpg.quadrotor.simple_model import SimpleModel, fit_to_generator
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.runs.common import write_json
 
-_GEN_KEYS = {"n_radial", "n_azimuth", "interference", "wake_gain", "n_harmonics"}
+# data.generator keys, with their types; those not given keep the configs' defaults.
+_BEMT_KEYS = {"n_radial": int, "n_azimuth": int, "interference": bool, "wake_gain": float}
+_ACOUSTICS_KEYS = {"n_harmonics": int}
+_GEN_KEYS = {**_BEMT_KEYS, **_ACOUSTICS_KEYS}
 
 
 def build_generator(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> Generator:
     """The generator described by a ``data`` config group and a ``vehicle`` config group."""
     g = dict(data_cfg.get("generator", {}))
-    unknown = sorted(set(g) - _GEN_KEYS)
+    unknown = sorted(set(g) - _GEN_KEYS.keys())
     if unknown:
         raise ValueError(f"unknown data.generator keys {unknown}; valid: {sorted(_GEN_KEYS)}")
-    cfg = bemt.BEMTConfig(
-        n_radial=int(g.get("n_radial", 14)),
-        n_azimuth=int(g.get("n_azimuth", 24)),
-        interference=bool(g.get("interference", True)),
-        wake_gain=float(g.get("wake_gain", 1.0)),
+    cfg = bemt.BEMTConfig(**{k: cast(g[k]) for k, cast in _BEMT_KEYS.items() if k in g})
+    ac = acoustics.AcousticsConfig(
+        **{k: cast(g[k]) for k, cast in _ACOUSTICS_KEYS.items() if k in g}
     )
-    ac = acoustics.AcousticsConfig(n_harmonics=int(g.get("n_harmonics", 10)))
     return Generator(Vehicle.from_config(vehicle_cfg), cfg, ac)
 
 
@@ -111,6 +112,17 @@ def ensure_datasets(
     Returns ``(train, test, cache_path, info)``; ``info`` has the key, whether it was cached,
     and the generation time.
     """
+    return _ensure(data_cfg, vehicle_cfg, cache_dir, progress=progress)[1:]
+
+
+def _ensure(
+    data_cfg: Mapping[str, Any],
+    vehicle_cfg: Mapping[str, Any],
+    cache_dir: str | Path,
+    *,
+    progress: bool = True,
+) -> tuple[Generator, Dataset, Dataset, Path, dict[str, Any]]:
+    """:func:`ensure_datasets`, also returning the generator it built."""
     if data_cfg["train_seed"] == data_cfg["test_seed"]:
         raise ValueError("data.train_seed and data.test_seed must differ (held-out test set)")
     # Validate everything before any work or any file: bad bounds fail in milliseconds.
@@ -122,7 +134,7 @@ def ensure_datasets(
     info: dict[str, Any] = {"key": key, "cache": str(where)}
     if (where / "train.npz").is_file() and (where / "test.npz").is_file():
         info.update(cached=True, generate_s=None)
-        return Dataset.load(where / "train"), Dataset.load(where / "test"), where, info
+        return gen, Dataset.load(where / "train"), Dataset.load(where / "test"), where, info
     t0 = time.perf_counter()
     simple = fit_to_generator(gen)
     train, test = _generate_pair(gen, data_cfg, simple, progress)
@@ -133,7 +145,7 @@ def ensure_datasets(
     test.save(tmp / "test")
     shutil.rmtree(where, ignore_errors=True)
     tmp.rename(where)  # the cache entry appears complete or not at all
-    return train, test, where, info
+    return gen, train, test, where, info
 
 
 def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
@@ -153,12 +165,11 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Generate (or load from cache) the configured datasets, copy them to ``outdir``, plot."""
     outdir = Path(outdir)
     data_cfg, vehicle_cfg = cfg["data"], cfg["vehicle"]
-    train, test, where, info = ensure_datasets(data_cfg, vehicle_cfg, cfg["cache_dir"])
+    gen, train, test, where, info = _ensure(data_cfg, vehicle_cfg, cfg["cache_dir"])
     for split in ("train", "test"):
         for ext in (".npz", ".json"):
             shutil.copyfile(where / f"{split}{ext}", outdir / f"{split}{ext}")
-    gen = build_generator(data_cfg, vehicle_cfg)
-    simple = SimpleModel.from_vehicle(gen.vehicle, **train.meta["simple_model"])
+    simple = simple_model_for(train, gen.vehicle)
     result: dict[str, Any] = {
         "dataset": info,
         "train": train.summary(),
@@ -198,4 +209,4 @@ def hover_sweep(gen: Generator, rpm: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.asarray(T), np.asarray(Q)
 
 
-__all__ = ["build_generator", "dataset_key", "ensure_datasets", "hover_sweep", "jacobian", "run"]
+__all__ = ["build_generator", "dataset_key", "ensure_datasets", "hover_sweep", "run"]

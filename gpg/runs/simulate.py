@@ -19,13 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpg import checkpoint
-from gpg.data.preprocess import simple_model_for
 from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, SurrogateAero, Wind
 from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import machine, write_json
-from gpg.surrogate import Surrogate, predict_state
+from gpg.runs.common import machine, set_dispatch, write_json
+from gpg.surrogate import Surrogate
 
 
 def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> dict[str, Any]:
@@ -39,7 +38,7 @@ def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> d
     for k in range(len(w) - 1):
         t0 = float(plan.start_time) + k * float(plan.leg_time)
         t1 = t0 + float(plan.leg_time) if k < len(w) - 2 else t[-1]
-        sel = (t >= t0) & (t <= t1 + (0 if k < len(w) - 2 else 0))
+        sel = (t >= t0) & (t <= t1)
         d = w[k + 1] - w[k]
         u = d / (np.linalg.norm(d) + 1e-12)
         dist = np.linalg.norm(p[sel] - w[k + 1], axis=1)
@@ -66,25 +65,22 @@ def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> d
     }
 
 
-def _surrogate(cfg: dict[str, Any], vehicle: Vehicle):
+def _surrogate(cfg: dict[str, Any], vehicle: Vehicle) -> Surrogate:
     if cfg.get("surrogate_checkpoint"):
-        sur = checkpoint.load(cfg["surrogate_checkpoint"])
-        return sur, sur.simple
-    from gpg.runs.compare import load_data
+        return checkpoint.load(cfg["surrogate_checkpoint"])
+    from gpg.runs.compare import load_train
 
-    train, _, _ = load_data(cfg)
     model = dict(cfg["model"])
     name = model.pop("name")
-    sur = Surrogate.fit(train, name, model, vehicle=vehicle)
-    return sur, simple_model_for(train, vehicle)
+    return Surrogate.fit(load_train(cfg), name, model, vehicle=vehicle)
 
 
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     outdir = Path(outdir)
-    if cfg.get("sync_dispatch", True):
-        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    set_dispatch(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
-    sur, simple = _surrogate(cfg, vehicle)
+    sur = _surrogate(cfg, vehicle)
+    simple = sur.simple
     if simple is None:
         raise ValueError("the surrogate has no simplified model; the controller needs one")
     ctrl = GeometricController.create(vehicle, simple, cfg["controller"])
@@ -115,14 +111,11 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         flights[name] = flight_metrics(tr, plan, dt, fl["reach_radius"])
 
     # The surrogate's microphone levels along the simplified flight (M has no noise model).
-    listen = jax.jit(
-        jax.vmap(
-            lambda r, e, v: predict_state(sur, r, e, v, False).noise,
-        )
-    )
     tr = traces["simplified"]
     wind_t = jax.vmap(wind)(tr.t)
-    noise_simple = np.asarray(listen(tr.rpm, tr.euler, tr.v - wind_t))
+    noise_simple = np.asarray(
+        sur.predict_batch(tr.rpm, tr.euler, tr.v - wind_t, mean_only=True).noise
+    )
 
     speed = {}
     t0 = time.perf_counter()

@@ -79,14 +79,14 @@ def test_nan_rows_reported_by_index(rng, field, bad_row):
     arrays = {k: getattr(ds, k) for k in ARRAYS}
     arrays[field] = arrays[field].copy()
     arrays[field][bad_row].flat[0] = np.inf if bad_row % 2 else np.nan
-    with pytest.raises(ValueError, match=rf"{field} holds NaN or inf in row\(s\) {bad_row}\b"):
+    with pytest.raises(ValueError, match=rf"{field} holds NaN or inf in 1 row\(s\): {bad_row}$"):
         Dataset(**arrays)
 
 
 @pytest.mark.parametrize(
     "edit, match",
     [
-        (lambda a: a.update(x=a["x"][:, :7]), r"x must have shape \(N, 8\)"),
+        (lambda a: a.update(x=a["x"][:, :7]), r"x must have shape \(\*, 8\)"),
         (lambda a: a.update(y_aero=a["y_aero"][:5]), r"y_aero must have shape \(12, 6\)"),
         (lambda a: a.update(jac_aero=a["jac_aero"][:, :, :6]), r"jac_aero must have shape"),
         (lambda a: a.update(y_raw=None), r"x_raw and y_raw must be given together"),
@@ -228,7 +228,7 @@ def test_csv_bad_values(rng, tmp_path):
     rows = rng.uniform(1, 2, (4, 14)).astype(object)
     rows[2, 9] = "nan"
     write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
-    with pytest.raises(ValueError, match=r"y_aero holds NaN or inf in row\(s\) 2"):
+    with pytest.raises(ValueError, match=r"y_aero holds NaN or inf in 1 row\(s\): 2$"):
         from_csv(tmp_path / "n.csv", COLUMNS)
     rows[2, 9] = "abc"
     write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
@@ -236,3 +236,13 @@ def test_csv_bad_values(rng, tmp_path):
         from_csv(tmp_path / "n.csv", COLUMNS)
     with pytest.raises(ValueError, match="does not exist"):
         from_csv(tmp_path / "missing.csv", COLUMNS)
+
+
+def test_generator_names_match_the_schema():
+    """The generator keeps its own copy of the column names: importing them from gpg.data would
+    make gpg.quadrotor and gpg.data import each other (gpg.data.sampling needs the generator)."""
+    from gpg.data.dataset import AERO, INPUTS, NOISE
+    from gpg.quadrotor.generator import INPUT_NAMES, OUTPUT_NAMES
+
+    assert INPUT_NAMES == INPUTS
+    assert OUTPUT_NAMES == AERO + NOISE

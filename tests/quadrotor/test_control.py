@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gpg.quadrotor.control import GeometricController, WaypointPlan
-from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
+from gpg.quadrotor.dynamics import AeroModel, Quadrotor, SimpleAero, State, Wind, Wrench
 from gpg.quadrotor.rollout import batched_rollouts, simulate
 from gpg.quadrotor.simple_model import SimpleModel
 
@@ -32,14 +32,39 @@ def test_reaches_waypoint_with_simplified_model(setup):
     assert np.isclose(float(tr.euler[-1, 0]), np.arctan2(-8, 6), atol=0.02)  # nose along the leg
 
 
-def test_holds_position_in_constant_wind(setup, vehicle):
-    """M has no drag, so wind does not push it; the point is the controller stays stable."""
-    _, quad, ctrl, trim = setup
-    plan = WaypointPlan.create([[0, 0, -10], [0, 0, -10]])
-    s, _ = jax.jit(
-        lambda s0: simulate(quad, ctrl, plan, Wind.constant([4.0, 0, 0]), s0, 0.01, 500)
-    )(State.hover([0, 0, -10.0], trim))
-    np.testing.assert_allclose(s.p, [0, 0, -10], atol=1e-6)
+class DragAero(AeroModel):
+    """``M`` plus an isotropic airframe drag ``−k |v_air| v_air`` (world frame, at the centre
+    of mass): an aerodynamic model on which the wind acts, unlike ``M`` alone."""
+
+    simple: SimpleAero
+    k: float  # ½ ρ C_D A, kg/m
+
+    def wrench(self, rpm, R_WB, v_air, omega):
+        w = self.simple.wrench(rpm, R_WB, v_air, omega)
+        drag = -self.k * jnp.sqrt(jnp.sum(v_air**2)) * v_air
+        return Wrench(w.force + drag, w.torque, w.noise, w.in_domain)
+
+
+def test_steady_wind_offset_matches_position_gain(setup, vehicle):
+    """With airframe drag, a steady wind pushes the hovering vehicle downwind until the
+    position gain balances the drag (the controller has no integral action): the vehicle
+    settles, without oscillating or drifting, at ``drag / K_p`` from its waypoint."""
+    simple, _, ctrl, trim = setup
+    k = 0.5 * float(vehicle.air_density) * float(vehicle.drag_area[0])
+    quad = Quadrotor.from_vehicle(vehicle, DragAero(SimpleAero(simple), k))
+    wind = np.array([8.0, -4.0, 0.0])
+    hold = np.array([0.0, 0.0, -10.0])
+    plan = WaypointPlan.create([hold, hold])
+    s, tr = jax.jit(lambda s0: simulate(quad, ctrl, plan, Wind.constant(wind), s0, 0.01, 1000))(
+        State.hover(hold, trim)
+    )
+    drag = k * np.linalg.norm(wind) * wind  # the air moves with the wind past a vehicle at rest
+    offset = drag / np.asarray(ctrl.kp)
+    assert np.linalg.norm(offset) > 0.05  # the wind matters here
+    np.testing.assert_allclose(s.p, hold + offset, atol=1e-6)
+    np.testing.assert_allclose(s.v, 0.0, atol=1e-6)
+    dev = np.linalg.norm(np.asarray(tr.p) - hold, axis=1)
+    assert dev.max() < 1.5 * np.linalg.norm(offset)  # no large overshoot on the way
 
 
 def test_mixer_limits_and_yaw_priority(setup, vehicle):

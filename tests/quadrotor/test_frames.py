@@ -63,13 +63,14 @@ def test_airflow_frame_takes_airflow_to_x(rng):
         assert abs(R[2, 1]) < 1e-14  # y_H stays horizontal
 
 
-def test_householder_would_mirror():
-    """The paper's lone Householder matrix is a reflection: det −1 (pitfall 2)."""
+def test_airflow_frame_does_not_mirror():
+    """Pitfall 2: the paper's lone Householder matrix ``I − 2uuᵀ`` (``u ∝ v̂ − e_x``) also takes
+    ``e_x`` to ``v̂`` but is a reflection (det −1) that swaps left and right rotors; ``R_WH`` must
+    be a proper rotation for the same airflow."""
     v = np.array([3.0, 4.0, 0.0]) / 5
-    u = (v - [1, 0, 0]) / np.linalg.norm(v - [1, 0, 0])
-    H = np.eye(3) - 2 * np.outer(u, u)
-    assert np.isclose(np.linalg.det(H), -1.0)
-    assert np.isclose(np.linalg.det(frames.R_WH(v)), 1.0)
+    R = np.asarray(frames.R_WH(v))
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-14)
+    np.testing.assert_allclose(R @ [1.0, 0, 0], v, atol=1e-14)
 
 
 def test_airflow_frame_commutes_with_world_yaw(rng):

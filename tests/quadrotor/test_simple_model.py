@@ -81,10 +81,9 @@ def test_allocation_invertible(model):
     A = np.asarray(model.allocation)
     assert abs(np.linalg.det(A)) > 0
     assert np.linalg.cond(A) < 1e3
-    # The paper's printed τz row equals its τx row up to scale: that matrix is singular.
-    paper = A.copy()
-    paper[3] = T_Z * np.array([-1, 1, 1, -1])
-    assert np.linalg.matrix_rank(paper) == 3
+    # Pitfall 3: the paper prints the τz row with the τx row's sign pattern, T_z (−1, 1, 1, −1),
+    # which makes its matrix singular; A's τz row follows the spin directions instead.
+    np.testing.assert_allclose(A[3], -T_Z * np.asarray(model.spin), rtol=1e-15)
 
 
 def test_hover_rpm_and_fit():

@@ -1,16 +1,12 @@
 """``experiments.generate_data`` end to end on a tiny config composed with Hydra."""
 
 import json
-from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from gpg.data.dataset import Dataset
 from gpg.runs import generate_data
-
-CONF = Path(__file__).resolve().parents[2] / "conf"
+from tests.helpers import compose_plain
 
 
 def config(tmp_path, *extra):
@@ -23,9 +19,7 @@ def config(tmp_path, *extra):
         f"cache_dir={tmp_path / 'cache'}",
         *extra,
     ]
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose(config_name="generate_data", overrides=overrides)
-    return OmegaConf.to_container(cfg, resolve=True)
+    return compose_plain("generate_data", overrides)
 
 
 def test_generate_data_run(tmp_path):
