@@ -33,7 +33,7 @@ import numpy as np
 import gpg
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: noise, output scales, hybrid and PIC models
 
 
 class CheckpointError(ValueError):

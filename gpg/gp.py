@@ -30,6 +30,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg import _checks, kernels, linalg, memory, predictor
+from gpg.mean import GlobalMean, output_scale
 from gpg.predictor import Predictor
 from gpg.tri import BlockTriangular
 
@@ -212,6 +213,8 @@ class ExactGP(Predictor):
             triangle once, row-major; a triangular solve in JAX first copies ``L`` to
             column-major order and is over ten times slower per query at 8000 rows.
         hyper: the hyperparameters used.
+        mean: ``α`` folded for a fast mean (:class:`gpg.mean.GlobalMean`).
+        output_scale: per-output ML signal scale ``Ȳ_mᵀ α_m / R`` (:func:`gpg.mean.output_scale`).
         grad_dims: input dimensions with gradient observations (static).
         log_marginal_likelihood: ``log p(Ȳ | X)`` summed over the M outputs.
     """
@@ -220,6 +223,8 @@ class ExactGP(Predictor):
     alpha: Float[Array, "R M"]
     chol_inv: BlockTriangular
     hyper: Hyper
+    mean: GlobalMean
+    output_scale: Float[Array, " M"]
     log_marginal_likelihood: Float[Array, ""]
     grad_dims: tuple[int, ...] = eqx.field(static=True)
 
@@ -272,6 +277,10 @@ class ExactGP(Predictor):
             alpha=jnp.asarray(alpha),
             chol_inv=bands,
             hyper=hyper,
+            mean=GlobalMean.from_alpha(
+                data.X, alpha, hyper.variance, hyper.lengthscale, data.grad_dims
+            ),
+            output_scale=jnp.asarray(output_scale(np.sum(Ybar * alpha, axis=0), r)),
             log_marginal_likelihood=jnp.asarray(lml),
             grad_dims=data.grad_dims,
         )
@@ -281,12 +290,17 @@ class ExactGP(Predictor):
         return self.alpha.shape[1]
 
     @property
+    def noise(self) -> Float[Array, ""]:
+        return self.hyper.jitter
+
+    @property
     def n_inputs(self) -> int:
         return self.X.shape[1]
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
-        """Posterior mean (M,) at one query, Eq. (GPGmean): one kernel row and one product."""
-        return (_cross(self, x[None]) @ self.alpha)[0]
+        """Posterior mean (M,) at one query, Eq. (GPGmean), in the folded form of
+        :mod:`gpg.mean` (plain kernel values times fixed coefficients)."""
+        return self.mean(x)
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
         """Posterior mean (M,) and latent variance () at one query: Eqs. (GPGmean, GPGvariance).
@@ -296,8 +310,8 @@ class ExactGP(Predictor):
         """
         k = _cross(self, x[None])[0]
         v = self.chol_inv.matvec(k)
-        # Rounding can push the difference a hair below zero for queries on training points.
-        return k @ self.alpha, jnp.maximum(self.hyper.variance - v @ v, 0.0)
+        # Rounding can push the difference a hair below zero on training points: predict clips.
+        return self.mean(x), self.hyper.variance - v @ v
 
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
         """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
@@ -305,7 +319,7 @@ class ExactGP(Predictor):
 
 
 def _cross(gp: ExactGP, Xq: Array) -> Float[Array, "Q R"]:
-    return kernels.gram(Xq, gp.X, gp.hyper.variance, gp.hyper.lengthscale, (), gp.grad_dims)
+    return kernels.query_rows(Xq, gp.X, gp.hyper.variance, gp.hyper.lengthscale, gp.grad_dims)
 
 
 @eqx.filter_jit
@@ -360,17 +374,28 @@ class HyperFitResult:
     message: str
     subset: np.ndarray
     grad_noise_scale: float | None
+    jitter_fitted: bool = False
+
+    @property
+    def noise_ratio(self) -> float:
+        """The value-noise nugget relative to the signal variance, ``ν²/σ``."""
+        return float(self.hyper.jitter / self.hyper.variance)
 
 
-def _unpack(params, base: Hyper, grad_var):
-    lengthscale = jnp.exp(params["log_lengthscale"])
+def _unpack(params, base: Hyper, grad_var, jitter_floor: float):
+    variance = jnp.exp(params["log_variance"])
     grad_noise = base.grad_noise
     if "log_s" in params:
         grad_noise = jnp.exp(params["log_s"]) * grad_var
+    jitter = base.jitter
+    if "log_noise_ratio" in params:
+        # ν² = σ (floor + e^θ): the bound holds exactly for every θ, so an unconstrained
+        # optimiser can be used (no projection, no clipping of the gradient).
+        jitter = variance * (jitter_floor + jnp.exp(params["log_noise_ratio"]))
     return Hyper(
-        variance=jnp.exp(params["log_variance"]),
-        lengthscale=lengthscale,
-        jitter=base.jitter,
+        variance=variance,
+        lengthscale=jnp.exp(params["log_lengthscale"]),
+        jitter=jitter,
         grad_noise=grad_noise,
     )
 
@@ -384,6 +409,9 @@ def fit_hyperparameters(
     init: Hyper | None = None,
     ard: bool = True,
     fit_grad_noise: bool = False,
+    fit_jitter: bool = True,
+    jitter_floor: float = 1e-6,
+    jitter_init: float = 1e-2,
     subset_size: int | None = 400,
     seed: int = 0,
     max_steps: int = 200,
@@ -393,10 +421,14 @@ def fit_hyperparameters(
 ) -> HyperFitResult:
     """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
 
-    Fitted: signal variance σ, lengthscale(s) ``l`` (one per input if ``ard``), and, if
-    ``fit_grad_noise``, the scale ``s`` of the gradient noise ``λ_i² = s·Var(∂_i Ỹ)``. The jitter
-    ``ν²`` stays as in ``init``. When N exceeds ``subset_size`` the likelihood is evaluated on a
-    random subset of that many points (drawn with ``seed``), since each step factorises K̄.
+    Fitted: signal variance σ, lengthscale(s) ``l`` (one per input if ``ard``), the value-noise
+    nugget ``ν²`` if ``fit_jitter`` (bounded below by ``jitter_floor·σ``, started from
+    ``jitter_init·σ``; otherwise it stays as in ``init``), and, if ``fit_grad_noise``, the scale
+    ``s`` of the gradient noise ``λ_i² = s·Var(∂_i Ỹ)``. A fixed tiny ``ν²`` leaves the model
+    overconfident on data that no smooth function fits exactly (finite-difference gradients,
+    a simulator's own discretisation): the nugget is what absorbs that misfit. When N exceeds
+    ``subset_size`` the likelihood is evaluated on a random subset of that many points (drawn
+    with ``seed``), since each step factorises K̄.
 
     ``on_failure``: ``"warn"`` (a :class:`FitWarning`, result returned with
     ``converged=False``), ``"raise"`` (:class:`FitError`) or ``"ignore"``.
@@ -414,6 +446,11 @@ def fit_hyperparameters(
     init = init.validate(d, g)
     if fit_grad_noise and g == 0:
         raise ValueError("fit_grad_noise=True needs gradient observations (dY)")
+    if fit_jitter and not (0 < jitter_floor < jitter_init):
+        raise ValueError(
+            "jitter_floor and jitter_init (ν²/σ) must satisfy 0 < jitter_floor < jitter_init, "
+            f"got {jitter_floor} and {jitter_init}"
+        )
 
     rng = np.random.default_rng(seed)
     if subset_size is not None and n > subset_size:
@@ -435,9 +472,11 @@ def fit_hyperparameters(
         grad_var = gradient_noise(data.dY, s=1.0)
         lam = jnp.broadcast_to(init.grad_noise, (g,))
         params["log_s"] = jnp.mean(jnp.log(lam / grad_var))
+    if fit_jitter:
+        params["log_noise_ratio"] = jnp.log(jnp.asarray(jitter_init - jitter_floor))
 
     def loss(p, _):
-        h = _unpack(p, init, grad_var)
+        h = _unpack(p, init, grad_var, jitter_floor)
         nll = -log_marginal_likelihood(Xs, Ybar, h, data.grad_dims) / scale
         # A non-PD trial point gives NaN: report it as a bad step so the line search backs off.
         return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
@@ -450,7 +489,7 @@ def fit_hyperparameters(
         max_steps=max_steps,
         throw=False,
     )
-    hyper = _unpack(sol.value, init, grad_var)
+    hyper = _unpack(sol.value, init, grad_var, jitter_floor)
     nll1 = float(loss(sol.value, None))
     ok = bool(sol.result == optx.RESULTS.successful)
     message = "converged" if ok else f"optimistix stopped: {_result_message(sol.result)}"
@@ -466,6 +505,7 @@ def fit_hyperparameters(
         message=message,
         subset=subset,
         grad_noise_scale=float(jnp.exp(sol.value["log_s"])) if fit_grad_noise else None,
+        jitter_fitted=fit_jitter,
     )
     if not ok:
         text = (

@@ -97,7 +97,20 @@ def gram_t(a: np.ndarray) -> np.ndarray:
     """``aᵀ a`` by ``dgemm``. NumPy would route ``a.T @ a`` to ``dsyrk``, which crashes in
     OpenBLAS's threaded code for large outputs (see :func:`cholesky_inplace`)."""
     f = np.asfortranarray(a.T) if not a.flags.c_contiguous else a.T  # F-ordered view of aᵀ
-    return np.ascontiguousarray(blas.dgemm(1.0, f, f, trans_b=1))
+    # The F-ordered result is symmetric: its transpose is the same matrix, C-ordered, no copy.
+    return blas.dgemm(1.0, f, f, trans_b=1).T
+
+
+def solve_lower(L: np.ndarray, b: np.ndarray, *, trans: bool = False) -> np.ndarray:
+    """``L⁻¹ b`` (or ``L⁻ᵀ b`` with ``trans``) for a C-ordered lower-triangular ``L`` and a
+    C-ordered ``b`` (n, m), by one ``dtrsm`` on the Fortran views, without the layout copies
+    that ``scipy.linalg.solve_triangular`` makes for C-ordered arrays. Returns a new array."""
+    x = np.array(b, dtype=np.float64, order="C", copy=True)
+    if x.ndim == 1:
+        return solve_lower(L, x[:, None], trans=trans)[:, 0]
+    # In Fortran order x is xᵀ (m, n) and L is Lᵀ (upper): L⁻¹ b = (bᵀ L⁻ᵀ)ᵀ, a right solve.
+    out = blas.dtrsm(1.0, L.T, x.T, side=1, lower=0, trans_a=1 if trans else 0, overwrite_b=1)
+    return out.T
 
 
 def cho_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:

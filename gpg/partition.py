@@ -206,19 +206,27 @@ def near_sets(
     *,
     epsilon: float | None = None,
     budget: float | None = None,
+    points: int | None = None,
     chunk: int = 2048,
 ) -> NearSets:
-    """Near set of every bin by correlation threshold ``epsilon`` or by ``budget`` (a fraction).
+    """Near set of every bin by correlation threshold ``epsilon``, by ``budget`` (a fraction
+    of the points) or by ``points`` (a number of points, whatever N).
 
     The correlation of a point with a bin is its largest ``k(x, a)/σ`` over the bin's anchors.
-    Anchors are always near. Exactly one of ``epsilon`` and ``budget`` must be given.
+    Anchors are always near. Exactly one of ``epsilon``, ``budget`` and ``points`` must be
+    given.
     """
-    if (epsilon is None) == (budget is None):
-        raise ValueError("give exactly one of epsilon (a correlation threshold) and budget")
+    if sum(v is not None for v in (epsilon, budget, points)) != 1:
+        raise ValueError(
+            "give exactly one of epsilon (a correlation threshold), budget (a fraction) "
+            "and points (a count)"
+        )
     if epsilon is not None and not 0 <= epsilon < 1:
         raise ValueError(f"epsilon must be in [0, 1), got {epsilon}")
     if budget is not None and not 0 < budget <= 1:
         raise ValueError(f"budget must be a fraction in (0, 1], got {budget}")
+    if points is not None and (isinstance(points, bool) or int(points) != points or points < 1):
+        raise ValueError(f"points must be a positive integer, got {points!r}")
     X = np.asarray(X, dtype=float)
     n = X.shape[0]
     bins = np.asarray(partition.lookup_batch(jnp.asarray(X)))
@@ -237,7 +245,8 @@ def near_sets(
         if epsilon is not None:
             idx = np.flatnonzero(corr > epsilon)
         else:
-            k = max(math.ceil(budget * n), a.size)
+            want = math.ceil(budget * n) if budget is not None else min(int(points), n)
+            k = max(want, a.size)
             idx = np.argsort(-corr, kind="stable")[:k]
         idx = np.sort(idx)
         finite = corr[idx][np.isfinite(corr[idx])]
@@ -246,3 +255,73 @@ def near_sets(
         frac.append(idx.size / n)
         eps.append(float(finite.min()) if finite.size else 1.0)
     return NearSets(tuple(anchors), tuple(near), np.array(frac), np.array(eps))
+
+
+def far_correlation(
+    X: Float[ArrayLike, "N D"],
+    near: NearSets,
+    lengthscale: Float[ArrayLike, "*L"],
+    *,
+    chunk: int = 2048,
+) -> np.ndarray:
+    """For each training input, taken as a query in its own bin: its largest kernel
+    correlation ``k(x, x_f)/σ`` with the bin's far set (0 when the far set is empty).
+
+    The Schur forms (and any model that drops the far set) assume ``k_qf ≈ 0``; this is
+    the measured size of what they drop, at the inputs the model was trained on.
+    """
+    X = np.asarray(X, dtype=float)
+    n = X.shape[0]
+    ls = jnp.asarray(lengthscale, dtype=float)
+    out = np.zeros(n)
+    for a, nb in zip(near.anchors, near.near, strict=True):
+        far = np.setdiff1d(np.arange(n), nb, assume_unique=True)
+        if far.size == 0:
+            continue
+        best = np.zeros(a.size)
+        for s in range(0, far.size, chunk):
+            f = jnp.asarray(X[far[s : s + chunk]])
+            best = np.maximum(best, np.asarray(_max_correlation(jnp.asarray(X[a]), f, ls)))
+        out[a] = best
+    return out
+
+
+def boundary_pairs(
+    partition: Partition,
+    samples: Float[ArrayLike, "S D"],
+    *,
+    per_face: int = 50,
+    delta: float = 1e-7,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of inputs straddling the bins' boundaries: ``(inside, outside)``, each (K, D).
+
+    For every finite upper face ``x_d = hi`` of every bin box, up to ``per_face`` of the
+    ``samples`` (a random subset) are moved into the box and onto the face; the pair is
+    ``x_d = hi − delta`` (in the bin) and ``x_d = hi + delta`` (in its neighbour). A model
+    continuous across bins gives nearly equal predictions for the two members of a pair.
+    """
+    samples = np.asarray(samples, dtype=float)
+    if samples.ndim != 2 or samples.shape[0] == 0:
+        raise ValueError(f"samples must be a non-empty (S, D) array, got shape {samples.shape}")
+    d = samples.shape[1]
+    lo, hi = partition.boxes(d)
+    rng = np.random.default_rng(seed)
+    inside, outside = [], []
+    for b in range(partition.n_bins):
+        for dim in np.flatnonzero(np.isfinite(hi[b])):
+            pick = rng.permutation(samples.shape[0])[:per_face]
+            # Strictly inside the box along the other inputs (lower bounds are open).
+            x = np.clip(samples[pick], np.nextafter(lo[b], np.inf), hi[b])
+            a, c = x.copy(), x.copy()
+            a[:, dim] = hi[b, dim] - delta
+            c[:, dim] = hi[b, dim] + delta
+            inside.append(a)
+            outside.append(c)
+    if not inside:
+        return np.zeros((0, d)), np.zeros((0, d))
+    A, C = np.concatenate(inside), np.concatenate(outside)
+    ba = np.asarray(partition.lookup_batch(jnp.asarray(A)))
+    bc = np.asarray(partition.lookup_batch(jnp.asarray(C)))
+    keep = ba != bc  # both members in one bin would not test a boundary
+    return A[keep], C[keep]

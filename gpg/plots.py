@@ -122,20 +122,44 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     return paths
 
 
-def _boxes(ax, data, labels, title):
+def _boxes(ax, data, labels, title, ylabel):
     ax.boxplot(data, showfliers=False, whis=(5, 95))
-    ax.set_xticks(range(1, len(labels) + 1), labels, rotation=30, ha="right", fontsize=7)
+    ax.set_xticks(range(1, len(labels) + 1), labels, rotation=30, ha="right", fontsize=8)
     ax.set_yscale("log")
     ax.set_title(title)
+    ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3, axis="y")
 
 
 UNITS = {"F": "N", "M": "N m", "L": "dB"}
+# A model whose median error on an output is this many times the best model's is "failing"
+# there: it is drawn apart, so that it does not squash the axis the working models share.
+FAILING = 10.0
+
+
+def _split(labels, err, n):
+    med = {lab: float(np.median(err(lab, n))) for lab in labels}
+    best = min(med.values())
+    failing = [lab for lab in labels if med[lab] > FAILING * max(best, 1e-300)]
+    return [lab for lab in labels if lab not in failing], failing, med
+
+
+def _compare_panels(axes, labels, err, outputs):
+    """One box panel per output of the working models; failing ones noted under it."""
+    for ax, n in zip(np.ravel(axes), outputs, strict=False):
+        good, bad, med = _split(labels, err, n)
+        _boxes(ax, [err(lab, n) for lab in good], good, n, f"|error| [{UNITS[n[0]]}]")
+        if bad:
+            note = "not shown (median ≥ 10x best): " + ", ".join(
+                f"{lab} {med[lab]:.3g}" for lab in bad
+            )
+            ax.text(0.0, -0.42, note, transform=ax.transAxes, fontsize=7, va="top", wrap=True)
 
 
 def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> list[Path]:
     """Error distributions (paper Fig. model comparison), all outputs, Schur vs no Schur,
-    error vs airspeed, and the two mean forms of ``gpgs_schur``."""
+    error vs airspeed, and the two mean forms of ``gpgs_schur``. Models that fail on an output
+    are listed under its panel instead of stretching its axis (their own figures show them)."""
     ok = {k: v for k, v in results.items() if "skipped" not in v}
     labels = list(ok)
     paths: list[Path] = []
@@ -144,17 +168,16 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
     def err(label, n):
         return ok[label]["_abs_err"][:, names.index(n)]
 
-    fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
-    for ax, n in zip(np.atleast_1d(axes), key, strict=True):
-        _boxes(ax, [err(lab, n) for lab in labels], labels, f"|error| {n} [{UNITS[n[0]]}]")
-    fig.suptitle("Model comparison (boxes: quartiles, whiskers: 5-95 %)")
+    fig, axes = plt.subplots(1, len(key), figsize=(4.6 * len(key), 4.4))
+    _compare_panels(axes, labels, err, key)
+    fig.suptitle("Model comparison on the test set (boxes: quartiles, whiskers: 5-95 %)")
+    fig.tight_layout()
     paths += save(fig, outdir / "model_compare")
 
     cols = 3
     rows = -(-len(names) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(13, 3.6 * rows))
-    for ax, n in zip(np.ravel(axes), names, strict=False):
-        _boxes(ax, [err(lab, n) for lab in labels], labels, f"|error| {n} [{UNITS[n[0]]}]")
+    fig, axes = plt.subplots(rows, cols, figsize=(14, 4.4 * rows))
+    _compare_panels(axes, labels, err, names)
     for ax in np.ravel(axes)[len(names) :]:
         ax.axis("off")
     fig.tight_layout()
@@ -164,25 +187,34 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
     if len(pair) == 2:
         fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
         for ax, n in zip(np.atleast_1d(axes), key, strict=True):
-            _boxes(ax, [err(lab, n) for lab in pair], ["no Schur (gpgs)", "Schur (gpgs_schur)"], n)
+            _boxes(
+                ax,
+                [err(lab, n) for lab in pair],
+                ["no Schur (gpgs)", "Schur (gpgs_schur)"],
+                n,
+                f"|error| [{UNITS[n[0]]}]",
+            )
         fig.suptitle("Schur complement comparison")
+        fig.tight_layout()
         paths += save(fig, outdir / "schur_compare")
 
     forms = [lab for lab in ok if lab.startswith("gpgs_schur")]
     if len(forms) >= 2:
         fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
         for ax, n in zip(np.atleast_1d(axes), key, strict=True):
-            _boxes(ax, [err(lab, n) for lab in forms], forms, n)
+            _boxes(ax, [err(lab, n) for lab in forms], forms, n, f"|error| [{UNITS[n[0]]}]")
         fig.suptitle(
             r"gpgs_schur: mean forms (exact = $k_{qn}^\top \alpha_n$, "
             r"paper = $k_{qn}^\top S^{-1} \bar{Y}_n$)"
         )
+        fig.tight_layout()
         paths += save(fig, outdir / "schur_mean_forms")
 
-    fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
+    fig, axes = plt.subplots(1, len(key), figsize=(4.6 * len(key), 3.8))
     for ax, n in zip(np.atleast_1d(axes), key, strict=True):
         j = names.index(n)
-        for lab in labels:
+        good, bad, _ = _split(labels, err, n)
+        for lab in good:
             ev = ok[lab]["error_vs_airspeed"]
             mid = 0.5 * (np.array(ev["edges"][1:]) + np.array(ev["edges"][:-1]))
             vals = [np.nan if row is None else row[j] for row in ev["mean_abs_error"]]
@@ -190,8 +222,11 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
         ax.set(
             xlabel="airspeed [m/s]", ylabel=f"mean |error| [{UNITS[n[0]]}]", title=n, yscale="log"
         )
+        if bad:
+            ax.set_title(f"{n} (not shown: {', '.join(bad)})", fontsize=8)
         ax.grid(alpha=0.3)
-    np.atleast_1d(axes)[0].legend(fontsize=6)
+    handles, lbls = np.atleast_1d(axes)[0].get_legend_handles_labels()
+    fig.legend(handles, lbls, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
     fig.suptitle("Prediction error vs airspeed")
     fig.tight_layout()
     paths += save(fig, outdir / "error_vs_airspeed")

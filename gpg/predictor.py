@@ -4,6 +4,14 @@ A model answers a single normalised query ``x`` (D,) with ``mean_one`` (M,) or
 ``mean_var_one`` (mean (M,), latent variance ()); these are written so that ``jax.vmap`` turns
 them into efficient batched code, and ``predict`` / ``predict_mean`` are exactly that, jitted,
 for a batch ``Xq`` (Q, D). The latent variance is shared by the M outputs (one kernel).
+
+``mean_var_one`` returns the variance as computed, which the Schur forms can make negative
+(their ``k_qf ≈ 0`` assumption failing); ``predict`` clips it at zero, ``predict_unclipped``
+does not, so that such failures can be counted rather than hidden. ``noise`` is the value-noise
+variance ``ν²`` of an observation: the predictive variance of a measured output is the latent
+variance plus ``ν²``, and ``output_scale`` (M,) scales that per output (the outputs share one
+kernel; the scale is each output's closed-form maximum-likelihood amplitude,
+:func:`gpg.mean.output_scale`): ``var_m = output_scale[m] · (latent + ν²)``.
 """
 
 from __future__ import annotations
@@ -27,6 +35,20 @@ class Predictor(eqx.Module):
     @abc.abstractmethod
     def n_outputs(self) -> int: ...
 
+    @property
+    @abc.abstractmethod
+    def noise(self) -> Float[Array, ""]:
+        """Value-noise variance ``ν²`` of an observation (normalised units)."""
+
+    # Every model also has ``output_scale`` (M,), the per-output scale of the predictive
+    # variance (ones for a shared scale), as a field or a property: declaring it here would
+    # make it a dataclass field of the models that implement it as a property.
+
+    def predictive_variance(self, var: Float[ArrayLike, "*Q"]) -> Float[Array, "*Q M"]:
+        """An observation's predictive variance per output (normalised units) from the latent
+        variance: ``output_scale · (max(var, 0) + ν²)``."""
+        return (jnp.maximum(jnp.asarray(var), 0.0) + self.noise)[..., None] * self.output_scale
+
     @abc.abstractmethod
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
         """Posterior mean at one query."""
@@ -38,7 +60,15 @@ class Predictor(eqx.Module):
     def predict(
         self, Xq: Float[ArrayLike, "Q D"]
     ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
-        """Mean (Q, M) and latent variance (Q,) at a batch of queries (jitted)."""
+        """Mean (Q, M) and latent variance (Q,), clipped at 0, at a batch of queries (jitted)."""
+        mean, var = _batch(self, jnp.asarray(Xq), True)
+        return mean, jnp.maximum(var, 0.0)
+
+    def predict_unclipped(
+        self, Xq: Float[ArrayLike, "Q D"]
+    ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
+        """As :meth:`predict`, with the variance as computed (negative where a model's
+        assumptions fail: count those, do not trust them)."""
         return _batch(self, jnp.asarray(Xq), True)
 
     def predict_mean(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M"]:

@@ -29,8 +29,10 @@ dense inverse.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -38,21 +40,76 @@ import scipy.linalg as sla
 
 from gpg import linalg, memory
 from gpg.gp import Hyper, assemble_gram
-from gpg.partition import NearSets
+from gpg.partition import NearSets, Partition, far_correlation
 
 ROUTES = ("global", "direct", "local")
 MEAN_FORMS = ("exact", "paper")
+# Median largest query-to-far correlation above which the k_qf ≈ 0 assumption is called
+# violated. Where the Schur correction was measured to help (README, +experiment=schur_regime)
+# the median was 0.12; where it failed, 0.77.
+KQF_WARN = 0.1
+
+
+class SchurAssumptionWarning(UserWarning):
+    """The far set is not far: the Schur forms' ``k_qf ≈ 0`` does not hold on the data."""
+
+
+def diagnose(
+    X: np.ndarray,
+    partition: Partition,
+    near: NearSets,
+    lengthscale,
+    *,
+    name: str = "gpgs_schur",
+    threshold: float = KQF_WARN,
+) -> dict[str, Any]:
+    """Measure the Schur assumption ``k_qf ≈ 0`` on the training inputs and warn when it fails.
+
+    Returns the near-set ε per bin and the distribution (median, p90, max) of each training
+    input's largest correlation with its bin's far set (:func:`gpg.partition.far_correlation`);
+    ``kqf_violated`` is True, with one :class:`SchurAssumptionWarning`, when the median
+    exceeds ``threshold``.
+    """
+    corr = far_correlation(X, near, lengthscale)
+    med = float(np.median(corr))
+    out = {
+        "near_epsilon": near.epsilon.tolist(),
+        "far_correlation_median": med,
+        "far_correlation_p90": float(np.percentile(corr, 90)),
+        "far_correlation_max": float(corr.max()),
+        "kqf_threshold": threshold,
+        "kqf_violated": med > threshold,
+    }
+    if out["kqf_violated"]:
+        warnings.warn(
+            f"{name}: the Schur correction assumes the far set is uncorrelated with the "
+            f"queries (k_qf ≈ 0), but on the training inputs the median query's most "
+            f"correlated far point has correlation {med:.2f} (90 % below "
+            f"{out['far_correlation_p90']:.2f}; threshold {threshold}). What the correction "
+            "drops is then not small, and it is amplified by S⁻¹: expect this model to be "
+            "much worse than dropping the far set (gpgs). Shorter lengthscales or larger "
+            "near sets make the far set far.",
+            SchurAssumptionWarning,
+            stacklevel=3,
+        )
+    return out
 
 
 @dataclass(frozen=True)
 class BinFactors:
     """One bin, over its near rows (:func:`near_rows`, bin-local dimension-major order): mean
     coefficients ``coef`` (r, M) and variance factor ``factor`` (r, r), triangular (``lower`` or
-    upper)."""
+    upper). An upper factor may be dense in its first ``dense_rows`` rows (PIC's inducing
+    block, :mod:`gpg.pic`); below them it is triangular."""
 
     coef: np.ndarray
     factor: np.ndarray
     lower: bool
+    dense_rows: int = 0
+    # ``Ȳ_bᵀ K_b⁻¹ Ȳ_b`` (M,) over the bin's own rows and their number: pooled over bins they
+    # give the per-output signal scale (:func:`gpg.mean.output_scale`).
+    yty: np.ndarray | None = None
+    n_rows: int = 0
 
 
 def near_rows(near: np.ndarray, n_points: int, n_grad: int) -> np.ndarray:
@@ -60,7 +117,8 @@ def near_rows(near: np.ndarray, n_points: int, n_grad: int) -> np.ndarray:
     return np.concatenate([near + k * n_points for k in range(1 + n_grad)])
 
 
-def _check(mean: str, route: str) -> None:
+def check_options(mean: str, route: str) -> None:
+    """``ValueError`` for an unknown mean form or precompute route."""
     if mean not in MEAN_FORMS:
         raise ValueError(f"unknown mean form {mean!r}; valid: {list(MEAN_FORMS)}")
     if route not in ROUTES:
@@ -82,7 +140,7 @@ def precompute(
     ``X`` are the (normalised) training inputs (N, D) and ``Ybar`` the stacked targets
     (N(1+G), M) in the layout of :mod:`gpg.kernels`. ``mean`` is ignored by ``local``.
     """
-    _check(mean, route)
+    check_options(mean, route)
     dims = tuple(grad_dims)
     n, g = X.shape[0], len(dims)
     rows = [near_rows(nb, n, g) for nb in near.near]
@@ -104,7 +162,7 @@ def precompute(
         Wn = W[r.min() :, r]
         R = _gram_factor(Wn)
         coef = alpha[r] if mean == "exact" else R.T @ (R @ Ybar[r])
-        out.append(BinFactors(coef=coef, factor=R, lower=False))
+        out.append(BinFactors(coef, R, False, yty=_yty(Ybar[r], coef), n_rows=r.size))
     return out
 
 
@@ -135,10 +193,16 @@ def _direct(K: np.ndarray, Ybar: np.ndarray, r: np.ndarray, mean: str) -> BinFac
         S, target = K_nn, Ybar[r]
     L_S = linalg.cholesky_inplace(np.ascontiguousarray(S), what="Schur complement S")
     coef = linalg.cho_solve(L_S, target)
-    return BinFactors(coef=coef, factor=linalg.triangular_inverse_inplace(L_S), lower=True)
+    inv = linalg.triangular_inverse_inplace(L_S)
+    return BinFactors(coef, inv, True, yty=_yty(Ybar[r], coef), n_rows=r.size)
 
 
 def _local(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray) -> BinFactors:
     L = linalg.cholesky_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), what="K̄_nn")
     coef = linalg.cho_solve(L, Ybar[r])
-    return BinFactors(coef=coef, factor=linalg.triangular_inverse_inplace(L), lower=True)
+    inv = linalg.triangular_inverse_inplace(L)
+    return BinFactors(coef, inv, True, yty=_yty(Ybar[r], coef), n_rows=r.size)
+
+
+def _yty(Ybar: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    return np.sum(Ybar * coef, axis=0)

@@ -46,7 +46,8 @@ class Prediction(eqx.Module):
     ``force`` (3,) N and ``torque`` (3,) N·m about the centre of mass, aerodynamic only (add
     gravity yourself); ``noise`` (K,) dB at the K microphones (K = 0 without noise data);
     ``variance`` (6+K,) predictive variance of each of those components in the same frame and
-    units (None from ``predict_mean``); ``in_domain`` False for extrapolation or bad input.
+    units: the GP's latent variance plus its fitted value noise ``ν²``, times each output's
+    signal scale (None from ``predict_mean``); ``in_domain`` False for extrapolation or bad input.
     """
 
     force: Float[Array, "*batch 3"]
@@ -80,7 +81,7 @@ class Surrogate(eqx.Module):
     def fit(
         cls,
         dataset: Dataset,
-        model: str = "gpgs",
+        model: str = "gpgs_hybrid",
         config: Mapping[str, Any] | None = None,
         *,
         vehicle: Vehicle | str | None = None,
@@ -89,7 +90,10 @@ class Surrogate(eqx.Module):
     ) -> Surrogate:
         """Preprocess ``dataset`` and build ``model`` (a name from :data:`gpg.models.NAMES`).
 
-        ``config`` overrides :data:`gpg.models.DEFAULTS`. ``vehicle`` supplies the rotor layout
+        The default, ``gpgs_hybrid``, has exactly GP-G's mean (continuous, from all points)
+        and a near-set variance that bounds GP-G's from above, at a fixed per-query cost
+        (README "Results"). ``config`` overrides the model's defaults
+        (:func:`gpg.models.resolve_config`). ``vehicle`` supplies the rotor layout
         of the simplified model (default: the dataset's generator vehicle, else SUI Endurance);
         ``residual=False`` fits the raw outputs without ``M``; ``hover_speed`` (m/s) is where
         the airflow frame starts to follow the body heading (0: pure wind axes).
@@ -255,7 +259,8 @@ def predict_state(
         force, torque = force + y_m[:3], torque + y_m[3:6]
     variance = None
     if with_var:
-        v = sur.normalizer.var_inv(var_n)  # per output, H frame (diagonal)
+        # An observation's predictive variance per output, H frame: c_m (latent + ν²) std_m².
+        v = sur.model.predictive_variance(var_n) * sur.normalizer.y_std**2
         rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_WH, d, R_WH)  # diag(R diag(d) Rᵀ)  # noqa: E731
         variance = jnp.concatenate([rot_var(v[:3]), rot_var(v[3:6]), v[6:]])
     return Prediction(

@@ -81,7 +81,14 @@ def smoke_compare(smoke_cache, tmp_path_factory):
     from tests.helpers import compose_plain
 
     values = compose_plain(
-        "compare", ["data=smoke", "data.chunk=32", f"cache_dir={smoke_cache}", "n_queries=20"]
+        "compare",
+        [
+            "data=smoke",
+            "data.chunk=32",
+            f"cache_dir={smoke_cache}",
+            "n_queries=20",
+            "model_overrides={inducing: {points: 20}}",  # PIC on 60 points
+        ],
     )
     out = tmp_path_factory.mktemp("smoke_compare")
     return out, compare.run(values, out, model_configs(values))

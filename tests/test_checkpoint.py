@@ -13,9 +13,10 @@ from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_dataset
 
 CFG = {
-    "hyper": {"fit": False, "lengthscale": 0.8},
-    "partition": {"bins": 3},
-    "near": {"budget": 0.5},
+    "hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-4},
+    "partition": {"bins": 3, "points_per_bin": None},
+    "near": {"budget": 0.5, "points": None},
+    "inducing": {"points": 6},
 }
 
 
@@ -26,7 +27,7 @@ def data():
 
 @pytest.fixture(scope="module")
 def surrogate(data):
-    return Surrogate.fit(data, "gpgs_schur", CFG)
+    return Surrogate.fit(data, "gpgs_hybrid", CFG)
 
 
 def queries(data):
@@ -37,13 +38,14 @@ def queries(data):
     )
 
 
-@pytest.mark.parametrize("name", ["gpgs_schur", "gpg"])
+@pytest.mark.parametrize("name", ["gpgs_hybrid", "gpg_pic", "gpg"])
 def test_round_trip_bit_for_bit(data, surrogate, tmp_path, name):
-    sur = (
-        surrogate
-        if name == "gpgs_schur"
-        else Surrogate.fit(data, "gpg", {"hyper": {"fit": False}}, hover_speed=0.3)
-    )
+    if name == "gpgs_hybrid":
+        sur = surrogate
+    elif name == "gpg_pic":
+        sur = Surrogate.fit(data, "gpg_pic", CFG)
+    else:
+        sur = Surrogate.fit(data, "gpg", {"hyper": {"fit": False}}, hover_speed=0.3)
     checkpoint.save(tmp_path / "ck", sur)
     back = checkpoint.load(tmp_path / "ck")
     a, b = sur.predict_batch(*queries(data)), back.predict_batch(*queries(data))
@@ -52,9 +54,9 @@ def test_round_trip_bit_for_bit(data, surrogate, tmp_path, name):
     assert back.config == sur.config and back.output_names == sur.output_names
     assert back.hover_speed == sur.hover_speed
     meta = checkpoint.read_metadata(tmp_path / "ck")
-    assert meta["model_name"] == name and meta["format_version"] == 1
+    assert meta["model_name"] == name and meta["format_version"] == checkpoint.FORMAT_VERSION
     assert "y_std" in meta["normalisation"] and "lengthscale" in meta["hyperparameters"]
-    if name == "gpgs_schur":
+    if name != "gpg":
         assert meta["partition"]["n_bins"] == 3
 
 
@@ -79,7 +81,7 @@ def test_version_mismatch(surrogate, tmp_path):
     meta = json.loads((tmp_path / "ck" / "metadata.json").read_text())
     meta["format_version"] = 7
     (tmp_path / "ck" / "metadata.json").write_text(json.dumps(meta))
-    with pytest.raises(CheckpointError, match="format version 7; this gpg .* reads version 1"):
+    with pytest.raises(CheckpointError, match="format version 7; this gpg .* reads version 2"):
         checkpoint.load(tmp_path / "ck")
 
 

@@ -162,10 +162,13 @@ def test_likelihood_gradient_finite_differences(problem):
 
 
 def test_fit_recovers_prior_hyperparameters():
-    """Data drawn from the GP-G prior: BFGS finds the generating σ and l (loose tolerance)."""
+    """Data drawn from the GP-G prior: BFGS finds the generating σ and l (loose tolerance).
+
+    The nugget is fitted too; the truth's ν²/σ = 5e-6 is above the fit's floor (1e-6): a
+    floor above the truth is binding and moves σ (the likelihood is that sharp in ν²)."""
     rng = np.random.default_rng(7)
     N, D = 150, 2
-    true = Hyper(variance=2.0, lengthscale=np.array([0.4, 0.8]), jitter=1e-6, grad_noise=1e-4)
+    true = Hyper(variance=2.0, lengthscale=np.array([0.4, 0.8]), jitter=1e-5, grad_noise=1e-4)
     X = rng.uniform(-1, 1, (N, D))
     K = gpmod.assemble_gram(jnp.asarray(X), true, (0, 1))
     draws = np.linalg.cholesky(K) @ rng.standard_normal((K.shape[0], 3))  # M = 3 outputs
@@ -178,6 +181,49 @@ def test_fit_recovers_prior_hyperparameters():
     assert res.nll_final < res.nll_initial
     np.testing.assert_allclose(res.hyper.variance, 2.0, rtol=0.35)
     np.testing.assert_allclose(res.hyper.lengthscale, [0.4, 0.8], rtol=0.2)
+
+
+def test_fit_recovers_a_known_nugget():
+    """Values with noise ν² = 0.05σ and gradients: the joint fit finds ν² within 30 %."""
+    rng = np.random.default_rng(8)
+    N, D = 150, 2
+    true = Hyper(variance=1.5, lengthscale=np.array([0.5, 0.7]), jitter=0.075, grad_noise=1e-4)
+    X = rng.uniform(-1, 1, (N, D))
+    K = gpmod.assemble_gram(jnp.asarray(X), true, (0, 1))
+    draws = np.linalg.cholesky(K) @ rng.standard_normal((K.shape[0], 4))
+    res = gpmod.fit_hyperparameters(
+        X,
+        draws[:N],
+        np.stack([draws[N : 2 * N], draws[2 * N :]], axis=-1),
+        init=Hyper(1.0, 1.0, jitter=1e-8, grad_noise=1e-4),
+        subset_size=None,
+    )
+    assert res.converged and res.jitter_fitted, res.message
+    np.testing.assert_allclose(res.hyper.jitter, 0.075, rtol=0.3)
+    np.testing.assert_allclose(res.noise_ratio, 0.05, rtol=0.35)
+    np.testing.assert_allclose(res.hyper.lengthscale, [0.5, 0.7], rtol=0.2)
+
+
+def test_fixed_nugget_stays_and_floor_holds(problem):
+    X, Y, dY, dims = problem[:4]
+    fixed = gpmod.fit_hyperparameters(
+        X,
+        Y,
+        dY,
+        grad_dims=dims,
+        fit_jitter=False,
+        init=Hyper(jitter=3e-4),
+        max_steps=30,
+        on_failure="ignore",
+    )
+    assert float(fixed.hyper.jitter) == 3e-4 and not fixed.jitter_fitted
+    # Noise-free data push ν² down; the bound ν² ≥ floor·σ holds exactly.
+    floor = gpmod.fit_hyperparameters(
+        X, Y, dY, grad_dims=dims, jitter_floor=1e-3, max_steps=60, on_failure="ignore"
+    )
+    assert floor.noise_ratio >= 1e-3 * (1 - 1e-12)
+    with pytest.raises(ValueError, match="jitter_floor < jitter_init"):
+        gpmod.fit_hyperparameters(X, Y, dY, grad_dims=dims, jitter_floor=0.1, jitter_init=0.01)
 
 
 def test_fit_grad_noise_scale_and_subset(problem):

@@ -99,3 +99,16 @@ def test_correlation(rng, lengthscale):
 def test_check_dims_rejects(dims):
     with pytest.raises(ValueError, match="grad_dims"):
         kernels.check_dims(dims, 4)
+
+
+@pytest.mark.parametrize("dims", [(), (0, 2), (1, 0, 3)])
+@pytest.mark.parametrize("lengthscale", [0.7, np.array([0.3, 1.1, 0.6, 2.0])])
+def test_query_rows_match_autodiff_gram(rng, dims, lengthscale):
+    """The closed-form query rows equal the autodiff Gram matrix (value queries)."""
+    Xq, X = rng.uniform(-1, 1, (6, 4)), rng.uniform(-1, 1, (9, 4))
+    X[0] = Xq[0]  # a coincident pair: r² rounds to about zero, k must equal σ
+    want = kernels.gram(jnp.asarray(Xq), jnp.asarray(X), 1.3, lengthscale, (), dims)
+    got = kernels.query_rows(jnp.asarray(Xq), jnp.asarray(X), 1.3, lengthscale, dims)
+    assert got.shape == want.shape == (6, 9 * (1 + len(dims)))
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    assert float(got[0, 0]) == pytest.approx(1.3, rel=1e-14)

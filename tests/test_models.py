@@ -13,8 +13,9 @@ from tests.helpers import synthetic_dataset
 
 FAST = {
     "hyper": {"fit": False, "lengthscale": 1.0},
-    "partition": {"bins": 3},
-    "near": {"budget": 0.5},
+    "partition": {"bins": 3, "points_per_bin": None},
+    "near": {"budget": 0.5, "points": None},
+    "inducing": {"points": 8},
 }
 
 
@@ -24,6 +25,10 @@ def training(request):
 
     ds, _ = synthetic_dataset(40)
     return prepare(ds, simple_model_for(ds, load_vehicle()))
+
+
+# The FAST lengthscale makes the far sets correlated: the Schur models rightly warn.
+pytestmark = pytest.mark.filterwarnings("ignore::gpg.schur.SchurAssumptionWarning")
 
 
 @pytest.mark.parametrize("name", models.NAMES)
@@ -41,13 +46,14 @@ def test_every_model_builds_and_predicts(training, name):
     _, var_train = built.model.predict(X[:5])
     _, var_far = built.model.predict(np.array([[3.0] * 8, [-3.0] * 8]))
     assert np.all(np.asarray(var) <= sigma)
-    assert np.all(np.asarray(var_train) < 1e-6 * sigma)
+    if name != "gpg_pic":  # PIC sees another bin's training point through the inducing points
+        assert np.all(np.asarray(var_train) < 1e-6 * sigma)
     np.testing.assert_allclose(var_far, sigma, rtol=1e-6)
     assert built.model.nbytes() > 0
     partitioned = models.SPECS[name].partitioned
     want = {"hyper_s", "fit_s"} | ({"partition_s"} if partitioned else set())
     assert set(built.timings) == want and built.timings["hyper_s"] == 0.0  # no fit
-    if partitioned:
+    if partitioned and name != "gpg_pic":
         # Every bin holds fewer than ⌈budget·N⌉ anchors, so each near set is exactly that size.
         n = X.shape[0]
         k = math.ceil(FAST["near"]["budget"] * n)
@@ -64,7 +70,9 @@ def test_exact_models_interpolate(training):
 
 
 def test_hyperparameter_fit_reports(training):
-    built = models.build("gpg", training, {"hyper": {"subset": 30, "max_steps": 50}})
+    built = models.build("gpg", training, {"hyper": {"subset": 30, "max_steps": 300}})
+    assert built.hyper_fit.converged, built.hyper_fit.message
+    assert built.hyper_fit.jitter_fitted and built.hyper_fit.noise_ratio >= 1e-6
     assert built.hyper_fit is not None and built.hyper_fit.subset.size == 30
     assert set(built.timings) == {"hyper_s", "fit_s"} and built.timings["hyper_s"] > 0
 
@@ -115,3 +123,81 @@ def test_kdtree_and_paper_mean_options(training):
     assert np.all(np.isfinite(m)) and np.all(np.isfinite(v))
     np.testing.assert_allclose(m, rm, rtol=1e-8, atol=1e-8 * np.abs(rm).max())
     np.testing.assert_allclose(v, rv, rtol=1e-8, atol=1e-8 * float(ref.hyper.variance))
+
+
+def test_hybrid_mean_is_exact_and_variance_an_upper_bound(training):
+    """GP-G-S-Hybrid: ExactGP's mean to 1e-10, the dense near-set variance of the query's bin,
+    and never below the exact GP-G variance."""
+    from gpg import kernels
+    from gpg.gp import stack_targets
+
+    cfg = {**FAST, "hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-3}}
+    hyb = models.build("gpgs_hybrid", training, {**cfg, "variance_dtype": "float64"})
+    ref = models.build("gpg", training, cfg, hyper=hyb.hyper).model
+    Xq = np.random.default_rng(4).uniform(-1, 1, (25, 8))
+    m, v = hyb.model.predict_unclipped(Xq)
+    me, ve = ref.predict_unclipped(Xq)
+    np.testing.assert_allclose(m, me, rtol=1e-10, atol=1e-10 * np.abs(me).max())
+    assert np.all(np.asarray(v) >= np.asarray(ve) - 1e-10)
+    # Dense near-set formula σ − k_qnᵀ K̄_nn⁻¹ k_qn in NumPy, bin by bin.
+    h, X, dims = hyb.hyper, training.X, models.GRAD_DIMS
+    bins = np.asarray(hyb.model.partition.lookup_batch(Xq))
+    for q, b in enumerate(bins):
+        Xn = X[hyb.near.near[b]]
+        K = np.array(kernels.gram(Xn, Xn, h.variance, h.lengthscale, dims, dims))
+        K += np.diag(np.asarray(h.noise_diagonal(Xn.shape[0], len(dims))))
+        k = np.asarray(kernels.gram(Xq[q : q + 1], Xn, h.variance, h.lengthscale, (), dims))[0]
+        want = float(h.variance) - k @ np.linalg.solve(K, k)
+        np.testing.assert_allclose(v[q], want, rtol=1e-8, atol=1e-10)
+    assert float(hyb.model.noise) == pytest.approx(1e-3)
+    del stack_targets
+
+
+def test_hybrid_float32_variance_factor(training):
+    cfg = {**FAST, "hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-3}}
+    f64 = models.build("gpgs_hybrid", training, {**cfg, "variance_dtype": "float64"}).model
+    f32 = models.build("gpgs_hybrid", training, {**cfg, "variance_dtype": "float32"}).model
+    assert f32.nbytes() < f64.nbytes()
+    Xq = np.random.default_rng(5).uniform(-1, 1, (20, 8))
+    (m64, v64), (m32, v32) = f64.predict(Xq), f32.predict(Xq)
+    np.testing.assert_array_equal(m32, m64)  # the mean does not touch the factor
+    np.testing.assert_allclose(v32, v64, rtol=1e-4, atol=1e-6)
+
+
+def test_bad_sizes_fail_before_training(training):
+    with pytest.raises(ValueError, match="inducing.points must be a positive integer"):
+        models.build("gpg_pic", training, {**FAST, "inducing": {"points": 0}})
+    with pytest.raises(ValueError, match="more inducing points than the 40 training points"):
+        models.build("gpg_pic", training, {**FAST, "inducing": {"points": 41}})
+    with pytest.raises(ValueError, match="partition.bins=50 exceeds the 40 training points"):
+        models.build("gpgs", training, {**FAST, "partition": {"bins": 50}})
+    with pytest.raises(ValueError, match="variance_dtype must be one of"):
+        models.build("gpgs", training, {**FAST, "variance_dtype": "float16"})
+
+
+def test_memory_is_checked_before_training(training, monkeypatch):
+    from gpg import memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 1000)
+    fitted = []
+    monkeypatch.setattr(models, "fit_hyperparameters", lambda *a, **k: fitted.append(1))
+    with pytest.raises(memory.InsufficientMemory, match="model 'gpg' on 40 points"):
+        models.build("gpg", training, {"hyper": {"subset": 10}})
+    assert not fitted
+
+
+def test_lengthscale_scale(training):
+    base = models.build("gpgs", training, FAST)
+    half = models.build(
+        "gpgs", training, {**FAST, "hyper": {**FAST["hyper"], "lengthscale_scale": 0.5}}
+    )
+    np.testing.assert_allclose(half.hyper.lengthscale, 0.5 * np.asarray(base.hyper.lengthscale))
+
+
+def test_points_per_bin_scales_bins_with_n():
+    cfg = models.resolve_config("gpgs_hybrid")
+    assert cfg["partition"]["scheme"] == "kdtree" and cfg["variance_dtype"] == "float32"
+    assert [models.n_bins(cfg, n) for n in (40, 1000, 5000)] == [1, 7, 33]
+    assert models.n_bins(models.resolve_config("gpgs"), 5000) == 10
+    with pytest.raises(ValueError, match="partition.points_per_bin must be a positive integer"):
+        models.resolve_config("gpgs", {"partition": {"points_per_bin": 0}})

@@ -95,3 +95,41 @@ def test_bad_near_options(rng, kw, match):
     X = rng.uniform(-1, 1, (50, 2))
     with pytest.raises(ValueError, match=match):
         partition.near_sets(X, partition.slab(X, 2, dim=0), 0.5, **kw)
+
+
+def test_far_correlation_matches_numpy(rng):
+    X = rng.uniform(-1, 1, (30, 2))
+    part = partition.slab(X, 3, dim=0)
+    ls = np.array([0.4, 0.7])
+    ns = partition.near_sets(X, part, ls, budget=0.5)
+    got = partition.far_correlation(X, ns, ls)
+    bins = np.asarray(part.lookup_batch(X))
+    for i in range(30):
+        far = np.setdiff1d(np.arange(30), ns.near[bins[i]])
+        d = (X[i] - X[far]) / ls
+        assert got[i] == pytest.approx(np.exp(-0.5 * np.sum(d * d, 1)).max(), rel=1e-12)
+
+
+@pytest.mark.parametrize("scheme", ["slab", "kdtree"])
+def test_boundary_pairs_straddle_every_boundary(rng, scheme):
+    X = rng.uniform(-1, 1, (80, 3))
+    part = partition.build(X, scheme, 5, **({"dim": 2} if scheme == "slab" else {}))
+    A, C = partition.boundary_pairs(part, X, per_face=10, delta=1e-6)
+    ba, bc = np.asarray(part.lookup_batch(A)), np.asarray(part.lookup_batch(C))
+    assert A.shape == C.shape and A.shape[0] >= 4 * 5 and np.all(ba != bc)
+    diff = np.abs(A - C)
+    assert np.all(np.isclose(diff.max(1), 2e-6)) and np.all((diff > 0).sum(1) == 1)
+    # Every internal boundary is crossed by some pair.
+    crossed = {tuple(sorted(p)) for p in zip(ba.tolist(), bc.tolist(), strict=True)}
+    assert len(crossed) >= part.n_bins - 1
+
+
+def test_near_sets_by_points(rng):
+    X = rng.uniform(-1, 1, (50, 2))
+    part = partition.slab(X, 5, dim=0)
+    ns = partition.near_sets(X, part, 0.5, points=17)
+    assert all(nb.size == 17 for nb in ns.near)
+    with pytest.raises(ValueError, match="exactly one of"):
+        partition.near_sets(X, part, 0.5, points=3, budget=0.1)
+    with pytest.raises(ValueError, match="points must be a positive integer"):
+        partition.near_sets(X, part, 0.5, points=0)

@@ -118,7 +118,7 @@ def test_local_route_is_gp_on_the_near_set(problem):
 
 def test_batched_variance_rule_matches_single_queries(problem):
     model, _, _ = binned(problem)
-    m, v = model.predict(problem[5])  # vmap: per-bin matrix products
+    m, v = model.predict_unclipped(problem[5])  # vmap: per-bin matrix products
     for i, q in enumerate(problem[5][:8]):
         mi, vi = model.mean_var_one(jnp.asarray(q))  # one query: a switch on the bin
         np.testing.assert_allclose(mi, m[i], rtol=1e-12, atol=1e-12)
@@ -134,3 +134,36 @@ def test_bad_options(problem):
         schur.precompute(X, stack_targets(Y, dY), hyper, dims, ns, mean="median")
     with pytest.raises(ValueError, match=r"unknown precompute route 'lu'"):
         schur.precompute(X, stack_targets(Y, dY), hyper, dims, ns, route="lu")
+
+
+def test_diagnostics_flag_a_correlated_far_set(problem):
+    """Long lengthscales on uniform inputs: far points correlate strongly with the bins."""
+    X = problem[0]
+    part = partition.slab(X, 4, dim=0)
+    ls = np.full(3, 2.0)
+    ns = partition.near_sets(X, part, ls, budget=0.3)
+    with pytest.warns(schur.SchurAssumptionWarning, match="median query's most correlated"):
+        d = schur.diagnose(X, part, ns, ls)
+    assert d["kqf_violated"] and d["far_correlation_median"] > 0.5
+    assert d["far_correlation_p90"] >= d["far_correlation_median"]
+
+
+def test_diagnostics_silent_when_the_far_set_is_far(rng, recwarn):
+    """Two clusters far apart at a short lengthscale: each bin's far set is the other cluster."""
+    X = np.concatenate([rng.normal(-0.8, 0.05, (20, 2)), rng.normal(0.8, 0.05, (20, 2))])
+    part = partition.slab(X, 2, dim=0)
+    ls = np.full(2, 0.1)
+    ns = partition.near_sets(X, part, ls, budget=0.5)
+    d = schur.diagnose(X, part, ns, ls)
+    assert not d["kqf_violated"] and d["far_correlation_max"] < 1e-20
+    assert not [w for w in recwarn if issubclass(w.category, schur.SchurAssumptionWarning)]
+
+
+def test_schur_model_reports_diagnostics(problem):
+    """Built models carry the measurement; predict_unclipped exposes negative variances."""
+    from gpg.data.preprocess import GRAD_DIMS  # noqa: F401  (the registry's gradient dims)
+
+    model, _, ns = binned(problem, n_bins=4)
+    _, v = model.predict_unclipped(problem[5])
+    _, vc = model.predict(problem[5])
+    np.testing.assert_array_equal(np.asarray(vc), np.maximum(np.asarray(v), 0.0))

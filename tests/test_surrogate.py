@@ -16,8 +16,8 @@ from tests.helpers import synthetic_dataset
 EXACT = {"hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-10, "grad_noise_scale": 1e-6}}
 BINNED = {
     "hyper": {"fit": False, "lengthscale": 0.8},
-    "partition": {"bins": 3},
-    "near": {"budget": 0.5},
+    "partition": {"bins": 3, "points_per_bin": None},
+    "near": {"budget": 0.5, "points": None},
 }
 
 
@@ -33,7 +33,7 @@ def exact(data):
 
 @pytest.fixture(scope="module")
 def binned(data):
-    return Surrogate.fit(data, "gpgs_schur", BINNED)
+    return Surrogate.fit(data, "gpgs_hybrid", BINNED)
 
 
 def state(x):

@@ -27,3 +27,29 @@ def test_products_match_dense(rng, lower, n, n_blocks):
 def test_rejects_non_square():
     with pytest.raises(ValueError, match="square"):
         BlockTriangular.from_dense(np.zeros((3, 4)), lower=True)
+
+
+@pytest.mark.parametrize("dense_rows", [0, 3, 12, 20])
+def test_dense_leading_rows(rng, dense_rows):
+    """Upper factors dense in their first rows (PIC) are stored exactly, in one band."""
+    n = 20
+    F = np.triu(rng.normal(size=(n, n)))
+    F[:dense_rows] = rng.normal(size=(dense_rows, n))
+    bt = BlockTriangular.from_dense(F, lower=False, n_blocks=4, dense_rows=dense_rows)
+    np.testing.assert_array_equal(bt.to_dense(), F)
+    K = rng.normal(size=(3, n))
+    np.testing.assert_allclose(bt.rmatmul(jnp.asarray(K)), K @ F.T, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(bt.matvec(jnp.asarray(K[0])), F @ K[0], rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="upper factors only"):
+        BlockTriangular.from_dense(F, lower=True, dense_rows=2)
+
+
+def test_float32_storage_halves_bytes(rng):
+    F = np.triu(rng.normal(size=(30, 30)))
+    b64 = BlockTriangular.from_dense(F, lower=False, n_blocks=3)
+    b32 = BlockTriangular.from_dense(F.astype(np.float32), lower=False, n_blocks=3)
+    assert sum(b.nbytes for b in b32.blocks) * 2 == sum(b.nbytes for b in b64.blocks)
+    k = rng.normal(size=30)
+    v = b32.matvec(jnp.asarray(k))
+    assert v.dtype == jnp.float32
+    np.testing.assert_allclose(v, F @ k, rtol=1e-5, atol=1e-5 * np.abs(F @ k).max())

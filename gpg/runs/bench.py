@@ -127,8 +127,14 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"dataset": info["key"], "n_train": train.n, "models": {}}
     rng = np.random.default_rng(cfg["seed"])
     hyper_cache: dict[tuple, Any] = {}
-    for name in tqdm(cfg["models"], desc="models"):
-        mcfg = models.resolve_config(name, cfg.get("model", {}))
+    from gpg.runs.common import conf
+    from gpg.runs.compare import deep_merge
+
+    bar = tqdm(cfg["models"], desc="models")
+    for name in bar:
+        bar.set_postfix_str(name)
+        # The model's own config file (as compare uses it), with the suite's overrides.
+        mcfg = models.resolve_config(name, deep_merge(conf(name, "model"), cfg.get("model")))
         fitted = fit_model(name, mcfg, train, simple, hyper_cache)
         training, built = fitted.training, fitted.built
         model = built.model

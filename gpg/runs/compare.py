@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg import memory, models
+from gpg import memory, models, partition
 from gpg.data.dataset import Dataset
-from gpg.data.preprocess import restore, simple_model_for
+from gpg.data.preprocess import prepare, restore, simple_model_for
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.runs.common import (
     fit_model,
@@ -61,18 +61,58 @@ def load_train(cfg: dict[str, Any]) -> Dataset:
     return load_data(cfg)[0]
 
 
-def metrics(y: np.ndarray, mean: np.ndarray, var: np.ndarray, names) -> dict[str, Any]:
-    """Per-output MAE, RMSE, NLPD (Gaussian) and 95 % interval coverage."""
+def metrics(
+    y: np.ndarray, mean: np.ndarray, var: np.ndarray, names, valid: np.ndarray | None = None
+) -> dict[str, Any]:
+    """Per-output MAE, RMSE, NLPD (Gaussian) and 95 % interval coverage.
+
+    ``valid`` (Q,) marks the queries whose variance the model could compute (a Schur model's
+    negative variances are not); NLPD and coverage are taken over those only, and are None
+    when there is none. The errors are taken over every query.
+    """
     err = mean - y
-    z = np.abs(err) / np.sqrt(var)
-    nlpd = 0.5 * np.log(2 * np.pi * var) + 0.5 * err**2 / var
-    return {
+    valid = np.ones(y.shape[0], bool) if valid is None else np.asarray(valid, bool)
+    out: dict[str, Any] = {
         "mae": dict(zip(names, np.mean(np.abs(err), 0).tolist(), strict=True)),
         "rmse": dict(zip(names, np.sqrt(np.mean(err**2, 0)).tolist(), strict=True)),
-        "nlpd": dict(zip(names, np.mean(nlpd, 0).tolist(), strict=True)),
-        "nlpd_mean": float(np.mean(nlpd)),
-        "coverage95": dict(zip(names, np.mean(z <= 1.959964, 0).tolist(), strict=True)),
-        "coverage95_mean": float(np.mean(z <= 1.959964)),
+        "nlpd": None,
+        "nlpd_mean": None,
+        "coverage95": None,
+        "coverage95_mean": None,
+    }
+    if valid.any():
+        e, v = err[valid], var[valid]
+        z = np.abs(e) / np.sqrt(v)
+        nlpd = 0.5 * np.log(2 * np.pi * v) + 0.5 * e**2 / v
+        out.update(
+            nlpd=dict(zip(names, np.mean(nlpd, 0).tolist(), strict=True)),
+            nlpd_mean=float(np.mean(nlpd)),
+            coverage95=dict(zip(names, np.mean(z <= 1.959964, 0).tolist(), strict=True)),
+            coverage95_mean=float(np.mean(z <= 1.959964)),
+        )
+    return out
+
+
+def continuity(
+    model, part: partition.Partition, Xn: np.ndarray, y_std: np.ndarray, names
+) -> dict[str, Any]:
+    """Largest jump of the mean and of the predictive standard deviation across the bin
+    boundaries of ``part``, per output in physical units, over pairs of inputs straddling each
+    boundary (:func:`gpg.partition.boundary_pairs`, built from the normalised test inputs
+    ``Xn``). Integrators (RL, MPC) step through these boundaries."""
+    A, C = partition.boundary_pairs(part, Xn)
+    if A.shape[0] == 0:
+        return {"pairs": 0, "mean_jump_max": None, "std_jump_max": None}
+    (ma, va), (mc, vc) = (_predict_test(model, Z) for Z in (A, C))
+    dm = np.abs(ma - mc) * y_std
+    sa, sc = (np.sqrt(np.asarray(model.predictive_variance(v))) for v in (va, vc))
+    ds = np.abs(sa - sc) * y_std
+    return {
+        "pairs": int(A.shape[0]),
+        "boundaries": part.n_bins - 1,
+        "mean_jump_max": dict(zip(names, dm.max(0).tolist(), strict=True)),
+        "mean_jump_median": dict(zip(names, np.median(dm, 0).tolist(), strict=True)),
+        "std_jump_max": dict(zip(names, ds.max(0).tolist(), strict=True)),
     }
 
 
@@ -87,9 +127,10 @@ def error_vs_airspeed(v: np.ndarray, abs_err: np.ndarray, lo: float, hi: float) 
 
 
 def _predict_test(model, Xn: np.ndarray, chunk: int = 256):
+    """Mean and unclipped latent variance in chunks (bounded memory for the exact models)."""
     means, vars_ = [], []
     for s in range(0, Xn.shape[0], chunk):
-        m, v = model.predict(jnp.asarray(Xn[s : s + chunk]))
+        m, v = model.predict_unclipped(jnp.asarray(Xn[s : s + chunk]))
         means.append(np.asarray(m))
         vars_.append(np.asarray(v))
     return np.concatenate(means), np.concatenate(vars_)
@@ -111,22 +152,35 @@ def evaluate(
     hyper, fit_res = built.hyper, fitted.hyper_fit
 
     norm = training.normalizer
-    mean_n, var_n = _predict_test(built.model, np.asarray(norm.x(test.x)))
+    Xn = np.asarray(norm.x(test.x))
+    mean_n, var_n = _predict_test(built.model, Xn)
     y_pred = restore(training, test.x, mean_n)
-    # Predictive variance of an observation: latent variance plus the value-row jitter ν².
-    var_y = np.asarray(norm.var_inv(var_n + float(hyper.jitter)))
+    # A variance below zero is a model failure (Schur): counted, and kept out of NLPD/coverage.
+    negative = var_n < -1e-10 * float(hyper.variance)
+    # Predictive variance of an observation: output scale × (latent variance + noise ν²).
+    var_y = np.asarray(built.model.predictive_variance(var_n)) * np.asarray(norm.y_std) ** 2
     y_true = test.y[:, : y_pred.shape[1]]
     names = list(training.output_names)
+    part = getattr(built.model, "partition", None)
+    if part is None or part.n_bins == 1:  # no boundary of its own: the paper's 10 slabs
+        part = models.build_partition(training.X, models.DEFAULTS)
     res: dict[str, Any] = {
         "model": name,
         "title": models.SPECS[name].title,
         "config": mcfg,
         **timings,
         "train_s": float(sum(timings.values())),
-        **metrics(y_true, y_pred, var_y, names),
+        **metrics(y_true, y_pred, var_y, names, valid=~negative),
+        "negative_variance_count": int(negative.sum()),
+        "negative_variance_fraction": float(negative.mean()),
+        "continuity": continuity(built.model, part, Xn, np.asarray(norm.y_std), names),
+        "output_scale": np.asarray(built.model.output_scale).tolist(),
         "hyper_converged": None if fit_res is None else bool(fit_res.converged),
         "lengthscale": np.asarray(hyper.lengthscale).tolist(),
         "signal_variance": float(hyper.variance),
+        "noise_variance": float(hyper.jitter),
+        "noise_ratio": float(hyper.jitter / hyper.variance),
+        "diagnostics": built.diagnostics,
         "near_fraction": None if built.near is None else float(np.mean(built.near.fraction)),
         # The smallest kernel correlation admitted to a near set (mean over bins): far points
         # correlate up to about this with the bin, so the Schur forms' k_qf ≈ 0 needs it ≪ 1.
@@ -153,25 +207,48 @@ def evaluate(
     return res
 
 
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
 def _variant_label(name: str, over: dict[str, Any]) -> str:
-    return name + "[" + ",".join(f"{k}={v}" for k, v in sorted(over.items())) + "]"
+    return name + "[" + ",".join(f"{k}={v}" for k, v in sorted(_flat(over).items())) + "]"
 
 
-def _table_md(results: dict[str, Any], names: list[str]) -> str:
+def deep_merge(base: dict[str, Any], over: dict[str, Any] | None) -> dict[str, Any]:
+    """``base`` with the (nested) keys of ``over`` replaced."""
+    out = dict(base)
+    for k, v in (over or {}).items():
+        out[k] = deep_merge(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
+
+
+def _rows(results: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
     rows = []
     ref = results.get("gp", {}).get("predict_ms_median")
     for label, r in results.items():
         if "skipped" in r:
-            rows.append({"label": label, "skipped": r["skipped"]})
             continue
+        cont = r.get("continuity") or {}
+        jm, js = cont.get("mean_jump_max") or {}, cont.get("std_jump_max") or {}
         row = {
             "label": label,
             "train": r["train_s"],
             "pm": r["predict_ms_median"],
+            "pmm": r["predict_mean_ms_median"] * 1e3,
             "p95": r["predict_ms_p95"],
             "ratio": 100 * r["predict_ms_median"] / ref if ref else None,
             "nlpd": r["nlpd_mean"],
             "cov": r["coverage95_mean"],
+            "neg": r["negative_variance_count"],
+            "jump": jm.get(names[0]),
+            "sjump": js.get(names[0]),
             "near": r["near_fraction"],
             "eps": r["near_epsilon"],
             "mb": r["model_bytes"] / 2**20,
@@ -180,23 +257,51 @@ def _table_md(results: dict[str, Any], names: list[str]) -> str:
         for n in names:
             row[n] = r["mae"][n]
         rows.append(row)
+    return rows
+
+
+def _skipped(results: dict[str, Any]) -> str:
+    lines = [f"- {k}: skipped ({r['skipped']})" for k, r in results.items() if "skipped" in r]
+    return "\n\n" + "\n".join(lines) if lines else ""
+
+
+def _table_md(results: dict[str, Any], names: list[str]) -> str:
+    """Every column (results.md)."""
     cols = [
         ("label", "model", ""),
         ("train", "train s", ".1f"),
         ("pm", "predict ms", ".3f"),
         ("p95", "p95 ms", ".3f"),
+        ("pmm", "mean µs", ".0f"),
         ("ratio", "% of gp", ".1f"),
         *[(n, f"MAE {n}", ".3g") for n in names],
         ("nlpd", "NLPD", ".3g"),
         ("cov", "cover95", ".3f"),
+        ("neg", "var<0", "d"),
+        ("jump", f"jump {names[0]}", ".2g"),
+        ("sjump", f"σ jump {names[0]}", ".2g"),
         ("near", "near", ".3f"),
         ("eps", "ε", ".2f"),
         ("mb", "model MiB", ".1f"),
         ("peak", "peak MiB", ".0f"),
     ]
-    main = table([r for r in rows if "skipped" not in r], cols)
-    skipped = [f"- {r['label']}: skipped ({r['skipped']})" for r in rows if "skipped" in r]
-    return main + ("\n\n" + "\n".join(skipped) if skipped else "")
+    return table(_rows(results, names), cols) + _skipped(results)
+
+
+def _table_short(results: dict[str, Any], names: list[str]) -> str:
+    """The columns that fit a terminal (printed and logged; results.md has them all)."""
+    show = [n for n in ("Fx", "Mx", "L1") if n in names] or names[:3]
+    cols = [
+        ("label", "model", ""),
+        ("train", "train s", ".0f"),
+        ("pm", "predict ms", ".2f"),
+        *[(n, f"MAE {n}", ".3g") for n in show],
+        ("nlpd", "NLPD", ".3g"),
+        ("cov", "cover95", ".2f"),
+        ("neg", "var<0", "d"),
+        ("jump", f"jump {names[0]}", ".2g"),
+    ]
+    return table(_rows(results, names), cols) + _skipped(results)
 
 
 def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -206,7 +311,8 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         raise ValueError(f"no model to compare; valid names: {list(models.NAMES)}")
     resolved = {}
     for name, mc in model_cfgs.items():
-        resolved[name] = models.resolve_config(name, mc)  # unknown names and keys fail here
+        # Unknown names and keys fail here, before any data is generated or loaded.
+        resolved[name] = models.resolve_config(name, deep_merge(mc, cfg.get("model_overrides")))
     single = len(resolved) == 1
     set_dispatch(cfg)
     t_start = time.perf_counter()
@@ -220,11 +326,31 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         jobs.append((name, name, mc))
         for over in (cfg.get("variants") or {}).get(name, []):
             jobs.append(
-                (_variant_label(name, over), name, models.resolve_config(name, {**mc, **over}))
+                (
+                    _variant_label(name, over),
+                    name,
+                    models.resolve_config(name, deep_merge(mc, over)),
+                )
             )
     results: dict[str, Any] = {}
+    # Everything that can fail from sizes alone (missing data, bins or inducing points beyond
+    # the data, memory) fails here, before any model is trained.
+    ready = []
+    scales = {mc["hyper"]["grad_noise_scale"] for _, _, mc in jobs}
+    training = {s: prepare(train, simple, s=s) for s in scales}
+    for label, name, mc in jobs:
+        try:
+            models.check_feasible(name, mc, training[mc["hyper"]["grad_noise_scale"]])
+            ready.append((label, name, mc))
+        except (ValueError, memory.InsufficientMemory) as exc:
+            if single:
+                raise
+            results[label] = {"model": name, "skipped": str(exc)}
+            tqdm.write(f"{label}: skipped: {exc}")
     hyper_cache: dict = {}
-    for label, name, mc in tqdm(jobs, desc="models", unit="model"):
+    bar = tqdm(ready, desc="models", unit="model")
+    for label, name, mc in bar:
+        bar.set_postfix_str(label)
         try:
             results[label] = evaluate(
                 label, name, mc, train, test, simple, hyper_cache, cfg["n_queries"]
@@ -269,6 +395,6 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         "predict = one world-frame query, mean and variance (`Surrogate.realtime`).\n\n"
     )
     (outdir / "results.md").write_text(header + md + "\n")
-    print(md)
+    print(_table_short(results, names))
     print(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({out['wall_s']:.0f} s)")
     return out

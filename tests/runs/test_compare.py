@@ -23,7 +23,17 @@ def config(tmp_path, *extra):
 def test_whole_comparison_on_smoke(smoke_compare):
     out, res = smoke_compare
     saved = json.loads((out / "results.json").read_text())
-    labels = {"gp", "gpg", "gps_1x", "gps_8x", "gpgs", "gpgs_schur", "gpgs_schur[mean=paper]"}
+    labels = {
+        "gp",
+        "gpg",
+        "gps_1x",
+        "gps_8x",
+        "gpgs",
+        "gpgs_schur",
+        "gpgs_schur[mean=paper]",
+        "gpgs_hybrid",
+        "gpg_pic",
+    }
     assert set(saved["models"]) == labels
     assert finite_numbers(saved)
     for r in saved["models"].values():
@@ -35,15 +45,31 @@ def test_whole_comparison_on_smoke(smoke_compare):
             "rmse",
             "nlpd",
             "coverage95",
+            "negative_variance_count",
+            "continuity",
+            "noise_ratio",
+            "output_scale",
             "near_fraction",
             "model_bytes",
             "peak_memory_bytes",
         ):
             assert key in r
         assert set(r["mae"]) == {"Fx", "Fy", "Fz", "Mx", "My", "Mz", "L1", "L2", "L3"}
-        assert r["coverage95_mean"] == pytest.approx(np.mean(list(r["coverage95"].values())))
+        if r["negative_variance_count"] < res["n_test"]:
+            assert r["coverage95_mean"] == pytest.approx(np.mean(list(r["coverage95"].values())))
+        else:  # no usable variance at all: reported as missing, not as a huge NLPD
+            assert r["nlpd_mean"] is None and r["coverage95_mean"] is None
+        assert r["continuity"]["pairs"] > 0
+    m = saved["models"]
     for name in ("gp", "gpg"):  # the exact GPs' 95 % intervals are not far off on smoke data
-        assert saved["models"][name]["coverage95_mean"] > 0.5
+        assert m[name]["coverage95_mean"] > 0.5
+    # The hybrid's mean is GP-G's mean (one hyperparameter fit shared), and continuous.
+    for n in ("Fx", "Mx", "L1"):
+        assert m["gpgs_hybrid"]["mae"][n] == pytest.approx(m["gpg"]["mae"][n], rel=1e-8)
+        assert m["gpgs_hybrid"]["continuity"]["mean_jump_max"][n] < 1e-4 * m["gpg"]["mae"][n]
+        assert m["gpgs"]["continuity"]["mean_jump_max"][n] > 1e-3 * m["gpg"]["mae"][n]
+    assert m["gpgs_schur"]["diagnostics"]["far_correlation_median"] > 0
+    assert m["gpg_pic"]["diagnostics"]["inducing_points"] == 20
     assert saved["models"]["gp"]["predict_ratio_to_gp"] == 1.0
     assert (out / "results.md").read_text().count("| gpgs_schur") == 2
     for fig in (
