@@ -1,12 +1,13 @@
 # gpg: the two commands of the README.
-#   make test     create .venv, install gpg with its dev extra, run ruff and pytest
-#   make compare  create .venv, install gpg, run every baseline on data=default
+#   make test       create .venv, install gpg with its dev extra, run ruff and pytest (fast set)
+#   make test-slow  the slow tests too: whole experiments and subprocess runs (minutes)
+#   make compare    create .venv, install gpg, run every model on data=default
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: test compare lint clean
+.PHONY: test test-slow compare lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +21,9 @@ lint: $(STAMP)
 
 test: lint
 	$(PY) -m pytest -q
+
+test-slow: lint
+	$(PY) -m pytest -q -m slow
 
 compare: $(STAMP)
 	$(PY) -m experiments.compare

@@ -1,12 +1,20 @@
-"""Shared glue for the Hydra entry points: plain values in, the run directory out."""
+"""Shared glue for the Hydra entry points: plain values in, the run directory out, and one
+clear message (no traceback) for a bad input, a lack of memory or a Ctrl-C."""
 
 from __future__ import annotations
 
+import shutil
+import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
+
+from gpg import _interrupt
+from gpg.checkpoint import CheckpointError
+from gpg.memory import InsufficientMemory
 
 
 def plain(cfg: DictConfig) -> dict[str, Any]:
@@ -17,3 +25,33 @@ def plain(cfg: DictConfig) -> dict[str, Any]:
 def run_dir() -> Path:
     """The Hydra run directory of the current job."""
     return Path(HydraConfig.get().runtime.output_dir)
+
+
+def guarded(work: Callable[[], Any]) -> None:
+    """Run an entry point's ``work`` with Ctrl-C taken at safe points (:mod:`gpg._interrupt`):
+    a bad input or too little memory prints ``error: ...`` and exits 2, a Ctrl-C prints that
+    nothing was kept and exits 130. A failed run removes its run directory when it holds
+    nothing but Hydra's own files (its config and a log of the failure)."""
+    out = run_dir()
+    try:
+        with _interrupt.deferred():
+            work()
+    except KeyboardInterrupt:
+        print(
+            "interrupted: stopped cleanly, no partial dataset or result was kept", file=sys.stderr
+        )
+        _remove_if_empty(out)
+        sys.exit(130)
+    except (ValueError, InsufficientMemory, CheckpointError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        _remove_if_empty(out)
+        sys.exit(2)
+
+
+def _remove_if_empty(out: Path) -> None:
+    """Delete a run directory that holds only Hydra's ``.hydra/`` and ``*.log`` files."""
+    if not out.is_dir():
+        return
+    own = [p for p in out.iterdir() if not (p.name == ".hydra" or p.suffix == ".log")]
+    if not own:
+        shutil.rmtree(out, ignore_errors=True)

@@ -4,13 +4,14 @@ import hydra
 from omegaconf import DictConfig
 
 import gpg  # noqa: F401  (float64)
-from experiments._hydra import plain, run_dir
+from experiments._hydra import guarded, plain, run_dir
 from gpg.runs import bench
 
 
 @hydra.main(config_path="../conf", config_name="bench", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    bench.run(plain(cfg), run_dir())
+    values = plain(cfg)
+    guarded(lambda: bench.run(values, run_dir()))
 
 
 if __name__ == "__main__":

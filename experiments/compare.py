@@ -1,13 +1,10 @@
 """The paper's comparison: ``python -m experiments.compare [+model=<name>] [data=<scale>]``."""
 
-import sys
-
 import hydra
 from omegaconf import DictConfig
 
 import gpg  # noqa: F401  (float64)
-from experiments._hydra import plain, run_dir
-from gpg.memory import InsufficientMemory
+from experiments._hydra import guarded, plain, run_dir
 from gpg.models import NAMES
 from gpg.runs import compare
 from gpg.runs.common import conf
@@ -28,11 +25,7 @@ def model_configs(cfg: dict) -> dict[str, dict]:
 @hydra.main(config_path="../conf", config_name="compare", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     values = plain(cfg)
-    try:
-        compare.run(values, run_dir(), model_configs(values))
-    except (ValueError, InsufficientMemory) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+    guarded(lambda: compare.run(values, run_dir(), model_configs(values)))
 
 
 if __name__ == "__main__":

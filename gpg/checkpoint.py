@@ -4,22 +4,27 @@ A checkpoint is a directory::
 
     <path>/metadata.json   format and version, model name and resolved config, output names,
                            normalisation, hyperparameters, partition, the module structure,
-                           and shape, dtype and SHA-256 of every array
+                           shape, dtype and SHA-256 of every array, SHA-256 of every file of
+                           arrays/, and a SHA-256 of the metadata itself
     <path>/arrays/         an orbax checkpoint of the arrays
 
-Loading rebuilds the exact module tree from the recorded structure (only gpg classes are
-accepted) and checks every array against its recorded shape, dtype and checksum, so a restored
-surrogate predicts bit for bit what the saved one did, and a damaged checkpoint is reported as
-such rather than loaded. Saving writes into a temporary sibling directory and renames it into
-place at the end: a failed save leaves nothing behind.
+Every byte that changes a prediction is covered by a checksum: the metadata (which holds the
+static fields, e.g. ``hover_speed``) by its own, the orbax files by theirs, and the arrays once
+restored by theirs. Loading checks them all before orbax reads anything, so any corruption is
+one :class:`CheckpointError` naming the damaged file, and a restored surrogate predicts bit for
+bit what the saved one did. Loading rebuilds the exact module tree from the recorded structure
+(only gpg classes are accepted). Saving writes into a temporary sibling directory and renames
+it into place at the end: a failed save leaves nothing behind.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import importlib
 import json
+import logging
 import shutil
 import uuid
 from pathlib import Path
@@ -97,6 +102,39 @@ def _digest(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
 
 
+def _file_digests(root: Path) -> dict[str, str]:
+    """SHA-256 of every file under ``root``, by path relative to it."""
+    out = {}
+    for f in sorted(p for p in root.rglob("*") if p.is_file()):
+        h = hashlib.sha256()
+        with open(f, "rb") as fh:
+            for block in iter(lambda fh=fh: fh.read(1 << 20), b""):
+                h.update(block)
+        out[f.relative_to(root).as_posix()] = h.hexdigest()
+    return out
+
+
+def _meta_digest(meta: dict[str, Any]) -> str:
+    body = {k: v for k, v in meta.items() if k != "metadata_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+@contextlib.contextmanager
+def _quiet_orbax():
+    """Orbax and its asyncio machinery log a traceback per failed task; gpg reports one
+    CheckpointError instead, so their loggers are muted while orbax runs."""
+    names = ("absl", "asyncio", "orbax", "jax._src.distributed")
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for lg, lv in zip(loggers, levels, strict=True):
+            lg.setLevel(lv)
+
+
 def _summary(sur) -> dict[str, Any]:
     """Human-readable parts of the metadata (normalisation, hyperparameters, partition)."""
     model = sur.model
@@ -159,9 +197,11 @@ def save(path: str | Path, surrogate, *, overwrite: bool = False) -> Path:
     tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
     try:
         tmp.mkdir()
-        with ocp.StandardCheckpointer() as ck:
+        with _quiet_orbax(), ocp.StandardCheckpointer() as ck:
             ck.save(tmp / "arrays", arrays)
             ck.wait_until_finished()
+        meta["files"] = _file_digests(tmp / "arrays")
+        meta["metadata_sha256"] = _meta_digest(meta)
         (tmp / "metadata.json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
         if path.exists():
             old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
@@ -185,9 +225,11 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     if not meta_file.is_file():
         raise CheckpointError(f"{path} is not a gpg checkpoint: metadata.json is missing")
     try:
-        meta = json.loads(meta_file.read_text())
-    except json.JSONDecodeError as exc:
+        meta = json.loads(meta_file.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CheckpointError(f"{meta_file} is damaged: {exc}") from exc
+    if not isinstance(meta, dict) or meta.get("metadata_sha256") != _meta_digest(meta):
+        raise CheckpointError(f"{meta_file} is damaged: it fails its checksum")
     if meta.get("format") != FORMAT:
         raise CheckpointError(
             f"{path} is not a gpg surrogate checkpoint (format {meta.get('format')!r})"
@@ -208,8 +250,16 @@ def load(path: str | Path):
     meta = read_metadata(path)
     if not (path / "arrays").is_dir():
         raise CheckpointError(f"{path} is incomplete: the arrays directory is missing")
+    want_files, have_files = meta.get("files", {}), _file_digests(path / "arrays")
+    for name in sorted(set(want_files) | set(have_files)):
+        if name not in have_files:
+            raise CheckpointError(f"{path / 'arrays' / name} is missing: incomplete checkpoint")
+        if name not in want_files:
+            raise CheckpointError(f"{path / 'arrays' / name} is not part of the checkpoint")
+        if want_files[name] != have_files[name]:
+            raise CheckpointError(f"{path / 'arrays' / name} is damaged: it fails its checksum")
     try:
-        with ocp.StandardCheckpointer() as ck:
+        with _quiet_orbax(), ocp.StandardCheckpointer() as ck:
             restored = ck.restore(path / "arrays")
     except Exception as exc:  # orbax/tensorstore raise many types for damaged files
         raise CheckpointError(f"checkpoint data at {path} is damaged or incomplete: {exc}") from exc

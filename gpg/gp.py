@@ -313,6 +313,10 @@ class ExactGP(Predictor):
         # Rounding can push the difference a hair below zero on training points: predict clips.
         return self.mean(x), self.hyper.variance - v @ v
 
+    def mean_view(self) -> ExactGP:
+        """Without ``L⁻¹`` (the folded mean reads ``mean`` only)."""
+        return eqx.tree_at(lambda m: m.chol_inv, self, BlockTriangular((), self.chol_inv.n, True))
+
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
         """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
         return _predict_gradient(self, jnp.asarray(Xq))

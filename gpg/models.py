@@ -256,6 +256,10 @@ class BinnedGP(Predictor):
         quad = binned_quadratic_form(self.factor, b, k)
         return binned_contract(self.coef, b, k), self.variance - quad
 
+    def mean_view(self) -> BinnedGP:
+        """Without the variance factors (the mean reads the coefficients only)."""
+        return eqx.tree_at(lambda m: m.factor, self, ())
+
     def variance_one(self, x: Float[Array, " D"]) -> Float[Array, ""]:
         """Latent variance alone (unclamped): ``σ − ‖F_b k̄_qn‖²``."""
         b = self.partition.lookup(x)
@@ -446,6 +450,10 @@ class HybridGP(Predictor):
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
         return self.mean(x), self.local.variance_one(x)
+
+    def mean_view(self) -> HybridGP:
+        """The global mean with the near sets' arrays dropped (the mean does not read them)."""
+        return HybridGP(mean=self.mean, local=self.local.mean_view())
 
 
 @dataclass

@@ -57,6 +57,11 @@ class Predictor(eqx.Module):
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
         """Posterior mean and latent variance at one query."""
 
+    def mean_view(self) -> Predictor:
+        """A predictor whose ``mean_one`` equals this one's, holding only what the mean reads
+        (for mean-only real-time loops; its variance is not to be used)."""
+        return self
+
     def predict(
         self, Xq: Float[ArrayLike, "Q D"]
     ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:

@@ -10,9 +10,14 @@
 4. rotate the residual force and moment back to the world frame and add the simplified model
    ``M`` evaluated at the world attitude: ``F_W = R_WH μ_F + F_M,W`` (likewise the moment).
 
-``in_domain`` is False when the state is not finite, an rpm is negative, or ``x_H`` leaves the
-training box (e.g. flying sideways or backwards puts ``ψ_H`` beyond ±90°): the prediction is
-still returned, but it is an extrapolation and says so (DESIGN pitfall 4).
+``in_domain`` is False when an rpm is negative or ``x_H`` leaves the training box (e.g. flying
+sideways or backwards puts ``ψ_H`` beyond ±90°): the prediction is still returned, but it is an
+extrapolation and says so.
+
+NaN and inf: a call from Python (``predict``, ``predict_mean``, the ``realtime`` closures,
+``predict_batch``) with a non-finite input raises ``ValueError`` naming it. Under the caller's
+own ``jit``/``vmap``/``scan`` nothing can be raised: the outputs are then non-finite and
+``in_domain`` is False, the flag to check.
 
 Everything is one jittable function of arrays: it vmaps over batches, runs inside
 ``lax.scan``, and ``predict_batch`` processes large batches in chunks of bounded memory.
@@ -23,6 +28,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Mapping
 from functools import lru_cache, partial
+from pathlib import Path
 from typing import Any
 
 import equinox as eqx
@@ -34,6 +40,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from gpg import models
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Normalizer, Training, prepare, simple_model_for
+from gpg.data.sampling import Bounds
 from gpg.predictor import Predictor
 from gpg.quadrotor.frames import matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
@@ -84,7 +91,8 @@ class Surrogate(eqx.Module):
         model: str = "gpgs_hybrid",
         config: Mapping[str, Any] | None = None,
         *,
-        vehicle: Vehicle | str | None = None,
+        vehicle: Vehicle | str | Path | None = None,
+        bounds: Mapping[str, Any] | None = None,
         residual: bool = True,
         hover_speed: float = HOVER_SPEED,
     ) -> Surrogate:
@@ -93,20 +101,24 @@ class Surrogate(eqx.Module):
         The default, ``gpgs_hybrid``, has exactly GP-G's mean (continuous, from all points)
         and a near-set variance that bounds GP-G's from above, at a fixed per-query cost
         (README "Results"). ``config`` overrides the model's defaults
-        (:func:`gpg.models.resolve_config`). ``vehicle`` supplies the rotor layout
-        of the simplified model (default: the dataset's generator vehicle, else SUI Endurance);
-        ``residual=False`` fits the raw outputs without ``M``; ``hover_speed`` (m/s) is where
-        the airflow frame starts to follow the body heading (0: pure wind axes).
+        (:func:`gpg.models.resolve_config`). ``vehicle`` (a :class:`Vehicle`, a name in
+        ``conf/vehicle`` or a YAML path) supplies the rotor layout and, if its file has them,
+        the coefficients of the simplified model ``M``; without it the vehicle the dataset
+        names is used (:func:`dataset_vehicle`), and a dataset that names none is an error, not
+        a silent default. ``bounds`` (the ``data.bounds`` form: ``rpm``, ``yaw_deg``, …) is the
+        input box outside which ``in_domain`` is False (default: the dataset's recorded
+        sampling bounds, else its extent). ``residual=False`` fits the raw outputs without
+        ``M`` (and needs no vehicle); ``hover_speed`` (m/s) is where the airflow frame starts
+        to follow the body heading (0: pure wind axes).
         """
         cfg = models.resolve_config(model, config)
-        if vehicle is None:
-            vehicle = dataset.meta.get("generator", {}).get("vehicle", "sui_endurance")
-        if isinstance(vehicle, str):
-            vehicle = load_vehicle(vehicle)
-        simple = simple_model_for(dataset, vehicle) if residual else None
+        box = None if bounds is None else Bounds.from_config(bounds).arrays()
+        simple = simple_model_for(dataset, dataset_vehicle(dataset, vehicle)) if residual else None
         training = prepare(dataset, simple, s=cfg["hyper"]["grad_noise_scale"])
         built = models.build(model, training, cfg)
-        return cls.assemble(built.model, training, dataset, model, cfg, hover_speed=hover_speed)
+        return cls.assemble(
+            built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
+        )
 
     @classmethod
     def assemble(
@@ -118,13 +130,14 @@ class Surrogate(eqx.Module):
         config: Mapping[str, Any],
         *,
         hover_speed: float = HOVER_SPEED,
+        box: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Surrogate:
         """A surrogate around an already built ``model`` trained on ``training`` (the output
-        of :func:`gpg.data.prepare` for ``dataset``)."""
+        of :func:`gpg.data.prepare` for ``dataset``); ``box`` overrides :func:`domain_box`."""
         hover_speed = float(hover_speed)
         if not np.isfinite(hover_speed) or hover_speed < 0.0:
             raise ValueError(f"hover_speed must be a finite speed >= 0 m/s, got {hover_speed}")
-        box_lo, box_hi = domain_box(dataset)
+        box_lo, box_hi = domain_box(dataset) if box is None else box
         return cls(
             model=model,
             normalizer=training.normalizer,
@@ -178,7 +191,8 @@ class Surrogate(eqx.Module):
         mean_only: bool = False,
         chunk: int = 1024,
     ) -> Prediction:
-        """Many states, vmapped in chunks of ``chunk`` (bounded memory for any N)."""
+        """Many states, vmapped in chunks of ``chunk`` (bounded memory for any N). A NaN or
+        inf in any state raises ``ValueError`` naming the input and its rows."""
         rpm, euler, v_air = (jnp.asarray(a, dtype=float) for a in (rpm, euler, v_air))
         for name, a, w in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
             if a.ndim != 2 or a.shape[1] != w:
@@ -187,6 +201,10 @@ class Surrogate(eqx.Module):
             raise ValueError(
                 f"batch sizes differ: {rpm.shape[0]}, {euler.shape[0]}, {v_air.shape[0]}"
             )
+        for name, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air)):
+            _require_finite(name, a)
+        if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
+            raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
         return _predict_batch(self, rpm, euler, v_air, not mean_only, int(chunk))
 
     def realtime(self, *, with_var: bool = True) -> Callable[..., Prediction]:
@@ -196,8 +214,12 @@ class Surrogate(eqx.Module):
         surrogate's arrays are flattened once here instead of at every call: flattening an
         equinox module costs more than the whole mean prediction (see ``experiments/bench.py``).
         Inside your own ``jit``/``vmap``/``scan`` use :meth:`predict`, which costs nothing there.
+        Without ``with_var`` only the arrays the mean reads are passed (each array passed to a
+        compiled function costs about a microsecond per call; a partitioned model's variance
+        factors are hundreds of arrays).
         """
-        leaves, treedef = jax.tree_util.tree_flatten(self)
+        sur = self if with_var else eqx.tree_at(lambda s: s.model, self, self.model.mean_view())
+        leaves, treedef = jax.tree_util.tree_flatten(sur)
         fn = _realtime_fn(treedef, with_var)
         leaves = tuple(leaves)
 
@@ -212,25 +234,77 @@ class Surrogate(eqx.Module):
 
 def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
     """The input box the training data were meant to cover: the sampling bounds recorded by
-    the generator when present (so hover at exactly 0 m/s is inside), else the data's own
-    extent."""
+    the generator or given to :func:`gpg.data.from_csv` (so hover at exactly 0 m/s is inside),
+    else the data's own extent."""
     bounds = dataset.meta.get("bounds")
     if bounds:
-        from gpg.data.sampling import Bounds
-
         return Bounds.from_config(bounds).arrays()
     return dataset.x.min(0), dataset.x.max(0)
 
 
+def dataset_vehicle(dataset: Dataset, vehicle: Vehicle | str | Path | None = None) -> Vehicle:
+    """The vehicle of ``dataset``: ``vehicle`` when given (a :class:`Vehicle`, a name in
+    ``conf/vehicle`` or a YAML path), else the one the dataset names (the vehicle file
+    recorded by :func:`gpg.data.from_csv` or the generator). ``ValueError`` when there is none:
+    another vehicle's geometry would silently corrupt the simplified model."""
+    if isinstance(vehicle, Vehicle):
+        return vehicle
+    if vehicle is not None:
+        return load_vehicle(vehicle)
+    recorded = dataset.meta.get("vehicle")
+    if isinstance(recorded, Mapping):
+        return Vehicle.from_config(recorded)
+    name = dataset.meta.get("generator", {}).get("vehicle")
+    if name:
+        try:
+            return load_vehicle(name)
+        except ValueError as exc:
+            raise ValueError(
+                f"the dataset names vehicle {name!r}, which is not in conf/vehicle: pass "
+                f"vehicle= (the Vehicle, or its YAML file) ({exc})"
+            ) from exc
+    raise ValueError(
+        "the dataset names no vehicle: pass vehicle= (a gpg.quadrotor.Vehicle, a name in "
+        "conf/vehicle or a vehicle YAML file), or import the data with "
+        "gpg.data.from_csv(..., vehicle=...) so that the dataset records it"
+    )
+
+
 def _as_state(rpm, euler, v_air):
-    rpm, euler, v_air = (jnp.asarray(a, dtype=float) for a in (rpm, euler, v_air))
+    """Check one state's shapes and (outside a transform) finiteness. Concrete inputs stay
+    NumPy arrays: converting each to a JAX array first cost more than the mean prediction."""
+    out = []
     for name, a, n in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
+        a = jnp.asarray(a, dtype=float) if isinstance(a, jax.core.Tracer) else np.asarray(a, float)
         if a.shape != (n,):
             raise ValueError(
                 f"{name} must have shape ({n},) for one state, got {a.shape}; "
                 "use jax.vmap or Surrogate.predict_batch for batches"
             )
-    return rpm, euler, v_air
+        _require_finite(name, a)
+        out.append(a)
+    return tuple(out)
+
+
+def _require_finite(name: str, a) -> None:
+    """The NaN/inf policy: a call from Python with a non-finite input raises ``ValueError``
+    naming it; under the caller's own ``jit``/``vmap``/``scan`` (a tracer, nothing to inspect)
+    the prediction comes back with ``in_domain`` False instead."""
+    if isinstance(a, jax.core.Tracer):
+        return
+    v = np.asarray(a)
+    if np.isfinite(v).all():
+        return
+    bad = ~np.isfinite(v)
+    if bad.any():
+        if v.ndim == 1:
+            raise ValueError(f"{name} holds NaN or inf: {v.tolist()}")
+        rows = np.flatnonzero(bad.reshape(v.shape[0], -1).any(1))
+        more = f" (and {rows.size - 10} more)" if rows.size > 10 else ""
+        raise ValueError(
+            f"{name} holds NaN or inf in row(s) {rows[:10].tolist()}{more}, e.g. "
+            f"{v[rows[0]].tolist()}"
+        )
 
 
 def predict_state(
@@ -287,7 +361,22 @@ def _predict(sur: Surrogate, rpm, euler, v_air, with_var: bool) -> Prediction:
 
 @partial(jax.jit, static_argnums=(4, 5))
 def _predict_batch(sur: Surrogate, rpm, euler, v_air, with_var: bool, chunk: int) -> Prediction:
-    def one(args):
-        return predict_state(sur, *args, with_var)
+    def one(r, e, v):
+        return predict_state(sur, r, e, v, with_var)
 
-    return jax.lax.map(one, (rpm, euler, v_air), batch_size=min(chunk, rpm.shape[0]))
+    n = rpm.shape[0]
+    if n <= chunk:
+        return jax.vmap(one)(rpm, euler, v_air)
+    # Chunks by hand (pad to whole chunks, vmap each in lax.map): lax.map's own batch_size
+    # fails on outputs of size zero, i.e. on every dataset without noise outputs.
+    pad = (-n) % chunk
+
+    def chunks(a):
+        a = jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad, *a.shape[1:]))])
+        return a.reshape(-1, chunk, *a.shape[1:])
+
+    out = jax.lax.map(
+        lambda args: jax.vmap(one)(*args), tuple(chunks(a) for a in (rpm, euler, v_air))
+    )
+    # Explicit sizes: reshape(-1, 0) cannot infer -1 for the empty noise outputs.
+    return jax.tree.map(lambda o: o.reshape(o.shape[0] * o.shape[1], *o.shape[2:])[:n], out)

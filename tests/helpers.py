@@ -9,6 +9,7 @@ import numpy as np
 
 from gpg.data.dataset import Dataset
 from gpg.data.sampling import Bounds, FDSteps, latin_hypercube, raw_samples
+from gpg.quadrotor.vehicle import vehicle_config
 
 LO, HI = Bounds().arrays()
 
@@ -41,7 +42,11 @@ def synthetic_dataset(n=60, seed=0, raw=True):
         jac_aero=J[:, :6],
         y_noise=y[:, 6:],
         jac_noise=J[:, 6:],
-        meta={"simple_model": {"P_F": 5.3e-7, "T_z": 8.4e-9}, "name": "synthetic"},
+        meta={
+            "simple_model": {"P_F": 5.3e-7, "T_z": 8.4e-9},
+            "name": "synthetic",
+            "vehicle": vehicle_config("sui_endurance"),  # whose layout M uses
+        },
         **kw,
     ), W
 

@@ -76,25 +76,33 @@ def test_missing_and_foreign(tmp_path):
         checkpoint.load(tmp_path / "empty")
 
 
+def resign(meta):
+    """Metadata edited on purpose, with a valid checksum (to reach the checks behind it)."""
+    meta["metadata_sha256"] = checkpoint._meta_digest(meta)
+    return json.dumps(meta)
+
+
 def test_version_mismatch(surrogate, tmp_path):
     checkpoint.save(tmp_path / "ck", surrogate)
     meta = json.loads((tmp_path / "ck" / "metadata.json").read_text())
     meta["format_version"] = 7
-    (tmp_path / "ck" / "metadata.json").write_text(json.dumps(meta))
+    (tmp_path / "ck" / "metadata.json").write_text(resign(meta))
     with pytest.raises(CheckpointError, match="format version 7; this gpg .* reads version 2"):
         checkpoint.load(tmp_path / "ck")
 
 
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # orbax loop
-def test_truncated_or_damaged(surrogate, tmp_path):
+def test_truncated_or_damaged(surrogate, tmp_path, capfd):
     checkpoint.save(tmp_path / "ck", surrogate)
     shutil.copytree(tmp_path / "ck", tmp_path / "ck2")
-    # Truncate the biggest data file of the orbax checkpoint.
+    # Truncate the biggest data file of the orbax checkpoint: named, and nothing else printed.
     files = [p for p in (tmp_path / "ck" / "arrays").rglob("*") if p.is_file()]
     big = max(files, key=lambda p: p.stat().st_size)
     big.write_bytes(big.read_bytes()[: big.stat().st_size // 2])
-    with pytest.raises(CheckpointError, match="damaged"):
+    capfd.readouterr()
+    with pytest.raises(CheckpointError, match=f"{big.name} is damaged: it fails its checksum"):
         checkpoint.load(tmp_path / "ck")
+    out, err = capfd.readouterr()
+    assert "Traceback" not in err + out and "asyncio" not in err + out
     shutil.rmtree(tmp_path / "ck2" / "arrays")
     with pytest.raises(CheckpointError, match="incomplete: the arrays directory is missing"):
         checkpoint.load(tmp_path / "ck2")
@@ -105,8 +113,32 @@ def test_checksum_catches_silent_change(surrogate, tmp_path):
     meta = json.loads((tmp_path / "ck" / "metadata.json").read_text())
     key = next(iter(meta["arrays"]))
     meta["arrays"][key]["sha256"] = "0" * 64
-    (tmp_path / "ck" / "metadata.json").write_text(json.dumps(meta))
+    (tmp_path / "ck" / "metadata.json").write_text(resign(meta))
     with pytest.raises(CheckpointError, match=f"array {key} .* fails its shape/dtype/checksum"):
+        checkpoint.load(tmp_path / "ck")
+
+
+def test_metadata_bit_flip_is_caught(surrogate, tmp_path):
+    """One flipped bit in a static field (hover_speed 0.5 -> 0.7 in the module tree) changes
+    predictions: the metadata's own checksum catches it."""
+    checkpoint.save(tmp_path / "ck", surrogate)
+    f = tmp_path / "ck" / "metadata.json"
+    raw = bytearray(f.read_bytes())
+    text = raw.decode()
+    at = text.index('"hover_speed"')
+    at = text.index("0.5", at) + 2  # the digit 5
+    raw[at] ^= 0b10  # '5' (0x35) -> '7' (0x37)
+    f.write_bytes(bytes(raw))
+    assert json.loads(f.read_text())["skeleton"]["fields"]["hover_speed"] == 0.7
+    with pytest.raises(CheckpointError, match="metadata.json is damaged: it fails its checksum"):
+        checkpoint.load(tmp_path / "ck")
+
+
+def test_non_utf8_metadata_is_a_checkpoint_error(surrogate, tmp_path):
+    checkpoint.save(tmp_path / "ck", surrogate)
+    f = tmp_path / "ck" / "metadata.json"
+    f.write_bytes(b"\xff\xfe" + f.read_bytes()[2:])
+    with pytest.raises(CheckpointError, match=r"metadata.json is damaged"):
         checkpoint.load(tmp_path / "ck")
 
 

@@ -1,4 +1,5 @@
-"""The README's Python blocks run as written."""
+"""The README's Python blocks run as written (```python blocks; ```py blocks illustrate calls
+on the reader's own files, and notebooks/04_your_own_vehicle.ipynb runs those steps)."""
 
 import re
 from pathlib import Path

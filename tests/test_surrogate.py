@@ -113,10 +113,30 @@ def test_out_of_domain_and_bad_values(binned, data):
     )  # negative rpm
     assert not bool(binned.predict(rpm, euler, -v).in_domain)  # flying backwards: yaw_H ≈ 180°
     assert not bool(binned.predict(rpm * 10, euler, v).in_domain)  # beyond the rpm range
-    bad = binned.predict(rpm, euler * np.nan, v)
-    assert not bool(bad.in_domain)
     hover = binned.predict(rpm, euler, np.zeros(3))  # zero airspeed: finite
     assert np.all(np.isfinite(hover.force))
+
+
+def test_nan_policy(binned, data):
+    """From Python every entry point raises, naming the input; under the caller's own jit the
+    prediction is flagged out of domain instead (nothing can be raised there)."""
+    rpm, euler, v = state(data.x[5])
+    nan_euler = euler * np.array([1.0, np.nan, 1.0])
+    for call in (
+        binned.predict,
+        binned.predict_mean,
+        binned.realtime(),
+        binned.realtime(with_var=False),
+    ):
+        with pytest.raises(ValueError, match=r"euler holds NaN or inf"):
+            call(rpm, nan_euler, v)
+    with pytest.raises(ValueError, match=r"v_air holds NaN or inf in row\(s\) \[1\]"):
+        binned.predict_batch(
+            np.stack([rpm, rpm]), np.stack([euler, euler]), np.stack([v, v + np.inf])
+        )
+    under_jit = jax.jit(lambda r, e, a: binned.predict(r, e, a))
+    assert not bool(under_jit(rpm, nan_euler, v).in_domain)
+    assert bool(under_jit(rpm, euler, v).in_domain)
 
 
 def test_hover_in_domain_whatever_the_yaw(binned, data):
@@ -155,6 +175,47 @@ def test_batch_shape_errors(binned):
         binned.predict_batch(np.zeros(4), np.zeros((1, 3)), np.zeros((1, 3)))
     with pytest.raises(ValueError, match="batch sizes differ"):
         binned.predict_batch(np.zeros((2, 4)), np.zeros((3, 3)), np.zeros((2, 3)))
+
+
+@pytest.mark.parametrize("noise", [True, False])
+@pytest.mark.parametrize("mean_only", [True, False])
+@pytest.mark.parametrize("chunk", [7, 1024])
+def test_predict_batch_for_every_output_set(noise, mean_only, chunk):
+    """The issue's repro (30 rows, no noise columns, 2 bins, no residual) and every other
+    combination: batches in several chunks and in one, equal to single predictions."""
+    full, _ = synthetic_dataset(30, seed=4, raw=False)
+    ds = full if noise else full.without("noise", "gradients")
+    cfg = {"hyper": {"fit": False}, "partition": {"bins": 2}}
+    sur = Surrogate.fit(ds, "gps_1x", cfg, residual=False)
+    rpm, euler, v = ds.x[:, :4], ds.x[:, 4:7], np.column_stack([ds.x[:, 7], 0 * ds.x[:, :2]])
+    out = sur.predict_batch(rpm, euler, v, mean_only=mean_only, chunk=chunk)
+    assert out.force.shape == (30, 3) and out.noise.shape == (30, 3 if noise else 0)
+    assert (out.variance is None) == mean_only
+    one = (sur.predict_mean if mean_only else sur.predict)(rpm[11], euler[11], v[11])
+    np.testing.assert_allclose(out.force[11], one.force, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(out.noise[11], one.noise, rtol=1e-12, atol=1e-12)
+    assert np.all(np.asarray(out.in_domain))
+
+
+def test_foreign_data_needs_a_vehicle():
+    """No silent default vehicle: a dataset that names none needs vehicle=."""
+    ds, _ = synthetic_dataset(30, seed=4, raw=False)
+    meta = {k: v for k, v in ds.meta.items() if k != "vehicle"}
+    bare = dataclasses.replace(ds, meta=meta)
+    with pytest.raises(ValueError, match="the dataset names no vehicle: pass vehicle="):
+        Surrogate.fit(bare, "gps_1x", {"hyper": {"fit": False}, "partition": {"bins": 2}})
+    sur = Surrogate.fit(
+        bare, "gps_1x", {"hyper": {"fit": False}, "partition": {"bins": 2}}, vehicle="sui_endurance"
+    )
+    assert sur.simple is not None
+    # bounds= sets the in-domain box.
+    sur = Surrogate.fit(
+        ds,
+        "gps_1x",
+        {"hyper": {"fit": False}, "partition": {"bins": 2}},
+        bounds={"airspeed": [0.0, 5.0]},
+    )
+    assert float(sur.box_hi[7]) == 5.0
 
 
 def test_without_noise_or_residual(data):

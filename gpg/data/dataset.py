@@ -16,8 +16,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
-import tempfile
 import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -27,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from gpg._checks import require_finite, require_shape
+from gpg._io import atomic_write
 
 SCHEMA_VERSION = 1
 INPUTS = ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll", "airspeed")
@@ -198,20 +197,9 @@ class Dataset:
         }
         zbytes = _npz_bytes({k: getattr(self, k) for k in meta["arrays"]})
         jbytes = (json.dumps(_jsonable(meta), indent=2, sort_keys=True) + "\n").encode()
-        tmp = []
-        try:
-            for target, data in ((npz, zbytes), (side, jbytes)):
-                fd, name = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
-                tmp.append(name)
-                with os.fdopen(fd, "wb") as f:
-                    f.write(data)
-            os.replace(tmp[0], npz)
-            os.replace(tmp[1], side)
-        except BaseException:
-            for name in tmp:
-                if os.path.exists(name):
-                    os.unlink(name)
-            raise
+        # Arrays first: a sidecar only ever describes arrays that are already in place.
+        atomic_write(npz, zbytes)
+        atomic_write(side, jbytes)
         return npz, side
 
     @classmethod
@@ -314,17 +302,30 @@ def from_csv(
     columns: Mapping[str, str],
     *,
     units: Mapping[str, str] | None = None,
+    gradients: str | None = None,
+    vehicle: Any = None,
+    bounds: Mapping[str, Any] | None = None,
     meta: Mapping[str, Any] | None = None,
 ) -> Dataset:
     """Import a CSV file by mapping schema fields to its column names.
 
-    ``columns`` maps schema fields (``r1..r4, yaw, pitch, roll, airspeed, Fx..Mz, L1..L3`` and
-    gradients ``"dFx/dr1"`` …) to CSV headers; inputs and the six aerodynamic outputs are
-    required, noise and gradients optional (gradients must be complete if present). ``units``
-    maps a field to its unit in the file (e.g. ``{"yaw": "deg", "airspeed": "km/h"}``);
+    ``columns`` maps schema fields (``r1..r4, yaw, pitch, roll, airspeed, Fx..Mz, L1..L3``) to
+    CSV headers; inputs and the six aerodynamic outputs are required, noise optional. Gradients
+    are optional: either map each one in ``columns`` (``"dFx/dr1": "..."``) or give a
+    ``gradients`` pattern naming the CSV header of ``∂output/∂input`` from the CSV headers of
+    the two (``{output}``, ``{input}``) or from their schema names (``{output_field}``,
+    ``{input_field}``), e.g. ``"d{output}_d{input}"``; they must be complete if present.
+    ``units`` maps a field to its unit in the file (e.g. ``{"yaw": "deg", "airspeed": "km/h"}``);
     gradients are converted with the units of their output and input.
+
+    ``vehicle`` (a name in ``conf/vehicle`` or a YAML path) is recorded in the dataset, so that
+    :meth:`gpg.Surrogate.fit` uses it; ``bounds`` (the ``data.bounds`` form: ``rpm``,
+    ``yaw_deg``, ``pitch_deg``, ``roll_deg``, ``airspeed``) is the input box the data were
+    sampled in, recorded for the surrogate's ``in_domain`` flag. A NaN, inf or non-number in
+    the file is reported by CSV line and column.
     """
     units = dict(units or {})
+    columns = dict(columns)
     known = set(UNITS) | set(GRADIENT_COLUMNS)
     unknown = sorted(set(columns) - known)
     if unknown:
@@ -344,28 +345,34 @@ def from_csv(
     if noise and len(noise) != 3:
         raise ValueError(f"noise needs all of {list(NOISE)}, got {noise}")
     outs = AERO + (NOISE if noise else ())
+    if gradients is not None:
+        if any(g in columns for g in GRADIENT_COLUMNS):
+            raise ValueError("give gradient columns either one by one or by a pattern, not both")
+        columns.update(_gradient_columns(gradients, columns, outs))
     grads = [g for g in GRADIENT_COLUMNS if g in columns]
     want_grads = [f"d{o}/d{i}" for o in outs for i in GRAD_INPUTS]
     if grads and sorted(grads) != sorted(want_grads):
         lacking = sorted(set(want_grads) - set(grads))
         raise ValueError(f"gradients must be complete; missing {lacking[:6]} ...")
+    extra_meta: dict[str, Any] = {}
+    if vehicle is not None:
+        from gpg.quadrotor.vehicle import Vehicle, vehicle_config
+
+        if isinstance(vehicle, Vehicle):
+            raise ValueError("pass the vehicle as a name or a YAML path, so that it is recorded")
+        cfg = vehicle_config(vehicle)
+        Vehicle.from_config(cfg)  # a broken vehicle file fails here, before the CSV is read
+        extra_meta["vehicle"] = cfg
+    if bounds is not None:
+        from gpg.data.sampling import Bounds
+
+        Bounds.from_config(bounds)
+        extra_meta["bounds"] = {k: list(v) for k, v in bounds.items()}
 
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"CSV file {path} does not exist")
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        header = reader.fieldnames or []
-        absent = sorted(c for c in columns.values() if c not in header)
-        if absent:
-            raise ValueError(f"CSV columns {absent} not in {path.name}; it has {header}")
-        rows = []
-        for lineno, row in enumerate(reader, start=2):
-            try:
-                rows.append([float(row[columns[k]]) for k in columns])
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"{path.name} line {lineno}: non-numeric value ({exc})") from exc
-    data = np.asarray(rows, dtype=float).reshape(-1, len(columns))
+    data = _read_csv(path, columns)
     col = {k: data[:, j] for j, k in enumerate(columns)}
 
     def get(fields):
@@ -386,5 +393,56 @@ def from_csv(
         y_noise=get(NOISE) if noise else None,
         jac_aero=grad(AERO) if grads else None,
         jac_noise=grad(NOISE) if grads and noise else None,
-        meta={"source": f"csv:{path.name}", **dict(meta or {})},
+        meta={"source": f"csv:{path.name}", **extra_meta, **dict(meta or {})},
     )
+
+
+def _gradient_columns(pattern: str, columns: Mapping[str, str], outs) -> dict[str, str]:
+    """Schema gradient field -> CSV header, from a pattern (see :func:`from_csv`)."""
+    out = {}
+    for o in outs:
+        for i in GRAD_INPUTS:
+            try:
+                out[f"d{o}/d{i}"] = pattern.format(
+                    output=columns[o], input=columns[i], output_field=o, input_field=i
+                )
+            except (KeyError, IndexError, ValueError) as exc:
+                raise ValueError(
+                    f"bad gradients pattern {pattern!r}: use {{output}}, {{input}}, "
+                    f"{{output_field}} and {{input_field}} ({exc})"
+                ) from exc
+    if len(set(out.values())) != len(out):
+        raise ValueError(f"gradients pattern {pattern!r} gives the same header twice")
+    return out
+
+
+def _read_csv(path: Path, columns: Mapping[str, str]) -> np.ndarray:
+    """The mapped columns as floats; every bad cell named by CSV line and column."""
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        header = reader.fieldnames or []
+        absent = sorted(c for c in columns.values() if c not in header)
+        if absent:
+            shown = absent[:8] + (["..."] if len(absent) > 8 else [])
+            raise ValueError(f"CSV columns {shown} not in {path.name}; it has {header}")
+        rows, bad = [], []
+        for lineno, row in enumerate(reader, start=2):
+            vals = []
+            for head in columns.values():
+                cell = row[head]
+                try:
+                    v = float(cell)
+                except (TypeError, ValueError):
+                    bad.append(f"line {lineno}, column {head!r}: not a number ({cell!r})")
+                    v = np.nan
+                else:
+                    if not np.isfinite(v):
+                        bad.append(f"line {lineno}, column {head!r}: {cell}")
+                vals.append(v)
+            rows.append(vals)
+    if bad:
+        more = f" (and {len(bad) - 10} more)" if len(bad) > 10 else ""
+        raise ValueError(f"{path.name} has bad values: " + "; ".join(bad[:10]) + more)
+    if not rows:
+        raise ValueError(f"{path.name} has a header but no data rows")
+    return np.asarray(rows, dtype=float).reshape(-1, len(columns))

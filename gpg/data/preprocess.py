@@ -12,6 +12,7 @@ physical units.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -110,10 +111,21 @@ class Training:
         return self.dY is not None
 
 
+class FittedCoefficientsWarning(UserWarning):
+    """``M``'s coefficients were fitted from the data: neither the vehicle nor the dataset
+    gave them. The message holds the values."""
+
+
 def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
-    """``M`` for a dataset: ``P_F``, ``T_z`` from its metadata (written by the generator), or a
-    least-squares fit to the data itself (``−F_zB ≈ P_F Σr²``, ``τ_zB ≈ −T_z Σ d_i r_i²``).
+    """``M`` for a dataset: ``P_F``, ``T_z`` from the vehicle file's ``simple_model`` section,
+    else from the dataset's metadata (written by the generator), else a least-squares fit to
+    the data itself (``−F_zB ≈ P_F Σr²``, ``τ_zB ≈ −T_z Σ d_i r_i²``) with a
+    :class:`FittedCoefficientsWarning` stating the values.
     """
+    if vehicle.thrust_coefficient is not None:
+        return SimpleModel.from_vehicle(
+            vehicle, vehicle.thrust_coefficient, vehicle.torque_coefficient
+        )
     coeffs = ds.meta.get("simple_model")
     if coeffs is not None:
         return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
@@ -127,6 +139,13 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
     s_thrust, s_yaw = r2.sum(1), r2 @ spin
     P_F = float(np.sum(-F_B[:, 2] * s_thrust) / np.sum(s_thrust**2))
     T_z = float(-np.sum(tau_B[:, 2] * s_yaw) / max(np.sum(s_yaw**2), 1e-300))
+    warnings.warn(
+        f"vehicle {vehicle.name!r} gives no simple_model coefficients and the dataset records "
+        f"none: fitted from the data, P_F = {P_F:.4g} N/rpm², T_z = {T_z:.4g} N·m/rpm² "
+        "(put them in the vehicle file's simple_model section to fix them)",
+        FittedCoefficientsWarning,
+        stacklevel=2,
+    )
     return SimpleModel.from_vehicle(vehicle, P_F, T_z)
 
 

@@ -139,6 +139,8 @@ def generate(
         y = evaluate_batch(gen, x, chunk=chunk, progress=progress)
     out = slice(None) if noise else slice(0, 6)
     info = {
+        # The dataset names its vehicle (Surrogate.fit reads it); callers may record more.
+        "generator": {"name": "gpg BEMT + tonal acoustics", "vehicle": gen.vehicle.name},
         "bounds": asdict(bounds),
         "seed": seed,
         "gradients": gradients,

@@ -198,13 +198,10 @@ class Quadrotor(eqx.Module):
         Jw = self.inertia * s.w
         w_dot = (tau_b - jnp.cross(s.w, Jw)) / self.inertia
         cmd = jnp.clip(rpm_cmd, self.rpm_min, self.rpm_max)
-        return State(
-            p=s.v,
-            v=acc,
-            q=_quat_rate(s.q, s.w),
-            w=w_dot,
-            rpm=(cmd - s.rpm) / self.motor_time_constant,
-        )
+        lag = self.motor_time_constant
+        # No lag (time constant 0): the rotor speed is set to the command in step, not integrated.
+        rpm_rate = jnp.where(lag > 0, (cmd - s.rpm) / jnp.where(lag > 0, lag, 1.0), 0.0)
+        return State(p=s.v, v=acc, q=_quat_rate(s.q, s.w), w=w_dot, rpm=rpm_rate)
 
     def step(
         self, s: State, rpm_cmd: Float[Array, " 4"], t: Float[Array, ""], dt: float, wind: Wind
@@ -227,4 +224,8 @@ class Quadrotor(eqx.Module):
             lambda x, a, b, c, d: x + dt / 6 * (a + 2 * b + 2 * c + d), s, k1, k2, k3, k4
         )
         new = eqx.tree_at(lambda x: x.q, new, new.q / jnp.linalg.norm(new.q))
+        instant = jnp.clip(rpm_cmd, self.rpm_min, self.rpm_max)
+        new = eqx.tree_at(
+            lambda x: x.rpm, new, jnp.where(self.motor_time_constant > 0, new.rpm, instant)
+        )
         return new, wr0

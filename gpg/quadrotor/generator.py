@@ -17,6 +17,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 from tqdm.auto import tqdm
 
+from gpg import _interrupt
 from gpg.quadrotor import acoustics, bemt
 from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.vehicle import Vehicle
@@ -35,6 +36,9 @@ class Generator(eqx.Module):
     vehicle: Vehicle
     bemt: bemt.BEMTConfig = bemt.BEMTConfig()
     acoustics: acoustics.AcousticsConfig = acoustics.AcousticsConfig()
+
+    def __check_init__(self):
+        self.vehicle.require_generator()  # a ValueError naming what a minimal vehicle lacks
 
     def __call__(self, x: Float[ArrayLike, " 8"]) -> Float[Array, " 9"]:
         """Outputs ``y`` (9,) at one dataset input ``x`` (8,)."""
@@ -86,6 +90,7 @@ def evaluate_batch(
     ys, js = [], []
     desc = progress if isinstance(progress, str) else "generator"
     for start in tqdm(range(0, n, chunk), desc=desc, disable=not progress, unit="chunk"):
+        _interrupt.check()  # a deferred Ctrl-C stops here, between compiled calls
         block = X[start : start + chunk]
         pad = chunk - block.shape[0]
         if pad:

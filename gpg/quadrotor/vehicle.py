@@ -1,4 +1,16 @@
-"""Vehicle parameters, loaded from ``conf/vehicle/<name>.yaml`` (units in the YAML comments).
+"""Vehicle parameters, loaded from ``conf/vehicle/<name>.yaml`` or any YAML file (units in the
+YAML comments).
+
+A vehicle file has two parts. What the simplified model ``M``, the rigid body and the
+controller need is required: ``name``, ``mass``, ``inertia``, the ``layout`` (an X layout by
+``arm`` or explicit hub ``positions``, ``spin``, ``hub_height``) and the ``motor`` range
+(``rpm_min``, ``rpm_max``, optionally its ``time_constant``; without one, rotor speeds follow
+their commands at once), plus optionally ``gravity`` (default 9.81 m/s²) and ``simple_model``
+(``thrust_coefficient`` ``P_F`` in N/rpm² and ``torque_coefficient`` ``T_z`` in N·m/rpm²;
+without them they are fitted from the data). What only the built-in generator needs is
+optional as a whole: ``rotor`` (blade tables), ``airfoil``, ``microphones``, ``drag_area``,
+``air_density`` and ``speed_of_sound``; the generator refuses a vehicle that lacks any of them
+and names what is missing.
 
 Everything numeric is a JAX array leaf, so a :class:`Vehicle` can be passed through ``jit`` and
 differentiated; only the blade count and the name are static.
@@ -50,44 +62,147 @@ class Rotor(eqx.Module):
         return jnp.pi * self.radius**2
 
 
+# The generator's part of a vehicle file, by YAML key.
+GENERATOR_KEYS = ("rotor", "airfoil", "microphones", "drag_area", "air_density", "speed_of_sound")
+
+
 class Vehicle(eqx.Module):
-    """A quadrotor: rotor geometry, layout, airframe and the microphones of the noise outputs.
+    """A quadrotor: layout, mass properties and motors (what ``M``, the rigid body and the
+    controller need), plus, for the built-in generator only, rotor geometry, airfoil, airframe
+    drag, air properties and the microphones of the noise outputs (None on a minimal vehicle).
 
     ``positions`` are hub positions in the body frame (FRD, m) in rotor order r1..r4 (rear-right,
     rear-left, front-left, front-right); ``spin`` is +1 for rotation about +z_B (clockwise seen
     from above) and −1 otherwise. ``mic_positions`` are body-frame microphone positions (m).
+    ``thrust_coefficient``/``torque_coefficient`` are ``M``'s ``P_F``/``T_z`` when the file gives
+    them. ``motor_time_constant`` 0 means rotor speeds follow their commands at once.
     """
 
-    rotor: Rotor
-    airfoil: Airfoil
     positions: Float[Array, "4 3"]
     spin: Float[Array, " 4"]
     mass: Float[Array, ""]  # kg
-    drag_area: Float[Array, " 3"]  # m², airframe D/q along body x, y, z
-    air_density: Float[Array, ""]  # kg/m³
-    speed_of_sound: Float[Array, ""]  # m/s
     gravity: Float[Array, ""]  # m/s²
-    mic_positions: Float[Array, "K 3"]
     inertia: Float[Array, " 3"]  # kg·m², principal moments about body x, y, z
-    motor_time_constant: Float[Array, ""]  # s, first-order rotor-speed lag
+    motor_time_constant: Float[Array, ""]  # s, first-order rotor-speed lag (0: none)
     rpm_min: Float[Array, ""]  # rpm
     rpm_max: Float[Array, ""]  # rpm
+    thrust_coefficient: Float[Array, ""] | None  # P_F, N/rpm²
+    torque_coefficient: Float[Array, ""] | None  # T_z, N·m/rpm²
+    rotor: Rotor | None
+    airfoil: Airfoil | None
+    drag_area: Float[Array, " 3"] | None  # m², airframe D/q along body x, y, z
+    air_density: Float[Array, ""] | None  # kg/m³
+    speed_of_sound: Float[Array, ""] | None  # m/s
+    mic_positions: Float[Array, "K 3"] | None
     name: str = eqx.field(static=True)
 
     @property
     def weight(self) -> Float[Array, ""]:
         return self.mass * self.gravity
 
+    @property
+    def generator_missing(self) -> tuple[str, ...]:
+        """The generator-only parts this vehicle lacks (empty for a full vehicle)."""
+        have = {
+            "rotor": self.rotor,
+            "airfoil": self.airfoil,
+            "microphones": self.mic_positions,
+            "drag_area": self.drag_area,
+            "air_density": self.air_density,
+            "speed_of_sound": self.speed_of_sound,
+        }
+        return tuple(k for k in GENERATOR_KEYS if have[k] is None)
+
+    def require_generator(self) -> Vehicle:
+        """This vehicle, or a ``ValueError`` naming what the built-in generator would lack."""
+        missing = self.generator_missing
+        if missing:
+            raise ValueError(
+                f"vehicle {self.name!r} cannot drive the built-in generator: it lacks "
+                f"{', '.join(missing)} (a vehicle file for the simplified model and flight "
+                "only may omit them; see conf/vehicle/sui_endurance.yaml for the full form)"
+            )
+        return self
+
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> Vehicle:
-        """Build from the mapping of a ``conf/vehicle/*.yaml`` file (plain dict)."""
+        """Build from the mapping of a vehicle YAML file (plain dict); see the module
+        docstring for what is required and what is optional."""
         c = _Reader(cfg, "vehicle")
-        rot = _Reader(c.get("rotor"), "vehicle.rotor")
-        foil = _Reader(c.get("airfoil"), "vehicle.airfoil")
         lay = _Reader(c.get("layout"), "vehicle.layout")
-        mics = _Reader(c.get("microphones"), "vehicle.microphones")
         motor = _Reader(c.get("motor"), "vehicle.motor")
+        spin = lay.array("spin", ndim=1)
+        if spin.shape != (4,) or not np.all(np.abs(spin) == 1):
+            raise ValueError(f"vehicle.layout.spin must be four entries of +1 or -1, got {spin}")
+        positions = _positions(lay)
+        inertia = c.array("inertia", ndim=1)
+        if inertia.shape != (3,) or np.any(inertia <= 0):
+            raise ValueError(f"vehicle.inertia must be three values > 0 (kg·m²), got {inertia}")
+        rpm_min, rpm_max = motor.number("rpm_min"), motor.positive("rpm_max")
+        if not 0 <= rpm_min < rpm_max:
+            raise ValueError(
+                f"vehicle.motor needs 0 <= rpm_min < rpm_max, got {rpm_min}, {rpm_max}"
+            )
+        lag = motor.number("time_constant") if motor.has("time_constant") else 0.0
+        if lag < 0:
+            raise ValueError(f"vehicle.motor.time_constant must be >= 0 s, got {lag}")
+        P_F = T_z = None
+        if c.has("simple_model"):
+            sm = _Reader(c.get("simple_model"), "vehicle.simple_model")
+            P_F = jnp.asarray(sm.positive("thrust_coefficient"))
+            T_z = jnp.asarray(sm.positive("torque_coefficient"))
+            sm.done()
+        gen = _generator_part(c)
+        out = cls(
+            positions=jnp.asarray(positions),
+            spin=jnp.asarray(spin),
+            mass=jnp.asarray(c.positive("mass")),
+            gravity=jnp.asarray(c.positive("gravity") if c.has("gravity") else 9.81),
+            inertia=jnp.asarray(inertia),
+            motor_time_constant=jnp.asarray(lag),
+            rpm_min=jnp.asarray(rpm_min),
+            rpm_max=jnp.asarray(rpm_max),
+            thrust_coefficient=P_F,
+            torque_coefficient=T_z,
+            name=str(c.get("name")),
+            **gen,
+        )
+        for r in (lay, motor, c):
+            r.done()
+        return out
 
+
+def _positions(lay: _Reader) -> np.ndarray:
+    """Hub positions (4, 3) in rotor order: an X layout from ``arm``, or explicit ones."""
+    h = lay.number("hub_height") if lay.has("hub_height") else 0.0
+    if lay.has("positions"):
+        if lay.has("arm"):
+            raise ValueError("vehicle.layout: give either arm (X layout) or positions, not both")
+        p = lay.array("positions", ndim=2)
+        if p.shape != (4, 3):
+            raise ValueError(f"vehicle.layout.positions must be 4 x 3 (m, FRD), got {p.shape}")
+        return p
+    arm = lay.positive("arm")
+    ell = arm / math.sqrt(2.0)
+    # r1 rear-right, r2 rear-left, r3 front-left, r4 front-right; rotor plane above the CoM.
+    return np.array(
+        [[-ell, ell, -h], [-ell, -ell, -h], [ell, -ell, -h], [ell, ell, -h]], dtype=float
+    )
+
+
+def _generator_part(c: _Reader) -> dict[str, Any]:
+    """The generator-only fields (None each where the file omits its key)."""
+    out: dict[str, Any] = {
+        "rotor": None,
+        "airfoil": None,
+        "mic_positions": None,
+        "drag_area": None,
+        "air_density": None,
+        "speed_of_sound": None,
+    }
+    radius = None
+    if c.has("rotor"):
+        rot = _Reader(c.get("rotor"), "vehicle.rotor")
         twist = np.deg2rad(rot.array("twist_deg", ndim=1))
         chord = rot.array("chord_in", ndim=1) * INCH
         if twist.shape != chord.shape or twist.size < 2:
@@ -102,7 +217,7 @@ class Vehicle(eqx.Module):
         n_blades = rot.get("n_blades")
         if not isinstance(n_blades, int) or n_blades < 1:
             raise ValueError(f"vehicle.rotor.n_blades must be a positive integer, got {n_blades}")
-        rotor = Rotor(
+        out["rotor"] = Rotor(
             radius=jnp.asarray(radius),
             root_cutout=jnp.asarray(cutout),
             stations=jnp.asarray(np.linspace(cutout, 1.0, twist.size)),
@@ -111,7 +226,10 @@ class Vehicle(eqx.Module):
             thickness_ratio=jnp.asarray(rot.positive("thickness_ratio")),
             n_blades=n_blades,
         )
-        airfoil = Airfoil(
+        rot.done()
+    if c.has("airfoil"):
+        foil = _Reader(c.get("airfoil"), "vehicle.airfoil")
+        out["airfoil"] = Airfoil(
             lift_slope=jnp.asarray(foil.positive("lift_slope")),
             alpha_zero_lift=jnp.asarray(math.radians(foil.number("alpha_zero_lift_deg"))),
             stall=jnp.asarray(math.radians(foil.positive("stall_deg"))),
@@ -120,62 +238,51 @@ class Vehicle(eqx.Module):
             cd2=jnp.asarray(foil.number("cd2")),
             alpha_min_drag=jnp.asarray(math.radians(foil.number("alpha_min_drag_deg"))),
         )
-        arm = lay.positive("arm")
-        spin = lay.array("spin", ndim=1)
-        if spin.shape != (4,) or not np.all(np.abs(spin) == 1):
-            raise ValueError(f"vehicle.layout.spin must be four entries of +1 or -1, got {spin}")
-        h = rot.number("hub_height")
-        ell = arm / math.sqrt(2.0)
-        # r1 rear-right, r2 rear-left, r3 front-left, r4 front-right; rotor plane above the CoM.
-        positions = np.array(
-            [[-ell, ell, -h], [-ell, -ell, -h], [ell, -ell, -h], [ell, ell, -h]], dtype=float
-        )
+        foil.done()
+    if c.has("microphones"):
+        mics = _Reader(c.get("microphones"), "vehicle.microphones")
+        if radius is None:
+            raise ValueError("vehicle.microphones are placed in rotor radii: give vehicle.rotor")
         r_mic = mics.positive("radius_in_rotor_radii") * radius
         elev = np.deg2rad(mics.array("elevation_deg", ndim=1))
-        mic_positions = np.stack([np.zeros_like(elev), np.cos(elev), np.sin(elev)], -1) * r_mic
-        inertia = c.array("inertia", ndim=1)
-        if inertia.shape != (3,) or np.any(inertia <= 0):
-            raise ValueError(f"vehicle.inertia must be three values > 0 (kg·m²), got {inertia}")
-        rpm_min, rpm_max = motor.number("rpm_min"), motor.positive("rpm_max")
-        if not 0 <= rpm_min < rpm_max:
-            raise ValueError(
-                f"vehicle.motor needs 0 <= rpm_min < rpm_max, got {rpm_min}, {rpm_max}"
-            )
+        out["mic_positions"] = jnp.asarray(
+            np.stack([np.zeros_like(elev), np.cos(elev), np.sin(elev)], -1) * r_mic
+        )
+        mics.done()
+    if c.has("drag_area"):
         drag = c.array("drag_area", ndim=1)
         if drag.shape != (3,) or np.any(drag < 0):
             raise ValueError(f"vehicle.drag_area must be three values >= 0 (m²), got {drag}")
-        out = cls(
-            rotor=rotor,
-            airfoil=airfoil,
-            positions=jnp.asarray(positions),
-            spin=jnp.asarray(spin),
-            mass=jnp.asarray(c.positive("mass")),
-            drag_area=jnp.asarray(drag),
-            air_density=jnp.asarray(c.positive("air_density")),
-            speed_of_sound=jnp.asarray(c.positive("speed_of_sound")),
-            gravity=jnp.asarray(c.positive("gravity")),
-            mic_positions=jnp.asarray(mic_positions),
-            inertia=jnp.asarray(inertia),
-            motor_time_constant=jnp.asarray(motor.positive("time_constant")),
-            rpm_min=jnp.asarray(rpm_min),
-            rpm_max=jnp.asarray(rpm_max),
-            name=str(c.get("name")),
-        )
-        for r in (rot, foil, lay, mics, motor, c):
-            r.done()
-        return out
+        out["drag_area"] = jnp.asarray(drag)
+    for key in ("air_density", "speed_of_sound"):
+        if c.has(key):
+            out[key] = jnp.asarray(c.positive(key))
+    return out
 
 
 def load_vehicle(name_or_path: str | Path = "sui_endurance") -> Vehicle:
-    """A vehicle by name (``conf/vehicle/<name>.yaml``) or from a YAML file path."""
+    """A vehicle by name (``conf/vehicle/<name>.yaml``) or from a YAML file at any path (any
+    suffix): an existing file is read as it is, anything else is looked up by name."""
+    return Vehicle.from_config(vehicle_config(name_or_path))
+
+
+def vehicle_config(name_or_path: str | Path = "sui_endurance") -> dict[str, Any]:
+    """The plain mapping of a vehicle file (see :func:`load_vehicle`), e.g. to record in a
+    dataset's metadata so that the dataset names its own vehicle."""
     path = Path(name_or_path)
-    if path.suffix not in (".yaml", ".yml"):
+    if not path.is_file():
         path = VEHICLE_DIR / f"{name_or_path}.yaml"
     if not path.is_file():
         known = sorted(p.stem for p in VEHICLE_DIR.glob("*.yaml"))
-        raise ValueError(f"no vehicle file {path}; known vehicles: {known}")
-    with open(path) as f:
-        return Vehicle.from_config(yaml.safe_load(f))
+        raise ValueError(f"no vehicle file {name_or_path!r}; known vehicles: {known}")
+    try:
+        with open(path) as f:
+            cfg = yaml.safe_load(f)
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ValueError(f"vehicle file {path} is not valid YAML: {exc}") from exc
+    if not isinstance(cfg, Mapping):
+        raise ValueError(f"vehicle file {path} must hold a mapping, got {type(cfg).__name__}")
+    return dict(cfg)
 
 
 class _Reader:
@@ -185,6 +292,9 @@ class _Reader:
         if not isinstance(cfg, Mapping):
             raise ValueError(f"{where} must be a mapping, got {type(cfg).__name__}")
         self.cfg, self.where, self.used = cfg, where, set()
+
+    def has(self, key: str) -> bool:
+        return key in self.cfg
 
     def get(self, key: str) -> Any:
         if key not in self.cfg:

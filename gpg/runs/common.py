@@ -5,17 +5,18 @@ from __future__ import annotations
 import contextlib
 import itertools
 import json
+import logging
 import os
 import platform
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
+
+from gpg._io import atomic_write
 
 if TYPE_CHECKING:
     from gpg.data.dataset import Dataset
@@ -24,6 +25,18 @@ if TYPE_CHECKING:
     from gpg.quadrotor.simple_model import SimpleModel
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+_log = logging.getLogger("gpg.runs")
+
+
+def report(text: str) -> None:
+    """A result for the console and, under Hydra, the run's log file (``<job>.log``): logged
+    at INFO when logging is configured, printed otherwise."""
+    if logging.getLogger().hasHandlers():
+        _log.info(text)
+    else:
+        print(text)
 
 
 def conf(name: str, group: str | None = None) -> dict[str, Any]:
@@ -81,13 +94,11 @@ def latency(fn: Callable[..., Any], args_list: Sequence[tuple], n: int) -> dict[
     return stats(time_calls(lambda: fn(*next(calls)), n, warmup=3))
 
 
-def world_states(x: np.ndarray, n: int) -> list[tuple[jax.Array, jax.Array, jax.Array]]:
+def world_states(x: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The first ``n`` (at least one) dataset inputs ``x`` (rpm, Euler angles, airspeed) as
-    world-frame states ``(rpm, euler, v_air)``, the airflow along +x."""
-    return [
-        (jnp.asarray(r[:4]), jnp.asarray(r[4:7]), jnp.asarray([r[7], 0.0, 0.0]))
-        for r in x[: max(n, 1)]
-    ]
+    world-frame states ``(rpm, euler, v_air)``, the airflow along +x: NumPy arrays, as a
+    simulator written in Python passes them."""
+    return [(np.array(r[:4]), np.array(r[4:7]), np.array([r[7], 0.0, 0.0])) for r in x[: max(n, 1)]]
 
 
 class Fitted(NamedTuple):
@@ -166,18 +177,9 @@ def _default(o):
 
 
 def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON atomically (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=2, sort_keys=False, default=_default)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    """Write ``obj`` as indented JSON atomically (:func:`gpg._io.atomic_write`)."""
+    text = json.dumps(obj, indent=2, sort_keys=False, default=_default) + "\n"
+    atomic_write(path, text.encode())
 
 
 def table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str]]) -> str:

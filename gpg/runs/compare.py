@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg import memory, models, partition
+from gpg import _interrupt, memory, models, partition
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import prepare, restore, simple_model_for
 from gpg.quadrotor.vehicle import Vehicle
@@ -26,6 +26,7 @@ from gpg.runs.common import (
     fit_model,
     latency,
     machine,
+    report,
     set_dispatch,
     table,
     world_states,
@@ -319,7 +320,7 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
     train, test, data_info = load_data(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
     simple = simple_model_for(train, vehicle)
-    print(f"data: {train.summary()}\ntest: {test.n} points")
+    report(f"data: {train.summary()}\ntest: {test.n} points")
 
     jobs = []
     for name, mc in resolved.items():
@@ -346,11 +347,12 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
             if single:
                 raise
             results[label] = {"model": name, "skipped": str(exc)}
-            tqdm.write(f"{label}: skipped: {exc}")
+            report(f"{label}: skipped: {exc}")
     hyper_cache: dict = {}
     bar = tqdm(ready, desc="models", unit="model")
     for label, name, mc in bar:
         bar.set_postfix_str(label)
+        _interrupt.check()  # a deferred Ctrl-C stops between models
         try:
             results[label] = evaluate(
                 label, name, mc, train, test, simple, hyper_cache, cfg["n_queries"]
@@ -359,7 +361,7 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
             if single:
                 raise
             results[label] = {"model": name, "skipped": str(exc)}
-            tqdm.write(f"{label}: skipped: {exc}")
+            report(f"{label}: skipped: {exc}")
     if all("skipped" in r for r in results.values()):
         raise ValueError("no model could run: " + "; ".join(r["skipped"] for r in results.values()))
 
@@ -395,6 +397,6 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         "predict = one world-frame query, mean and variance (`Surrogate.realtime`).\n\n"
     )
     (outdir / "results.md").write_text(header + md + "\n")
-    print(_table_short(results, names))
-    print(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({out['wall_s']:.0f} s)")
+    report(_table_short(results, names))
+    report(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({out['wall_s']:.0f} s)")
     return out

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
+import tempfile
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -19,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpg._io import umask
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import simple_model_for
 from gpg.data.sampling import Bounds, FDSteps, generate
@@ -26,7 +29,7 @@ from gpg.quadrotor import acoustics, bemt
 from gpg.quadrotor.generator import GENERATOR_VERSION, Generator, evaluate_batch
 from gpg.quadrotor.simple_model import SimpleModel, fit_to_generator
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import write_json
+from gpg.runs.common import report, write_json
 
 # data.generator keys, with their types; those not given keep the configs' defaults.
 _BEMT_KEYS = {"n_radial": int, "n_azimuth": int, "interference": bool, "wake_gain": float}
@@ -58,11 +61,32 @@ def dataset_key(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> 
     return f"{data_cfg.get('name', 'data')}-{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
 
 
-def _generate_pair(gen: Generator, data_cfg: Mapping[str, Any], simple: SimpleModel, progress):
+def _check_numbers(data_cfg: Mapping[str, Any]) -> None:
+    """The data config's counts, seeds and switches, each named when wrong."""
+    for key, lo in (("n_train", 1), ("n_test", 1), ("train_seed", 0), ("test_seed", 0)):
+        v = data_cfg.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise ValueError(f"data.{key} must be an integer >= {lo}, got {v!r}")
+    chunk = data_cfg.get("chunk", 512)
+    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+        raise ValueError(f"data.chunk must be a positive integer, got {chunk!r}")
+    for key in ("keep_raw", "noise"):
+        if not isinstance(data_cfg.get(key, True), bool):
+            raise ValueError(f"data.{key} must be true or false, got {data_cfg.get(key)!r}")
+
+
+def _generate_pair(
+    gen: Generator,
+    data_cfg: Mapping[str, Any],
+    vehicle_cfg: Mapping[str, Any],
+    simple: SimpleModel,
+    progress,
+):
     bounds = Bounds.from_config(data_cfg.get("bounds", {}))
     fd = FDSteps(**data_cfg.get("fd", {}))
     meta = {
         "name": data_cfg.get("name"),
+        "vehicle": dict(vehicle_cfg),  # the dataset names its vehicle (Surrogate.fit reads it)
         "generator": {
             "name": "gpg BEMT + tonal acoustics",
             "version": GENERATOR_VERSION,
@@ -123,6 +147,7 @@ def _ensure(
     progress: bool = True,
 ) -> tuple[Generator, Dataset, Dataset, Path, dict[str, Any]]:
     """:func:`ensure_datasets`, also returning the generator it built."""
+    _check_numbers(data_cfg)
     if data_cfg["train_seed"] == data_cfg["test_seed"]:
         raise ValueError("data.train_seed and data.test_seed must differ (held-out test set)")
     # Validate everything before any work or any file: bad bounds fail in milliseconds.
@@ -137,15 +162,31 @@ def _ensure(
         return gen, Dataset.load(where / "train"), Dataset.load(where / "test"), where, info
     t0 = time.perf_counter()
     simple = fit_to_generator(gen)
-    train, test = _generate_pair(gen, data_cfg, simple, progress)
+    train, test = _generate_pair(gen, data_cfg, vehicle_cfg, simple, progress)
     info.update(cached=False, generate_s=time.perf_counter() - t0)
-    tmp = where.with_name(where.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    train.save(tmp / "train")
-    test.save(tmp / "test")
-    shutil.rmtree(where, ignore_errors=True)
-    tmp.rename(where)  # the cache entry appears complete or not at all
+    _publish(where, train, test)
     return gen, train, test, where, info
+
+
+def _publish(where: Path, train: Dataset, test: Dataset) -> None:
+    """Write the pair into a temporary directory of this writer's own and rename it into place:
+    the cache entry appears complete or not at all, and concurrent writers of one entry do not
+    touch each other's files (the first rename wins; the others' data are identical)."""
+    where.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=where.parent, prefix=f".{where.name}.partial-"))
+    try:
+        train.save(tmp / "train")
+        test.save(tmp / "test")
+        os.chmod(tmp, 0o777 & ~umask())  # mkdtemp makes it private; the cache is shared
+        if where.exists() and not (where / "test.npz").is_file():
+            shutil.rmtree(where, ignore_errors=True)  # left by a crash of an older gpg
+        try:
+            os.rename(tmp, where)
+        except OSError:
+            if not ((where / "train.npz").is_file() and (where / "test.npz").is_file()):
+                raise  # not another writer's finished entry: a real failure
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
@@ -189,11 +230,11 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
                 name: med[m].round(5).tolist() for m, name in enumerate(train.output_names)
             }
     write_json(outdir / "results.json", {"config": cfg, **result})
-    print(f"dataset {info['key']}: {result['train']}")
+    report(f"dataset {info['key']}: {result['train']}")
     if info["generate_s"] is not None:
-        print(f"generated in {info['generate_s']:.1f} s; cached at {where}")
+        report(f"generated in {info['generate_s']:.1f} s; cached at {where}")
     else:
-        print(f"loaded from cache {where}")
+        report(f"loaded from cache {where}")
     return result
 
 

@@ -23,7 +23,7 @@ from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, SurrogateAero, Wind
 from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import machine, set_dispatch, write_json
+from gpg.runs.common import machine, report, set_dispatch, write_json
 from gpg.surrogate import Surrogate
 
 
@@ -171,13 +171,13 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
             "never" if leg["time_to_reach_s"] is None else f"{leg['time_to_reach_s']:.2f} s"
             for leg in f["legs"]
         )
-        print(
+        report(
             f"{name:11s} reach {reach}; overshoot "
             + ", ".join(f"{leg['overshoot_m']:.2f} m" for leg in f["legs"])
             + f"; altitude loss {f['altitude_loss_m']:.2f} m; mean rpm {f['mean_rpm']:.0f} "
             f"(std {f['rpm_std']:.0f}); in domain {100 * f['in_domain_fraction']:.0f} %"
         )
-    print(
+    report(
         f"one env: {speed['single_env_realtime_factor']:.0f}x real time; "
         f"{speed['batch_envs']} envs: {speed['batch_env_steps_per_s']:,.0f} env-steps/s"
     )

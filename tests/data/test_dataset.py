@@ -224,18 +224,73 @@ def test_csv_errors(rng, tmp_path, cols, units, match):
         from_csv(tmp_path / "e.csv", cols, units=units)
 
 
-def test_csv_bad_values(rng, tmp_path):
+def test_csv_bad_values_named_by_line_and_column(rng, tmp_path):
     rows = rng.uniform(1, 2, (4, 14)).astype(object)
-    rows[2, 9] = "nan"
+    rows[2, 9] = "nan"  # data row 3 = CSV line 4 (the header is line 1), column "fy"
+    rows[0, 0] = "inf"
     write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
-    with pytest.raises(ValueError, match=r"y_aero holds NaN or inf in 1 row\(s\): 2$"):
+    with pytest.raises(ValueError, match=r"line 2, column 'rpm_1': inf; line 4, column 'fy': nan$"):
         from_csv(tmp_path / "n.csv", COLUMNS)
+    rows[0, 0] = 1.0
     rows[2, 9] = "abc"
     write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
-    with pytest.raises(ValueError, match=r"line 4: non-numeric"):
+    with pytest.raises(ValueError, match=r"line 4, column 'fy': not a number \('abc'\)"):
         from_csv(tmp_path / "n.csv", COLUMNS)
     with pytest.raises(ValueError, match="does not exist"):
         from_csv(tmp_path / "missing.csv", COLUMNS)
+
+
+def test_csv_gradients_by_pattern_with_units(rng, tmp_path):
+    """42 gradient columns named from the CSV's own headers, converted per deg and per lbf."""
+    n = 4
+    grad_heads = [
+        f"d{COLUMNS[o]}_d{COLUMNS[i]}"
+        for o in ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+        for i in ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll")
+    ]
+    data = rng.uniform(1, 2, (n, 14 + 42))
+    write_csv(tmp_path / "p.csv", data, list(COLUMNS.values()) + grad_heads)
+    ds = from_csv(tmp_path / "p.csv", COLUMNS, units=UNITS, gradients="d{output}_d{input}")
+    j = 14 + grad_heads.index("dfz_dyaw_deg")
+    np.testing.assert_allclose(
+        ds.jac_aero[:, 2, 4], data[:, j] * 4.4482216152605 / (np.pi / 180), rtol=1e-14
+    )
+    j = 14 + grad_heads.index("dmx_drpm_2")
+    np.testing.assert_allclose(ds.jac_aero[:, 3, 1], data[:, j], rtol=1e-15)
+    # Schema names in the pattern work too; a header the pattern names but the file lacks fails.
+    write_csv(tmp_path / "q.csv", data[:, :20], list(COLUMNS.values()) + grad_heads[:6])
+    with pytest.raises(ValueError, match=r"CSV columns \[.*'dfx_droll_deg'.*not in q.csv"):
+        from_csv(tmp_path / "q.csv", COLUMNS, gradients="d{output}_d{input}")
+    with pytest.raises(ValueError, match="bad gradients pattern"):
+        from_csv(tmp_path / "p.csv", COLUMNS, gradients="d{out}_d{input}")
+    with pytest.raises(ValueError, match="gives the same header twice"):
+        from_csv(tmp_path / "p.csv", COLUMNS, gradients="d{output}")
+
+
+def test_csv_records_vehicle_and_bounds(rng, tmp_path):
+    write_csv(tmp_path / "v.csv", rng.uniform(1, 2, (3, 14)), list(COLUMNS.values()))
+    bounds = {"rpm": [0.0, 9000.0], "airspeed": [0.0, 15.0]}
+    ds = from_csv(tmp_path / "v.csv", COLUMNS, vehicle="minimal_example", bounds=bounds)
+    assert ds.meta["vehicle"]["name"] == "minimal_example" and ds.meta["bounds"] == bounds
+    ds.save(tmp_path / "saved")
+    assert Dataset.load(tmp_path / "saved").meta["vehicle"]["mass"] == 0.5
+    with pytest.raises(ValueError, match=r"bounds.rpm is inverted"):
+        from_csv(tmp_path / "v.csv", COLUMNS, bounds={"rpm": [10.0, 0.0]})
+    with pytest.raises(ValueError, match="no vehicle file 'no_such_quad'"):
+        from_csv(tmp_path / "v.csv", COLUMNS, vehicle="no_such_quad")
+
+
+def test_saved_files_are_not_private(rng, tmp_path):
+    """Results and datasets get a plain file's permissions, not mkstemp's 0600."""
+    import os
+
+    from gpg._io import umask
+
+    npz, side = Dataset(x=rng.uniform(0, 1, (3, 8)), y_aero=rng.normal(size=(3, 6))).save(
+        tmp_path / "d"
+    )
+    for p in (npz, side):
+        assert os.stat(p).st_mode & 0o777 == 0o666 & ~umask()
 
 
 def test_generator_names_match_the_schema():

@@ -125,7 +125,7 @@ def test_surrogate_and_simple_share_the_interface(vehicle, simple):
         jac_aero=np.asarray(J),
         meta={"simple_model": {"P_F": 5.3e-7, "T_z": 8.4e-9}},
     )
-    sur = Surrogate.fit(ds, "gpg", {"hyper": {"fit": False}})
+    sur = Surrogate.fit(ds, "gpg", {"hyper": {"fit": False}}, vehicle=vehicle)
     state = eqx.tree_at(
         lambda s: s.q,
         State.hover([0, 0, -5.0], 3500.0),

@@ -47,6 +47,9 @@ def test_unknown_vehicle_lists_known():
         ),
         (lambda c: c["motor"].update(rpm_min=8000.0), r"rpm_min < rpm_max"),
         (lambda c: c["rotor"].update(hub_height_mm=5), r"vehicle.rotor has unknown keys"),
+        (lambda c: c["layout"].update(positions=[[0, 0, 0]] * 4), r"either arm .* or positions"),
+        (lambda c: c["motor"].update(time_constant=-1.0), r"time_constant must be >= 0"),
+        (lambda c: c.pop("rotor"), r"microphones are placed in rotor radii"),
     ],
 )
 def test_bad_vehicle_config(cfg, edit, match):
@@ -54,3 +57,46 @@ def test_bad_vehicle_config(cfg, edit, match):
     edit(bad)
     with pytest.raises(ValueError, match=match):
         Vehicle.from_config(bad)
+
+
+def test_minimal_vehicle_file_loads_and_the_generator_refuses_it():
+    """What M and flight need, nothing more: the generator names what it would lack."""
+    from gpg.quadrotor.generator import Generator
+
+    v = load_vehicle("minimal_example")
+    assert v.rotor is None and v.mic_positions is None and v.air_density is None
+    assert float(v.mass) == 0.5 and float(v.gravity) == 9.81
+    np.testing.assert_allclose(np.hypot(*np.asarray(v.positions)[:, :2].T), 0.17)
+    assert float(v.thrust_coefficient) == 6.1e-8 and float(v.torque_coefficient) == 9.0e-10
+    assert v.generator_missing == (
+        "rotor",
+        "airfoil",
+        "microphones",
+        "drag_area",
+        "air_density",
+        "speed_of_sound",
+    )
+    with pytest.raises(ValueError, match=r"cannot drive the built-in generator: it lacks rotor"):
+        Generator(v)
+
+
+def test_any_path_loads(cfg, tmp_path):
+    """load_vehicle reads a file at any path, whatever its suffix; explicit hub positions."""
+    mini = {
+        "name": "tiny",
+        "mass": 0.3,
+        "inertia": [1e-3, 1e-3, 2e-3],
+        "layout": {
+            "positions": [[-0.1, 0.1, 0], [-0.1, -0.1, 0], [0.1, -0.1, 0], [0.1, 0.1, 0]],
+            "spin": [1, -1, 1, -1],
+        },
+        "motor": {"rpm_min": 0, "rpm_max": 12000},
+    }
+    path = tmp_path / "tiny.vehicle"
+    path.write_text(yaml.safe_dump(mini))
+    v = load_vehicle(path)
+    assert v.name == "tiny" and float(v.motor_time_constant) == 0.0
+    assert v.thrust_coefficient is None
+    (tmp_path / "broken.yaml").write_bytes(b"\xff\xfe: [")
+    with pytest.raises(ValueError, match="is not valid YAML"):
+        load_vehicle(tmp_path / "broken.yaml")

@@ -20,6 +20,7 @@ def config(tmp_path, *extra):
     return compose_plain("compare", [*overrides, *extra])
 
 
+@pytest.mark.slow
 def test_whole_comparison_on_smoke(smoke_compare):
     out, res = smoke_compare
     saved = json.loads((out / "results.json").read_text())
@@ -158,3 +159,38 @@ def test_cli_errors_are_one_clear_message(tmp_path):
     assert (
         p.stderr.strip().splitlines()[-1] == "error: dataset file /no/such/train.npz does not exist"
     )
+
+
+def test_cli_run_logs_its_table(smoke_cache, tmp_path):
+    """A successful CLI run: results files readable by others, and the table in compare.log."""
+    import os
+
+    from gpg._io import umask
+
+    run = tmp_path / "run"
+    p = cli(
+        "+model=gps_1x",
+        "data=smoke",
+        "data.chunk=32",
+        f"cache_dir={smoke_cache}",
+        "n_queries=5",
+        "figures=false",
+        f"hydra.run.dir={run}",
+        cwd=ROOT,
+    )
+    assert p.returncode == 0, p.stderr[-2000:]
+    log = (run / "compare.log").read_text()
+    assert "| model | train s |" in log and "| gps_1x |" in log
+    for name in ("results.json", "results.md"):
+        assert os.stat(run / name).st_mode & 0o777 == 0o666 & ~umask()
+
+
+def test_failed_cli_run_leaves_no_run_directory(tmp_path):
+    run = tmp_path / "run"
+    p = cli(
+        "dataset.train=/no/such/train",
+        "dataset.test=/no/such/test",
+        f"hydra.run.dir={run}",
+        cwd=ROOT,
+    )
+    assert p.returncode == 2 and not run.exists()

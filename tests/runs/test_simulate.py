@@ -11,7 +11,6 @@ def test_simulate_run(smoke_cache, tmp_path):
         "data=smoke",
         "data.chunk=32",
         f"cache_dir={smoke_cache}",
-        "model.partition.bins=4",
         "flight.leg_time=4.0",
         "flight.settle_time=2.0",
         "rollouts.n_envs=16",
