@@ -1,5 +1,10 @@
 """Shared glue for the Hydra entry points: plain values in, the run directory out, and one
-clear message (no traceback) for a bad input, a lack of memory or a Ctrl-C."""
+clear message (no traceback) for a bad input, a lack of memory or a Ctrl-C.
+
+The entry points compute in float64 throughout (the library fits in float64 whatever the
+setting; this also makes their predictions float64): the process-wide choice is theirs to make,
+not the library's (docs/design.md, "Dtype policy").
+"""
 
 from __future__ import annotations
 
@@ -9,12 +14,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import jax
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from gpg import _interrupt
 from gpg.checkpoint import CheckpointError
-from gpg.memory import InsufficientMemory
+from gpg.linalg.memory import InsufficientMemory
+
+jax.config.update("jax_enable_x64", True)
 
 
 def plain(cfg: DictConfig) -> dict[str, Any]:

@@ -3,7 +3,6 @@
 import hydra
 from omegaconf import DictConfig
 
-import gpg  # noqa: F401  (float64)
 from experiments._hydra import guarded, plain, run_dir
 from gpg.runs import bench
 

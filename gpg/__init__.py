@@ -1,17 +1,23 @@
 """gpg: gradient-enhanced partitioned Gaussian processes for quadrotor aerodynamics.
 
-Importing gpg turns on JAX's 64-bit mode: every fit is done in float64 (the Gram matrices of
-gradient-enhanced GPs are too ill-conditioned for float32). Prediction can be cast to float32
-explicitly where that is measured to be good enough.
+Importing gpg changes no global state (no JAX flag, no matplotlib backend, no signal handler).
+Fitting runs in float64 whatever the caller's setting (inside ``jax.enable_x64(True)``); a fitted
+:class:`Surrogate` predicts in float64 in a float64 program and, after
+``Surrogate.astype(jnp.float32)``, in float32 in a float32 one (docs/design.md, "Dtype policy").
 """
 
-import jax
+from gpg import checkpoint, models
+from gpg._version import __version__
+from gpg.gp import ExactGP, Hyper, kernels
+from gpg.surrogate import Prediction, Surrogate
 
-jax.config.update("jax_enable_x64", True)
-
-from gpg import checkpoint, kernels, models  # noqa: E402
-from gpg.gp import ExactGP, Hyper  # noqa: E402
-from gpg.surrogate import Prediction, Surrogate  # noqa: E402
-
-__all__ = ["ExactGP", "Hyper", "Prediction", "Surrogate", "checkpoint", "kernels", "models"]
-__version__ = "0.1.0"
+__all__ = [
+    "ExactGP",
+    "Hyper",
+    "Prediction",
+    "Surrogate",
+    "__version__",
+    "checkpoint",
+    "kernels",
+    "models",
+]

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import gpg
+from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
 FORMAT_VERSION = 2  # 2: noise, output scales, hybrid and PIC models
@@ -182,7 +182,7 @@ def save(path: str | Path, surrogate, *, overwrite: bool = False) -> Path:
     meta = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
-        "gpg_version": gpg.__version__,
+        "gpg_version": __version__,
         "model_name": surrogate.model_name,
         "config": surrogate.config,
         "output_names": list(surrogate.output_names),
@@ -237,7 +237,7 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     if meta.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(
             f"{path} has checkpoint format version {meta.get('format_version')}; "
-            f"this gpg ({gpg.__version__}) reads version {FORMAT_VERSION}"
+            f"this gpg ({__version__}) reads version {FORMAT_VERSION}"
         )
     return meta
 

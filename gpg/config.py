@@ -20,10 +20,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-SCHEMES = ("slab", "kdtree")
-MEAN_FORMS = ("exact", "paper")
-ROUTES = ("global", "direct")
-DTYPES = ("float64", "float32")
+from gpg.gp.partition import SCHEMES
+from gpg.gp.schur import check_options
+
+DTYPES = ("float64", "float32")  # storage of the variance factors
 
 
 def _int(where: str, v: Any, lo: int = 0) -> None:
@@ -102,8 +102,14 @@ class PartitionConfig:
     def __post_init__(self):
         _choice("partition.scheme", self.scheme, SCHEMES)
         _int("partition.bins", self.bins, 1)
-        if self.points_per_bin is not None:
-            _int("partition.points_per_bin", self.points_per_bin, 1)
+        if self.points_per_bin is not None and (
+            isinstance(self.points_per_bin, bool)
+            or not isinstance(self.points_per_bin, int)
+            or self.points_per_bin < 1
+        ):
+            raise ValueError(
+                f"partition.points_per_bin must be a positive integer, got {self.points_per_bin!r}"
+            )
         _int("partition.dim", self.dim)
 
     def n_bins(self, n_points: int) -> int:
@@ -181,8 +187,7 @@ class ModelConfig:
 
     def __post_init__(self):
         _choice("variance_dtype", self.variance_dtype, DTYPES)
-        _choice("mean", self.mean, MEAN_FORMS)
-        _choice("route", self.route, ROUTES)
+        check_options(self.mean, self.route)
 
     @classmethod
     def resolve(

@@ -38,11 +38,14 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from gpg import models
+from gpg._dtype import float64
+from gpg.config import ModelConfig
+from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Normalizer, Training, prepare, simple_model_for
-from gpg.data.sampling import Bounds
-from gpg.predictor import Predictor
-from gpg.quadrotor.frames import matvec, to_airflow_frame
+from gpg.gp.predictor import Predictor
+from gpg.quadrotor.dynamics import AeroModel, Wrench
+from gpg.quadrotor.frames import euler_from_R, matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle, load_vehicle
 
@@ -85,6 +88,7 @@ class Surrogate(eqx.Module):
     hover_speed: float = eqx.field(static=True, default=HOVER_SPEED)
 
     @classmethod
+    @float64
     def fit(
         cls,
         dataset: Dataset,
@@ -114,7 +118,7 @@ class Surrogate(eqx.Module):
         cfg = models.resolve_config(model, config)
         box = None if bounds is None else Bounds.from_config(bounds).arrays()
         simple = simple_model_for(dataset, dataset_vehicle(dataset, vehicle)) if residual else None
-        training = prepare(dataset, simple, s=cfg["hyper"]["grad_noise_scale"])
+        training = prepare(dataset, simple)
         built = models.build(model, training, cfg)
         return cls.assemble(
             built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
@@ -127,7 +131,7 @@ class Surrogate(eqx.Module):
         training: Training,
         dataset: Dataset,
         model_name: str,
-        config: Mapping[str, Any],
+        config: ModelConfig | Mapping[str, Any],
         *,
         hover_speed: float = HOVER_SPEED,
         box: tuple[np.ndarray, np.ndarray] | None = None,
@@ -146,7 +150,9 @@ class Surrogate(eqx.Module):
             box_hi=jnp.asarray(box_hi),
             output_names=training.output_names,
             model_name=model_name,
-            config_json=json.dumps(config, sort_keys=True),
+            config_json=json.dumps(
+                config.to_dict() if isinstance(config, ModelConfig) else config, sort_keys=True
+            ),
             hover_speed=hover_speed,
         )
 
@@ -231,6 +237,25 @@ class Surrogate(eqx.Module):
     def nbytes(self) -> int:
         return self.model.nbytes()
 
+    def astype(self, dtype) -> Surrogate:
+        """A copy with every float array in ``dtype``; queries are then computed in ``dtype``.
+
+        A fitted surrogate holds float64 arrays. For float32 programs (``jax_enable_x64`` off:
+        JAX would otherwise convert the float64 arrays at every call) or float32 rollouts, use
+        ``sur.astype(jnp.float32)`` once; its accuracy against float64 is measured by
+        ``experiments/bench.py`` (README Measurements). Fitting always runs in float64.
+        """
+        dtype = jnp.dtype(dtype)
+        if not jnp.issubdtype(dtype, jnp.floating):
+            raise ValueError(f"dtype must be a floating type, got {dtype}")
+
+        def cast(x):
+            if isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating):
+                return jnp.asarray(x, dtype=dtype)
+            return x
+
+        return jax.tree.map(cast, self)
+
 
 def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
     """The input box the training data were meant to cover: the sampling bounds recorded by
@@ -310,7 +335,10 @@ def _require_finite(name: str, a) -> None:
 def predict_state(
     sur: Surrogate, rpm: Array, euler: Array, v_air: Array, with_var: bool
 ) -> Prediction:
-    """The un-jitted pipeline for one state (see module docstring); jit, vmap or scan it."""
+    """The un-jitted pipeline for one state (see module docstring); jit, vmap or scan it.
+    The state is computed in the surrogate's float dtype (:meth:`Surrogate.astype`)."""
+    dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)  # float32 where x64 is off
+    rpm, euler, v_air = (jnp.asarray(a).astype(dt) for a in (rpm, euler, v_air))
     euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
     x_h = jnp.concatenate([rpm, euler_h, speed[None]])
     span = sur.box_hi - sur.box_lo
@@ -340,6 +368,17 @@ def predict_state(
     return Prediction(
         force=force, torque=torque, noise=y[6:], variance=variance, in_domain=in_domain
     )
+
+
+class SurrogateAero(AeroModel):
+    """A :class:`Surrogate` as the aerodynamics of :class:`gpg.quadrotor.dynamics.Quadrotor`
+    (mean prediction, world frame); body rates are not among its inputs."""
+
+    surrogate: Surrogate
+
+    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
+        p = predict_state(self.surrogate, rpm, euler_from_R(R_WB), v_air, False)
+        return Wrench(p.force, p.torque, p.noise, p.in_domain)
 
 
 @lru_cache(maxsize=32)

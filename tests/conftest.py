@@ -1,4 +1,5 @@
-"""Shared test set-up: float64 (importing gpg enables it), fixed seeds, and the physics fixtures
+"""Shared test set-up: float64 (set here for the whole session: the library leaves it to the
+caller), fixed seeds, and the physics fixtures
 that are compiled once per session (the generator takes seconds to compile)."""
 
 import jax
@@ -6,12 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import gpg  # noqa: F401  (enables jax_enable_x64 before any test builds an array)
 from gpg.quadrotor import bemt
 from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.generator import Generator, evaluate, jacobian
 from gpg.quadrotor.simple_model import fit_to_generator
 from gpg.quadrotor.vehicle import load_vehicle
+
+jax.config.update("jax_enable_x64", True)  # before any test builds an array
 
 
 @pytest.fixture
@@ -63,8 +65,8 @@ def jac_of(gen):
 @pytest.fixture(scope="session")
 def smoke_cache(tmp_path_factory):
     """A dataset cache holding the smoke train/test pair, generated once per session."""
+    from gpg.data.cache import ensure_datasets
     from gpg.runs.common import conf
-    from gpg.runs.generate_data import ensure_datasets
 
     cache = tmp_path_factory.mktemp("smoke_cache")
     data = conf("smoke", "data")

@@ -7,8 +7,9 @@ from typing import Any
 
 import numpy as np
 
+from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
-from gpg.data.sampling import Bounds, FDSteps, latin_hypercube, raw_samples
+from gpg.data.sampling import FDSteps, latin_hypercube, raw_samples
 from gpg.quadrotor.vehicle import vehicle_config
 
 LO, HI = Bounds().arrays()

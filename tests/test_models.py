@@ -9,6 +9,7 @@ import pytest
 
 from gpg import models
 from gpg.data.preprocess import prepare, simple_model_for
+from gpg.names import GRAD_DIMS
 from tests.helpers import synthetic_dataset
 
 FAST = {
@@ -28,7 +29,7 @@ def training(request):
 
 
 # The FAST lengthscale makes the far sets correlated: the Schur models rightly warn.
-pytestmark = pytest.mark.filterwarnings("ignore::gpg.schur.SchurAssumptionWarning")
+pytestmark = pytest.mark.filterwarnings("ignore::gpg.gp.schur.SchurAssumptionWarning")
 
 
 @pytest.mark.parametrize("name", models.NAMES)
@@ -91,7 +92,7 @@ def test_unknown_names_and_keys(training):
 def test_missing_data_is_named(training):
     from dataclasses import replace
 
-    no_grad = replace(training, dY=None, grad_noise=None)
+    no_grad = replace(training, dY=None)
     with pytest.raises(
         ValueError, match=r"model 'gpgs_schur' needs gradients, which the dataset lacks"
     ):
@@ -113,7 +114,7 @@ def test_predict_traces_once(training, caplog):
 def test_kdtree_and_paper_mean_options(training):
     cfg = {**FAST, "partition": {"scheme": "kdtree", "bins": 4}, "mean": "paper", "route": "direct"}
     built = models.build("gpgs_schur", training, cfg)
-    assert built.model.partition.scheme == "kdtree" and built.config["mean"] == "paper"
+    assert built.model.partition.scheme == "kdtree" and built.config.mean == "paper"
     # The direct route (a factorisation of K̄_ff per bin) and the global one (one of K̄) give
     # the same predictor.
     ref = models.build("gpgs_schur", training, {**cfg, "route": "global"})
@@ -128,8 +129,7 @@ def test_kdtree_and_paper_mean_options(training):
 def test_hybrid_mean_is_exact_and_variance_an_upper_bound(training):
     """GP-G-S-Hybrid: ExactGP's mean to 1e-10, the dense near-set variance of the query's bin,
     and never below the exact GP-G variance."""
-    from gpg import kernels
-    from gpg.gp import stack_targets
+    from gpg.gp import kernels, stack_targets
 
     cfg = {**FAST, "hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-3}}
     hyb = models.build("gpgs_hybrid", training, {**cfg, "variance_dtype": "float64"})
@@ -140,7 +140,7 @@ def test_hybrid_mean_is_exact_and_variance_an_upper_bound(training):
     np.testing.assert_allclose(m, me, rtol=1e-10, atol=1e-10 * np.abs(me).max())
     assert np.all(np.asarray(v) >= np.asarray(ve) - 1e-10)
     # Dense near-set formula σ − k_qnᵀ K̄_nn⁻¹ k_qn in NumPy, bin by bin.
-    h, X, dims = hyb.hyper, training.X, models.GRAD_DIMS
+    h, X, dims = hyb.hyper, training.X, GRAD_DIMS
     bins = np.asarray(hyb.model.partition.lookup_batch(Xq))
     for q, b in enumerate(bins):
         Xn = X[hyb.near.near[b]]
@@ -176,7 +176,7 @@ def test_bad_sizes_fail_before_training(training):
 
 
 def test_memory_is_checked_before_training(training, monkeypatch):
-    from gpg import memory
+    from gpg.linalg import memory
 
     monkeypatch.setattr(memory, "available_bytes", lambda: 1000)
     fitted = []
@@ -196,8 +196,8 @@ def test_lengthscale_scale(training):
 
 def test_points_per_bin_scales_bins_with_n():
     cfg = models.resolve_config("gpgs_hybrid")
-    assert cfg["partition"]["scheme"] == "kdtree" and cfg["variance_dtype"] == "float32"
-    assert [models.n_bins(cfg, n) for n in (40, 1000, 5000)] == [1, 7, 33]
-    assert models.n_bins(models.resolve_config("gpgs"), 5000) == 10
+    assert cfg.partition.scheme == "kdtree" and cfg.variance_dtype == "float32"
+    assert [cfg.partition.n_bins(n) for n in (40, 1000, 5000)] == [1, 7, 33]
+    assert models.resolve_config("gpgs").partition.n_bins(5000) == 10
     with pytest.raises(ValueError, match="partition.points_per_bin must be a positive integer"):
         models.resolve_config("gpgs", {"partition": {"points_per_bin": 0}})

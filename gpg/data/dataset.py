@@ -1,4 +1,4 @@
-"""The dataset file: one ``.npz`` of arrays plus a JSON sidecar (DESIGN "Dataset file").
+"""The dataset file: one ``.npz`` of arrays plus a JSON sidecar (docs/design.md, "Dataset file").
 
 Arrays: ``x (N, 8)``, ``y_aero (N, 6)``, ``jac_aero (N, 6, 7)``, ``y_noise (N, 3)``,
 ``jac_noise (N, 3, 7)``, and the raw finite-difference samples ``x_raw (8N, 8)``,
@@ -26,20 +26,9 @@ import numpy as np
 
 from gpg._checks import require_finite, require_shape
 from gpg._io import atomic_write
+from gpg.names import AERO, GRAD_INPUTS, INPUTS, NOISE, UNITS
 
 SCHEMA_VERSION = 1
-INPUTS = ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll", "airspeed")
-GRAD_INPUTS = INPUTS[:7]
-AERO = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
-NOISE = ("L1", "L2", "L3")
-UNITS = {
-    **{r: "rpm" for r in INPUTS[:4]},
-    **{a: "rad" for a in ("yaw", "pitch", "roll")},
-    "airspeed": "m/s",
-    **{f: "N" for f in AERO[:3]},
-    **{m: "N*m" for m in AERO[3:]},
-    **{n: "dB" for n in NOISE},
-}
 _ARRAYS = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "x_raw", "y_raw")
 _OPTIONAL = {
     "noise": ("y_noise",),
@@ -364,7 +353,7 @@ def from_csv(
         Vehicle.from_config(cfg)  # a broken vehicle file fails here, before the CSV is read
         extra_meta["vehicle"] = cfg
     if bounds is not None:
-        from gpg.data.sampling import Bounds
+        from gpg.data.bounds import Bounds
 
         Bounds.from_config(bounds)
         extra_meta["bounds"] = {k: list(v) for k, v in bounds.items()}

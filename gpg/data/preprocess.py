@@ -22,11 +22,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg.data.dataset import Dataset
-from gpg.gp import gradient_noise
+from gpg.names import GRAD_DIMS
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
-
-GRAD_DIMS = tuple(range(7))  # rpm and Euler angles; no gradient along airspeed
 
 
 class Normalizer(eqx.Module):
@@ -92,23 +90,18 @@ class Normalizer(eqx.Module):
 class Training:
     """The GP's view of a dataset: normalised residual targets and what produced them.
 
-    ``X`` (N, 8), ``Y`` (N, M), ``dY`` (N, M, 7) or None, ``grad_noise`` the paper's ``λ²``
-    (7,) or None, ``X_raw``/``Y_raw`` the normalised raw 8X samples or None.
+    ``X`` (N, 8), ``Y`` (N, M), ``dY`` (N, M, 7) or None, ``X_raw``/``Y_raw`` the normalised
+    raw 8X samples or None.
     """
 
     X: np.ndarray
     Y: np.ndarray
     dY: np.ndarray | None
-    grad_noise: np.ndarray | None
     X_raw: np.ndarray | None
     Y_raw: np.ndarray | None
     normalizer: Normalizer
     simple: SimpleModel | None
     output_names: tuple[str, ...]
-
-    @property
-    def has_gradients(self) -> bool:
-        return self.dY is not None
 
 
 class FittedCoefficientsWarning(UserWarning):
@@ -170,19 +163,14 @@ def residuals(
 def prepare(
     ds: Dataset,
     simple: SimpleModel | None,
-    *,
-    s: float = 0.3,
-    use_gradients: bool = True,
 ) -> Training:
-    """Residuals, normalisation and ``λ²`` for ``ds``; the statistics come from its base points."""
+    """Residuals and normalisation for ``ds``; the statistics come from its base points (the
+    gradient noise ``λ²`` is the model's: :func:`gpg.models.initial_hyper`)."""
     y, J, y_raw = residuals(ds, simple)
     norm = Normalizer.fit(ds.x, y)
     X = np.asarray(norm.x(ds.x))
     Y = np.asarray(norm.y(y))
-    dY = lam = None
-    if use_gradients and J is not None:
-        dY = np.asarray(norm.grad(J))
-        lam = np.asarray(gradient_noise(dY, s))
+    dY = None if J is None else np.asarray(norm.grad(J))
     X_raw = Y_raw = None
     if ds.has_raw:
         X_raw = np.asarray(norm.x(ds.x_raw))
@@ -191,7 +179,6 @@ def prepare(
         X=X,
         Y=Y,
         dY=dY,
-        grad_noise=lam,
         X_raw=X_raw,
         Y_raw=Y_raw,
         normalizer=norm,

@@ -19,49 +19,10 @@ from typing import Any
 import numpy as np
 from scipy.stats import qmc
 
+from gpg._dtype import float64
+from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
 from gpg.quadrotor.generator import Generator, evaluate_batch
-
-
-@dataclass(frozen=True)
-class Bounds:
-    """Sampling box; angles in degrees (config keys end in ``_deg``), rpm, m/s."""
-
-    rpm: tuple[float, float] = (0.0, 7000.0)
-    yaw_deg: tuple[float, float] = (-90.0, 90.0)
-    pitch_deg: tuple[float, float] = (-60.0, 60.0)
-    roll_deg: tuple[float, float] = (-90.0, 90.0)
-    airspeed: tuple[float, float] = (0.0, 20.0)
-
-    def __post_init__(self):
-        for name, (lo, hi) in asdict(self).items():
-            if not (math.isfinite(lo) and math.isfinite(hi)):
-                raise ValueError(f"bounds.{name} must be finite, got ({lo}, {hi})")
-            if not lo < hi:
-                raise ValueError(f"bounds.{name} is inverted or empty: lower {lo} >= upper {hi}")
-        if self.rpm[0] < 0 or self.airspeed[0] < 0:
-            raise ValueError("bounds.rpm and bounds.airspeed must start at >= 0")
-
-    @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> Bounds:
-        unknown = sorted(set(cfg) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise ValueError(
-                f"unknown bounds keys {unknown}; valid: {list(cls.__dataclass_fields__)}"
-            )
-        kw = {}
-        for k, v in cfg.items():
-            if not isinstance(v, list | tuple) or len(v) != 2:
-                raise ValueError(f"bounds.{k} must be [lower, upper], got {v!r}")
-            kw[k] = (float(v[0]), float(v[1]))
-        return cls(**kw)
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper bounds of ``x`` (8,) in file units (rpm, rad, m/s)."""
-        rad = math.pi / 180.0
-        lo = [self.rpm[0]] * 4 + [a[0] * rad for a in (self.yaw_deg, self.pitch_deg, self.roll_deg)]
-        hi = [self.rpm[1]] * 4 + [a[1] * rad for a in (self.yaw_deg, self.pitch_deg, self.roll_deg)]
-        return np.array(lo + [self.airspeed[0]]), np.array(hi + [self.airspeed[1]])
 
 
 def latin_hypercube(n: int, bounds: Bounds, seed: int) -> np.ndarray:
@@ -102,11 +63,12 @@ def raw_samples(x: np.ndarray, fd: FDSteps) -> tuple[np.ndarray, np.ndarray]:
     return pert.reshape(-1, 8), h
 
 
+@float64
 def generate(
     gen: Generator,
     n: int,
     *,
-    bounds: Bounds = Bounds(),
+    bounds: Bounds = Bounds(),  # noqa: B008  (frozen: one shared default is safe)
     seed: int = 0,
     gradients: str = "fd",
     fd: FDSteps = FDSteps(),

@@ -4,8 +4,9 @@ World frame x forward, y right, z down; body frame FRD; gravity ``+g e_z``. Stat
 and velocity (world), attitude quaternion ``q`` (body to world, scalar first), body rates ``ω``
 and rotor speeds (rpm). Rotor speeds follow their commands with a first-order lag and are
 clipped to the motor range. The aerodynamic force and moment come from an :class:`AeroModel`:
-the paper's simplified model ``M`` (:class:`SimpleAero`) or a GP :class:`~gpg.Surrogate`
-(:class:`SurrogateAero`), behind one interface, so the same controller flies both.
+the paper's simplified model ``M`` (:class:`SimpleAero`) or a GP surrogate
+(:class:`gpg.surrogate.SurrogateAero`: the physics never imports the learning layer), behind
+one interface, so the same controller flies both.
 
 Integration is classical RK4 inside ``lax.scan``. By default the aerodynamic wrench is
 evaluated once per step at its start and held over the four stages (a zero-order hold at the
@@ -22,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from gpg.quadrotor.frames import euler_from_R, matvec
+from gpg.quadrotor.frames import matvec
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 
@@ -38,11 +39,13 @@ class State(eqx.Module):
     rpm: Float[Array, " 4"]
 
     @classmethod
-    def hover(cls, p, rpm) -> State:
+    def hover(cls, p, rpm, euler=(0.0, 0.0, 0.0)) -> State:
+        """At rest at ``p`` (m) with rotor speeds ``rpm`` and attitude ``euler`` = (yaw, pitch,
+        roll) in rad (level by default), e.g. for the random resets of RL environments."""
         return cls(
             p=jnp.asarray(p, dtype=float),
             v=jnp.zeros(3),
-            q=jnp.array([1.0, 0.0, 0.0, 0.0]),
+            q=quat_from_euler(jnp.asarray(euler, dtype=float)),
             w=jnp.zeros(3),
             rpm=jnp.broadcast_to(jnp.asarray(rpm, dtype=float), (4,)),
         )
@@ -124,18 +127,6 @@ class SimpleAero(AeroModel):
     def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
         F, tau = self.model.wrench_body(rpm)
         return Wrench(matvec(R_WB, F), matvec(R_WB, tau), jnp.zeros(0), jnp.asarray(True))
-
-
-class SurrogateAero(AeroModel):
-    """A GP surrogate (mean prediction); body rates are not among its inputs."""
-
-    surrogate: eqx.Module  # gpg.Surrogate (not imported: the surrogate module imports this one)
-
-    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
-        from gpg.surrogate import predict_state
-
-        p = predict_state(self.surrogate, rpm, euler_from_R(R_WB), v_air, False)
-        return Wrench(p.force, p.torque, p.noise, p.in_domain)
 
 
 class Wind(eqx.Module):

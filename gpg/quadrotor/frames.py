@@ -1,8 +1,8 @@
 """Rotations: body attitude, Euler angles and the airflow-aligned frame H.
 
-Conventions (DESIGN "Conventions"): world/dataset frame x forward, y right, z down; body frame
-FRD; ``R_WB = Rz(yaw) @ Ry(pitch) @ Rx(roll)``; Euler vectors are ordered ``(yaw, pitch, roll)``
-as in the input vector ``x = (r1..r4, yaw, pitch, roll, airspeed)``.
+Conventions (docs/design.md, "Conventions"): world/dataset frame x forward, y right, z down;
+body frame FRD; ``R_WB = Rz(yaw) @ Ry(pitch) @ Rx(roll)``; Euler vectors are ordered
+``(yaw, pitch, roll)`` as in the input vector ``x = (r1..r4, yaw, pitch, roll, airspeed)``.
 
 The airflow frame ``H`` (paper, Section "Real-time Simulation") has its x axis along the
 airspeed vector ``v_air = v_vehicle − v_wind``, so that in ``H`` every query looks like a dataset

@@ -18,6 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 from tqdm.auto import tqdm
 
 from gpg import _interrupt
+from gpg._dtype import float64
 from gpg.quadrotor import acoustics, bemt
 from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.vehicle import Vehicle
@@ -26,8 +27,6 @@ from gpg.quadrotor.vehicle import Vehicle
 GENERATOR_VERSION = "1"
 N_INPUTS = 8
 N_GRAD = 7  # gradients exist for rpm and Euler angles, not for airspeed
-INPUT_NAMES = ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll", "airspeed")
-OUTPUT_NAMES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz", "L1", "L2", "L3")
 
 
 class Generator(eqx.Module):
@@ -69,6 +68,7 @@ def _batch_jac(gen: Generator, X: Array) -> tuple[Array, Array]:
     return jax.vmap(partial(evaluate, gen))(X), jax.vmap(partial(jacobian, gen))(X)
 
 
+@float64
 def evaluate_batch(
     gen: Generator,
     X: Float[ArrayLike, "N 8"],

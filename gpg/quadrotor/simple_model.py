@@ -6,7 +6,7 @@ Jacobian ``J_M`` with respect to ``x_M = (r1..r4, yaw, pitch, roll)`` by ``jax.j
 
 The allocation matrix ``A`` (``(ΣT, τx, τy, τz) = A r²``) is derived from the hub positions
 and spin directions rather than typed in. The paper prints identical sign patterns for ``τx``
-and ``τz``, which makes ``A`` singular (pitfall 3 in DESIGN); with the diagonal pairs (r1, r3)
+and ``τz``, which makes ``A`` singular (docs/design.md, pitfall 3); with the diagonal pairs (r1, r3)
 and (r2, r4) spinning alike, ``τz ∝ (−r1² + r2² − r3² + r4²)`` and ``A`` is invertible.
 
 ``P_F`` (N/rpm²) and ``T_z`` (N·m/rpm²) are least-squares fits to the generator's own hover
@@ -21,6 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg._dtype import float64
+from gpg.quadrotor import bemt
 from gpg.quadrotor.frames import R_WB, matvec
 from gpg.quadrotor.vehicle import Vehicle
 
@@ -46,7 +48,7 @@ class SimpleModel(eqx.Module):
     def allocation(self) -> Float[Array, "4 4"]:
         """``A`` with ``(ΣT, τx, τy, τz) = A r²``; thrust ``T_i`` acts along ``−z_B`` at ``p_i``."""
         p = self.positions
-        ones = jnp.ones(4)
+        ones = jnp.ones(4, dtype=self.P_F.dtype)
         # p × (0, 0, −T) = (−p_y T, p_x T, 0); reaction torque −d T_z r² about z_B.
         return jnp.stack(
             [self.P_F * ones, -self.P_F * p[:, 1], self.P_F * p[:, 0], -self.T_z * self.spin]
@@ -98,21 +100,28 @@ def fit_coefficients(
     )
 
 
+def hover_sweep(generator, rpm: Float[ArrayLike, " S"]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-rotor thrust (N) and torque (N·m), each (S, 4), of ``generator`` (a
+    :class:`gpg.quadrotor.generator.Generator`) at hover (level, zero airspeed), all four
+    rotors at each rpm of ``rpm``."""
+
+    @jax.jit
+    def one(r):
+        res = bemt.aero(generator.vehicle, generator.bemt, jnp.full(4, r), jnp.eye(3), jnp.zeros(3))
+        return res.rotors.thrust, res.rotors.torque
+
+    T, Q = jax.vmap(one)(jnp.asarray(rpm, dtype=float))
+    return np.asarray(T), np.asarray(Q)
+
+
+@float64
 def fit_to_generator(generator, rpm: Float[ArrayLike, " S"] | None = None) -> SimpleModel:
-    """Fit ``P_F`` and ``T_z`` on the generator's hover sweep (level, zero airspeed).
+    """Fit ``P_F`` and ``T_z`` on the generator's :func:`hover_sweep`.
 
     ``generator`` is a :class:`gpg.quadrotor.generator.Generator`; the sweep defaults to
     2000–6000 rpm in 500 rpm steps, the range of the paper's hover condition and its margins.
     """
-    from gpg.quadrotor import bemt  # local: the generator module imports this one
-
     rpm = np.arange(2000.0, 6001.0, 500.0) if rpm is None else np.asarray(rpm, dtype=float)
-
-    @jax.jit
-    def sweep(r):
-        res = bemt.aero(generator.vehicle, generator.bemt, jnp.full(4, r), jnp.eye(3), jnp.zeros(3))
-        return res.rotors.thrust, res.rotors.torque
-
-    T, Q = jax.vmap(sweep)(jnp.asarray(rpm))
-    P_F, T_z = fit_coefficients(np.repeat(rpm, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())
+    T, Q = hover_sweep(generator, rpm)
+    P_F, T_z = fit_coefficients(np.repeat(rpm, 4), T.ravel(), Q.ravel())
     return SimpleModel.from_vehicle(generator.vehicle, P_F, T_z)

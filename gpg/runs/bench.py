@@ -22,9 +22,14 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg import linalg
-from gpg.gp import ExactGP, Hyper, assemble_gram
+from gpg._dtype import float64
+from gpg.gp.exact import ExactGP
+from gpg.gp.gram import assemble_gram
+from gpg.gp.hyper import Hyper
+from gpg.linalg import dense
 from gpg.runs.common import (
+    conf,
+    deep_merge,
     fit_model,
     latency,
     machine,
@@ -70,11 +75,11 @@ def bench_exact_gp(cfg: dict[str, Any]) -> dict[str, Any]:
     t_chol = []
     for _ in tqdm(range(reps), desc="Cholesky of a ready K̄", leave=False):
         buf = ready.copy()
-        t_chol.append(time_calls(lambda b=buf: linalg.cholesky_inplace(b), 1, warmup=0)[0])
+        t_chol.append(time_calls(lambda b=buf: dense.cholesky_inplace(b), 1, warmup=0)[0])
     del buf
     t_asm = time_calls(lambda: assemble_gram(Xj, hyper, dims), reps, warmup=1)
     t_asm_chol = time_calls(
-        lambda: linalg.cholesky_inplace(assemble_gram(Xj, hyper, dims)), reps, warmup=0
+        lambda: dense.cholesky_inplace(assemble_gram(Xj, hyper, dims)), reps, warmup=0
     )
     out["cholesky_ready_lapack"] = stats(np.array(t_chol))
     out["assemble"] = stats(t_asm)
@@ -114,12 +119,39 @@ def _surrogate_latency(sur, states, n: int) -> dict[str, Any]:
     }
 
 
+def _float32_check(sur, test, states, n: int) -> dict[str, Any]:
+    """``sur.astype(float32)`` against ``sur`` on the whole test set, run as a float32 program
+    runs it (x64 off): errors relative to each output's spread over the test set, and the
+    float32 single-query latency."""
+    R, E, V = (np.stack(a) for a in zip(*world_states(test.x, test.n), strict=True))
+
+    def stack(p):
+        return np.concatenate([np.asarray(p.force), np.asarray(p.torque), np.asarray(p.noise)], 1)
+
+    p64 = sur.predict_batch(R, E, V)
+    with jax.enable_x64(False):
+        s32 = sur.astype(jnp.float32)
+        p32 = s32.predict_batch(R, E, V)
+        lat = latency(s32.realtime(with_var=True), states, n)
+    y64, y32 = stack(p64), stack(p32).astype(np.float64)
+    spread = np.std(y64, axis=0)
+    err = np.abs(y32 - y64) / spread
+    verr = np.abs(np.asarray(p32.variance, np.float64) - np.asarray(p64.variance)) / spread**2
+    return {
+        "dtype": str(p32.force.dtype),
+        "mean_error_over_std_max": float(err.max()),
+        "mean_error_over_std_median": float(np.median(err)),
+        "variance_error_over_var_max": float(verr.max()),
+        "surrogate_predict_1": lat,
+    }
+
+
 def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
     """Training time, latency and throughput of every model on one dataset."""
     from gpg import models
+    from gpg.data.cache import ensure_datasets
     from gpg.data.preprocess import simple_model_for
     from gpg.quadrotor.vehicle import Vehicle
-    from gpg.runs.generate_data import ensure_datasets
     from gpg.surrogate import Surrogate
 
     train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
@@ -128,9 +160,6 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"dataset": info["key"], "n_train": train.n, "models": {}}
     rng = np.random.default_rng(cfg["seed"])
     hyper_cache: dict[tuple, Any] = {}
-    from gpg.runs.common import conf
-    from gpg.runs.compare import deep_merge
-
     bar = tqdm(cfg["models"], desc="models")
     for name in bar:
         bar.set_postfix_str(name)
@@ -163,6 +192,7 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
         sur = Surrogate.assemble(model, training, train, name, mcfg)
         states = world_states(test.x, cfg["n_queries"])
         res.update(_surrogate_latency(sur, states, cfg["n_queries"]))
+        res["float32"] = _float32_check(sur, test, states, cfg["n_queries"])
         out["models"][name] = res
     ref = out["models"].get("gpg")
     if ref is not None:
@@ -191,6 +221,8 @@ def _models_table(res: dict[str, Any]) -> str:
                 "sm": r["surrogate_predict_mean_1"]["median_s"] * 1e6,
                 "smm": r["surrogate_predict_mean_1_method"]["median_s"] * 1e6,
                 "mb": r["model_bytes"] / 2**20,
+                "f32": r["float32"]["mean_error_over_std_max"],
+                "f32ms": r["float32"]["surrogate_predict_1"]["median_s"] * 1e3,
             }
         )
     cols = [
@@ -205,6 +237,8 @@ def _models_table(res: dict[str, Any]) -> str:
         ("sm", "predict_mean µs", ".1f"),
         ("smm", "(method) µs", ".1f"),
         ("mb", "MiB", ".1f"),
+        ("f32", "float32 max err/std", ".1e"),
+        ("f32ms", "float32 predict ms", ".3f"),
     ]
     return f"dataset {res['dataset']} ({res['n_train']} training points)\n\n" + table(rows, cols)
 
@@ -242,6 +276,7 @@ def _exact_gp_table(res: dict[str, Any]) -> str:
     )
 
 
+@float64
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Run the suites named in ``cfg['suites']`` and write ``cfg['output']`` into ``outdir``."""
     unknown = [s for s in cfg["suites"] if s not in SUITES]

@@ -19,6 +19,7 @@ import numpy as np
 from gpg._io import atomic_write
 
 if TYPE_CHECKING:
+    from gpg.config import ModelConfig
     from gpg.data.dataset import Dataset
     from gpg.data.preprocess import Training
     from gpg.models import Built
@@ -41,15 +42,36 @@ def report(text: str) -> None:
 
 def conf(name: str, group: str | None = None) -> dict[str, Any]:
     """A config file of ``conf/`` as plain values, without Hydra (for notebooks and scripts):
-    ``conf("smoke", "data")`` reads ``conf/data/smoke.yaml``. Defaults lists are not composed."""
+    ``conf("smoke", "data")`` reads ``conf/data/smoke.yaml``. A defaults list naming files of
+    the same group (``conf/model/*.yaml`` extend ``_base``) is composed as Hydra does."""
     import yaml
 
     path = CONF_DIR / (group or "") / f"{name}.yaml"
     if not path.is_file():
-        known = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        known = sorted(p.stem for p in path.parent.glob("*.yaml") if not p.stem.startswith("_"))
         raise ValueError(f"no config {path}; known: {known}")
     with open(path) as f:
-        return yaml.safe_load(f)
+        own = yaml.safe_load(f) or {}
+    defaults = own.pop("defaults", None)
+    if defaults is None:
+        return own
+    out: dict[str, Any] = {}
+    for entry in defaults if "_self_" in defaults else [*defaults, "_self_"]:
+        if entry == "_self_":
+            out = deep_merge(out, own)
+        elif isinstance(entry, str):
+            out = deep_merge(out, conf(entry, group))
+        else:
+            raise ValueError(f"{path}: only defaults of its own group can be read without Hydra")
+    return out
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any] | None) -> dict[str, Any]:
+    """``base`` with the (nested) keys of ``over`` replaced."""
+    out = dict(base)
+    for k, v in (over or {}).items():
+        out[k] = deep_merge(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
 
 
 def set_dispatch(cfg: Mapping[str, Any]) -> None:
@@ -113,7 +135,7 @@ class Fitted(NamedTuple):
 
 def fit_model(
     name: str,
-    mcfg: Mapping[str, Any],
+    mcfg: ModelConfig,
     train: Dataset,
     simple: SimpleModel | None,
     hyper_cache: dict,
@@ -126,12 +148,13 @@ def fit_model(
     and hyperparameter config, and shared through ``hyper_cache`` by the models that match.
     ``measure_memory`` samples the peak RSS of the fit and build.
     """
-    from gpg import memory, models
+    from gpg import models
     from gpg.data.preprocess import prepare
+    from gpg.linalg import memory
 
     spec = models.SPECS[name]
-    training = prepare(train, simple, s=mcfg["hyper"]["grad_noise_scale"])
-    key = (spec.raw, spec.gradients, json.dumps(mcfg["hyper"], sort_keys=True))
+    training = prepare(train, simple)
+    key = (spec.raw, spec.gradients, json.dumps(mcfg.to_dict()["hyper"], sort_keys=True))
     with memory.PeakRSS() if measure_memory else contextlib.nullcontext() as mem:
         if key not in hyper_cache:
             hyper_cache[key] = models.fit_hyper(name, training, mcfg)

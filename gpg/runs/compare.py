@@ -18,11 +18,17 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg import _interrupt, memory, models, partition
+from gpg import _interrupt, models
+from gpg._dtype import float64
+from gpg.config import ModelConfig
+from gpg.data.cache import load_data
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import prepare, restore, simple_model_for
+from gpg.gp import partition
+from gpg.linalg import memory
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.runs.common import (
+    deep_merge,
     fit_model,
     latency,
     machine,
@@ -35,31 +41,6 @@ from gpg.runs.common import (
 from gpg.surrogate import Surrogate
 
 AIRSPEED_BINS = 10
-
-
-def load_data(cfg: dict[str, Any]) -> tuple[Dataset, Dataset, dict[str, Any]]:
-    """Train and test sets: user files (``dataset.train``/``dataset.test``) or generated."""
-    paths = cfg.get("dataset") or {}
-    if paths.get("train") or paths.get("test"):
-        if not (paths.get("train") and paths.get("test")):
-            raise ValueError("give both dataset.train and dataset.test (held-out test set)")
-        train, test = Dataset.load(paths["train"]), Dataset.load(paths["test"])
-        return train, test, {"key": None, "train": str(paths["train"]), "test": str(paths["test"])}
-    from gpg.runs.generate_data import ensure_datasets
-
-    train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
-    return train, test, info
-
-
-def load_train(cfg: dict[str, Any]) -> Dataset:
-    """The training set alone: ``dataset.train``, else the generated one (as :func:`load_data`,
-    which also generates and caches its test set)."""
-    paths = cfg.get("dataset") or {}
-    if paths.get("train"):
-        return Dataset.load(paths["train"])
-    if paths.get("test"):
-        raise ValueError("dataset.test given without dataset.train (only the training set is used)")
-    return load_data(cfg)[0]
 
 
 def metrics(
@@ -99,7 +80,7 @@ def continuity(
 ) -> dict[str, Any]:
     """Largest jump of the mean and of the predictive standard deviation across the bin
     boundaries of ``part``, per output in physical units, over pairs of inputs straddling each
-    boundary (:func:`gpg.partition.boundary_pairs`, built from the normalised test inputs
+    boundary (:func:`gpg.gp.partition.boundary_pairs`, built from the normalised test inputs
     ``Xn``). Integrators (RL, MPC) step through these boundaries."""
     A, C = partition.boundary_pairs(part, Xn)
     if A.shape[0] == 0:
@@ -140,7 +121,7 @@ def _predict_test(model, Xn: np.ndarray, chunk: int = 256):
 def evaluate(
     label: str,
     name: str,
-    mcfg: dict[str, Any],
+    mcfg: ModelConfig,
     train: Dataset,
     test: Dataset,
     simple,
@@ -164,11 +145,11 @@ def evaluate(
     names = list(training.output_names)
     part = getattr(built.model, "partition", None)
     if part is None or part.n_bins == 1:  # no boundary of its own: the paper's 10 slabs
-        part = models.build_partition(training.X, models.DEFAULTS)
+        part = models.build_partition(training.X, ModelConfig())
     res: dict[str, Any] = {
         "model": name,
         "title": models.SPECS[name].title,
-        "config": mcfg,
+        "config": mcfg.to_dict(),
         **timings,
         "train_s": float(sum(timings.values())),
         **metrics(y_true, y_pred, var_y, names, valid=~negative),
@@ -220,14 +201,6 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def _variant_label(name: str, over: dict[str, Any]) -> str:
     return name + "[" + ",".join(f"{k}={v}" for k, v in sorted(_flat(over).items())) + "]"
-
-
-def deep_merge(base: dict[str, Any], over: dict[str, Any] | None) -> dict[str, Any]:
-    """``base`` with the (nested) keys of ``over`` replaced."""
-    out = dict(base)
-    for k, v in (over or {}).items():
-        out[k] = deep_merge(out.get(k) or {}, v) if isinstance(v, dict) else v
-    return out
 
 
 def _rows(results: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
@@ -305,6 +278,7 @@ def _table_short(results: dict[str, Any], names: list[str]) -> str:
     return table(_rows(results, names), cols) + _skipped(results)
 
 
+@float64
 def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Compare the models of ``model_cfgs`` (name -> config) on the configured data."""
     outdir = Path(outdir)
@@ -330,18 +304,17 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
                 (
                     _variant_label(name, over),
                     name,
-                    models.resolve_config(name, deep_merge(mc, over)),
+                    models.resolve_config(name, deep_merge(mc.to_dict(), over)),
                 )
             )
     results: dict[str, Any] = {}
     # Everything that can fail from sizes alone (missing data, bins or inducing points beyond
     # the data, memory) fails here, before any model is trained.
     ready = []
-    scales = {mc["hyper"]["grad_noise_scale"] for _, _, mc in jobs}
-    training = {s: prepare(train, simple, s=s) for s in scales}
+    training = prepare(train, simple)
     for label, name, mc in jobs:
         try:
-            models.check_feasible(name, mc, training[mc["hyper"]["grad_noise_scale"]])
+            models.check_feasible(name, mc, training)
             ready.append((label, name, mc))
         except (ValueError, memory.InsufficientMemory) as exc:
             if single:
@@ -368,7 +341,7 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
     names = list(next(r for r in results.values() if "skipped" not in r)["mae"])
     figures = []
     if cfg.get("figures", True):
-        from gpg import plots
+        from gpg.runs import plots
 
         figures = plots.compare_figures(results, names, outdir / "figures")
     clean = {
@@ -387,7 +360,7 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         "models": clean,
         "figures": [str(p.relative_to(outdir)) for p in figures],
         "wall_s": time.perf_counter() - t_start,
-        "config": {**cfg, "models": resolved},
+        "config": {**cfg, "models": {k: v.to_dict() for k, v in resolved.items()}},
     }
     write_json(outdir / "results.json", out)
     md = _table_md(results, names)

@@ -7,186 +7,18 @@ forces and moments vs airspeed, OASPL vs rpm, and finite-difference vs exact gra
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 import shutil
-import tempfile
-import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from gpg._io import umask
+from gpg._dtype import float64
+from gpg.data.cache import ensure
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import simple_model_for
-from gpg.data.sampling import Bounds, FDSteps, generate
-from gpg.quadrotor import acoustics, bemt
-from gpg.quadrotor.generator import GENERATOR_VERSION, Generator, evaluate_batch
-from gpg.quadrotor.simple_model import SimpleModel, fit_to_generator
-from gpg.quadrotor.vehicle import Vehicle
+from gpg.quadrotor.generator import Generator, evaluate_batch
 from gpg.runs.common import report, write_json
-
-# data.generator keys, with their types; those not given keep the configs' defaults.
-_BEMT_KEYS = {"n_radial": int, "n_azimuth": int, "interference": bool, "wake_gain": float}
-_ACOUSTICS_KEYS = {"n_harmonics": int}
-_GEN_KEYS = {**_BEMT_KEYS, **_ACOUSTICS_KEYS}
-
-
-def build_generator(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> Generator:
-    """The generator described by a ``data`` config group and a ``vehicle`` config group."""
-    g = dict(data_cfg.get("generator", {}))
-    unknown = sorted(set(g) - _GEN_KEYS.keys())
-    if unknown:
-        raise ValueError(f"unknown data.generator keys {unknown}; valid: {sorted(_GEN_KEYS)}")
-    cfg = bemt.BEMTConfig(**{k: cast(g[k]) for k, cast in _BEMT_KEYS.items() if k in g})
-    ac = acoustics.AcousticsConfig(
-        **{k: cast(g[k]) for k, cast in _ACOUSTICS_KEYS.items() if k in g}
-    )
-    return Generator(Vehicle.from_config(vehicle_cfg), cfg, ac)
-
-
-def dataset_key(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> str:
-    """Cache key: hash of everything that determines the data (not ``chunk``, which does not)."""
-    relevant = {k: v for k, v in data_cfg.items() if k not in ("chunk",)}
-    blob = json.dumps(
-        {"data": relevant, "vehicle": vehicle_cfg, "generator_version": GENERATOR_VERSION},
-        sort_keys=True,
-        default=str,
-    )
-    return f"{data_cfg.get('name', 'data')}-{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
-
-
-def _check_numbers(data_cfg: Mapping[str, Any]) -> None:
-    """The data config's counts, seeds and switches, each named when wrong."""
-    for key, lo in (("n_train", 1), ("n_test", 1), ("train_seed", 0), ("test_seed", 0)):
-        v = data_cfg.get(key)
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise ValueError(f"data.{key} must be an integer >= {lo}, got {v!r}")
-    chunk = data_cfg.get("chunk", 512)
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-        raise ValueError(f"data.chunk must be a positive integer, got {chunk!r}")
-    for key in ("keep_raw", "noise"):
-        if not isinstance(data_cfg.get(key, True), bool):
-            raise ValueError(f"data.{key} must be true or false, got {data_cfg.get(key)!r}")
-
-
-def _generate_pair(
-    gen: Generator,
-    data_cfg: Mapping[str, Any],
-    vehicle_cfg: Mapping[str, Any],
-    simple: SimpleModel,
-    progress,
-):
-    bounds = Bounds.from_config(data_cfg.get("bounds", {}))
-    fd = FDSteps(**data_cfg.get("fd", {}))
-    meta = {
-        "name": data_cfg.get("name"),
-        "vehicle": dict(vehicle_cfg),  # the dataset names its vehicle (Surrogate.fit reads it)
-        "generator": {
-            "name": "gpg BEMT + tonal acoustics",
-            "version": GENERATOR_VERSION,
-            "vehicle": gen.vehicle.name,
-            "settings": dict(data_cfg.get("generator", {})),
-        },
-        "simple_model": {"P_F": float(simple.P_F), "T_z": float(simple.T_z)},
-    }
-    chunk = int(data_cfg.get("chunk", 512))
-    train = generate(
-        gen,
-        int(data_cfg["n_train"]),
-        bounds=bounds,
-        seed=int(data_cfg["train_seed"]),
-        gradients=data_cfg.get("gradients", "fd"),
-        fd=fd,
-        keep_raw=bool(data_cfg.get("keep_raw", True)),
-        noise=bool(data_cfg.get("noise", True)),
-        chunk=chunk,
-        progress="train set" if progress else False,
-        meta={**meta, "split": "train"},
-    )
-    test = generate(
-        gen,
-        int(data_cfg["n_test"]),
-        bounds=bounds,
-        seed=int(data_cfg["test_seed"]),
-        gradients="none",
-        keep_raw=False,
-        noise=bool(data_cfg.get("noise", True)),
-        chunk=chunk,
-        progress="test set" if progress else False,
-        meta={**meta, "split": "test"},
-    )
-    return train, test
-
-
-def ensure_datasets(
-    data_cfg: Mapping[str, Any],
-    vehicle_cfg: Mapping[str, Any],
-    cache_dir: str | Path,
-    *,
-    progress: bool = True,
-) -> tuple[Dataset, Dataset, Path, dict[str, Any]]:
-    """Load the train/test pair from the cache, generating (and caching) it when absent.
-
-    Returns ``(train, test, cache_path, info)``; ``info`` has the key, whether it was cached,
-    and the generation time.
-    """
-    return _ensure(data_cfg, vehicle_cfg, cache_dir, progress=progress)[1:]
-
-
-def _ensure(
-    data_cfg: Mapping[str, Any],
-    vehicle_cfg: Mapping[str, Any],
-    cache_dir: str | Path,
-    *,
-    progress: bool = True,
-) -> tuple[Generator, Dataset, Dataset, Path, dict[str, Any]]:
-    """:func:`ensure_datasets`, also returning the generator it built."""
-    _check_numbers(data_cfg)
-    if data_cfg["train_seed"] == data_cfg["test_seed"]:
-        raise ValueError("data.train_seed and data.test_seed must differ (held-out test set)")
-    # Validate everything before any work or any file: bad bounds fail in milliseconds.
-    Bounds.from_config(data_cfg.get("bounds", {}))
-    FDSteps(**data_cfg.get("fd", {}))
-    gen = build_generator(data_cfg, vehicle_cfg)
-    key = dataset_key(data_cfg, vehicle_cfg)
-    where = Path(cache_dir) / key
-    info: dict[str, Any] = {"key": key, "cache": str(where)}
-    if (where / "train.npz").is_file() and (where / "test.npz").is_file():
-        info.update(cached=True, generate_s=None)
-        return gen, Dataset.load(where / "train"), Dataset.load(where / "test"), where, info
-    t0 = time.perf_counter()
-    simple = fit_to_generator(gen)
-    train, test = _generate_pair(gen, data_cfg, vehicle_cfg, simple, progress)
-    info.update(cached=False, generate_s=time.perf_counter() - t0)
-    _publish(where, train, test)
-    return gen, train, test, where, info
-
-
-def _publish(where: Path, train: Dataset, test: Dataset) -> None:
-    """Write the pair into a temporary directory of this writer's own and rename it into place:
-    the cache entry appears complete or not at all, and concurrent writers of one entry do not
-    touch each other's files (the first rename wins; the others' data are identical)."""
-    where.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=where.parent, prefix=f".{where.name}.partial-"))
-    try:
-        train.save(tmp / "train")
-        test.save(tmp / "test")
-        os.chmod(tmp, 0o777 & ~umask())  # mkdtemp makes it private; the cache is shared
-        if where.exists() and not (where / "test.npz").is_file():
-            shutil.rmtree(where, ignore_errors=True)  # left by a crash of an older gpg
-        try:
-            os.rename(tmp, where)
-        except OSError:
-            if not ((where / "train.npz").is_file() and (where / "test.npz").is_file()):
-                raise  # not another writer's finished entry: a real failure
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
@@ -202,11 +34,12 @@ def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
     return {"idx": idx, "fd": fd, "exact": exact, "scaled_error": err}
 
 
+@float64
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Generate (or load from cache) the configured datasets, copy them to ``outdir``, plot."""
     outdir = Path(outdir)
     data_cfg, vehicle_cfg = cfg["data"], cfg["vehicle"]
-    gen, train, test, where, info = _ensure(data_cfg, vehicle_cfg, cfg["cache_dir"])
+    gen, train, test, where, info = ensure(data_cfg, vehicle_cfg, cfg["cache_dir"])
     for split in ("train", "test"):
         for ext in (".npz", ".json"):
             shutil.copyfile(where / f"{split}{ext}", outdir / f"{split}{ext}")
@@ -219,7 +52,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         "hover_rpm_simple_model": float(simple.hover_rpm(float(gen.vehicle.weight))),
     }
     if cfg.get("figures", True):
-        from gpg import plots
+        from gpg.runs import plots
 
         check = _gradient_check(gen, train, int(cfg.get("sanity_points", 200)))
         figs = plots.data_sanity(gen, simple, check, outdir / "figures")
@@ -238,16 +71,4 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     return result
 
 
-def hover_sweep(gen: Generator, rpm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-rotor thrust and torque at hover (level, zero airspeed) for each rpm."""
-
-    @jax.jit
-    def one(r):
-        res = bemt.aero(gen.vehicle, gen.bemt, jnp.full(4, r), jnp.eye(3), jnp.zeros(3))
-        return res.rotors.thrust[0], res.rotors.torque[0]
-
-    T, Q = jax.vmap(one)(jnp.asarray(rpm))
-    return np.asarray(T), np.asarray(Q)
-
-
-__all__ = ["build_generator", "dataset_key", "ensure_datasets", "hover_sweep", "run"]
+__all__ = ["run"]

@@ -19,12 +19,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpg import checkpoint
+from gpg._dtype import float64
 from gpg.quadrotor.control import GeometricController, WaypointPlan
-from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, SurrogateAero, Wind
+from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
 from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.runs.common import machine, report, set_dispatch, write_json
-from gpg.surrogate import Surrogate
+from gpg.surrogate import Surrogate, SurrogateAero
 
 
 def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> dict[str, Any]:
@@ -68,13 +69,14 @@ def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> d
 def _surrogate(cfg: dict[str, Any], vehicle: Vehicle) -> Surrogate:
     if cfg.get("surrogate_checkpoint"):
         return checkpoint.load(cfg["surrogate_checkpoint"])
-    from gpg.runs.compare import load_train
+    from gpg.data.cache import load_train
 
     model = dict(cfg["model"])
     name = model.pop("name")
     return Surrogate.fit(load_train(cfg), name, model, vehicle=vehicle)
 
 
+@float64
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     outdir = Path(outdir)
     set_dispatch(cfg)
@@ -154,7 +156,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
 
     figures = []
     if cfg.get("figures", True):
-        from gpg import plots
+        from gpg.runs import plots
 
         figures = plots.flight_figures(traces, noise_simple, plan, outdir / "figures")
     out = {

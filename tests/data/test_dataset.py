@@ -293,11 +293,11 @@ def test_saved_files_are_not_private(rng, tmp_path):
         assert os.stat(p).st_mode & 0o777 == 0o666 & ~umask()
 
 
-def test_generator_names_match_the_schema():
-    """The generator keeps its own copy of the column names: importing them from gpg.data would
-    make gpg.quadrotor and gpg.data import each other (gpg.data.sampling needs the generator)."""
-    from gpg.data.dataset import AERO, INPUTS, NOISE
-    from gpg.quadrotor.generator import INPUT_NAMES, OUTPUT_NAMES
+def test_names_table_is_consistent():
+    """One table: the gradient dims name the rotor speeds and angles, and every column has a
+    unit."""
+    from gpg import names
 
-    assert INPUT_NAMES == INPUTS
-    assert OUTPUT_NAMES == AERO + NOISE
+    assert names.GRAD_INPUTS == ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll")
+    assert set(names.UNITS) == set(names.INPUTS + names.OUTPUTS)
+    assert Dataset.__module__ == "gpg.data.dataset"

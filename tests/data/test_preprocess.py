@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from gpg import models
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Normalizer, prepare, residuals, restore, simple_model_for
 from gpg.quadrotor.simple_model import SimpleModel
@@ -64,14 +65,15 @@ def test_constant_input_does_not_break(rng):
 
 def test_prepare_and_restore(data, vehicle):
     simple = simple_model_for(data, vehicle)
-    tr = prepare(data, simple, s=0.3)
+    tr = prepare(data, simple)
     assert tr.X.shape == (40, 8) and tr.Y.shape == (40, 9) and tr.dY.shape == (40, 9, 7)
     np.testing.assert_allclose(tr.Y.mean(0), 0, atol=1e-14)
     np.testing.assert_allclose(tr.Y.std(0), 1, rtol=1e-12)
     np.testing.assert_allclose(restore(tr, data.x, tr.Y), data.y, rtol=1e-12, atol=1e-12)
-    # λ² = s · Var(∂_j Ỹ) over points and outputs.
+    # λ² = s · Var(∂_j Ỹ) over points and outputs, the models' initial gradient noise.
     want = 0.3 * np.array([np.var(tr.dY[:, :, j]) for j in range(7)])
-    np.testing.assert_allclose(tr.grad_noise, want, rtol=1e-12)
+    hyper = models.initial_hyper(models.resolve_config("gpg"), 8, tr.dY)
+    np.testing.assert_allclose(hyper.grad_noise, want, rtol=1e-12)
     assert tr.X_raw.shape == (320, 8) and tr.Y_raw.shape == (320, 9)
 
 
@@ -99,7 +101,7 @@ def test_simple_model_fitted_from_data_when_metadata_lacks_it(vehicle, rng):
 def test_prepare_partial_datasets(data, vehicle):
     simple = simple_model_for(data, vehicle)
     tr = prepare(data.without("gradients", "noise"), simple)
-    assert tr.dY is None and tr.grad_noise is None and tr.Y.shape == (40, 6)
+    assert tr.dY is None and tr.Y.shape == (40, 6)
     assert tr.output_names == ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
     tr = prepare(data.without("raw samples"), None)
     assert tr.X_raw is None and tr.simple is None

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from gpg.data.sampling import Bounds, FDSteps, generate, latin_hypercube, raw_samples
+from gpg.data.bounds import Bounds
+from gpg.data.sampling import FDSteps, generate, latin_hypercube, raw_samples
 
 
 def test_latin_hypercube_stratified_and_in_bounds():

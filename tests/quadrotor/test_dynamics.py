@@ -11,7 +11,6 @@ from gpg.quadrotor.dynamics import (
     Quadrotor,
     SimpleAero,
     State,
-    SurrogateAero,
     Wind,
     Wrench,
     quat_from_euler,
@@ -19,6 +18,7 @@ from gpg.quadrotor.dynamics import (
 )
 from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.simple_model import SimpleModel
+from gpg.surrogate import SurrogateAero
 
 
 class NoAero(AeroModel):
@@ -63,8 +63,9 @@ def test_free_fall_is_exact(vehicle):
 
 def test_torque_free_body_conserves_momentum_and_energy(vehicle):
     quad = Quadrotor.from_vehicle(vehicle, NoAero())
-    s0 = eqx.tree_at(lambda s: s.w, State.hover([0, 0, 0], 0.0), jnp.array([3.0, -1.0, 2.0]))
-    s0 = eqx.tree_at(lambda s: s.q, s0, quat_from_euler(jnp.array([0.2, 0.3, -0.4])))
+    s0 = State.hover([0, 0, 0], 0.0, euler=[0.2, 0.3, -0.4])
+    np.testing.assert_allclose(s0.R, R_WB(jnp.array([0.2, 0.3, -0.4])), atol=1e-14)
+    s0 = eqx.tree_at(lambda s: s.w, s0, jnp.array([3.0, -1.0, 2.0]))
     J = np.asarray(vehicle.inertia)
     _, traj = run(quad, s0, jnp.zeros(4), 1e-3, 3000)
     R = np.asarray(jax.vmap(quat_to_R)(traj.q))
@@ -113,8 +114,9 @@ def test_wind_enters_as_airspeed(vehicle):
 
 def test_surrogate_and_simple_share_the_interface(vehicle, simple):
     """A surrogate of data that M explains exactly flies like M."""
+    from gpg.data.bounds import Bounds
     from gpg.data.dataset import Dataset
-    from gpg.data.sampling import Bounds, latin_hypercube
+    from gpg.data.sampling import latin_hypercube
     from gpg.surrogate import Surrogate
 
     x = latin_hypercube(40, Bounds(), 3)

@@ -7,7 +7,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from gpg.data.dataset import Dataset
@@ -62,17 +61,6 @@ def test_generate_data_run(tmp_path):
     again = generate_data.run(config(tmp_path, "figures=false"), out2)  # from the cache
     assert again["dataset"]["cached"] is True and again["dataset"]["key"] == res["dataset"]["key"]
     assert (out1 / "train.npz").read_bytes() == (out2 / "train.npz").read_bytes()
-
-
-def test_cache_key_follows_config(tmp_path):
-    a, b = config(tmp_path), config(tmp_path, "data.train_seed=5")
-    assert generate_data.dataset_key(a["data"], a["vehicle"]) != generate_data.dataset_key(
-        b["data"], b["vehicle"]
-    )
-    c = config(tmp_path, "data.chunk=64")  # memory only: same data, same key
-    assert generate_data.dataset_key(a["data"], a["vehicle"]) == generate_data.dataset_key(
-        c["data"], c["vehicle"]
-    )
 
 
 @pytest.mark.parametrize(
@@ -161,16 +149,3 @@ def test_concurrent_writers_of_one_cache_both_succeed(tmp_path):
     assert _leftovers(cache) == [] and len(list(cache.glob("*/train.npz"))) == 1
     a, b = ((tmp_path / f"run{i}" / "train.npz").read_bytes() for i in range(2))
     assert a == b
-
-
-def test_publish_lets_the_first_writer_win(tmp_path, monkeypatch):
-    """The rename race, deterministically: another writer's complete entry appears first."""
-    from tests.helpers import synthetic_dataset
-
-    ds, _ = synthetic_dataset(8, raw=False)
-    where = tmp_path / "entry"
-    generate_data._publish(where, ds, ds)
-    first = (where / "train.npz").read_bytes()
-    generate_data._publish(where, ds.subset(np.arange(4)), ds)  # the loser's data are dropped
-    assert (where / "train.npz").read_bytes() == first
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["entry"]

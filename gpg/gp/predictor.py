@@ -11,7 +11,7 @@ does not, so that such failures can be counted rather than hidden. ``noise`` is 
 variance ``ν²`` of an observation: the predictive variance of a measured output is the latent
 variance plus ``ν²``, and ``output_scale`` (M,) scales that per output (the outputs share one
 kernel; the scale is each output's closed-form maximum-likelihood amplitude,
-:func:`gpg.mean.output_scale`): ``var_m = output_scale[m] · (latent + ν²)``.
+:func:`gpg.gp.mean.output_scale`): ``var_m = output_scale[m] · (latent + ν²)``.
 """
 
 from __future__ import annotations

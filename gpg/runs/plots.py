@@ -1,17 +1,28 @@
-"""Figures (matplotlib, no display needed): dataset sanity checks and model comparisons."""
+"""Figures: dataset sanity checks, model comparisons and flights.
+
+Drawn with matplotlib's object API (``Figure``), so no backend is chosen and no pyplot state
+is kept: importing or calling this module changes nothing for the caller's own plots.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from gpg.names import INPUTS, OUTPUTS
+from gpg.quadrotor.generator import evaluate_batch
+from gpg.quadrotor.simple_model import hover_sweep
 
-from gpg.quadrotor.generator import INPUT_NAMES, OUTPUT_NAMES, evaluate_batch  # noqa: E402
+
+def _subplots(*args, figsize, **kw):
+    """A figure without pyplot: no backend is chosen and no global figure list is kept, so
+    plotting changes no matplotlib state of the caller."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(*args, **kw)
+
 
 # One padded batch size for every sanity curve: one compilation of the generator serves all.
 SANITY_CHUNK = 32
@@ -30,18 +41,16 @@ def save(fig, path: Path, formats=("png", "pdf")) -> list[Path]:
             metadata={"CreationDate": None} if fmt == "pdf" else None,
         )
         out.append(p)
-    plt.close(fig)
     return out
 
 
 def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     """Thrust vs rpm, wrench vs airspeed, OASPL vs rpm, FD vs exact gradients."""
-    from gpg.runs.generate_data import hover_sweep
-
     paths: list[Path] = []
     rpm = np.linspace(0, 7000, 29)
     T, Q = hover_sweep(gen, rpm)
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    T, Q = T[:, 0], Q[:, 0]  # one rotor: at hover all four carry the same load
+    fig, ax = _subplots(1, 2, figsize=(9, 3.5))
     ax[0].plot(rpm, T, "o", ms=3, label="generator (per rotor)")
     ax[0].plot(rpm, float(simple.P_F) * rpm**2, "-", label=r"$P_F\,r^2$ (fit)")
     ax[0].set(xlabel="rpm", ylabel="thrust [N]", title="Hover thrust")
@@ -55,7 +64,7 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
 
     hover = float(simple.hover_rpm(float(gen.vehicle.weight)))
     V = np.linspace(0, 20, 21)
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.5))
+    fig, ax = _subplots(1, 3, figsize=(13, 3.5))
     for pitch_deg in (0.0, -10.0):
         X = np.zeros((V.size, 8))
         X[:, :4] = hover
@@ -68,21 +77,21 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
                 Y[:, j],
                 c,
                 ls="-" if pitch_deg == 0 else "--",
-                label=f"{OUTPUT_NAMES[j]}, pitch {pitch_deg:g}°",
+                label=f"{OUTPUTS[j]}, pitch {pitch_deg:g}°",
             )
             ax[1].plot(
                 V,
                 Y[:, 3 + j],
                 c,
                 ls="-" if pitch_deg == 0 else "--",
-                label=f"{OUTPUT_NAMES[3 + j]}, pitch {pitch_deg:g}°",
+                label=f"{OUTPUTS[3 + j]}, pitch {pitch_deg:g}°",
             )
             ax[2].plot(
                 V,
                 Y[:, 6 + j],
                 c,
                 ls="-" if pitch_deg == 0 else "--",
-                label=f"{OUTPUT_NAMES[6 + j]}, pitch {pitch_deg:g}°",
+                label=f"{OUTPUTS[6 + j]}, pitch {pitch_deg:g}°",
             )
     ax[0].set(xlabel="airspeed [m/s]", ylabel="force [N]", title=f"Forces at {hover:.0f} rpm")
     ax[1].set(xlabel="airspeed [m/s]", ylabel="moment [N m]", title="Moments")
@@ -97,10 +106,10 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     Y0 = evaluate_batch(gen, X, chunk=SANITY_CHUNK)
     X[:, 7] = 10.0
     Y10 = evaluate_batch(gen, X, chunk=SANITY_CHUNK)
-    fig, ax = plt.subplots(figsize=(5, 3.5))
+    fig, ax = _subplots(figsize=(5, 3.5))
     for j, c in zip(range(3), "rgb", strict=True):
-        ax.plot(rpm, Y0[:, 6 + j], c, label=f"{OUTPUT_NAMES[6 + j]} hover")
-        ax.plot(rpm, Y10[:, 6 + j], c, ls="--", label=f"{OUTPUT_NAMES[6 + j]} 10 m/s")
+        ax.plot(rpm, Y0[:, 6 + j], c, label=f"{OUTPUTS[6 + j]} hover")
+        ax.plot(rpm, Y10[:, 6 + j], c, ls="--", label=f"{OUTPUTS[6 + j]} 10 m/s")
     ax.set(xlabel="rpm", ylabel="OASPL [dB re 20 µPa]", title="Tonal noise at 20 R", ylim=(0, None))
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
@@ -108,10 +117,10 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
 
     if check:
         err = check["scaled_error"]  # (n, M, 7)
-        fig, ax = plt.subplots(figsize=(7, 3.5))
+        fig, ax = _subplots(figsize=(7, 3.5))
         data = [err[:, :, j].ravel() for j in range(err.shape[2])]
         ax.boxplot(data, showfliers=False)
-        ax.set_xticks(range(1, err.shape[2] + 1), INPUT_NAMES[: err.shape[2]])
+        ax.set_xticks(range(1, err.shape[2] + 1), INPUTS[: err.shape[2]])
         ax.set(
             ylabel="|FD − exact| / std(exact)",
             yscale="log",
@@ -168,7 +177,7 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
     def err(label, n):
         return ok[label]["_abs_err"][:, names.index(n)]
 
-    fig, axes = plt.subplots(1, len(key), figsize=(4.6 * len(key), 4.4))
+    fig, axes = _subplots(1, len(key), figsize=(4.6 * len(key), 4.4))
     _compare_panels(axes, labels, err, key)
     fig.suptitle("Model comparison on the test set (boxes: quartiles, whiskers: 5-95 %)")
     fig.tight_layout()
@@ -176,7 +185,7 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
 
     cols = 3
     rows = -(-len(names) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(14, 4.4 * rows))
+    fig, axes = _subplots(rows, cols, figsize=(14, 4.4 * rows))
     _compare_panels(axes, labels, err, names)
     for ax in np.ravel(axes)[len(names) :]:
         ax.axis("off")
@@ -185,7 +194,7 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
 
     pair = [lab for lab in ("gpgs", "gpgs_schur") if lab in ok]
     if len(pair) == 2:
-        fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
+        fig, axes = _subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
         for ax, n in zip(np.atleast_1d(axes), key, strict=True):
             _boxes(
                 ax,
@@ -200,7 +209,7 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
 
     forms = [lab for lab in ok if lab.startswith("gpgs_schur")]
     if len(forms) >= 2:
-        fig, axes = plt.subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
+        fig, axes = _subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
         for ax, n in zip(np.atleast_1d(axes), key, strict=True):
             _boxes(ax, [err(lab, n) for lab in forms], forms, n, f"|error| [{UNITS[n[0]]}]")
         fig.suptitle(
@@ -210,7 +219,7 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
         fig.tight_layout()
         paths += save(fig, outdir / "schur_mean_forms")
 
-    fig, axes = plt.subplots(1, len(key), figsize=(4.6 * len(key), 3.8))
+    fig, axes = _subplots(1, len(key), figsize=(4.6 * len(key), 3.8))
     for ax, n in zip(np.atleast_1d(axes), key, strict=True):
         j = names.index(n)
         good, bad, _ = _split(labels, err, n)
@@ -239,7 +248,7 @@ def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -
     style = {"simplified": ("tab:blue", "-"), "surrogate": ("tab:red", "-")}
     wp = np.asarray(plan.waypoints)
 
-    fig, ax = plt.subplots(figsize=(6, 3.6))
+    fig, ax = _subplots(figsize=(6, 3.6))
     for name, tr in traces.items():
         p = np.asarray(tr.p)
         ax.plot(p[:, 1], -p[:, 2], color=style[name][0], label=f"{name} dynamics")
@@ -251,7 +260,7 @@ def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -
     ax.grid(alpha=0.3)
     paths += save(fig, outdir / "path_yz")
 
-    fig, ax = plt.subplots(figsize=(6, 3.4))
+    fig, ax = _subplots(figsize=(6, 3.4))
     for name, tr in traces.items():
         err = np.linalg.norm(np.asarray(tr.p) - np.asarray(tr.ref_p), axis=1)
         ax.plot(np.asarray(tr.t), err, color=style[name][0], label=name)
@@ -260,7 +269,7 @@ def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -
     ax.grid(alpha=0.3)
     paths += save(fig, outdir / "tracking_error")
 
-    fig, ax = plt.subplots(figsize=(6, 3.4))
+    fig, ax = _subplots(figsize=(6, 3.4))
     for name, tr in traces.items():
         ax.plot(np.asarray(tr.t), np.asarray(tr.rpm).mean(1), color=style[name][0], label=name)
     ax.set(xlabel="time [s]", ylabel="mean rotor speed [rpm]", title="Average rpm")
@@ -271,7 +280,7 @@ def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -
     sur = traces["surrogate"]
     noise = np.asarray(sur.noise)
     if noise.shape[-1]:
-        fig, ax = plt.subplots(figsize=(6, 3.4))
+        fig, ax = _subplots(figsize=(6, 3.4))
         t = np.asarray(sur.t)
         for j, c in zip(range(noise.shape[1]), ("tab:red", "tab:green", "tab:blue"), strict=False):
             ax.plot(t, noise[:, j], color=c, label=f"L{j + 1}, surrogate flight")

@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg import partition
+from gpg.gp import partition
 
 
 def brute_force(part, X):

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from gpg import kernels
+from gpg.gp import kernels
 
 
 class GlobalMean(eqx.Module):
@@ -49,7 +49,7 @@ class GlobalMean(eqx.Module):
         lengthscale: Float[ArrayLike, "*L"],
         grad_dims: tuple[int, ...],
     ) -> GlobalMean:
-        """Fold ``α`` (R, M), ``R = N(1+G)`` in the row layout of :mod:`gpg.kernels`."""
+        """Fold ``α`` (R, M), ``R = N(1+G)`` in the row layout of :mod:`gpg.gp.kernels`."""
         X = np.asarray(X, dtype=float)
         alpha = np.asarray(alpha, dtype=float)
         n, d = X.shape

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg.tri import BlockTriangular
+from gpg.linalg.tri import BlockTriangular
 
 
 @pytest.mark.parametrize("lower", [True, False])

@@ -33,9 +33,11 @@ import numpy as np
 import scipy.linalg as sla
 from jaxtyping import ArrayLike, Float
 
-from gpg import kernels, linalg
-from gpg.gp import Hyper, assemble_gram
-from gpg.schur import BinFactors, near_rows
+from gpg.gp import kernels
+from gpg.gp.gram import assemble_gram
+from gpg.gp.hyper import Hyper
+from gpg.gp.schur import BinFactors, near_rows
+from gpg.linalg import dense
 
 
 def inducing_inputs(X: Float[ArrayLike, "N D"], n: int, *, seed: int = 0) -> np.ndarray:
@@ -76,7 +78,7 @@ def _gram(A, B, hyper: Hyper, dims) -> np.ndarray:
 
 
 def _tri(L, B, trans: bool = False):
-    return linalg.solve_lower(L, B, trans=trans)
+    return dense.solve_lower(L, B, trans=trans)
 
 
 class _Block:
@@ -87,8 +89,8 @@ class _Block:
         self.rows = rows_b
         self.V = _tri(L_u, _gram(Z, Xb, hyper, dims))
         lam = assemble_gram(jnp.asarray(Xb), hyper, dims)
-        lam -= linalg.gram_t(self.V)
-        self.L = linalg.cholesky_inplace(lam, what="the PIC block Λ_b")
+        lam -= dense.gram_t(self.V)
+        self.L = dense.cholesky_inplace(lam, what="the PIC block Λ_b")
         # W_b = L_b⁻¹ V_bᵀ: V_b Λ_b⁻¹ V_bᵀ = W_bᵀ W_b
         self.W = _tri(self.L, np.ascontiguousarray(self.V.T))
 
@@ -121,7 +123,7 @@ def iter_precompute(
     yielded block by block so that a consumer can store each one compactly before the next is
     computed (the dense factors of all blocks together would dominate the peak memory).
 
-    ``X`` (N, D) and ``Ybar`` (N(1+G), M) as for :func:`gpg.schur.precompute`; ``blocks`` the
+    ``X`` (N, D) and ``Ybar`` (N(1+G), M) as for :func:`gpg.gp.schur.precompute`; ``blocks`` the
     training indices of each bin (a partition of ``range(N)``); ``Z`` (U, D) the inducing
     inputs; ``jitter`` is added to ``K̄_uu``'s diagonal relative to it (inducing values are
     noise-free). Each :class:`BinFactors` is over the rows ``[u; b]``: the inducing rows
@@ -135,7 +137,7 @@ def iter_precompute(
         raise ValueError("blocks must partition the training points (each in exactly one)")
     Kuu = _gram(Z, Z, hyper, dims)
     Kuu.flat[:: Kuu.shape[0] + 1] *= 1.0 + jitter
-    L_u = linalg.cholesky_inplace(np.ascontiguousarray(Kuu), what="K̄_uu (inducing points)")
+    L_u = dense.cholesky_inplace(np.ascontiguousarray(Kuu), what="K̄_uu (inducing points)")
     up = L_u.shape[0]
     m = Ybar.shape[1]
 
@@ -145,30 +147,30 @@ def iter_precompute(
     for idx in blocks:
         rows = near_rows(idx, n, g)
         blk = _Block(X, rows, idx, Z, L_u, hyper, dims)
-        Bm += linalg.gram_t(blk.W)
+        Bm += dense.gram_t(blk.W)
         rhat += blk.W.T @ _tri(blk.L, Ybar[rows])
         del blk
-    L_B = linalg.cholesky_inplace(Bm, what="the PIC inducing system B")
-    beta = linalg.cho_solve(L_B, rhat)
+    L_B = dense.cholesky_inplace(Bm, what="the PIC inducing system B")
+    beta = dense.cho_solve(L_B, rhat)
 
     # Pass 2: each block's coefficients and factor, recomputing its (cheap) block quantities.
     for idx in blocks:
         rows = near_rows(idx, n, g)
         blk = _Block(X, rows, idx, Z, L_u, hyper, dims)
-        w = linalg.cho_solve(blk.L, Ybar[rows] - blk.V.T @ beta)
+        w = dense.cho_solve(blk.L, Ybar[rows] - blk.V.T @ beta)
         c_u = _tri(L_u, beta - blk.V @ w, trans=True)
         nb = rows.size
         # Whitened coordinates z = [k̂; k_b]: q = zᵀ H̃ z with
         # H̃ = blkdiag(I, 0) + G_dᵀ G_d − G_eᵀ G_e, G_d = L_b⁻¹ [−V_bᵀ, I],
         # G_e = L_B⁻¹ [I + V_b Λ_b⁻¹ V_bᵀ, −V_b Λ_b⁻¹].
-        Linv_b = linalg.triangular_inverse_inplace(blk.L)  # L_b⁻¹ (nb, nb), L_b is done
+        Linv_b = dense.triangular_inverse_inplace(blk.L)  # L_b⁻¹ (nb, nb), L_b is done
         G_d = np.concatenate([-blk.W, Linv_b], axis=1)
-        H = linalg.gram_t(G_d)
+        H = dense.gram_t(G_d)
         del G_d
         Vlam = blk.W.T @ Linv_b  # V_b Λ_b⁻¹ = W_bᵀ L_b⁻¹  (U', nb)
         G_e = _tri(L_B, np.concatenate([np.eye(up) + blk.W.T @ blk.W, -Vlam], axis=1))
         del blk, Linv_b, Vlam
-        H -= linalg.gram_t(G_e)
+        H -= dense.gram_t(G_e)
         del G_e
         H[np.arange(up), np.arange(up)] += 1.0
         R = _upper_factor(H)
@@ -195,8 +197,8 @@ def _upper_factor(H: np.ndarray) -> np.ndarray:
         if rel:
             A.flat[:: A.shape[0] + 1] += rel * scale
         try:
-            return np.ascontiguousarray(linalg.cholesky_inplace(A, what="PIC variance form").T)
-        except linalg.NotPositiveDefiniteError:
+            return np.ascontiguousarray(dense.cholesky_inplace(A, what="PIC variance form").T)
+        except dense.NotPositiveDefiniteError:
             continue
     w, V = np.linalg.eigh(H)
     half = np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T

@@ -5,8 +5,8 @@ import time
 import numpy as np
 import pytest
 
-from gpg import memory
-from gpg.tri import BlockTriangular
+from gpg.linalg import memory
+from gpg.linalg.tri import BlockTriangular
 
 
 def test_square_buffer_release_rows(rng):

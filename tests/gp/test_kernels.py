@@ -1,10 +1,10 @@
-"""gpg.kernels against the closed forms of paper Eq. (kernel_gradient), isotropic and ARD."""
+"""gpg.gp.kernels against the closed forms of paper Eq. (kernel_gradient), isotropic and ARD."""
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg import kernels
+from gpg.gp import kernels
 
 RTOL = 1e-12
 

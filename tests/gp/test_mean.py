@@ -1,9 +1,9 @@
-"""gpg.mean: the folded exact mean equals ``k̄_qᵀ α`` written out in NumPy."""
+"""gpg.gp.mean: the folded exact mean equals ``k̄_qᵀ α`` written out in NumPy."""
 
 import numpy as np
 import pytest
 
-from gpg.mean import GlobalMean
+from gpg.gp.mean import GlobalMean
 
 
 def numpy_mean(Xq, X, alpha, sigma, ls, dims):

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg import models, partition, schur
-from gpg.gp import ExactGP, Hyper, assemble_gram, stack_targets
+from gpg.gp import ExactGP, Hyper, assemble_gram, partition, schur, stack_targets
+from gpg.gp.binned import pack
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +28,7 @@ def binned(problem, n_bins=4, route="global", mean="exact", **near):
     part = partition.slab(X, n_bins, dim=0)
     ns = partition.near_sets(X, part, hyper.lengthscale, **(near or {"budget": 0.4}))
     f = schur.precompute(X, stack_targets(Y, dY), hyper, dims, ns, route=route, mean=mean)
-    return models.pack(X, f, ns, part, hyper, dims), f, ns
+    return pack(X, f, ns, part, hyper, dims), f, ns
 
 
 @pytest.mark.parametrize("mean", ["exact", "paper"])
@@ -161,8 +161,6 @@ def test_diagnostics_silent_when_the_far_set_is_far(rng, recwarn):
 
 def test_schur_model_reports_diagnostics(problem):
     """Built models carry the measurement; predict_unclipped exposes negative variances."""
-    from gpg.data.preprocess import GRAD_DIMS  # noqa: F401  (the registry's gradient dims)
-
     model, _, ns = binned(problem, n_bins=4)
     _, v = model.predict_unclipped(problem[5])
     _, vc = model.predict(problem[5])

@@ -10,7 +10,7 @@ import pytest
 
 from gpg import gp as gpmod
 from gpg.gp import ExactGP, FitError, FitWarning, Hyper
-from gpg.linalg import NotPositiveDefiniteError
+from gpg.linalg.dense import NotPositiveDefiniteError
 
 # ----------------------------------------------------------------------------------------------
 # Independent reference: point-major layout, closed-form blocks, dense solves.

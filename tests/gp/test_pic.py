@@ -5,8 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg import kernels, models, partition, pic
-from gpg.gp import ExactGP, Hyper, stack_targets
+from gpg.gp import ExactGP, Hyper, binned, kernels, partition, pic, stack_targets
 
 SIGMA = 1.2
 
@@ -30,7 +29,7 @@ def fitted(problem, n_bins, Z, jitter):
     bins = np.asarray(part.lookup_batch(jnp.asarray(X)))
     blocks = [np.flatnonzero(bins == b) for b in range(n_bins)]
     f = pic.precompute(X, stack_targets(Y, dY), hyper, dims, blocks, Z, jitter=jitter)
-    return models.pack_points([X[b] for b in blocks], f, part, hyper, dims, shared=Z), part
+    return binned.pack_points([X[b] for b in blocks], f, part, hyper, dims, shared=Z), part
 
 
 def dense_pic(problem, part, Z, jitter):

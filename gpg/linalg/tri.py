@@ -31,7 +31,7 @@ class BlockTriangular(eqx.Module):
         """Bands of the triangular ``F``; entries on the other side of the diagonal are dropped.
 
         ``dense_rows`` (upper only): the first that many rows are one band of their own, kept
-        whole, for a factor that is triangular only below them (:mod:`gpg.pic`).
+        whole, for a factor that is triangular only below them (:mod:`gpg.gp.pic`).
         """
         F = np.asarray(F)
         n = F.shape[0]
@@ -51,7 +51,7 @@ class BlockTriangular(eqx.Module):
 
     @classmethod
     def from_buffer(cls, buf, *, lower: bool, n_blocks: int = 4) -> BlockTriangular:
-        """Bands of the lower-triangular matrix in a :class:`gpg.memory.SquareBuffer`, giving
+        """Bands of the lower-triangular matrix in a :class:`gpg.linalg.memory.SquareBuffer`, giving
         each band's rows back to the system once copied, so that the dense matrix and its
         bands are never both held in full."""
         if not lower:

@@ -6,7 +6,7 @@ far rows ``f``, the paper (Eqs. GPGSmean/GPGSvariance) predicts with the Schur c
 ``S = K̄_nn − K̄_nf K̄_ff⁻¹ K̄_fn``:
 
 * variance ``σ − k_qnᵀ S⁻¹ k_qn`` (exact when ``k_qf = 0``);
-* mean, two forms (DESIGN pitfall 1): ``paper`` ``k_qnᵀ S⁻¹ Ȳ_n`` (Eq. GPGSmean), and
+* mean, two forms (docs/design.md, pitfall 1): ``paper`` ``k_qnᵀ S⁻¹ Ȳ_n`` (Eq. GPGSmean), and
   ``exact`` ``k_qnᵀ α_n`` with the global ``α = K̄⁻¹ Ȳ``, which is what ``k_qf = 0`` really
   gives: ``α_n = S⁻¹(Ȳ_n − K̄_nf K̄_ff⁻¹ Ȳ_f)``, so the paper's form drops the far targets.
 
@@ -38,9 +38,10 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
 
-from gpg import linalg, memory
-from gpg.gp import Hyper, assemble_gram
-from gpg.partition import NearSets, Partition, far_correlation
+from gpg.gp.gram import assemble_gram
+from gpg.gp.hyper import Hyper
+from gpg.gp.partition import NearSets, Partition, far_correlation
+from gpg.linalg import dense, memory
 
 ROUTES = ("global", "direct", "local")
 MEAN_FORMS = ("exact", "paper")
@@ -66,7 +67,7 @@ def diagnose(
     """Measure the Schur assumption ``k_qf ≈ 0`` on the training inputs and warn when it fails.
 
     Returns the near-set ε per bin and the distribution (median, p90, max) of each training
-    input's largest correlation with its bin's far set (:func:`gpg.partition.far_correlation`);
+    input's largest correlation with its bin's far set (:func:`gpg.gp.partition.far_correlation`);
     ``kqf_violated`` is True, with one :class:`SchurAssumptionWarning`, when the median
     exceeds ``threshold``.
     """
@@ -100,14 +101,14 @@ class BinFactors:
     """One bin, over its near rows (:func:`near_rows`, bin-local dimension-major order): mean
     coefficients ``coef`` (r, M) and variance factor ``factor`` (r, r), triangular (``lower`` or
     upper). An upper factor may be dense in its first ``dense_rows`` rows (PIC's inducing
-    block, :mod:`gpg.pic`); below them it is triangular."""
+    block, :mod:`gpg.gp.pic`); below them it is triangular."""
 
     coef: np.ndarray
     factor: np.ndarray
     lower: bool
     dense_rows: int = 0
     # ``Ȳ_bᵀ K_b⁻¹ Ȳ_b`` (M,) over the bin's own rows and their number: pooled over bins they
-    # give the per-output signal scale (:func:`gpg.mean.output_scale`).
+    # give the per-output signal scale (:func:`gpg.gp.mean.output_scale`).
     yty: np.ndarray | None = None
     n_rows: int = 0
 
@@ -138,7 +139,7 @@ def precompute(
     """Per-bin coefficients and variance factors by ``route`` (see module docstring).
 
     ``X`` are the (normalised) training inputs (N, D) and ``Ybar`` the stacked targets
-    (N(1+G), M) in the layout of :mod:`gpg.kernels`. ``mean`` is ignored by ``local``.
+    (N(1+G), M) in the layout of :mod:`gpg.gp.kernels`. ``mean`` is ignored by ``local``.
     """
     check_options(mean, route)
     dims = tuple(grad_dims)
@@ -153,9 +154,9 @@ def precompute(
     K = assemble_gram(jnp.asarray(X), hyper, dims)
     if route == "direct":
         return [_direct(K, Ybar, r, mean) for r in rows]
-    L = linalg.cholesky_inplace(K)
-    alpha = linalg.cho_solve(L, Ybar)
-    W = linalg.triangular_inverse_inplace(L)  # K̄⁻¹ = Wᵀ W; the factor's buffer is reused
+    L = dense.cholesky_inplace(K)
+    alpha = dense.cho_solve(L, Ybar)
+    W = dense.triangular_inverse_inplace(L)  # K̄⁻¹ = Wᵀ W; the factor's buffer is reused
     out = []
     for r in rows:
         # Rows above the first near row of a lower-triangular W are zero: skip them.
@@ -173,8 +174,8 @@ def _gram_factor(Wn: np.ndarray) -> np.ndarray:
     rounding has made the Gram matrix indefinite, the QR factor instead, which never fails.
     """
     try:
-        return np.ascontiguousarray(linalg.cholesky_inplace(linalg.gram_t(Wn), what="[K̄⁻¹]_nn").T)
-    except linalg.NotPositiveDefiniteError:
+        return np.ascontiguousarray(dense.cholesky_inplace(dense.gram_t(Wn), what="[K̄⁻¹]_nn").T)
+    except dense.NotPositiveDefiniteError:
         return np.ascontiguousarray(sla.qr(Wn, mode="r", check_finite=False)[0][: Wn.shape[1]])
 
 
@@ -182,25 +183,25 @@ def _direct(K: np.ndarray, Ybar: np.ndarray, r: np.ndarray, mean: str) -> BinFac
     far = np.setdiff1d(np.arange(K.shape[0]), r)
     K_nn = K[np.ix_(r, r)]
     if far.size:
-        L_ff = linalg.cholesky_inplace(K[np.ix_(far, far)], what="K̄_ff")
+        L_ff = dense.cholesky_inplace(K[np.ix_(far, far)], what="K̄_ff")
         V = sla.solve_triangular(L_ff, K[np.ix_(far, r)], lower=True, check_finite=False)
-        S = K_nn - linalg.gram_t(V)
+        S = K_nn - dense.gram_t(V)
         target = Ybar[r]
         if mean == "exact":  # Ȳ_n − K̄_nf K̄_ff⁻¹ Ȳ_f; the paper's form keeps Ȳ_n
             u = sla.solve_triangular(L_ff, Ybar[far], lower=True, check_finite=False)
             target = target - V.T @ u
     else:
         S, target = K_nn, Ybar[r]
-    L_S = linalg.cholesky_inplace(np.ascontiguousarray(S), what="Schur complement S")
-    coef = linalg.cho_solve(L_S, target)
-    inv = linalg.triangular_inverse_inplace(L_S)
+    L_S = dense.cholesky_inplace(np.ascontiguousarray(S), what="Schur complement S")
+    coef = dense.cho_solve(L_S, target)
+    inv = dense.triangular_inverse_inplace(L_S)
     return BinFactors(coef, inv, True, yty=_yty(Ybar[r], coef), n_rows=r.size)
 
 
 def _local(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray) -> BinFactors:
-    L = linalg.cholesky_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), what="K̄_nn")
-    coef = linalg.cho_solve(L, Ybar[r])
-    inv = linalg.triangular_inverse_inplace(L)
+    L = dense.cholesky_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), what="K̄_nn")
+    coef = dense.cho_solve(L, Ybar[r])
+    inv = dense.triangular_inverse_inplace(L)
     return BinFactors(coef, inv, True, yty=_yty(Ybar[r], coef), n_rows=r.size)
 
 

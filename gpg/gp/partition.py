@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from gpg import kernels
+from gpg.gp import kernels
 
 SCHEMES = ("slab", "kdtree")
 
@@ -136,15 +136,13 @@ def kdtree(X: Float[ArrayLike, "N D"], n_bins: int) -> Partition:
     """Balanced median splits into ``n_bins`` leaves (any count, not only powers of two)."""
     X = _check(X, n_bins)
     nodes: list[list] = []
-    bins = [0]
-    depth = [0]
 
-    def build(idx: np.ndarray, k: int, level: int) -> int:
+    def build(idx: np.ndarray, k: int, level: int, first: int) -> tuple[int, int]:
+        """Split ``idx`` into ``k`` leaves numbered from ``first`` (left subtree first);
+        returns the subtree's reference (node index, or ``-(bin + 1)`` for a leaf) and its
+        deepest level."""
         if k == 1:
-            b = bins[0]
-            bins[0] += 1
-            depth[0] = max(depth[0], level)
-            return -(b + 1)
+            return -(first + 1), level
         spread = X[idx].max(0) - X[idx].min(0)
         d = int(np.argmax(spread))
         order = idx[np.argsort(X[idx, d], kind="stable")]
@@ -157,12 +155,12 @@ def kdtree(X: Float[ArrayLike, "N D"], n_bins: int) -> Partition:
         go_left = X[idx, d] <= cut
         if go_left.all() or not go_left.any():
             raise ValueError(f"cannot split {len(idx)} points into {k} bins: repeated inputs")
-        nodes[me][2] = build(idx[go_left], k_left, level + 1)
-        nodes[me][3] = build(idx[~go_left], k - k_left, level + 1)
-        return me
+        nodes[me][2], deep_l = build(idx[go_left], k_left, level + 1, first)
+        nodes[me][3], deep_r = build(idx[~go_left], k - k_left, level + 1, first + k_left)
+        return me, max(deep_l, deep_r)
 
-    build(np.arange(X.shape[0]), n_bins, 0)
-    return _tree([tuple(n) for n in nodes], n_bins, depth[0], "kdtree")
+    _, depth = build(np.arange(X.shape[0]), n_bins, 0, 0)
+    return _tree([tuple(n) for n in nodes], n_bins, depth, "kdtree")
 
 
 def build(X: Float[ArrayLike, "N D"], scheme: str, n_bins: int, **kw) -> Partition:

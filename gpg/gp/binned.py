@@ -1,0 +1,232 @@
+"""The partitioned predictor: every query answered from its own bin's near set.
+
+One class serves GP-S, GP-G-S, GP-G-S-Schur, the hybrid's variance and GP-G-PIC: what
+differs between them is only how each bin's mean coefficients and variance factor were
+computed (:mod:`gpg.gp.schur`, :mod:`gpg.gp.pic`); :func:`pack_points` stores them padded and
+stacked so that one jitted query reads one bin.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from gpg.gp import kernels, partition, schur
+from gpg.gp.hyper import Hyper
+from gpg.gp.mean import output_scale
+from gpg.gp.predictor import Predictor
+from gpg.linalg.tri import BlockTriangular
+
+FAR = 1e3  # padding position: its kernel with any query in [-1, 1]^D underflows to 0
+FACTOR_BANDS = 8  # row bands per variance factor (gpg.linalg.tri): 56 % of the dense bytes
+
+
+class BinnedGP(Predictor):
+    """Partitioned predictor: each query is answered from its bin's near set only.
+
+    ``Xn`` (B, P, D) near points per bin, padded to P with far-away points; ``coef`` (B, M, Rp)
+    mean coefficients and ``factor`` one triangular variance factor per bin (row bands, see
+    :mod:`gpg.linalg.tri`) over the bin's rows (``Rp = P(1+G)``, value rows then gradient rows),
+    zero on padding; ``jitter`` the value-noise variance ``ν²`` of an observation. The mean
+    computes the query's kernel row against its own bin only, then multiplies it by every bin's
+    small coefficient block and keeps its own: under ``vmap`` that is one dense product instead
+    of a per-query gather of coefficients, which the CPU serves several times faster.
+
+    The "near set" of a bin is whatever the bin's predictor conditions on: the near training
+    points (``gps_*``, ``gpgs``, ``gpgs_schur``, the hybrid's variance), or, for ``gpg_pic``,
+    the ``shared`` inducing inputs (U, D), whose rows come first in every bin, followed by the
+    bin's own points.
+    """
+
+    partition: partition.Partition
+    shared: Float[Array, "U D"] | None
+    Xn: Float[Array, "B P D"]
+    coef: Float[Array, "B M Rp"]
+    factor: tuple[BlockTriangular, ...]
+    variance: Float[Array, ""]
+    lengthscale: Float[Array, "*L"]
+    jitter: Float[Array, ""]
+    output_scale: Float[Array, " M"]
+    n_near: Int[Array, " B"]
+    grad_dims: tuple[int, ...] = eqx.field(static=True)
+
+    @property
+    def n_inputs(self) -> int:
+        return self.Xn.shape[2]
+
+    @property
+    def n_outputs(self) -> int:
+        return self.coef.shape[1]
+
+    @property
+    def noise(self) -> Float[Array, ""]:
+        return self.jitter
+
+    def kernel_row(self, x: Float[Array, " D"], b: Int[Array, ""]) -> Float[Array, " Rp"]:
+        """``k̄(x, X_n)`` against bin ``b``'s near set: values, then gradient rows."""
+        Xb = jax.lax.dynamic_index_in_dim(self.Xn, b, keepdims=False)
+        row = kernels.query_rows(x[None], Xb, self.variance, self.lengthscale, self.grad_dims)[0]
+        if self.shared is None:
+            return row
+        k_u = kernels.query_rows(
+            x[None], self.shared, self.variance, self.lengthscale, self.grad_dims
+        )[0]
+        return jnp.concatenate([k_u, row])
+
+    def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        b = self.partition.lookup(x)
+        return binned_contract(self.coef, b, self.kernel_row(x, b))
+
+    def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
+        b = self.partition.lookup(x)
+        k = self.kernel_row(x, b)
+        quad = binned_quadratic_form(self.factor, b, k)
+        return binned_contract(self.coef, b, k), self.variance - quad
+
+    def mean_view(self) -> BinnedGP:
+        """Without the variance factors (the mean reads the coefficients only)."""
+        return eqx.tree_at(lambda m: m.factor, self, ())
+
+    def variance_one(self, x: Float[Array, " D"]) -> Float[Array, ""]:
+        """Latent variance alone (unclamped): ``σ − ‖F_b k̄_qn‖²``."""
+        b = self.partition.lookup(x)
+        return self.variance - binned_quadratic_form(self.factor, b, self.kernel_row(x, b))
+
+
+# One query reads one bin's arrays; a batch reads every bin's arrays once. JAX would turn the
+# one-query code into a per-query gather (coefficients) or a select with every bin's factor
+# broadcast to the batch (variance), so both get a batch rule of their own (custom_vmap):
+# one dense product per bin for all queries, each query keeping its own bin's result.
+# Forward-mode differentiation works through them; reverse mode does not (custom_vmap).
+
+
+def _batched_args(axis_size, in_batched, b, k):
+    bins = b if in_batched[1] else jnp.broadcast_to(b, (axis_size,))
+    K = k if in_batched[2] else jnp.broadcast_to(k, (axis_size,) + k.shape)
+    return bins, K
+
+
+@jax.custom_batching.custom_vmap
+def binned_contract(
+    coef: Float[Array, "B M R"], b: Int[Array, ""], k: Float[Array, " R"]
+) -> Float[Array, " M"]:
+    """``C_b k``: one bin's mean coefficients applied to a kernel row."""
+    return jax.lax.dynamic_index_in_dim(coef, b, keepdims=False) @ k
+
+
+@binned_contract.def_vmap
+def _binned_contract_batched(axis_size, in_batched, coef, b, k):
+    bins, K = _batched_args(axis_size, in_batched, b, k)
+    if in_batched[0]:  # a batch of models: one pair at a time
+        return jax.lax.map(lambda a: binned_contract(*a), (coef, bins, K)), True
+    every = jnp.einsum("qr,bmr->qbm", K, coef)  # all bins for all queries: one product
+    return jnp.take_along_axis(every, bins[:, None, None], axis=1)[:, 0], True
+
+
+@jax.custom_batching.custom_vmap
+def binned_quadratic_form(
+    factor: tuple[BlockTriangular, ...], b: Int[Array, ""], k: Float[Array, " R"]
+) -> Float[Array, ""]:
+    """``‖F_b k‖²`` with bin ``b``'s factor: a ``lax.switch`` reads that bin's bands only."""
+    branches = [lambda kk, f=f: f.matvec(kk) for f in factor]
+    v = jax.lax.switch(b, branches, k)
+    return (v @ v).astype(k.dtype)
+
+
+@binned_quadratic_form.def_vmap
+def _binned_quadratic_form_batched(axis_size, in_batched, factor, b, k):
+    bins, K = _batched_args(axis_size, in_batched, b, k)
+    if any(jax.tree.leaves(in_batched[0])):
+        return jax.lax.map(lambda a: binned_quadratic_form(*a), (factor, bins, K)), True
+    out = jnp.zeros(axis_size, dtype=K.dtype)
+    for i, f in enumerate(factor):
+        V = f.rmatmul(K)
+        out = jnp.where(bins == i, jnp.sum(V * V, axis=1).astype(K.dtype), out)
+    return out, True
+
+
+def pack_points(
+    points: Sequence[np.ndarray],
+    factors: Iterable[schur.BinFactors],
+    part: partition.Partition,
+    hyper: Hyper,
+    grad_dims: tuple[int, ...],
+    *,
+    dtype: str = "float64",
+    shared: np.ndarray | None = None,
+    scale: np.ndarray | None = None,
+) -> BinnedGP:
+    """Padded, stacked per-bin arrays of a :class:`BinnedGP`: bin ``b`` conditions on the
+    points ``points[b]`` (p_b, D) through ``factors[b]`` (rows dimension-major over them),
+    after the rows of the ``shared`` points if any (PIC's inducing inputs). ``dtype`` is the
+    storage type of the variance factors. ``scale`` is the per-output variance scale; by
+    default it is pooled from the bins' own fits (ones where a route does not report them).
+    ``factors`` may be a generator: each bin's factor is stored in bands before the next one
+    is drawn, so the dense factors are never all held at once."""
+    B, D = len(points), points[0].shape[1]
+    g = len(grad_dims)
+    P = max(p.shape[0] for p in points)
+    up = 0 if shared is None else shared.shape[0] * (1 + g)
+    Rp = up + P * (1 + g)
+    Xn = np.full((B, P, D), FAR)
+    coefs, bands, ytys, n_rows = [], [], [], 0
+    for b, (pts, f) in enumerate(zip(points, factors, strict=True)):
+        p = pts.shape[0]
+        Xn[b, :p] = pts
+        # Local row -> padded row is increasing, so a triangular factor stays triangular.
+        pos = np.concatenate([np.arange(up), up + schur.near_rows(np.arange(p), P, g)])
+        coef = np.zeros((f.coef.shape[1], Rp))
+        coef[:, pos] = f.coef.T
+        coefs.append(coef)
+        if p == P:  # no padding: the factor as it is
+            dense = np.asarray(f.factor, dtype=dtype)
+        else:
+            dense = np.zeros((Rp, Rp), dtype=dtype)
+            dense[np.ix_(pos, pos)] = f.factor
+        bands.append(
+            BlockTriangular.from_dense(
+                dense, lower=f.lower, n_blocks=FACTOR_BANDS, dense_rows=f.dense_rows
+            )
+        )
+        ytys.append(f.yty)
+        n_rows += f.n_rows
+        del dense, f
+    if scale is None:
+        if all(y is not None for y in ytys):
+            scale = output_scale(np.sum(ytys, axis=0), n_rows)
+        else:
+            scale = np.ones(coefs[0].shape[0])
+    return BinnedGP(
+        partition=part,
+        shared=None if shared is None else jnp.asarray(shared),
+        Xn=jnp.asarray(Xn),
+        coef=jnp.asarray(np.stack(coefs)),
+        factor=tuple(bands),
+        variance=hyper.variance,
+        lengthscale=hyper.lengthscale,
+        jitter=hyper.jitter,
+        output_scale=jnp.asarray(scale, dtype=float),
+        n_near=jnp.asarray([p.shape[0] for p in points]),
+        grad_dims=grad_dims,
+    )
+
+
+def pack(
+    X: np.ndarray,
+    factors: list[schur.BinFactors],
+    near: partition.NearSets,
+    part: partition.Partition,
+    hyper: Hyper,
+    grad_dims: tuple[int, ...],
+    *,
+    dtype: str = "float64",
+    scale: np.ndarray | None = None,
+) -> BinnedGP:
+    """:func:`pack_points` for near sets of training points ``X[near.near[b]]``."""
+    points = [X[nb] for nb in near.near]
+    return pack_points(points, factors, part, hyper, grad_dims, dtype=dtype, scale=scale)

@@ -1,0 +1,138 @@
+"""The stacked targets ``Ȳ``, the Gram matrix ``K̄`` of Eq. (barK) and its log likelihood.
+
+Rows follow the layout of :mod:`gpg.gp.kernels`: ``N`` value rows, then one block of ``N``
+rows per gradient dimension. :func:`assemble_gram` writes ``K̄`` block by block into one buffer
+(the only full-size allocation); :func:`log_marginal_likelihood` is the differentiable dense
+form used on the hyperparameter-fit subset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from gpg import _checks
+from gpg.gp import kernels
+from gpg.gp.hyper import Hyper
+
+
+def stack_targets(Y: Float[Array, "N M"], dY: Float[Array, "N M G"] | None) -> Float[Array, "R M"]:
+    """Stack values and gradients into ``Ȳ`` with the layout of :mod:`gpg.gp.kernels`.
+
+    NumPy in, NumPy out (no compilation for the offline fit); JAX arrays stay JAX arrays.
+    """
+    xp = np if isinstance(Y, np.ndarray) and (dY is None or isinstance(dY, np.ndarray)) else jnp
+    if dY is None or dY.shape[2] == 0:
+        return Y
+    grads = xp.moveaxis(dY, 2, 0).reshape(-1, Y.shape[1])
+    return xp.concatenate([Y, grads], axis=0)
+
+
+@dataclass(frozen=True)
+class Checked:
+    """Training data after :func:`check_training_data`: float arrays, ``Y`` (N, M), ``dY``
+    (N, M, G) or None, and the gradient dims as a tuple."""
+
+    X: np.ndarray
+    Y: np.ndarray
+    dY: np.ndarray | None
+    grad_dims: tuple[int, ...]
+
+
+def check_training_data(X, Y, dY, grad_dims) -> Checked:
+    X = _checks.as_float_array("X", X, ndim=2)
+    Y = _checks.as_float_array("Y", Y, ndim=(1, 2))
+    if Y.ndim == 1:
+        Y = Y[:, None]
+    n, d = X.shape
+    if n == 0:
+        raise ValueError("X must hold at least one point")
+    if Y.shape[0] != n:
+        raise ValueError(f"Y has {Y.shape[0]} rows but X has {n}")
+    _checks.require_finite("X", X)
+    _checks.require_finite("Y", Y)
+    if dY is None:
+        if grad_dims not in (None, (), []):
+            raise ValueError(f"grad_dims={tuple(grad_dims)} given but dY is None")
+        return Checked(X, Y, None, ())
+    dY = _checks.as_float_array("dY", dY, ndim=(2, 3))
+    if dY.ndim == 2:
+        if Y.shape[1] != 1:
+            raise ValueError(f"dY must have shape (N, M, G) for M={Y.shape[1]} outputs")
+        dY = dY[:, None, :]
+    if dY.shape[:2] != Y.shape:
+        raise ValueError(f"dY must have shape (N, M, G) = ({n}, {Y.shape[1]}, G), got {dY.shape}")
+    if grad_dims is None:
+        if dY.shape[2] != d:
+            raise ValueError(
+                f"dY has {dY.shape[2]} gradient dims but X has {d} inputs: pass grad_dims"
+            )
+        grad_dims = tuple(range(d))
+    grad_dims = kernels.check_dims(grad_dims, d)
+    if len(grad_dims) != dY.shape[2]:
+        raise ValueError(f"grad_dims names {len(grad_dims)} dims but dY has {dY.shape[2]}")
+    _checks.require_finite("dY", dY)
+    return Checked(X, Y, dY, grad_dims)
+
+
+def assemble_gram(
+    X: Float[ArrayLike, "N D"],
+    hyper: Hyper,
+    grad_dims: tuple[int, ...],
+    *,
+    out: np.ndarray | None = None,
+    chunk_rows: int = 256,
+) -> np.ndarray:
+    """``K̄(X, X)`` plus its noise diagonal, written into a C-ordered NumPy buffer.
+
+    Built in blocks of about ``chunk_rows`` rows so that the only full-size allocation is the
+    result (``out`` if given), ready for :func:`gpg.linalg.dense.cholesky_inplace`. Small blocks
+    stay in cache: 256 rows assembled the 8000-row K̄ fastest on the development machine.
+    """
+    X = jnp.asarray(X)
+    n = X.shape[0]
+    g = len(grad_dims)
+    r = n * (1 + g)
+    if out is None:
+        out = np.empty((r, r))
+    elif out.shape != (r, r):
+        raise ValueError(f"out must have shape ({r}, {r}), got {out.shape}")
+    step = max(1, chunk_rows // (1 + g))
+    for start in range(0, n, step):
+        stop = min(start + step, n)
+        rows = np.asarray(
+            kernels.gram(X[start:stop], X, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
+        )
+        width = stop - start
+        for blk in range(1 + g):
+            out[blk * n + start : blk * n + stop] = rows[blk * width : (blk + 1) * width]
+    out.flat[:: r + 1] += np.asarray(hyper.noise_diagonal(n, g))
+    return out
+
+
+def log_marginal_likelihood(
+    X: Float[Array, "N D"],
+    Ybar: Float[Array, "R M"],
+    hyper: Hyper,
+    grad_dims: tuple[int, ...] = (),
+) -> Float[Array, ""]:
+    """``Σ_m log N(Ȳ_m | 0, K̄)``: pure JAX, differentiable in ``hyper`` (small N only).
+
+    ``Ybar`` is the stacked target of :func:`stack_targets`.
+    """
+    n = X.shape[0]
+    g = len(grad_dims)
+    K = kernels.gram(X, X, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
+    K = K + jnp.diag(hyper.noise_diagonal(n, g))
+    c, lower = jsl.cho_factor(K, lower=True)
+    alpha = jsl.cho_solve((c, lower), Ybar)
+    r, m = Ybar.shape
+    return (
+        -0.5 * jnp.sum(Ybar * alpha)
+        - m * jnp.sum(jnp.log(jnp.diag(c)))
+        - 0.5 * m * r * jnp.log(2 * jnp.pi)
+    )

@@ -1,0 +1,5 @@
+"""Dense linear algebra for matrices that fill the machine (docs/design.md, Architecture).
+
+dense (in-place LAPACK Cholesky, solves, triangular inverse), memory (checked big buffers and
+peak-memory measurement), tri (banded storage of triangular factors).
+"""

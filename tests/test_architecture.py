@@ -1,0 +1,140 @@
+"""The package's shape: imports point down only, no import cycles, and importing gpg changes no
+global state (docs/design.md, Architecture)."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "gpg"
+
+# Lower rank first. A module may import modules of a lower rank, or of its own group (the
+# same subpackage); ranks shared by two groups keep those groups independent of each other
+# (the GP numerics know nothing of quadrotors, the physics nothing of GPs).
+RANKS = {
+    "gpg._checks": 0,
+    "gpg._io": 0,
+    "gpg._interrupt": 0,
+    "gpg._version": 0,
+    "gpg._dtype": 0,
+    "gpg.names": 0,
+    "gpg.linalg": 1,
+    "gpg.gp": 2,
+    "gpg.quadrotor": 2,
+    "gpg.data": 3,
+    "gpg.config": 4,
+    "gpg.models": 5,
+    "gpg.surrogate": 6,
+    "gpg.checkpoint": 7,
+    "gpg": 8,
+    "gpg.runs": 9,
+}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _imports(name: str, path: Path, known: set[str]) -> set[str]:
+    """Every gpg module ``name`` imports, at module level or inside a function."""
+    is_pkg = path.name == "__init__.py"
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = name.split(".")[: len(name.split(".")) - node.level + is_pkg]
+                base = ".".join(anchor + ([base] if base else []))
+            for a in node.names:
+                sub = f"{base}.{a.name}"
+                found.add(sub if sub in known else base)
+    return {m for m in found if m in known and m != name}
+
+
+def _group(module: str) -> str | None:
+    """The longest entry of RANKS that is ``module`` or contains it (the root only itself)."""
+    hits = [g for g in RANKS if module == g or (g != "gpg" and module.startswith(g + "."))]
+    return max(hits, key=len) if hits else None
+
+
+def _graph() -> dict[str, set[str]]:
+    mods = _modules()
+    return {name: _imports(name, path, set(mods)) for name, path in mods.items()}
+
+
+def test_every_module_has_a_rank():
+    assert [m for m in _modules() if _group(m) is None] == []
+
+
+def test_imports_point_down():
+    upward = []
+    for a, deps in _graph().items():
+        ga = _group(a)
+        for b in deps:
+            gb = _group(b)
+            if gb == ga:
+                continue
+            if RANKS[gb] >= RANKS[ga]:
+                upward.append(f"{a} -> {b}")
+    assert upward == []
+
+
+def test_no_import_cycles():
+    graph = _graph()
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(node, stack):
+        state[node] = 1
+        stack.append(node)
+        for dep in sorted(graph[node]):
+            if state.get(dep) == 1:
+                cycles.append(" -> ".join(stack[stack.index(dep) :] + [dep]))
+            elif dep not in state:
+                visit(dep, stack)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [])
+    assert cycles == []
+
+
+def test_the_walk_sees_function_level_imports(tmp_path):
+    """The check would catch an upward import hidden inside a function."""
+    src = tmp_path / "m.py"
+    src.write_text("def f():\n    from gpg.surrogate import Surrogate\n")
+    assert _imports("gpg.quadrotor.m", src, {"gpg.surrogate"}) == {"gpg.surrogate"}
+
+
+def test_import_changes_no_global_state():
+    """In a fresh interpreter: x64, async dispatch and the matplotlib backend untouched, and
+    neither hydra nor matplotlib imported."""
+    code = (
+        "import sys, jax\n"
+        "FLAGS = ('jax_enable_x64', 'jax_cpu_enable_async_dispatch')\n"
+        "flags = lambda: tuple(jax.config.read(k) for k in FLAGS)\n"
+        "before = flags()\n"
+        "import gpg, gpg.data, gpg.quadrotor, gpg.checkpoint\n"
+        "after = flags()\n"
+        "assert before == after == (False, True), (before, after)\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'matplotlib'))\n"
+        "assert not bad, bad\n"
+        "import signal\n"
+        "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler\n"
+    )
+    env = {k: v for k, v in __import__("os").environ.items() if not k.startswith("JAX_")}
+    p = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True
+    )
+    assert p.returncode == 0, p.stderr[-3000:]

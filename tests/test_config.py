@@ -1,0 +1,68 @@
+"""Typed model configuration: one copy of the defaults (Python and YAML agree), frozen values,
+and errors that name the key."""
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from gpg import models
+from gpg.config import ModelConfig
+from gpg.runs.common import CONF_DIR, conf
+from tests.helpers import compose_plain
+
+
+def test_base_yaml_is_the_shared_defaults():
+    assert conf("_base", "model") == ModelConfig().to_dict()
+
+
+@pytest.mark.parametrize("name", models.NAMES)
+def test_model_yaml_states_the_registry_defaults(name):
+    """conf/model/<name>.yaml (its differences over _base) composes to exactly what
+    models.resolve_config(name) gives without overrides."""
+    y = conf(name, "model")
+    assert y.pop("name") == name
+    assert y == models.resolve_config(name).to_dict()
+
+
+def test_hydra_composes_the_same_model_config():
+    cfg = compose_plain("compare", ["+model=gpgs_hybrid"])
+    assert cfg["model"] == conf("gpgs_hybrid", "model")
+
+
+def test_every_model_key_is_commented():
+    for path in sorted(Path(CONF_DIR, "model").glob("*.yaml")):
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            code = line.strip()
+            if code and not code.startswith("#"):
+                assert "#" in line, f"{path.name}:{i} has no comment: {line!r}"
+
+
+def test_config_is_frozen_and_resolved_once():
+    cfg = models.resolve_config("gpgs", {"near": {"budget": 0.25}})
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.near.budget = 0.5
+    assert models.resolve_config("gpgs", cfg) is cfg
+    assert cfg.near.rule() == {"budget": 0.25}
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+
+
+@pytest.mark.parametrize(
+    "over, match",
+    [
+        ({"hyper": {"subset": 0}}, "hyper.subset"),
+        ({"hyper": {"fit": "yes"}}, "hyper.fit"),
+        ({"hyper": {"lengthscale": [1.0, -1.0]}}, "hyper.lengthscale"),
+        ({"partition": {"scheme": "grid"}}, "partition.scheme"),
+        ({"near": {"budget": 1.5}}, "near.budget"),
+        ({"near": {"budget": None}}, "near needs one of"),
+        ({"inducing": {"points": 0}}, "inducing.points"),
+        ({"mean": "median"}, "mean"),
+        ({"hyperr": {}}, "unknown key 'hyperr'"),
+        ({"hyper": {"sigma": 1.0}}, "unknown key hyper.'sigma'"),
+        ({"hyper": 3}, "hyper must be a mapping"),
+    ],
+)
+def test_bad_values_name_their_key(over, match):
+    with pytest.raises(ValueError, match=match):
+        models.resolve_config("gpgs", over)

@@ -1,0 +1,97 @@
+"""The dtype policy: gpg leaves JAX's x64 flag to the caller, fits in float64 whatever it is,
+and a float32 copy of a surrogate predicts in float32 close to float64."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpg._dtype import float64
+from gpg.surrogate import Surrogate
+from tests.helpers import synthetic_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+FIT = {"hyper": {"subset": 40, "max_steps": 40}, "partition": {"points_per_bin": 20}}
+
+# Fits and predicts in a process where x64 is off (a float32 program), prints numbers.
+SCRIPT = """
+import json, sys, warnings
+warnings.filterwarnings("error", message=".*truncated to dtype float32")  # none on the way
+import jax, jax.numpy as jnp, numpy as np
+assert not jax.config.read("jax_enable_x64")
+from gpg.surrogate import Surrogate
+from tests.helpers import synthetic_dataset
+from tests.test_dtype import FIT, queries
+data = synthetic_dataset(50, seed=3)[0]
+sur = Surrogate.fit(data, "gpgs_hybrid", FIT)
+sur32 = sur.astype(jnp.float32)
+rpm, euler, v = queries(data)
+p = sur32.predict_batch(rpm, euler, v)
+one = sur32.realtime()(rpm[0], euler[0], v[0])
+print(json.dumps({
+    "leaf_dtypes": sorted({str(x.dtype) for x in jax.tree.leaves(sur) if hasattr(x, "dtype")}),
+    "lengthscale": np.asarray(sur.model.lengthscale, dtype=np.float64).tolist(),
+    "force_dtype": str(p.force.dtype), "one_dtype": str(one.force.dtype),
+    "force": np.asarray(p.force, dtype=np.float64).tolist(),
+    "var": np.asarray(p.variance, dtype=np.float64).tolist(),
+}))
+"""
+
+
+def queries(data, n=20):
+    """World-frame states of ``n`` training inputs, airflow along +x."""
+    x = data.x[:n]
+    v = np.stack([x[:, 7], np.zeros(n), np.zeros(n)], axis=1)
+    return x[:, :4], x[:, [4, 5, 6]], v
+
+
+def test_float64_wrapper_runs_in_x64_and_widens_arguments():
+    @float64
+    def probe(a):
+        return jax.config.read("jax_enable_x64"), a.dtype, jnp.ones(2).dtype
+
+    with jax.enable_x64(False):
+        on, dt, default = probe(jnp.ones(3, dtype=jnp.float32))
+        assert not jax.config.read("jax_enable_x64")  # restored afterwards
+    assert on and dt == jnp.float64 and default == jnp.float64
+
+
+def test_float32_program_fits_in_float64_and_predicts_in_float32():
+    import json
+    import os
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    p = subprocess.run(
+        [sys.executable, "-c", SCRIPT], cwd=ROOT, env=env, capture_output=True, text=True
+    )
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    # The fit ran in float64: same hyperparameters as in this float64 process.
+    data = synthetic_dataset(50, seed=3)[0]
+    sur = Surrogate.fit(data, "gpgs_hybrid", FIT)
+    assert "float64" in out["leaf_dtypes"]
+    np.testing.assert_allclose(out["lengthscale"], np.asarray(sur.model.lengthscale), rtol=1e-8)
+    # The float32 copy predicts in float32, within float32 rounding of the float64 answer.
+    assert out["force_dtype"] == out["one_dtype"] == "float32"
+    ref = sur.predict_batch(*queries(data))
+    scale = np.std(data.y_aero[:, :3], axis=0)
+    err = np.abs(np.asarray(out["force"]) - np.asarray(ref.force)) / scale
+    assert err.max() < 1e-3, err.max()
+    # The variance σ − ‖F k‖² cancels near the data: float32 keeps it to a small fraction of
+    # each output's spread, not to a relative tolerance (up to 9 % relative at training points).
+    spread = np.var(np.concatenate([data.y_aero, data.y_noise], axis=1), axis=0)
+    dv = np.abs(np.asarray(out["var"]) - np.asarray(ref.variance)) / spread
+    assert dv.max() < 1e-3, dv.max()
+
+
+def test_astype_in_a_float64_process_computes_in_float32():
+    data = synthetic_dataset(50, seed=3)[0]
+    sur = Surrogate.fit(data, "gpgs_hybrid", FIT)
+    rpm, euler, v = queries(data, 3)
+    p32 = sur.astype(jnp.float32).predict(rpm[0], euler[0], v[0])
+    p64 = sur.predict(rpm[0], euler[0], v[0])
+    assert p32.force.dtype == jnp.float32 and p64.force.dtype == jnp.float64
+    np.testing.assert_allclose(p32.force, p64.force, rtol=1e-3, atol=1e-3)
