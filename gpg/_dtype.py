@@ -14,6 +14,7 @@ import functools
 from collections.abc import Callable
 from typing import ParamSpec, TypeVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -27,13 +28,22 @@ def _widen(x):
     return x
 
 
+def _widen_arg(a):
+    """A JAX array or an equinox module (a Hyper, a Generator) widened; anything else as it is
+    (mapping over a plain dict would rebuild it with its keys sorted)."""
+    if isinstance(a, eqx.Module):
+        return jax.tree.map(_widen, a)
+    return _widen(a)
+
+
 def float64(fn: Callable[P, R]) -> Callable[P, R]:
-    """``fn`` run with 64-bit JAX, its JAX float arguments (inside pytrees too) widened."""
+    """``fn`` run with 64-bit JAX, its JAX float arguments (inside equinox modules too) widened."""
 
     @functools.wraps(fn)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         with jax.enable_x64(True):
-            args, kwargs = jax.tree.map(_widen, (args, kwargs))
+            args = tuple(_widen_arg(a) for a in args)
+            kwargs = {k: _widen_arg(v) for k, v in kwargs.items()}
             return fn(*args, **kwargs)
 
     return wrapper

@@ -21,6 +21,7 @@ Options (not new names): partition ``scheme`` (slab, kdtree), bins, near ``budge
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Mapping
@@ -33,7 +34,8 @@ import numpy as np
 
 from gpg._dtype import float64
 from gpg.config import ModelConfig
-from gpg.data.preprocess import Training
+from gpg.data.dataset import Dataset
+from gpg.data.preprocess import Training, prepare
 from gpg.gp import partition, pic, schur
 from gpg.gp.binned import BinnedGP, pack, pack_points
 from gpg.gp.exact import ExactGP
@@ -45,6 +47,7 @@ from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor
 from gpg.linalg import dense, memory
 from gpg.names import GRAD_DIMS
+from gpg.quadrotor.simple_model import SimpleModel
 
 
 @dataclass(frozen=True)
@@ -282,6 +285,38 @@ def build(
             diagnostics = schur.diagnose(X, part, near, hyper.lengthscale, name=name)
     timings["fit_s"] = time.perf_counter() - t0
     return Built(name, _scales(model, cfg), cfg, hyper, fit_res, timings, near, diagnostics)
+
+
+@float64
+def train(
+    name: str,
+    dataset: Dataset,
+    simple: SimpleModel | None,
+    cfg: Mapping[str, Any] | ModelConfig | None = None,
+    *,
+    hyper_cache: dict | None = None,
+) -> tuple[Training, Built]:
+    """The one path from a dataset to a built model: :func:`gpg.data.prepare` (residuals
+    against ``simple``, normalisation), then :func:`build`. With ``hyper_cache`` (a dict kept
+    by the caller) the hyperparameters are fitted once per training arrays (raw samples or
+    not, gradients or not) and hyperparameter config, and shared by every model that matches:
+    the paper's comparison fits them once for all models on the same points."""
+    cfg = resolve_config(name, cfg)
+    training = prepare(dataset, simple)
+    hyper = fit_res = None
+    hyper_s = 0.0
+    if hyper_cache is not None:
+        spec = SPECS[name]
+        key = (spec.raw, spec.gradients, json.dumps(cfg.to_dict()["hyper"], sort_keys=True))
+        if key not in hyper_cache:
+            check_feasible(name, cfg, training)  # before a fit that would be wasted
+            hyper_cache[key] = fit_hyper(name, training, cfg)
+        hyper, fit_res, hyper_s = hyper_cache[key]
+    built = build(name, training, cfg, hyper=hyper)
+    if hyper_cache is not None:
+        built.hyper_fit = fit_res
+        built.timings = {"hyper_s": hyper_s, **built.timings}
+    return training, built
 
 
 def _scales(model: Predictor, cfg: ModelConfig) -> Predictor:

@@ -42,7 +42,7 @@ from gpg._dtype import float64
 from gpg.config import ModelConfig
 from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
-from gpg.data.preprocess import Normalizer, Training, prepare, simple_model_for
+from gpg.data.preprocess import Normalizer, Training, simple_model_for
 from gpg.gp.predictor import Predictor
 from gpg.quadrotor.dynamics import AeroModel, Wrench
 from gpg.quadrotor.frames import euler_from_R, matvec, to_airflow_frame
@@ -118,8 +118,7 @@ class Surrogate(eqx.Module):
         cfg = models.resolve_config(model, config)
         box = None if bounds is None else Bounds.from_config(bounds).arrays()
         simple = simple_model_for(dataset, dataset_vehicle(dataset, vehicle)) if residual else None
-        training = prepare(dataset, simple)
-        built = models.build(model, training, cfg)
+        training, built = models.train(model, dataset, simple, cfg)
         return cls.assemble(
             built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
         )

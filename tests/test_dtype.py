@@ -95,3 +95,13 @@ def test_astype_in_a_float64_process_computes_in_float32():
     p64 = sur.predict(rpm[0], euler[0], v[0])
     assert p32.force.dtype == jnp.float32 and p64.force.dtype == jnp.float64
     np.testing.assert_allclose(p32.force, p64.force, rtol=1e-3, atol=1e-3)
+
+
+def test_float64_wrapper_keeps_plain_containers_as_they_are():
+    """Only arrays and modules are rebuilt: a config dict keeps its key order."""
+
+    @float64
+    def keys(cfg):
+        return list(cfg)
+
+    assert keys({"b": 1, "a": 2}) == ["b", "a"]

@@ -201,3 +201,25 @@ def test_points_per_bin_scales_bins_with_n():
     assert models.resolve_config("gpgs").partition.n_bins(5000) == 10
     with pytest.raises(ValueError, match="partition.points_per_bin must be a positive integer"):
         models.resolve_config("gpgs", {"partition": {"points_per_bin": 0}})
+
+
+def test_train_is_prepare_then_build_and_shares_one_hyper_fit(monkeypatch):
+    """models.train: one path for Surrogate.fit and the comparison; with a cache the models
+    on the same points share one likelihood fit (gpgs and gpgs_hybrid here), gps_1x gets its
+    own (no gradients)."""
+    from gpg.quadrotor.vehicle import load_vehicle
+
+    ds, _ = synthetic_dataset(40)
+    simple = simple_model_for(ds, load_vehicle())
+    fits = []
+    real = models.fit_hyper
+    monkeypatch.setattr(models, "fit_hyper", lambda *a, **k: fits.append(a[0]) or real(*a, **k))
+    cfg = {**FAST, "hyper": {"subset": 20, "max_steps": 5}}
+    cache: dict = {}
+    out = {n: models.train(n, ds, simple, cfg, hyper_cache=cache) for n in ("gpgs", "gpgs_hybrid")}
+    out["gps_1x"] = models.train("gps_1x", ds, simple, cfg, hyper_cache=cache)
+    assert fits == ["gpgs", "gps_1x"] and len(cache) == 2
+    a, b = out["gpgs"][1], out["gpgs_hybrid"][1]
+    np.testing.assert_array_equal(a.hyper.lengthscale, b.hyper.lengthscale)
+    assert a.timings["hyper_s"] == b.timings["hyper_s"] and a.hyper_fit is b.hyper_fit
+    np.testing.assert_array_equal(out["gpgs"][0].X, prepare(ds, simple).X)

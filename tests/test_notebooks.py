@@ -9,10 +9,11 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
 
-# The tutorial runs in the fast set (on fewer points); the analysis notebooks, whose steps
-# the fast set covers elsewhere (compare, simulate), and the comparison notebook, which reads a
-# whole smoke comparison, are slow.
-FAST = {"04_your_own_vehicle"}
+# All four run with `make test-slow`: their steps are covered in the fast set elsewhere (the
+# tutorial's by tests/data/test_dataset.py's CSV import, tests/quadrotor/test_vehicle.py's
+# minimal vehicle, tests/test_checkpoint.py and tests/quadrotor/test_dynamics.py; the analysis
+# notebooks' by the compare and simulate runs), and each costs tens of seconds.
+FAST: set[str] = set()
 PARAMS = [p if p.stem in FAST else pytest.param(p, marks=pytest.mark.slow) for p in NOTEBOOKS]
 
 

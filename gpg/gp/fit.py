@@ -188,7 +188,7 @@ def fit_hyperparameters(
         if on_failure == "raise":
             raise FitError(text)
         if on_failure == "warn":
-            warnings.warn(text, FitWarning, stacklevel=2)
+            warnings.warn(text, FitWarning, stacklevel=3)
     return result
 
 

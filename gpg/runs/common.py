@@ -149,22 +149,15 @@ def fit_model(
     ``measure_memory`` samples the peak RSS of the fit and build.
     """
     from gpg import models
-    from gpg.data.preprocess import prepare
     from gpg.linalg import memory
 
-    spec = models.SPECS[name]
-    training = prepare(train, simple)
-    key = (spec.raw, spec.gradients, json.dumps(mcfg.to_dict()["hyper"], sort_keys=True))
     with memory.PeakRSS() if measure_memory else contextlib.nullcontext() as mem:
-        if key not in hyper_cache:
-            hyper_cache[key] = models.fit_hyper(name, training, mcfg)
-        hyper, fit_res, hyper_s = hyper_cache[key]
-        built = models.build(name, training, mcfg, hyper=hyper)
+        training, built = models.train(name, train, simple, mcfg, hyper_cache=hyper_cache)
     return Fitted(
         training,
         built,
-        fit_res,
-        {"hyper_s": hyper_s, **built.timings},
+        built.hyper_fit,
+        built.timings,
         mem.peak_delta if measure_memory else None,
     )
 

@@ -76,8 +76,81 @@ def _surrogate(cfg: dict[str, Any], vehicle: Vehicle) -> Surrogate:
     return Surrogate.fit(load_train(cfg), name, model, vehicle=vehicle)
 
 
+def _wind(w: dict[str, Any]) -> Wind:
+    return Wind(
+        jnp.asarray(w["mean"], dtype=float),
+        jnp.asarray(w["gust_amplitude"], dtype=float),
+        jnp.asarray(float(w["gust_period"])),
+        jnp.asarray(0.0),
+    )
+
+
+def _single_env_speed(fly, quad, s0, n_steps: int, dt: float) -> dict[str, Any]:
+    """Wall time of one compiled closed-loop episode against the time it simulates."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fly(quad, s0))
+    wall = time.perf_counter() - t0
+    return {
+        "single_env_steps": n_steps,
+        "single_env_wall_s": wall,
+        "single_env_realtime_factor": n_steps * dt / wall,
+    }
+
+
+def _batch_speed(quad, ctrl, s0, dt: float, ro: dict[str, Any]) -> dict[str, Any]:
+    """Environment-steps per second of vmapped random episodes (compiled first, then timed
+    on a fresh key), and how many of their steps stayed in the training domain."""
+    key = jax.random.key(int(ro["seed"]))
+    batch = jax.jit(
+        lambda q, k: batched_rollouts(
+            q,
+            ctrl,
+            k,
+            s0,
+            n_envs=int(ro["n_envs"]),
+            n_steps=int(ro["n_steps"]),
+            dt=dt,
+            target_range=float(ro["target_range"]),
+            wind_max=float(ro["wind_max"]),
+            gust_max=float(ro["gust_max"]),
+        )
+    )
+    jax.block_until_ready(batch(quad, key))  # compile
+    t0 = time.perf_counter()
+    _, btr = jax.block_until_ready(batch(quad, jax.random.fold_in(key, 1)))
+    wall = time.perf_counter() - t0
+    return {
+        "batch_envs": int(ro["n_envs"]),
+        "batch_steps": int(ro["n_steps"]),
+        "batch_wall_s": wall,
+        "batch_env_steps_per_s": ro["n_envs"] * ro["n_steps"] / wall,
+        "batch_in_domain_fraction": float(np.mean(np.asarray(btr.in_domain))),
+        "batch_finite": bool(np.all(np.isfinite(np.asarray(btr.p)))),
+    }
+
+
+def _report(flights: dict[str, Any], speed: dict[str, Any]) -> None:
+    for name, f in flights.items():
+        reach = ", ".join(
+            "never" if leg["time_to_reach_s"] is None else f"{leg['time_to_reach_s']:.2f} s"
+            for leg in f["legs"]
+        )
+        report(
+            f"{name:11s} reach {reach}; overshoot "
+            + ", ".join(f"{leg['overshoot_m']:.2f} m" for leg in f["legs"])
+            + f"; altitude loss {f['altitude_loss_m']:.2f} m; mean rpm {f['mean_rpm']:.0f} "
+            f"(std {f['rpm_std']:.0f}); in domain {100 * f['in_domain_fraction']:.0f} %"
+        )
+    report(
+        f"one env: {speed['single_env_realtime_factor']:.0f}x real time; "
+        f"{speed['batch_envs']} envs: {speed['batch_env_steps_per_s']:,.0f} env-steps/s"
+    )
+
+
 @float64
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
+    """Fit the surrogate, fly the round trip on M and on the surrogate, time the batched
+    environments, and write ``results.json`` and the figures into ``outdir``."""
     outdir = Path(outdir)
     set_dispatch(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
@@ -92,13 +165,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     )
     dt = float(fl["dt"])
     n_steps = int(round((float(plan.end_time) + fl["settle_time"]) / dt))
-    w = cfg["wind"]
-    wind = Wind(
-        jnp.asarray(w["mean"], dtype=float),
-        jnp.asarray(w["gust_amplitude"], dtype=float),
-        jnp.asarray(float(w["gust_period"])),
-        jnp.asarray(0.0),
-    )
+    wind = _wind(cfg["wind"])
     s0 = State.hover(fl["waypoints"][0], simple.hover_rpm(float(vehicle.weight)))
     hold = bool(fl.get("hold_aero", True))
     quads = {
@@ -118,42 +185,10 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     noise_simple = np.asarray(
         sur.predict_batch(tr.rpm, tr.euler, tr.v - wind_t, mean_only=True).noise
     )
-
-    speed = {}
-    t0 = time.perf_counter()
-    _, tr = fly(quads["surrogate"], s0)
-    jax.block_until_ready(tr)
-    wall = time.perf_counter() - t0
-    speed["single_env_steps"] = n_steps
-    speed["single_env_wall_s"] = wall
-    speed["single_env_realtime_factor"] = n_steps * dt / wall
-    ro = cfg["rollouts"]
-    key = jax.random.key(int(ro["seed"]))
-    batch = jax.jit(
-        lambda q, k: batched_rollouts(
-            q,
-            ctrl,
-            k,
-            s0,
-            n_envs=int(ro["n_envs"]),
-            n_steps=int(ro["n_steps"]),
-            dt=dt,
-            target_range=float(ro["target_range"]),
-            wind_max=float(ro["wind_max"]),
-            gust_max=float(ro["gust_max"]),
-        )
-    )
-    jax.block_until_ready(batch(quads["surrogate"], key))  # compile
-    t0 = time.perf_counter()
-    _, btr = jax.block_until_ready(batch(quads["surrogate"], jax.random.fold_in(key, 1)))
-    wall = time.perf_counter() - t0
-    speed["batch_envs"] = int(ro["n_envs"])
-    speed["batch_steps"] = int(ro["n_steps"])
-    speed["batch_wall_s"] = wall
-    speed["batch_env_steps_per_s"] = ro["n_envs"] * ro["n_steps"] / wall
-    speed["batch_in_domain_fraction"] = float(np.mean(np.asarray(btr.in_domain)))
-    speed["batch_finite"] = bool(np.all(np.isfinite(np.asarray(btr.p))))
-
+    speed = {
+        **_single_env_speed(fly, quads["surrogate"], s0, n_steps, dt),
+        **_batch_speed(quads["surrogate"], ctrl, s0, dt, cfg["rollouts"]),
+    }
     figures = []
     if cfg.get("figures", True):
         from gpg.runs import plots
@@ -168,19 +203,5 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         "config": cfg,
     }
     write_json(outdir / "results.json", out)
-    for name, f in flights.items():
-        reach = ", ".join(
-            "never" if leg["time_to_reach_s"] is None else f"{leg['time_to_reach_s']:.2f} s"
-            for leg in f["legs"]
-        )
-        report(
-            f"{name:11s} reach {reach}; overshoot "
-            + ", ".join(f"{leg['overshoot_m']:.2f} m" for leg in f["legs"])
-            + f"; altitude loss {f['altitude_loss_m']:.2f} m; mean rpm {f['mean_rpm']:.0f} "
-            f"(std {f['rpm_std']:.0f}); in domain {100 * f['in_domain_fraction']:.0f} %"
-        )
-    report(
-        f"one env: {speed['single_env_realtime_factor']:.0f}x real time; "
-        f"{speed['batch_envs']} envs: {speed['batch_env_steps_per_s']:,.0f} env-steps/s"
-    )
+    _report(flights, speed)
     return out
