@@ -38,7 +38,7 @@ import numpy as np
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 2  # 2: noise, output scales, hybrid and PIC models
+FORMAT_VERSION = 3  # 2: noise, output scales, hybrid and PIC models; 3: M_noise
 
 
 class CheckpointError(ValueError):

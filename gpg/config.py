@@ -94,10 +94,12 @@ class HyperConfig:
 class PartitionConfig:
     """How the inputs are cut into bins."""
 
-    scheme: str = "slab"  # slab: equal-count intervals along one input | kdtree: median splits
+    # slab: equal-count intervals along one input | kdtree: median splits | adaptive: intervals
+    # of equal output variation along one input (narrower where the outputs change fast)
+    scheme: str = "slab"
     bins: int = 10  # number of bins (the paper: 10), unless points_per_bin is set
     points_per_bin: int | None = None  # or: about this many training points per bin
-    dim: int = 7  # input cut by slab (7 = airspeed)
+    dim: int = 7  # input cut by slab and adaptive (7 = airspeed)
 
     def __post_init__(self):
         _choice("partition.scheme", self.scheme, SCHEMES)

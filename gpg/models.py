@@ -48,6 +48,7 @@ from gpg.gp.predictor import Predictor
 from gpg.linalg import dense, memory
 from gpg.names import GRAD_DIMS
 from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.simple_noise import SimpleNoise
 
 
 @dataclass(frozen=True)
@@ -89,10 +90,17 @@ def resolve_config(name: str, cfg: ModelConfig | ModelConfig | None = None) -> M
     return ModelConfig.resolve(name, cfg)
 
 
-def build_partition(X: np.ndarray, cfg: ModelConfig) -> partition.Partition:
-    """The partition a resolved config asks for, on training inputs ``X``."""
+def build_partition(
+    X: np.ndarray, cfg: ModelConfig, Y: np.ndarray | None = None
+) -> partition.Partition:
+    """The partition a resolved config asks for, on training inputs ``X`` (the ``adaptive``
+    scheme also reads the targets ``Y``: its bins follow their local variation)."""
     pc = cfg.partition
-    opts = {"dim": pc.dim} if pc.scheme == "slab" else {}
+    opts: dict[str, Any] = {"dim": pc.dim} if pc.scheme in ("slab", "adaptive") else {}
+    if pc.scheme == "adaptive":
+        if Y is None:
+            raise ValueError("partition.scheme=adaptive needs the training targets")
+        opts["weights"] = partition.variation_weights(X, Y)
     return partition.build(X, pc.scheme, pc.n_bins(X.shape[0]), **opts)
 
 
@@ -258,7 +266,7 @@ def build(
     dims = tuple(dims)
     t0 = time.perf_counter()
     nc = cfg.near
-    part = build_partition(X, cfg)
+    part = build_partition(X, cfg, Y)
     near = None
     if spec.kind != "pic":
         near = partition.near_sets(X, part, hyper.lengthscale, **nc.rule())
@@ -294,15 +302,17 @@ def train(
     simple: SimpleModel | None,
     cfg: Mapping[str, Any] | ModelConfig | None = None,
     *,
+    noise: SimpleNoise | None = None,
     hyper_cache: dict | None = None,
 ) -> tuple[Training, Built]:
     """The one path from a dataset to a built model: :func:`gpg.data.prepare` (residuals
-    against ``simple``, normalisation), then :func:`build`. With ``hyper_cache`` (a dict kept
+    against ``simple`` and, if given, ``noise`` = ``M_noise``; normalisation), then
+    :func:`build`. With ``hyper_cache`` (a dict kept
     by the caller) the hyperparameters are fitted once per training arrays (raw samples or
     not, gradients or not) and hyperparameter config, and shared by every model that matches:
     the paper's comparison fits them once for all models on the same points."""
     cfg = resolve_config(name, cfg)
-    training = prepare(dataset, simple)
+    training = prepare(dataset, simple, noise)
     hyper = fit_res = None
     hyper_s = 0.0
     if hyper_cache is not None:

@@ -47,6 +47,7 @@ from gpg.gp.predictor import Predictor
 from gpg.quadrotor.dynamics import AeroModel, Wrench
 from gpg.quadrotor.frames import euler_from_R, matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle, load_vehicle
 
 
@@ -86,6 +87,7 @@ class Surrogate(eqx.Module):
     config_json: str = eqx.field(static=True)  # resolved model config, for records
     # m/s: below it the airflow frame turns toward the body heading (frames.airflow_direction)
     hover_speed: float = eqx.field(static=True, default=HOVER_SPEED)
+    noise: SimpleNoise | None = None  # M_noise, added back to the levels (None: not used)
 
     @classmethod
     @float64
@@ -98,6 +100,7 @@ class Surrogate(eqx.Module):
         vehicle: Vehicle | str | Path | None = None,
         bounds: Mapping[str, Any] | None = None,
         residual: bool = True,
+        noise_model: bool = False,
         hover_speed: float = HOVER_SPEED,
     ) -> Surrogate:
         """Preprocess ``dataset`` and build ``model`` (a name from :data:`gpg.models.NAMES`).
@@ -118,7 +121,12 @@ class Surrogate(eqx.Module):
         cfg = models.resolve_config(model, config)
         box = None if bounds is None else Bounds.from_config(bounds).arrays()
         simple = simple_model_for(dataset, dataset_vehicle(dataset, vehicle)) if residual else None
-        training, built = models.train(model, dataset, simple, cfg)
+        if noise_model and simple is None:
+            raise ValueError("noise_model=True needs residual=True (M_noise uses M's loads)")
+        noise = None
+        if noise_model and dataset.has_noise:
+            noise = SimpleNoise.from_vehicle(dataset_vehicle(dataset, vehicle), simple)
+        training, built = models.train(model, dataset, simple, cfg, noise=noise)
         return cls.assemble(
             built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
         )
@@ -145,6 +153,7 @@ class Surrogate(eqx.Module):
             model=model,
             normalizer=training.normalizer,
             simple=training.simple,
+            noise=training.noise,
             box_lo=jnp.asarray(box_lo),
             box_hi=jnp.asarray(box_hi),
             output_names=training.output_names,
@@ -355,6 +364,7 @@ def predict_state(
         mean_n, var_n = sur.model.mean_one(xn), None
     y = sur.normalizer.y_inv(mean_n)
     force, torque = matvec(R_WH, y[:3]), matvec(R_WH, y[3:6])
+    levels = y[6:] if sur.noise is None else y[6:] + sur.noise(rpm)
     if sur.simple is not None:
         y_m = sur.simple(jnp.concatenate([rpm, euler]))  # M at the world attitude, world frame
         force, torque = force + y_m[:3], torque + y_m[3:6]
@@ -365,7 +375,7 @@ def predict_state(
         rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_WH, d, R_WH)  # diag(R diag(d) Rᵀ)  # noqa: E731
         variance = jnp.concatenate([rot_var(v[:3]), rot_var(v[3:6]), v[6:]])
     return Prediction(
-        force=force, torque=torque, noise=y[6:], variance=variance, in_domain=in_domain
+        force=force, torque=torque, noise=levels, variance=variance, in_domain=in_domain
     )
 
 

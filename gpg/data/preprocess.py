@@ -24,6 +24,7 @@ from jaxtyping import Array, ArrayLike, Float
 from gpg.data.dataset import Dataset
 from gpg.names import GRAD_DIMS
 from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle
 
 
@@ -91,7 +92,7 @@ class Training:
     """The GP's view of a dataset: normalised residual targets and what produced them.
 
     ``X`` (N, 8), ``Y`` (N, M), ``dY`` (N, M, 7) or None, ``X_raw``/``Y_raw`` the normalised
-    raw 8X samples or None.
+    raw 8X samples or None; ``simple`` is ``M`` and ``noise`` ``M_noise`` (None when unused).
     """
 
     X: np.ndarray
@@ -102,6 +103,7 @@ class Training:
     normalizer: Normalizer
     simple: SimpleModel | None
     output_names: tuple[str, ...]
+    noise: SimpleNoise | None = None
 
 
 class FittedCoefficientsWarning(UserWarning):
@@ -143,30 +145,39 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
 
 
 def residuals(
-    ds: Dataset, simple: SimpleModel | None
+    ds: Dataset, simple: SimpleModel | None, noise: SimpleNoise | None = None
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``(y, J, y_raw)`` with ``M`` subtracted from the six aerodynamic outputs (and their
-    Jacobians and raw samples); unchanged when ``simple`` is None."""
+    Jacobians and raw samples), and ``M_noise`` (``noise``) from the three levels if given;
+    unchanged where a model is None."""
     y, J = ds.y.copy(), None if ds.jac is None else ds.jac.copy()
     y_raw = None if ds.y_raw is None else ds.y_raw.copy()
-    if simple is None:
-        return y, J, y_raw
-    yM, JM = (np.asarray(a) for a in simple.batch(ds.x[:, :7]))
-    y[:, :6] -= yM
-    if J is not None:
-        J[:, :6] -= JM
-    if y_raw is not None:
-        y_raw[:, :6] -= np.asarray(jax.vmap(simple)(jnp.asarray(ds.x_raw[:, :7])))
+    if simple is not None:
+        yM, JM = (np.asarray(a) for a in simple.batch(ds.x[:, :7]))
+        y[:, :6] -= yM
+        if J is not None:
+            J[:, :6] -= JM
+        if y_raw is not None:
+            y_raw[:, :6] -= np.asarray(jax.vmap(simple)(jnp.asarray(ds.x_raw[:, :7])))
+    if noise is not None and ds.has_noise:
+        yN, JN = (np.asarray(a) for a in noise.batch(ds.x))
+        y[:, 6:9] -= yN
+        if J is not None:
+            J[:, 6:9] -= JN[:, :, : J.shape[2]]
+        if y_raw is not None:
+            y_raw[:, 6:9] -= np.asarray(noise.batch(ds.x_raw)[0])
     return y, J, y_raw
 
 
 def prepare(
     ds: Dataset,
     simple: SimpleModel | None,
+    noise: SimpleNoise | None = None,
 ) -> Training:
-    """Residuals and normalisation for ``ds``; the statistics come from its base points (the
-    gradient noise ``λ²`` is the model's: :func:`gpg.models.initial_hyper`)."""
-    y, J, y_raw = residuals(ds, simple)
+    """Residuals (against ``M`` and, if given, ``M_noise``) and normalisation for ``ds``; the
+    statistics come from its base points (the gradient noise ``λ²`` is the model's:
+    :func:`gpg.models.initial_hyper`)."""
+    y, J, y_raw = residuals(ds, simple, noise)
     norm = Normalizer.fit(ds.x, y)
     X = np.asarray(norm.x(ds.x))
     Y = np.asarray(norm.y(y))
@@ -184,14 +195,18 @@ def prepare(
         normalizer=norm,
         simple=simple,
         output_names=ds.output_names,
+        noise=noise if ds.has_noise else None,
     )
 
 
 def restore(
     training: Training, x: Float[ArrayLike, "N 8"], y_norm: Float[ArrayLike, "N M"]
 ) -> np.ndarray:
-    """Inverse of :func:`prepare` for outputs: de-normalise and add ``M`` back."""
+    """Inverse of :func:`prepare` for outputs: de-normalise and add ``M`` (and ``M_noise``)
+    back."""
     y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
     if training.simple is not None:
         y[:, :6] += np.asarray(jax.vmap(training.simple)(jnp.asarray(x)[:, :7]))
+    if training.noise is not None and y.shape[1] > 6:
+        y[:, 6:9] += np.asarray(jax.vmap(training.noise)(jnp.asarray(x)))
     return y

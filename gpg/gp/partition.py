@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from gpg.gp import kernels
 
-SCHEMES = ("slab", "kdtree")
+SCHEMES = ("slab", "kdtree", "adaptive")
 
 
 class Partition(eqx.Module):
@@ -117,11 +117,46 @@ def _check(X: np.ndarray, n_bins: int) -> np.ndarray:
 
 def slab(X: Float[ArrayLike, "N D"], n_bins: int, dim: int = 7) -> Partition:
     """Equal-count intervals along input ``dim`` (airspeed, the paper's dominant effect)."""
+    return _slabs(X, n_bins, dim, None, "slab")
+
+
+def adaptive(
+    X: Float[ArrayLike, "N D"],
+    n_bins: int,
+    dim: int = 7,
+    *,
+    weights: Float[ArrayLike, " N"],
+) -> Partition:
+    """Intervals along input ``dim`` holding equal shares of ``weights`` instead of equal
+    counts: more, narrower bins where the weights (the outputs' local variation,
+    :func:`variation_weights`) are large, the paper's proposal of finer partitions at high
+    airspeed. Equal weights give exactly :func:`slab`. Every bin keeps at least a quarter of an
+    equal share of the points, so that no bin is left without data to condition on."""
+    w = np.asarray(weights, dtype=float)
+    if w.shape != (np.shape(X)[0],) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        raise ValueError(f"weights must be {np.shape(X)[0]} finite values >= 0, not all zero")
+    return _slabs(X, n_bins, dim, w, "adaptive")
+
+
+def _slabs(X, n_bins: int, dim: int, weights: np.ndarray | None, scheme: str) -> Partition:
     X = _check(X, n_bins)
     if not 0 <= dim < X.shape[1]:
         raise ValueError(f"slab dim {dim} out of range for {X.shape[1]} inputs")
-    v = np.sort(X[:, dim])
-    cuts = [v[(k * len(v)) // n_bins - 1] for k in range(1, n_bins)]
+    order = np.argsort(X[:, dim], kind="stable")
+    v = X[order, dim]
+    n = len(v)
+    if weights is None:
+        idx = [(k * n) // n_bins - 1 for k in range(1, n_bins)]
+    else:
+        # Cumulative weight in units of points (mean weight 1): equal weights give the
+        # equal-count positions exactly (integer partial sums).
+        s = np.cumsum(weights[order] / np.mean(weights))
+        idx, least = [], max(1, n // (4 * n_bins))
+        for k in range(1, n_bins):
+            i = int(np.searchsorted(s, (k * n) // n_bins, side="left"))
+            lo = (idx[-1] if idx else -1) + least
+            idx.append(min(max(i, lo), n - 1 - (n_bins - k) * least))
+    cuts = [v[i] for i in idx]
     if len(set(cuts)) != len(cuts):
         raise ValueError(f"input {dim} has too few distinct values for {n_bins} slabs")
     # A chain: node i sends x <= cut_i to bin i, the rest to node i + 1 (or the last bin).
@@ -129,7 +164,30 @@ def slab(X: Float[ArrayLike, "N D"], n_bins: int, dim: int = 7) -> Partition:
         (dim, float(c), -(i + 1), i + 1 if i + 1 < n_bins - 1 else -(n_bins))
         for i, c in enumerate(cuts)
     ]
-    return _tree(nodes, n_bins, n_bins - 1, "slab")
+    return _tree(nodes, n_bins, n_bins - 1, scheme)
+
+
+def variation_weights(
+    X: Float[ArrayLike, "N D"], Y: Float[ArrayLike, "N M"], k: int = 8
+) -> np.ndarray:
+    """How fast the outputs change around each training point: the mean over its ``k`` nearest
+    neighbours (in the normalised inputs) of ``‖Y_i − Y_j‖ / ‖X_i − X_j‖``. Values only, so it
+    serves the models with and without gradients alike."""
+    X, Y = np.asarray(X, dtype=float), np.asarray(Y, dtype=float)
+    k = min(k, X.shape[0] - 1)
+    if k < 1:
+        return np.ones(X.shape[0])
+    out = np.empty(X.shape[0])
+    sq = np.sum(X * X, axis=1)
+    for start in range(0, X.shape[0], 1024):  # bounded memory: 1024 rows of distances at once
+        Xb = X[start : start + 1024]
+        d = np.sqrt(np.maximum(sq[start : start + 1024, None] + sq[None] - 2 * Xb @ X.T, 0.0))
+        rows = np.arange(d.shape[0])
+        d[rows, start + rows] = np.inf
+        nn = np.argpartition(d, k, axis=1)[:, :k]
+        dy = np.linalg.norm(Y[start : start + d.shape[0], None] - Y[nn], axis=-1)
+        out[start : start + d.shape[0]] = np.mean(dy / d[rows[:, None], nn], axis=1)
+    return out
 
 
 def kdtree(X: Float[ArrayLike, "N D"], n_bins: int) -> Partition:
@@ -164,9 +222,12 @@ def kdtree(X: Float[ArrayLike, "N D"], n_bins: int) -> Partition:
 
 
 def build(X: Float[ArrayLike, "N D"], scheme: str, n_bins: int, **kw) -> Partition:
-    """``slab`` or ``kdtree``; unknown schemes list the valid ones."""
+    """``slab``, ``kdtree`` or ``adaptive`` (needs ``weights=``); unknown schemes list the
+    valid ones."""
     if scheme == "slab":
         return slab(X, n_bins, **kw)
+    if scheme == "adaptive":
+        return adaptive(X, n_bins, **kw)
     if scheme == "kdtree":
         if kw:
             raise ValueError(f"kdtree takes no options, got {sorted(kw)}")

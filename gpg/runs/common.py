@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from gpg.data.preprocess import Training
     from gpg.models import Built
     from gpg.quadrotor.simple_model import SimpleModel
+    from gpg.quadrotor.simple_noise import SimpleNoise
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -140,6 +141,7 @@ def fit_model(
     simple: SimpleModel | None,
     hyper_cache: dict,
     *,
+    noise: SimpleNoise | None = None,
     measure_memory: bool = False,
 ) -> Fitted:
     """Preprocess ``train`` and build model ``name`` with its resolved config ``mcfg``.
@@ -152,7 +154,9 @@ def fit_model(
     from gpg.linalg import memory
 
     with memory.PeakRSS() if measure_memory else contextlib.nullcontext() as mem:
-        training, built = models.train(name, train, simple, mcfg, hyper_cache=hyper_cache)
+        training, built = models.train(
+            name, train, simple, mcfg, noise=noise, hyper_cache=hyper_cache
+        )
     return Fitted(
         training,
         built,

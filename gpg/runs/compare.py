@@ -26,6 +26,7 @@ from gpg.data.dataset import Dataset
 from gpg.data.preprocess import prepare, restore, simple_model_for
 from gpg.gp import partition
 from gpg.linalg import memory
+from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.runs.common import (
     deep_merge,
@@ -127,9 +128,10 @@ def evaluate(
     simple,
     hyper_cache: dict,
     n_queries: int,
+    noise=None,
 ) -> dict[str, Any]:
-    """Build one model and measure it (see module docstring)."""
-    fitted = fit_model(name, mcfg, train, simple, hyper_cache, measure_memory=True)
+    """Build one model and measure it (see module docstring); ``noise`` is ``M_noise`` or None."""
+    fitted = fit_model(name, mcfg, train, simple, hyper_cache, noise=noise, measure_memory=True)
     training, built, timings = fitted.training, fitted.built, fitted.timings
     hyper, fit_res = built.hyper, fitted.hyper_fit
 
@@ -311,7 +313,10 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
     # Everything that can fail from sizes alone (missing data, bins or inducing points beyond
     # the data, memory) fails here, before any model is trained.
     ready = []
-    training = prepare(train, simple)
+    noise = None
+    if cfg.get("noise_model", False) and train.has_noise:
+        noise = SimpleNoise.from_vehicle(vehicle, simple)
+    training = prepare(train, simple, noise)
     for label, name, mc in jobs:
         try:
             models.check_feasible(name, mc, training)
@@ -328,7 +333,7 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         _interrupt.check()  # a deferred Ctrl-C stops between models
         try:
             results[label] = evaluate(
-                label, name, mc, train, test, simple, hyper_cache, cfg["n_queries"]
+                label, name, mc, train, test, simple, hyper_cache, cfg["n_queries"], noise
             )
         except (ValueError, memory.InsufficientMemory) as exc:
             if single:

@@ -105,3 +105,19 @@ def test_prepare_partial_datasets(data, vehicle):
     assert tr.output_names == ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
     tr = prepare(data.without("raw samples"), None)
     assert tr.X_raw is None and tr.simple is None
+
+
+def test_noise_residuals_round_trip_with_m_noise(data, vehicle):
+    """With M_noise the levels' targets are L − M_noise (gradients too); restore is exact."""
+    from gpg.quadrotor.simple_noise import SimpleNoise
+
+    simple = simple_model_for(data, vehicle)
+    noise = SimpleNoise.from_vehicle(vehicle, simple)
+    plain, with_noise = prepare(data, simple), prepare(data, simple, noise)
+    np.testing.assert_allclose(restore(with_noise, data.x, with_noise.Y), data.y, rtol=1e-12)
+    y, J, _ = residuals(data, simple, noise)
+    yN, JN = (np.asarray(a) for a in noise.batch(data.x))
+    np.testing.assert_allclose(y[:, 6:], data.y[:, 6:] - yN, rtol=1e-12)
+    np.testing.assert_allclose(J[:, 6:], data.jac[:, 6:] - JN[:, :, :7], rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(with_noise.Y[:, :6], plain.Y[:, :6])  # forces untouched
+    assert with_noise.noise is noise and plain.noise is None

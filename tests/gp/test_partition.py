@@ -1,5 +1,6 @@
 """Bins: lookup against brute-force box membership (edges included), near sets, bad input."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -133,3 +134,37 @@ def test_near_sets_by_points(rng):
         partition.near_sets(X, part, 0.5, points=3, budget=0.1)
     with pytest.raises(ValueError, match="points must be a positive integer"):
         partition.near_sets(X, part, 0.5, points=0)
+
+
+def test_adaptive_equal_weights_is_the_equal_count_slab(rng):
+    X = rng.uniform(-1, 1, (103, 8))
+    a = partition.adaptive(X, 7, weights=np.full(103, 2.5))
+    b = partition.slab(X, 7)
+    np.testing.assert_array_equal(a.split_value, b.split_value)
+    np.testing.assert_array_equal(a.split_dim, b.split_dim)
+
+
+def test_adaptive_bins_are_narrow_where_the_outputs_vary_fast(rng):
+    """Outputs that wiggle only at high airspeed: the adaptive slabs crowd there, cover the
+    whole box without overlap (one bin per point, bins ordered along airspeed), and the jitted
+    lookup agrees with the NumPy assignment."""
+    X = rng.uniform(-1, 1, (400, 8))
+    Y = np.where(X[:, 7:] > 0.5, np.sin(25 * X[:, 7:]), 0.1 * X[:, 7:])
+    w = partition.variation_weights(X, Y)
+    part = partition.adaptive(X, 8, weights=w)
+    cuts = np.asarray(part.split_value)
+    assert np.all(np.diff(cuts) > 0) and np.sum(cuts > 0.5) >= 4  # half the bins in a quarter
+    Q = rng.uniform(-1.2, 1.2, (500, 8))
+    bins = np.asarray(jax.jit(lambda p, q: p.lookup_batch(q))(part, jnp.asarray(Q)))
+    want = np.searchsorted(cuts, Q[:, 7], side="left")  # x <= cut_i goes to bin i
+    np.testing.assert_array_equal(bins, want)
+    counts = np.bincount(np.asarray(part.lookup_batch(jnp.asarray(X))), minlength=8)
+    assert counts.sum() == 400 and counts.min() >= 400 // (4 * 8)
+
+
+def test_adaptive_needs_valid_weights(rng):
+    X = rng.uniform(-1, 1, (20, 8))
+    with pytest.raises(ValueError, match="weights must be 20 finite values"):
+        partition.adaptive(X, 2, weights=np.full(20, np.nan))
+    with pytest.raises(ValueError, match="weights must be"):
+        partition.build(X, "adaptive", 2, weights=np.ones(3))
