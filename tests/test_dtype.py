@@ -8,13 +8,16 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gpg._dtype import float64
 from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
-FIT = {"hyper": {"subset": 40, "max_steps": 40}, "partition": {"points_per_bin": 20}}
+# A small likelihood fit (the part that must run in float64) and a cheap model to predict with.
+FIT = {"hyper": {"subset": 30, "max_steps": 10}, "partition": {"bins": 2}, "near": {"budget": 0.5}}
+FIXED = {"hyper": {"fit": False, "lengthscale": 0.8}, "partition": {"points_per_bin": 20}}
 
 # Fits and predicts in a process where x64 is off (a float32 program), prints numbers.
 SCRIPT = """
@@ -25,8 +28,8 @@ assert not jax.config.read("jax_enable_x64")
 from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_dataset
 from tests.test_dtype import FIT, queries
-data = synthetic_dataset(50, seed=3)[0]
-sur = Surrogate.fit(data, "gpgs_hybrid", FIT)
+data = synthetic_dataset(30, seed=3)[0]
+sur = Surrogate.fit(data, "gps_1x", FIT)
 sur32 = sur.astype(jnp.float32)
 rpm, euler, v = queries(data)
 p = sur32.predict_batch(rpm, euler, v)
@@ -59,7 +62,19 @@ def test_float64_wrapper_runs_in_x64_and_widens_arguments():
     assert on and dt == jnp.float64 and default == jnp.float64
 
 
+def test_fit_in_a_float32_setting_is_the_float64_fit():
+    """In-process: with x64 off around it, Surrogate.fit still fits in float64 (same result)."""
+    data = synthetic_dataset(30, seed=3)[0]
+    with jax.enable_x64(False):
+        off = Surrogate.fit(data, "gps_1x", FIT)
+    on = Surrogate.fit(data, "gps_1x", FIT)
+    assert off.model.lengthscale.dtype == jnp.float64
+    np.testing.assert_allclose(off.model.lengthscale, on.model.lengthscale, rtol=1e-12)
+
+
+@pytest.mark.slow
 def test_float32_program_fits_in_float64_and_predicts_in_float32():
+    """The same in a fresh interpreter with x64 off (a float32 program), end to end."""
     import json
     import os
 
@@ -70,8 +85,8 @@ def test_float32_program_fits_in_float64_and_predicts_in_float32():
     assert p.returncode == 0, p.stderr[-3000:]
     out = json.loads(p.stdout.strip().splitlines()[-1])
     # The fit ran in float64: same hyperparameters as in this float64 process.
-    data = synthetic_dataset(50, seed=3)[0]
-    sur = Surrogate.fit(data, "gpgs_hybrid", FIT)
+    data = synthetic_dataset(30, seed=3)[0]
+    sur = Surrogate.fit(data, "gps_1x", FIT)
     assert "float64" in out["leaf_dtypes"]
     np.testing.assert_allclose(out["lengthscale"], np.asarray(sur.model.lengthscale), rtol=1e-8)
     # The float32 copy predicts in float32, within float32 rounding of the float64 answer.
@@ -89,7 +104,7 @@ def test_float32_program_fits_in_float64_and_predicts_in_float32():
 
 def test_astype_in_a_float64_process_computes_in_float32():
     data = synthetic_dataset(50, seed=3)[0]
-    sur = Surrogate.fit(data, "gpgs_hybrid", FIT)
+    sur = Surrogate.fit(data, "gpgs_hybrid", FIXED)
     rpm, euler, v = queries(data, 3)
     p32 = sur.astype(jnp.float32).predict(rpm[0], euler[0], v[0])
     p64 = sur.predict(rpm[0], euler[0], v[0])
