@@ -19,11 +19,13 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
+# Two workers, one test file each at a time: the suite is bound by XLA compilation, which runs
+# on one core per process, so two processes use both cores of the CI machine.
 test: lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-slow: lint
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest -q -n 2 --dist loadfile -m slow
 
 compare: $(STAMP)
 	$(PY) -m experiments.compare

@@ -2,6 +2,8 @@
 caller), fixed seeds, and the physics fixtures
 that are compiled once per session (the generator takes seconds to compile)."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +16,18 @@ from gpg.quadrotor.simple_model import fit_to_generator
 from gpg.quadrotor.vehicle import load_vehicle
 
 jax.config.update("jax_enable_x64", True)  # before any test builds an array
+
+
+def pytest_configure(config):
+    """One persistent XLA compilation cache for the run, shared by the pytest-xdist workers:
+    the suite is bound by compiling the same programs (generator, kernels) in each worker."""
+    import tempfile
+    from pathlib import Path
+
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID", "single")
+    cache = Path(tempfile.gettempdir()) / f"gpg-test-xla-cache-{run}"
+    jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
 @pytest.fixture
@@ -64,14 +78,23 @@ def jac_of(gen):
 
 @pytest.fixture(scope="session")
 def smoke_cache(tmp_path_factory):
-    """A dataset cache holding the smoke train/test pair, generated once per session."""
+    """A dataset cache holding the smoke train/test pair, generated once per test run: the
+    pytest-xdist workers share it (the first generates it under a lock, the others load it)."""
+    import fcntl
+
     from gpg.data.cache import ensure_datasets
     from gpg.runs.common import conf
 
-    cache = tmp_path_factory.mktemp("smoke_cache")
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # common to the workers of this run
+    cache = root / "smoke_cache"
+    cache.mkdir(exist_ok=True)
     data = conf("smoke", "data")
     data["chunk"] = 32
-    ensure_datasets(data, conf("sui_endurance", "vehicle"), cache, progress=False)
+    with open(root / "smoke_cache.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        ensure_datasets(data, conf("sui_endurance", "vehicle"), cache, progress=False)
     return cache
 
 

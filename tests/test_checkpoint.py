@@ -157,3 +157,17 @@ def test_failed_save_leaves_nothing(surrogate, tmp_path, monkeypatch):
 def test_save_rejects_other_objects(tmp_path):
     with pytest.raises(ValueError, match="save expects a gpg.Surrogate"):
         checkpoint.save(tmp_path / "x", {"a": 1})
+
+
+def test_noise_model_round_trip(data, tmp_path):
+    """A surrogate with M_noise: every array of it (the vehicle's acoustic data included) and
+    its static settings come back."""
+    import jax
+
+    sur = Surrogate.fit(
+        data, "gps_1x", {"hyper": {"fit": False}, "partition": {"bins": 2}}, noise_model=True
+    )
+    back = checkpoint.load(checkpoint.save(tmp_path / "ck", sur))
+    a, ta = jax.tree.flatten(sur.noise)
+    b, tb = jax.tree.flatten(back.noise)
+    assert ta == tb and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))

@@ -17,7 +17,7 @@ from tests.helpers import synthetic_dataset
 ROOT = Path(__file__).resolve().parents[1]
 # A small likelihood fit (the part that must run in float64) and a cheap model to predict with.
 FIT = {"hyper": {"subset": 30, "max_steps": 10}, "partition": {"bins": 2}, "near": {"budget": 0.5}}
-FIXED = {"hyper": {"fit": False, "lengthscale": 0.8}, "partition": {"points_per_bin": 20}}
+FIXED = {"hyper": {"fit": False, "lengthscale": 0.8}, "partition": {"bins": 2}}
 
 # Fits and predicts in a process where x64 is off (a float32 program), prints numbers.
 SCRIPT = """
@@ -104,7 +104,7 @@ def test_float32_program_fits_in_float64_and_predicts_in_float32():
 
 def test_astype_in_a_float64_process_computes_in_float32():
     data = synthetic_dataset(50, seed=3)[0]
-    sur = Surrogate.fit(data, "gpgs_hybrid", FIXED)
+    sur = Surrogate.fit(data, "gps_1x", FIXED)
     rpm, euler, v = queries(data, 3)
     p32 = sur.astype(jnp.float32).predict(rpm[0], euler[0], v[0])
     p64 = sur.predict(rpm[0], euler[0], v[0])

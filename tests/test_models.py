@@ -214,7 +214,7 @@ def test_train_is_prepare_then_build_and_shares_one_hyper_fit(monkeypatch):
     fits = []
     real = models.fit_hyper
     monkeypatch.setattr(models, "fit_hyper", lambda *a, **k: fits.append(a[0]) or real(*a, **k))
-    cfg = {**FAST, "hyper": {"subset": 20, "max_steps": 5}}
+    cfg = {**FAST, "hyper": {"subset": 20, "max_steps": 2}}
     cache: dict = {}
     out = {n: models.train(n, ds, simple, cfg, hyper_cache=cache) for n in ("gpgs", "gpgs_hybrid")}
     out["gps_1x"] = models.train("gps_1x", ds, simple, cfg, hyper_cache=cache)

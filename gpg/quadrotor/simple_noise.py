@@ -21,6 +21,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg.quadrotor import acoustics
@@ -29,6 +30,7 @@ from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 
 RPM_TO_RAD_S = 2.0 * jnp.pi / 60.0
+CHUNK = 256  # rows per compiled batch call
 
 
 class SimpleNoise(eqx.Module):
@@ -96,6 +98,25 @@ class SimpleNoise(eqx.Module):
     def batch(
         self, X: Float[ArrayLike, "N D"]
     ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3 D"]]:
-        """Levels and Jacobians of many inputs."""
-        X = jnp.asarray(X, dtype=float)
-        return jax.vmap(self.__call__)(X), jax.vmap(self.jacobian)(X)
+        """Levels and Jacobians of many inputs, in padded chunks of ``CHUNK`` rows: one compiled
+        program serves every N (its compilation, not the evaluation, is the cost)."""
+        X = np.asarray(X, dtype=float)
+        if X.ndim != 2 or X.shape[1] < 4:
+            raise ValueError(f"X must have shape (N, D >= 4), got {X.shape}")
+        ys, js = [], []
+        for start in range(0, X.shape[0], CHUNK):
+            block = X[start : start + CHUNK]
+            n = block.shape[0]
+            if n < CHUNK:
+                block = np.concatenate([block, np.repeat(block[-1:], CHUNK - n, axis=0)])
+            y, j = _batch(self, jnp.asarray(block))
+            ys.append(y[:n])
+            js.append(j[:n])
+        if not ys:
+            return jnp.zeros((0, 3)), jnp.zeros((0, 3, X.shape[1]))
+        return jnp.concatenate(ys), jnp.concatenate(js)
+
+
+@eqx.filter_jit
+def _batch(noise: SimpleNoise, X: Array) -> tuple[Array, Array]:
+    return jax.vmap(noise.__call__)(X), jax.vmap(noise.jacobian)(X)

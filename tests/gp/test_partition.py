@@ -69,7 +69,7 @@ def test_near_sets_budget_and_epsilon(rng):
     [
         (
             lambda X: partition.build(X, "voronoi", 4),
-            r"unknown partition scheme 'voronoi'; valid: \['slab', 'kdtree'\]",
+            r"unknown partition scheme 'voronoi'; valid: \['slab', 'kdtree', 'adaptive'\]",
         ),
         (lambda X: partition.build(X, "slab", 0), r"n_bins must be a positive integer"),
         (lambda X: partition.build(X, "slab", 500), r"exceeds the 100 training points"),

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import scipy.special as sp
 
 from gpg.quadrotor import acoustics
@@ -41,6 +42,7 @@ def test_mic_below_hears_edgewise_flight(y_of, aero, gen):
     assert float(jnp.sum(load[:, 2])) > 100 * float(jnp.sum(thick[:, 2]))  # unsteady loading
 
 
+@pytest.mark.slow  # compiles the generator's exact Jacobian (20 s); see test_bemt
 def test_silent_at_zero_rpm(y_of, jac_of):
     x = [0.0] * 4 + [0.2, -0.1, 0.3, 8.0]
     np.testing.assert_allclose(noise(y_of, 0.0, 8.0), 0.0, atol=1e-12)

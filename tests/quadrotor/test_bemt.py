@@ -36,6 +36,7 @@ def test_zero_rpm_zero_loads_at_rest(aero):
         np.testing.assert_allclose(np.asarray(leaf), 0.0, rtol=0, atol=1e-20)
 
 
+@pytest.mark.slow  # compiles the generator's exact Jacobian (20 s); see test_bemt
 def test_zero_rpm_in_wind_is_finite(y_of, jac_of):
     """Stopped rotors in a 15 m/s wind: finite loads and finite gradients (no 0/0)."""
     x = [0.0] * 4 + [0.3, -0.2, 0.1, 15.0]
@@ -73,6 +74,7 @@ def test_mirror_symmetry(y_of, rng):
         np.testing.assert_allclose(ym[8], y[8], rtol=1e-9)
 
 
+@pytest.mark.slow  # compiles the generator's exact Jacobian (30 s)
 def test_exact_jacobian_matches_central_differences(y_of, jac_of, rng):
     for _ in range(4):
         x = np.concatenate(

@@ -17,19 +17,18 @@ def test_bench_run(smoke_cache, tmp_path):
         "exact_gp.n_queries=3",
         "exact_gp.batch=8",
         "exact_gp.repeats=1",
-        "models.models=[gpgs_hybrid]",
+        "models.models=[gps_1x]",
         "models.n_queries=3",
         "models.batch=8",
         "models.batch_repeats=2",
         "+models.model.hyper.fit=false",
-        "+models.model.partition.points_per_bin=20",
-        "+models.model.near.points=20",
+        "+models.model.partition.bins=2",
     ]
     bench.run(compose_plain("bench", overrides), tmp_path)
     saved = json.loads((tmp_path / "bench.json").read_text())
     assert finite_numbers({k: v for k, v in saved.items() if k != "config"})
     assert saved["exact_gp"]["rows"] == 20 * 8
-    hyb = saved["models"]["models"]["gpgs_hybrid"]
+    hyb = saved["models"]["models"]["gps_1x"]
     assert hyb["mean_batch_per_s"] > 0 and hyb["surrogate_predict_1"]["n"] == 3
     f32 = hyb["float32"]
     assert f32["dtype"] == "float32" and 0 <= f32["mean_error_over_std_max"] < 1e-2
