@@ -120,12 +120,14 @@ class Surrogate(eqx.Module):
         """
         cfg = models.resolve_config(model, config)
         box = None if bounds is None else Bounds.from_config(bounds).arrays()
-        simple = simple_model_for(dataset, dataset_vehicle(dataset, vehicle)) if residual else None
-        if noise_model and simple is None:
+        if noise_model and not residual:
             raise ValueError("noise_model=True needs residual=True (M_noise uses M's loads)")
-        noise = None
-        if noise_model and dataset.has_noise:
-            noise = SimpleNoise.from_vehicle(dataset_vehicle(dataset, vehicle), simple)
+        simple = noise = None
+        if residual:
+            veh = dataset_vehicle(dataset, vehicle)
+            simple = simple_model_for(dataset, veh)
+            if noise_model and dataset.has_noise:
+                noise = SimpleNoise.from_vehicle(veh, simple)
         training, built = models.train(model, dataset, simple, cfg, noise=noise)
         return cls.assemble(
             built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
