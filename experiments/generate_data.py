@@ -1,4 +1,4 @@
-"""Generate a dataset: ``python -m experiments.generate_data data=smoke|default|paper``."""
+"""Generate a dataset: ``python -m experiments.generate_data data=smoke|default|paper|large``."""
 
 import hydra
 from omegaconf import DictConfig

@@ -38,7 +38,8 @@ import numpy as np
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 3  # 2: noise, output scales, hybrid and PIC models; 3: M_noise
+FORMAT_VERSION = 4  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+# 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels)
 
 
 class CheckpointError(ValueError):

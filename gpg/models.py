@@ -247,8 +247,12 @@ def build(
     cfg: Mapping[str, Any] | ModelConfig | None = None,
     *,
     hyper: Hyper | None = None,
+    devices=None,
 ) -> Built:
-    """Build model ``name`` on ``training`` (see the module table). ``hyper`` skips the fit."""
+    """Build model ``name`` on ``training`` (see the module table). ``hyper`` skips the fit.
+    ``devices`` spreads the per-bin precompute of the local models (``gps_*``, ``gpgs``, the
+    hybrid's variance) and of ``gpg_pic`` over JAX devices (:mod:`gpg.parallel`; None: one
+    process, LAPACK)."""
     cfg = resolve_config(name, cfg)
     check_feasible(name, cfg, training)
     spec = SPECS[name]
@@ -276,10 +280,10 @@ def build(
     diagnostics: dict[str, Any] = {}
     dtype = cfg.variance_dtype
     if spec.kind == "pic":
-        model, diagnostics = _build_pic(X, Ybar, hyper, dims, part, cfg)
+        model, diagnostics = _build_pic(X, Ybar, hyper, dims, part, cfg, devices)
     elif spec.kind == "hybrid":
         alpha = exact_alpha(X, Ybar, hyper, dims)
-        factors = schur.precompute(X, Ybar, hyper, dims, near, route="local")
+        factors = schur.precompute(X, Ybar, hyper, dims, near, route="local", devices=devices)
         scale = output_scale(np.sum(Ybar * alpha, axis=0), Ybar.shape[0])
         model = HybridGP(
             mean=GlobalMean.from_alpha(X, alpha, hyper.variance, hyper.lengthscale, dims),
@@ -287,7 +291,16 @@ def build(
         )
     else:
         route = cfg.route if spec.schur else "local"
-        factors = schur.precompute(X, Ybar, hyper, dims, near, route=route, mean=cfg.mean)
+        factors = schur.precompute(
+            X,
+            Ybar,
+            hyper,
+            dims,
+            near,
+            route=route,
+            mean=cfg.mean,
+            devices=devices if route == "local" else None,
+        )
         model = pack(X, factors, near, part, hyper, dims, dtype=dtype)
         if spec.schur:
             diagnostics = schur.diagnose(X, part, near, hyper.lengthscale, name=name)
@@ -304,13 +317,15 @@ def train(
     *,
     noise: SimpleNoise | None = None,
     hyper_cache: dict | None = None,
+    devices=None,
 ) -> tuple[Training, Built]:
     """The one path from a dataset to a built model: :func:`gpg.data.prepare` (residuals
     against ``simple`` and, if given, ``noise`` = ``M_noise``; normalisation), then
     :func:`build`. With ``hyper_cache`` (a dict kept
     by the caller) the hyperparameters are fitted once per training arrays (raw samples or
     not, gradients or not) and hyperparameter config, and shared by every model that matches:
-    the paper's comparison fits them once for all models on the same points."""
+    the paper's comparison fits them once for all models on the same points. ``devices`` as
+    for :func:`build`."""
     cfg = resolve_config(name, cfg)
     training = prepare(dataset, simple, noise)
     hyper = fit_res = None
@@ -322,7 +337,7 @@ def train(
             check_feasible(name, cfg, training)  # before a fit that would be wasted
             hyper_cache[key] = fit_hyper(name, training, cfg)
         hyper, fit_res, hyper_s = hyper_cache[key]
-    built = build(name, training, cfg, hyper=hyper)
+    built = build(name, training, cfg, hyper=hyper, devices=devices)
     if hyper_cache is not None:
         built.hyper_fit = fit_res
         built.timings = {"hyper_s": hyper_s, **built.timings}
@@ -350,14 +365,19 @@ def exact_alpha(X: np.ndarray, Ybar: np.ndarray, hyper: Hyper, dims: tuple[int, 
     return alpha
 
 
-def _build_pic(X, Ybar, hyper, dims, part, cfg) -> tuple[BinnedGP, dict[str, Any]]:
+def _build_pic(X, Ybar, hyper, dims, part, cfg, devices=None) -> tuple[BinnedGP, dict[str, Any]]:
     ic = cfg.inducing
     Z = pic.inducing_inputs(X, ic.points, seed=ic.seed)
     bins = np.asarray(part.lookup_batch(jnp.asarray(X)))
     blocks = [np.flatnonzero(bins == b) for b in range(part.n_bins)]
     if any(b.size == 0 for b in blocks):
         raise ValueError("a PIC bin holds no training point; use fewer bins")
-    factors = pic.iter_precompute(X, Ybar, hyper, dims, blocks, Z, jitter=ic.jitter)
+    if devices is None:
+        factors = pic.iter_precompute(X, Ybar, hyper, dims, blocks, Z, jitter=ic.jitter)
+    else:
+        factors = pic.iter_precompute_devices(
+            X, Ybar, hyper, dims, blocks, Z, jitter=ic.jitter, devices=devices
+        )
     points = [X[b] for b in blocks]
     model = pack_points(points, factors, part, hyper, dims, dtype=cfg.variance_dtype, shared=Z)
     info = {"inducing_points": int(Z.shape[0]), "block_points": [int(b.size) for b in blocks]}

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from gpg import models
+from gpg import models, parallel
 from gpg._dtype import float64
 from gpg.config import ModelConfig
 from gpg.data.bounds import Bounds
@@ -102,6 +102,7 @@ class Surrogate(eqx.Module):
         residual: bool = True,
         noise_model: bool = False,
         hover_speed: float = HOVER_SPEED,
+        devices=None,
     ) -> Surrogate:
         """Preprocess ``dataset`` and build ``model`` (a name from :data:`gpg.models.NAMES`).
 
@@ -116,7 +117,9 @@ class Surrogate(eqx.Module):
         input box outside which ``in_domain`` is False (default: the dataset's recorded
         sampling bounds, else its extent). ``residual=False`` fits the raw outputs without
         ``M`` (and needs no vehicle); ``hover_speed`` (m/s) is where the airflow frame starts
-        to follow the body heading (0: pure wind axes).
+        to follow the body heading (0: pure wind axes). ``devices`` (a count or a list of JAX
+        devices) spreads the per-bin precompute of the local models over them
+        (:mod:`gpg.parallel`).
         """
         cfg = models.resolve_config(model, config)
         box = None if bounds is None else Bounds.from_config(bounds).arrays()
@@ -128,7 +131,7 @@ class Surrogate(eqx.Module):
             simple = simple_model_for(dataset, veh)
             if noise_model and dataset.has_noise:
                 noise = SimpleNoise.from_vehicle(veh, simple)
-        training, built = models.train(model, dataset, simple, cfg, noise=noise)
+        training, built = models.train(model, dataset, simple, cfg, noise=noise, devices=devices)
         return cls.assemble(
             built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
         )
@@ -209,19 +212,14 @@ class Surrogate(eqx.Module):
     ) -> Prediction:
         """Many states, vmapped in chunks of ``chunk`` (bounded memory for any N). A NaN or
         inf in any state raises ``ValueError`` naming the input and its rows."""
-        rpm, euler, v_air = (jnp.asarray(a, dtype=float) for a in (rpm, euler, v_air))
-        for name, a, w in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
-            if a.ndim != 2 or a.shape[1] != w:
-                raise ValueError(f"{name} must have shape (N, {w}), got {a.shape}")
-        if not rpm.shape[0] == euler.shape[0] == v_air.shape[0]:
-            raise ValueError(
-                f"batch sizes differ: {rpm.shape[0]}, {euler.shape[0]}, {v_air.shape[0]}"
-            )
-        for name, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air)):
-            _require_finite(name, a)
-        if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
-            raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+        rpm, euler, v_air = _check_batch(rpm, euler, v_air, chunk)
         return _predict_batch(self, rpm, euler, v_air, not mean_only, int(chunk))
+
+    def replicate(self, devices: parallel.Devices = None) -> Replicated:
+        """This surrogate copied onto several JAX devices, for batched prediction spread over
+        them (:meth:`Replicated.predict_batch`): ``devices`` is a count (the first n of
+        ``jax.devices()``) or a list of devices; see :mod:`gpg.parallel`."""
+        return Replicated(self, parallel.devices(devices))
 
     def realtime(self, *, with_var: bool = True) -> Callable[..., Prediction]:
         """A compiled ``f(rpm, euler, v_air) -> Prediction`` for loops that call it per step.
@@ -265,6 +263,68 @@ class Surrogate(eqx.Module):
             return x
 
         return jax.tree.map(cast, self)
+
+
+class Replicated:
+    """A :class:`Surrogate` with one copy per device (:meth:`Surrogate.replicate`).
+
+    The copies are made once, here; :meth:`predict_batch` then sends each block of ``chunk``
+    queries to the next device (round robin) and JAX runs the blocks side by side. Every block
+    runs the same compiled program, so the result is bit-identical for any number of devices.
+    """
+
+    def __init__(self, sur: Surrogate, devs: list[jax.Device]):
+        self.surrogate = sur
+        self.devices = devs
+        mean = eqx.tree_at(lambda s: s.model, sur, sur.model.mean_view())
+        self._replicas = {
+            True: parallel.replicate(sur, devs),
+            False: parallel.replicate(mean, devs),
+        }
+
+    def predict_batch(
+        self,
+        rpm: Float[ArrayLike, "N 4"],
+        euler: Float[ArrayLike, "N 3"],
+        v_air: Float[ArrayLike, "N 3"],
+        *,
+        mean_only: bool = False,
+        chunk: int = 1024,
+    ) -> Prediction:
+        """As :meth:`Surrogate.predict_batch`, the blocks of ``chunk`` states spread over the
+        devices; NumPy arrays out."""
+        rpm, euler, v_air = (np.asarray(a) for a in _check_batch(rpm, euler, v_air, chunk))
+        n, chunk = rpm.shape[0], int(chunk)
+        units = []
+        for sl in parallel.chunks(n, chunk):
+            block = [a[sl] for a in (rpm, euler, v_air)]
+            pad = chunk - block[0].shape[0]  # the last block padded: one program for all
+            units.append(tuple(np.concatenate([b, np.repeat(b[-1:], pad, 0)]) for b in block))
+        fn = partial(_predict_batch, with_var=not mean_only, chunk=chunk)
+        with_var = not mean_only
+        out = parallel.gather_units(
+            parallel.map_units(fn, None, units, self.devices, replicas=self._replicas[with_var])
+        )
+        if not out:
+            return jax.tree.map(
+                np.asarray, _predict_batch(self.surrogate, rpm, euler, v_air, with_var, chunk)
+            )
+        return jax.tree.map(lambda *p: np.concatenate(p)[:n], *out)
+
+
+def _check_batch(rpm, euler, v_air, chunk):
+    """``(rpm, euler, v_air)`` as float arrays of a batch, or ``ValueError`` naming the input."""
+    rpm, euler, v_air = (jnp.asarray(a, dtype=float) for a in (rpm, euler, v_air))
+    for name, a, w in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
+        if a.ndim != 2 or a.shape[1] != w:
+            raise ValueError(f"{name} must have shape (N, {w}), got {a.shape}")
+    if not rpm.shape[0] == euler.shape[0] == v_air.shape[0]:
+        raise ValueError(f"batch sizes differ: {rpm.shape[0]}, {euler.shape[0]}, {v_air.shape[0]}")
+    for name, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air)):
+        _require_finite(name, a)
+    if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
+        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    return rpm, euler, v_air
 
 
 def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
@@ -366,7 +426,7 @@ def predict_state(
         mean_n, var_n = sur.model.mean_one(xn), None
     y = sur.normalizer.y_inv(mean_n)
     force, torque = matvec(R_WH, y[:3]), matvec(R_WH, y[3:6])
-    levels = y[6:] if sur.noise is None else y[6:] + sur.noise(rpm)
+    levels = y[6:] if sur.noise is None else y[6:] + sur.noise(x_h)
     if sur.simple is not None:
         y_m = sur.simple(jnp.concatenate([rpm, euler]))  # M at the world attitude, world frame
         force, torque = force + y_m[:3], torque + y_m[3:6]

@@ -18,6 +18,7 @@ RANKS = {
     "gpg._interrupt": 0,
     "gpg._version": 0,
     "gpg._dtype": 0,
+    "gpg.parallel": 0,
     "gpg.names": 0,
     "gpg.linalg": 1,
     "gpg.gp": 2,

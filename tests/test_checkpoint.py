@@ -87,7 +87,7 @@ def test_version_mismatch(surrogate, tmp_path):
     meta = json.loads((tmp_path / "ck" / "metadata.json").read_text())
     meta["format_version"] = 7
     (tmp_path / "ck" / "metadata.json").write_text(resign(meta))
-    with pytest.raises(CheckpointError, match="format version 7; this gpg .* reads version 3"):
+    with pytest.raises(CheckpointError, match="format version 7; this gpg .* reads version 4"):
         checkpoint.load(tmp_path / "ck")
 
 

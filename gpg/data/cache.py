@@ -47,8 +47,9 @@ def build_generator(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any])
 
 
 def dataset_key(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> str:
-    """Cache key: hash of everything that determines the data (not ``chunk``, which does not)."""
-    relevant = {k: v for k, v in data_cfg.items() if k not in ("chunk",)}
+    """Cache key: hash of everything that determines the data (not ``chunk`` or ``workers``,
+    which do not)."""
+    relevant = {k: v for k, v in data_cfg.items() if k not in ("chunk", "workers")}
     blob = json.dumps(
         {"data": relevant, "vehicle": vehicle_cfg, "generator_version": GENERATOR_VERSION},
         sort_keys=True,
@@ -63,9 +64,10 @@ def check_numbers(data_cfg: Mapping[str, Any]) -> None:
         v = data_cfg.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or v < lo:
             raise ValueError(f"data.{key} must be an integer >= {lo}, got {v!r}")
-    chunk = data_cfg.get("chunk", 512)
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-        raise ValueError(f"data.chunk must be a positive integer, got {chunk!r}")
+    for key, default in (("chunk", 512), ("workers", 1)):
+        v = data_cfg.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"data.{key} must be a positive integer, got {v!r}")
     for key in ("keep_raw", "noise"):
         if not isinstance(data_cfg.get(key, True), bool):
             raise ValueError(f"data.{key} must be true or false, got {data_cfg.get(key)!r}")
@@ -92,6 +94,7 @@ def _generate_pair(
         "simple_model": {"P_F": float(simple.P_F), "T_z": float(simple.T_z)},
     }
     chunk = int(data_cfg.get("chunk", 512))
+    workers = int(data_cfg.get("workers", 1))
     train = generate(
         gen,
         int(data_cfg["n_train"]),
@@ -104,6 +107,7 @@ def _generate_pair(
         chunk=chunk,
         progress="train set" if progress else False,
         meta={**meta, "split": "train"},
+        workers=workers,
     )
     test = generate(
         gen,
@@ -116,6 +120,7 @@ def _generate_pair(
         chunk=chunk,
         progress="test set" if progress else False,
         meta={**meta, "split": "test"},
+        workers=workers,
     )
     return train, test
 

@@ -22,7 +22,7 @@ from gpg.gp.mean import output_scale
 from gpg.gp.predictor import Predictor
 from gpg.linalg.tri import BlockTriangular
 
-FAR = 1e3  # padding position: its kernel with any query in [-1, 1]^D underflows to 0
+FAR = schur.FAR  # padding position of the packed near sets
 FACTOR_BANDS = 8  # row bands per variance factor (gpg.linalg.tri): 56 % of the dense bytes
 
 

@@ -1,19 +1,34 @@
 """``M_noise``: a simplified model of the three microphone levels, in the spirit of ``M``.
 
 The paper attributes the poor noise predictions of every model to the absence of a simplified
-noise model to take residuals against (its future work). ``M_noise`` is the steady part of the
-generator's tonal noise (:mod:`gpg.quadrotor.acoustics`) with the inflow solution replaced by
-``M``: each rotor carries ``M``'s
-thrust ``T_i = P_F r_i²`` and drag torque ``Q_i = T_z r_i²``, uniformly around the azimuth
-(Gutin's steady loading, no unsteady harmonics), plus the compact thickness tone of its blades;
-the tones of the first BPF harmonics of the four rotors reach each microphone with spherical
-spreading and add incoherently (:func:`gpg.quadrotor.acoustics.harmonic_msq`, the same
-formulas with one azimuthal station). It depends on the rotor speeds only: what it misses
-(unsteady loading in edgewise flight, the attitude and airspeed dependence of the loads) is what
-the GP learns. A query costs a few microseconds; its Jacobian comes from ``jax.jacfwd``.
+noise model to take residuals against (its future work). ``M_noise`` is the generator's tonal
+noise (:mod:`gpg.quadrotor.acoustics`, the same formulas) with the blade-element/momentum inflow
+solution replaced by ``M`` and a prescribed inflow:
 
-It needs the acoustic part of the vehicle (rotor geometry, microphones, air properties): a
-vehicle file for ``M`` and flight only has none, and :meth:`SimpleNoise.from_vehicle` says so.
+* **Mean loads** are ``M``'s: thrust ``T_i = P_F r_i²`` and drag torque ``Q_i = T_z r_i²``.
+* **Their variation around the azimuth** (the unsteady loading that edgewise flight causes, and
+  the only loading noise that reaches a microphone near the rotor axis) comes from a
+  quasi-steady blade-element sum with a prescribed inflow: at ``n_strips`` stations the section
+  lift per span ``∝ c U² (θ − α₀ − φ)`` with the local speed ``U_T = Ω r − v_t(ψ)``, the
+  blade's pitch ``θ`` from the twist table, the airfoil's zero-lift angle ``α₀``, and Drees'
+  linear inflow ``v_i(r, ψ)`` around a mean ``v₀`` from momentum theory with ``M``'s thrust
+  (Glauert's closed form, no iteration). It only shapes the loads: ``T(ψ) = T_i s(ψ)/B`` with
+  ``s`` normalised to mean one, and the torque follows the same shape.
+* **Thickness** noise of the blades, as in the generator.
+
+The in-plane air velocity at each hub follows from the attitude and airspeed inputs as in the
+generator. Left out, with what trying them on data=default showed (spread of the training
+residual ``L − M_noise`` at 5–10 m/s, L1/L2/L3): the axial flow through the disk, with ``v₀``
+solved from momentum including it, 2.0/2.4/5.4 dB → 2.5/4.4/9.7 dB (``M``'s thrust, which
+sets ``v₀``, ignores the axial flow too); the generator's nonlinear polar in place of the
+linear lift, no change in spread (5.6 dB at L3) and a 1.4 dB larger L3 bias; more span
+elements (8 or 12 instead of 3), within 0.1 dB. Body rates are not inputs. What ``M_noise``
+misses (wake interference, the real inflow solution, the polar, tip loss) is what the GP learns.
+Its Jacobian comes from ``jax.jacfwd``.
+
+It needs the acoustic part of the vehicle (rotor geometry, airfoil, microphones, air
+properties): a vehicle file for ``M`` and flight only has none, and
+:meth:`SimpleNoise.from_vehicle` says so.
 """
 
 from __future__ import annotations
@@ -25,16 +40,18 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg.quadrotor import acoustics
-from gpg.quadrotor.bemt import AeroResult, RotorLoads
+from gpg.quadrotor.bemt import AeroResult, RotorLoads, radial_elements
+from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 
 RPM_TO_RAD_S = 2.0 * jnp.pi / 60.0
+_EPS_V = 1e-6  # m/s, keeps speeds and their derivatives finite at rest
 CHUNK = 256  # rows per compiled batch call
 
 
 class SimpleNoise(eqx.Module):
-    """``M_noise(x) -> (L1, L2, L3)`` dB from the rotor speeds ``x[:4]`` (rpm)."""
+    """``M_noise(x) -> (L1, L2, L3)`` dB at a dataset input ``x = (r1..r4, ψ, θ, φ, V)``."""
 
     vehicle: Vehicle
     P_F: Float[Array, ""]  # N/rpm², M's thrust coefficient
@@ -43,6 +60,10 @@ class SimpleNoise(eqx.Module):
     # sixteen of the generator's setting at hover, at a quarter of the cost.
     n_harmonics: int = eqx.field(static=True, default=4)
     thickness_stations: int = eqx.field(static=True, default=8)
+    # Twelve azimuthal stations resolve the load harmonics λ = 0..±5, enough for the on-axis
+    # tones of the first two BPF harmonics (λ = mB = 2, 4).
+    n_azimuth: int = eqx.field(static=True, default=12)
+    n_strips: int = eqx.field(static=True, default=3)  # blade elements along the span
 
     @property
     def cfg(self) -> acoustics.AcousticsConfig:
@@ -56,7 +77,7 @@ class SimpleNoise(eqx.Module):
         a vehicle without the acoustic data lacks."""
         missing = [
             k
-            for k in ("rotor", "microphones", "air_density", "speed_of_sound")
+            for k in ("rotor", "airfoil", "microphones", "air_density", "speed_of_sound")
             if k in vehicle.generator_missing
         ]
         if missing:
@@ -66,10 +87,52 @@ class SimpleNoise(eqx.Module):
             )
         return cls(vehicle=vehicle, P_F=simple.P_F, T_z=simple.T_z)
 
-    def _loads(self, rpm: Float[Array, " 4"]) -> AeroResult:
+    def load_shape(self, x: Float[Array, " 8"]) -> Float[Array, "4 P"]:
+        """``s_i(ψ)``: each rotor's blade load at the azimuths ``2πk/P`` over its mean, from the
+        quasi-steady blade elements (module docstring) at the dataset input ``x``."""
+        veh, rot = self.vehicle, self.vehicle.rotor
+        R = rot.radius
+        omega = x[:4] * RPM_TO_RAD_S
+        v_air_B = R_WB(x[4:7]).T @ jnp.stack([x[7], jnp.zeros_like(x[7]), jnp.zeros_like(x[7])])
+        v_in = -v_air_B[:2]  # air relative to the hubs, in the rotor plane (as the generator)
+        psi = 2.0 * jnp.pi * jnp.arange(self.n_azimuth) / self.n_azimuth
+        spin = veh.spin[:, None]
+        v_t = -v_in[0] * jnp.sin(psi) + spin * v_in[1] * jnp.cos(psi)  # (4, P), along e_t
+        v_r = v_in[0] * jnp.cos(psi) + spin * v_in[1] * jnp.sin(psi)
+        speed2 = jnp.sum(v_in**2) + _EPS_V**2
+        # Mean induced velocity from momentum theory with M's thrust: v₀⁴ + V²v₀² = v_h⁴
+        # (Glauert's edgewise closed form; the axial flow is left out, see the module docstring).
+        vh2 = self.P_F * x[:4] ** 2 / (2.0 * veh.air_density * rot.disk_area)
+        v0 = jnp.sqrt(jnp.sqrt(0.25 * speed2**2 + vh2**2) - 0.5 * speed2 + _EPS_V**2)
+        # Drees' linear inflow with the generator's bounded advance ratio (finite at zero rpm).
+        ref = jnp.sqrt((omega * R) ** 2 + speed2)
+        mu, lam = jnp.sqrt(speed2) / ref, v0 / ref
+        hyp = jnp.sqrt(mu**2 + lam**2)
+        kx = (4.0 / 3.0) * (mu / (hyp + lam) - 1.8 * mu * hyp)
+        ky = -2.0 * mu
+        speed = jnp.sqrt(speed2)
+        cos_w, sin_w = v_r / speed, -v_t / speed
+        x_s, dr, chord = radial_elements(rot, self.n_strips)  # (S,)
+        twist = jnp.interp(x_s, rot.stations, rot.twist)
+        v_i = v0[:, None, None] * (
+            1.0
+            + x_s[:, None]
+            * (kx[:, None, None] * cos_w[:, None] + ky[:, None, None] * sin_w[:, None])
+        )  # (4, S, P)
+        u_t = (omega[:, None] * x_s * R)[..., None] - v_t[:, None, :]
+        pitch = (twist - veh.airfoil.alpha_zero_lift)[:, None]
+        # Linear lift above zero-lift, smoothly floored at 0 (a strip at negative incidence
+        # carries no load rather than a negative one), with a 0.01 rad transition.
+        aoa = 0.01 * jax.nn.softplus((pitch - jnp.arctan2(v_i, u_t)) / 0.01)
+        lift = jnp.sum((chord * dr)[:, None] * (u_t**2 + v_i**2) * aoa, axis=1)  # (4, P)
+        return lift / jnp.mean(lift, axis=1, keepdims=True)
+
+    def _loads(self, x: Float[Array, " 8"]) -> AeroResult:
         B = self.vehicle.rotor.n_blades
+        rpm = x[:4]
         r2 = rpm**2
         thrust, torque = self.P_F * r2, self.T_z * r2
+        shape = self.load_shape(x)
         zero3 = jnp.zeros((4, 3), dtype=r2.dtype)
         rotors = RotorLoads(
             thrust=thrust,
@@ -79,30 +142,33 @@ class SimpleNoise(eqx.Module):
             h_force=jnp.zeros_like(r2),
             side_force=jnp.zeros_like(r2),
             induced_velocity=jnp.zeros_like(r2),
-            blade_thrust=(thrust / B)[:, None],  # one azimuthal station: steady loading only
-            blade_torque=(torque / B)[:, None],
+            blade_thrust=(thrust / B)[:, None] * shape,
+            blade_torque=(torque / B)[:, None] * shape,
         )
         z3 = jnp.zeros(3, dtype=r2.dtype)
         return AeroResult(z3, z3, z3, z3, rotors, rpm * RPM_TO_RAD_S)
 
-    def __call__(self, x: Float[ArrayLike, " D"]) -> Float[Array, " 3"]:
-        """Levels (dB re 20 µPa) at the microphones for the input ``x`` (rotor speeds first;
-        any further inputs, attitude and airspeed, do not enter)."""
-        rpm = jnp.asarray(x)[:4]
-        return acoustics.oaspl(self.vehicle, self._loads(rpm), self.cfg)
+    def __call__(self, x: Float[ArrayLike, " 8"]) -> Float[Array, " 3"]:
+        """Levels (dB re 20 µPa) at the microphones for the dataset input ``x`` (8,)."""
+        x = jnp.asarray(x)
+        if x.shape != (8,):
+            raise ValueError(
+                f"x must be one dataset input (r1..r4, yaw, pitch, roll, V), got {x.shape}"
+            )
+        return acoustics.oaspl(self.vehicle, self._loads(x), self.cfg)
 
-    def jacobian(self, x: Float[ArrayLike, " D"]) -> Float[Array, "3 D"]:
-        """``∂M_noise/∂x`` (zero along every input but the rotor speeds)."""
+    def jacobian(self, x: Float[ArrayLike, " 8"]) -> Float[Array, "3 8"]:
+        """``∂M_noise/∂x`` (3, 8), by forward-mode autodiff."""
         return jax.jacfwd(self.__call__)(jnp.asarray(x, dtype=float))
 
     def batch(
-        self, X: Float[ArrayLike, "N D"]
-    ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3 D"]]:
+        self, X: Float[ArrayLike, "N 8"]
+    ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3 8"]]:
         """Levels and Jacobians of many inputs, in padded chunks of ``CHUNK`` rows: one compiled
         program serves every N (its compilation, not the evaluation, is the cost)."""
         X = np.asarray(X, dtype=float)
-        if X.ndim != 2 or X.shape[1] < 4:
-            raise ValueError(f"X must have shape (N, D >= 4), got {X.shape}")
+        if X.ndim != 2 or X.shape[1] != 8:
+            raise ValueError(f"X must have shape (N, 8) (dataset inputs), got {X.shape}")
         ys, js = [], []
         for start in range(0, X.shape[0], CHUNK):
             block = X[start : start + CHUNK]

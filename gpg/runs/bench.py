@@ -9,6 +9,12 @@ Suites:
   latency of the jitted mean+variance and mean-only predictors, mean-only throughput on
   batches, the same for the full :class:`gpg.Surrogate` pipeline, and model bytes. Ratios
   against ``gpg`` (exact GP-G) are taken within the run.
+* ``devices``: the work :mod:`gpg.parallel` spreads, on 1, 2, … of the JAX devices present
+  (start with ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` for virtual CPU
+  devices): the build of ``gpgs`` and ``gpg_pic`` after their shared likelihood fit (against
+  the one-process host path), batched surrogate predictions, and dataset generation with 1,
+  2, … worker processes.
+  Speed-ups against one device are taken within the run.
 """
 
 from __future__ import annotations
@@ -205,6 +211,108 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def bench_devices(cfg: dict[str, Any]) -> dict[str, Any]:
+    """Per-bin precompute, batched prediction and generation over 1..n devices or workers."""
+    from gpg import models
+    from gpg.data.cache import build_generator, ensure_datasets
+    from gpg.data.preprocess import prepare, simple_model_for
+    from gpg.quadrotor.generator import evaluate_batch
+    from gpg.quadrotor.vehicle import Vehicle
+    from gpg.surrogate import Surrogate
+
+    counts = [c for c in cfg["device_counts"] if c <= len(jax.devices())]
+    train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
+    simple = simple_model_for(train, Vehicle.from_config(cfg["vehicle"]))
+    out: dict[str, Any] = {"dataset": info["key"], "devices": [str(d) for d in jax.devices()]}
+
+    # One hyperparameter fit for every model here (as the comparison shares it): what is
+    # timed is the build after it (partition, near sets or blocks, per-bin precompute).
+    training = prepare(train, simple)
+    names = list(dict.fromkeys([*cfg["train_models"], cfg["predict_model"]]))
+    hyper = models.fit_hyper(names[0], training, models.resolve_config(names[0], {}))[0]
+    reps = cfg["repeats"]
+    built: dict[str, Any] = {}
+    out["build"] = {}
+    bar = tqdm(total=len(cfg["train_models"]) * (1 + len(counts)), desc="builds", unit="build")
+    for name in names:
+        mcfg = models.resolve_config(name, deep_merge(conf(name, "model"), cfg.get("model")))
+        if name not in cfg["train_models"]:
+            built[name] = (models.build(name, training, mcfg, hyper=hyper), mcfg)
+            continue
+        per = {}
+        for c in [None, *counts]:
+
+            def one(c=c, n=name, m=mcfg):
+                built[n] = (models.build(n, training, m, hyper=hyper, devices=c), m)
+
+            bar.set_postfix_str(f"{name}, {'host' if c is None else f'{c} device(s)'}")
+            per["host" if c is None else str(c)] = stats(time_calls(one, reps, warmup=0))
+            bar.update()
+        out["build"][name] = per
+    bar.close()
+
+    pm, pcfg = built[cfg["predict_model"]]
+    sur = Surrogate.assemble(pm.model, training, train, cfg["predict_model"], pcfg)
+    rng = np.random.default_rng(cfg["seed"])
+    pred: dict[str, Any] = {}
+    for batch in cfg["batches"]:
+        idx = rng.integers(0, test.n, batch)
+        states = world_states(test.x[idx], batch)
+        rpm, euler, v = (np.stack([s[k] for s in states]) for k in range(3))
+        for c in counts:
+            rep = sur.replicate(c)
+            for mean_only in (True, False):
+                t = time_calls(
+                    lambda rep=rep, m=mean_only, a=(rpm, euler, v): rep.predict_batch(
+                        *a, mean_only=m, chunk=cfg["chunk"]
+                    ),
+                    cfg["batch_repeats"],
+                    warmup=1,
+                )
+                key = f"{batch}/{'mean' if mean_only else 'mean_var'}/{c}"
+                pred[key] = {**stats(t), "per_s": batch / float(np.median(t))}
+    out["predict"] = pred
+
+    gen = build_generator(cfg["data"], cfg["vehicle"])
+    Xg = test.x[np.resize(np.arange(test.n), cfg["generate_rows"])]
+    gen_t = {}
+    for w in cfg["workers"]:
+        # Once each: a worker's start-up (interpreter, import, compilation) is part of its cost.
+        gen_t[str(w)] = stats(
+            time_calls(
+                lambda w=w: evaluate_batch(gen, Xg, chunk=cfg["chunk_generate"], workers=w),
+                1,
+                warmup=0,
+            )
+        )
+    out["generate"] = {"rows": int(Xg.shape[0]), "seconds": gen_t}
+    return out
+
+
+def _devices_table(res: dict[str, Any]) -> str:
+    """One row per measurement, with its speed-up against one device (or one worker)."""
+    rows = []
+    for name, per in res["build"].items():
+        one = per.get("1", per["host"])["median_s"]
+        for k, v in per.items():
+            where = "host LAPACK, one process" if k == "host" else f"{k} device(s)"
+            rows.append(
+                {"what": f"build {name} ({where})", "s": v["median_s"], "x": one / v["median_s"]}
+            )
+    for key, v in res["predict"].items():
+        batch, kind, c = key.split("/")
+        one = res["predict"][f"{batch}/{kind}/1"]["per_s"]
+        what = f"predict {kind} batch {batch} ({c} device(s)), {v['per_s']:.0f}/s"
+        rows.append({"what": what, "s": v["median_s"], "x": v["per_s"] / one})
+    gen = res["generate"]["seconds"]
+    for w, v in gen.items():
+        what = f"generate {res['generate']['rows']} rows ({w} worker(s))"
+        x = gen["1"]["median_s"] / v["median_s"] if "1" in gen else None
+        rows.append({"what": what, "s": v["median_s"], "x": x})
+    cols = [("what", "measurement", ""), ("s", "median s", ".3f"), ("x", "speed-up vs 1", ".2f")]
+    return table(rows, cols)
+
+
 def _models_table(res: dict[str, Any]) -> str:
     rows = []
     for name, r in res["models"].items():
@@ -243,7 +351,7 @@ def _models_table(res: dict[str, Any]) -> str:
     return f"dataset {res['dataset']} ({res['n_train']} training points)\n\n" + table(rows, cols)
 
 
-SUITES = {"exact_gp": bench_exact_gp, "models": bench_models}
+SUITES = {"exact_gp": bench_exact_gp, "models": bench_models, "devices": bench_devices}
 
 
 def _exact_gp_table(res: dict[str, Any]) -> str:
@@ -282,19 +390,22 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     unknown = [s for s in cfg["suites"] if s not in SUITES]
     if unknown:
         raise ValueError(f"unknown bench suite(s) {unknown}; valid: {sorted(SUITES)}")
-    set_dispatch(cfg)  # real-time users should do the same (see the README)
+    # Real-time users should dispatch synchronously (see the README); devices only overlap
+    # with JAX's asynchronous CPU dispatch, which is fixed when JAX starts.
+    set_dispatch({**cfg, "sync_dispatch": cfg["sync_dispatch"] and "devices" not in cfg["suites"]})
     results: dict[str, Any] = {"machine": machine(), "config": cfg}
     for name in cfg["suites"]:
         # The models suite runs on the entry point's data and vehicle (data=..., vehicle=...).
         sub = (
             {**cfg[name], "data": cfg["data"], "vehicle": cfg["vehicle"]}
-            if name == "models"
+            if name in ("models", "devices")
             else cfg[name]
         )
         results[name] = SUITES[name](sub)
-        report(
-            _exact_gp_table(results[name]) if name == "exact_gp" else _models_table(results[name])
-        )
+        report(TABLES[name](results[name]))
     write_json(Path(outdir) / cfg["output"], results)
     report(f"wrote {Path(outdir) / cfg['output']}")
     return results
+
+
+TABLES = {"exact_gp": _exact_gp_table, "models": _models_table, "devices": _devices_table}

@@ -143,6 +143,7 @@ def fit_model(
     *,
     noise: SimpleNoise | None = None,
     measure_memory: bool = False,
+    devices=None,
 ) -> Fitted:
     """Preprocess ``train`` and build model ``name`` with its resolved config ``mcfg``.
 
@@ -155,7 +156,7 @@ def fit_model(
 
     with memory.PeakRSS() if measure_memory else contextlib.nullcontext() as mem:
         training, built = models.train(
-            name, train, simple, mcfg, noise=noise, hyper_cache=hyper_cache
+            name, train, simple, mcfg, noise=noise, hyper_cache=hyper_cache, devices=devices
         )
     return Fitted(
         training,

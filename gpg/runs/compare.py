@@ -129,9 +129,13 @@ def evaluate(
     hyper_cache: dict,
     n_queries: int,
     noise=None,
+    devices=None,
 ) -> dict[str, Any]:
-    """Build one model and measure it (see module docstring); ``noise`` is ``M_noise`` or None."""
-    fitted = fit_model(name, mcfg, train, simple, hyper_cache, noise=noise, measure_memory=True)
+    """Build one model and measure it (see module docstring); ``noise`` is ``M_noise`` or None;
+    ``devices`` spreads the local models' per-bin precompute (:mod:`gpg.parallel`)."""
+    fitted = fit_model(
+        name, mcfg, train, simple, hyper_cache, noise=noise, measure_memory=True, devices=devices
+    )
     training, built, timings = fitted.training, fitted.built, fitted.timings
     hyper, fit_res = built.hyper, fitted.hyper_fit
 
@@ -280,6 +284,29 @@ def _table_short(results: dict[str, Any], names: list[str]) -> str:
     return table(_rows(results, names), cols) + _skipped(results)
 
 
+def noise_flags(setting: Any) -> tuple[bool, ...]:
+    """``noise_model``: false (the paper), true (levels against ``M_noise``) or ``both`` (every
+    model twice, the runs with ``M_noise`` labelled ``+M_noise``)."""
+    if setting == "both":
+        return (False, True)
+    if isinstance(setting, bool):
+        return (setting,)
+    raise ValueError(f"noise_model must be true, false or both, got {setting!r}")
+
+
+def noise_reference(noise: SimpleNoise, train: Dataset, test: Dataset) -> dict[str, dict]:
+    """Test MAE of the levels predicted by ``M_noise`` alone and by the training mean: what a
+    model has to beat."""
+    names = list(test.output_names[6:9])
+    y = test.y[:, 6:9]
+    alone = np.abs(np.asarray(noise.batch(test.x)[0]) - y).mean(0)
+    mean = np.abs(train.y[:, 6:9].mean(0) - y).mean(0)
+    return {
+        "m_noise_alone": dict(zip(names, alone.tolist(), strict=True)),
+        "training_mean": dict(zip(names, mean.tolist(), strict=True)),
+    }
+
+
 @float64
 def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Compare the models of ``model_cfgs`` (name -> config) on the configured data."""
@@ -291,49 +318,67 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         # Unknown names and keys fail here, before any data is generated or loaded.
         resolved[name] = models.resolve_config(name, deep_merge(mc, cfg.get("model_overrides")))
     single = len(resolved) == 1
-    set_dispatch(cfg)
+    flags = noise_flags(cfg.get("noise_model", False))
+    # Devices only overlap with JAX's asynchronous CPU dispatch (fixed when JAX starts).
+    set_dispatch(
+        {**cfg, "sync_dispatch": cfg.get("sync_dispatch", True) and not cfg.get("devices")}
+    )
     t_start = time.perf_counter()
     train, test, data_info = load_data(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
     simple = simple_model_for(train, vehicle)
     report(f"data: {train.summary()}\ntest: {test.n} points")
 
+    noise = None
+    if any(flags) and train.has_noise:
+        noise = SimpleNoise.from_vehicle(vehicle, simple)
     jobs = []
     for name, mc in resolved.items():
-        jobs.append((name, name, mc))
+        runs = [(name, mc)]
         for over in (cfg.get("variants") or {}).get(name, []):
-            jobs.append(
+            runs.append(
                 (
                     _variant_label(name, over),
-                    name,
                     models.resolve_config(name, deep_merge(mc.to_dict(), over)),
                 )
             )
+        for with_noise in flags:
+            # With both, the M_noise runs carry a suffix; the runs without keep the plain label.
+            tag = "+M_noise" if with_noise and len(flags) == 2 else ""
+            jobs += [(label + tag, name, m, with_noise) for label, m in runs]
     results: dict[str, Any] = {}
     # Everything that can fail from sizes alone (missing data, bins or inducing points beyond
     # the data, memory) fails here, before any model is trained.
     ready = []
-    noise = None
-    if cfg.get("noise_model", False) and train.has_noise:
-        noise = SimpleNoise.from_vehicle(vehicle, simple)
-    training = prepare(train, simple, noise)
-    for label, name, mc in jobs:
+    training = prepare(train, simple, None)  # sizes only: the same with or without M_noise
+    for label, name, mc, with_noise in jobs:
         try:
             models.check_feasible(name, mc, training)
-            ready.append((label, name, mc))
+            ready.append((label, name, mc, with_noise))
         except (ValueError, memory.InsufficientMemory) as exc:
             if single:
                 raise
             results[label] = {"model": name, "skipped": str(exc)}
             report(f"{label}: skipped: {exc}")
-    hyper_cache: dict = {}
+    # Hyperparameters are shared between the models fitted on the same targets only: the
+    # residuals against M_noise are other targets than the levels themselves.
+    hyper_caches: dict[bool, dict] = {False: {}, True: {}}
     bar = tqdm(ready, desc="models", unit="model")
-    for label, name, mc in bar:
+    for label, name, mc, with_noise in bar:
         bar.set_postfix_str(label)
         _interrupt.check()  # a deferred Ctrl-C stops between models
         try:
             results[label] = evaluate(
-                label, name, mc, train, test, simple, hyper_cache, cfg["n_queries"], noise
+                label,
+                name,
+                mc,
+                train,
+                test,
+                simple,
+                hyper_caches[with_noise],
+                cfg["n_queries"],
+                noise if with_noise else None,
+                cfg.get("devices"),
             )
         except (ValueError, memory.InsufficientMemory) as exc:
             if single:
@@ -356,9 +401,11 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
     for r in clean.values():
         if "skipped" not in r and ref:
             r["predict_ratio_to_gp"] = r["predict_ms_median"] / ref
+    reference = noise_reference(noise, train, test) if noise is not None else None
     out = {
         "machine": machine(),
         "data": data_info,
+        "noise_reference": reference,
         "n_train": train.n,
         "n_test": test.n,
         "outputs": names,
@@ -374,6 +421,14 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         f"{train.n} training points, {test.n} test points; errors in N, N·m and dB; "
         "predict = one world-frame query, mean and variance (`Surrogate.realtime`).\n\n"
     )
+    if reference is not None:
+        header += (
+            "Levels' test MAE (dB) of `M_noise` alone: "
+            + ", ".join(f"{k} {v:.3g}" for k, v in reference["m_noise_alone"].items())
+            + "; of the training mean: "
+            + ", ".join(f"{k} {v:.3g}" for k, v in reference["training_mean"].items())
+            + ".\n\n"
+        )
     (outdir / "results.md").write_text(header + md + "\n")
     report(_table_short(results, names))
     report(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({out['wall_s']:.0f} s)")

@@ -1,6 +1,7 @@
 """The dataset cache: keys that follow the data's config, and publication by rename."""
 
 import numpy as np
+import pytest
 
 from gpg.data import cache
 from tests.helpers import compose_plain, synthetic_dataset
@@ -13,8 +14,17 @@ def smoke_config(*extra):
 def test_cache_key_follows_smoke_config():
     a, b = smoke_config(), smoke_config("data.train_seed=5")
     assert cache.dataset_key(a["data"], a["vehicle"]) != cache.dataset_key(b["data"], b["vehicle"])
-    c = smoke_config("data.chunk=64")  # memory only: same data, same key
-    assert cache.dataset_key(a["data"], a["vehicle"]) == cache.dataset_key(c["data"], c["vehicle"])
+    for same in ("data.chunk=64", "data.workers=3"):  # how, not what: same data, same key
+        c = smoke_config(same)
+        assert cache.dataset_key(a["data"], a["vehicle"]) == cache.dataset_key(
+            c["data"], c["vehicle"]
+        )
+
+
+def test_workers_must_be_a_positive_integer():
+    for bad in (0, True, 1.5):
+        with pytest.raises(ValueError, match="data.workers must be a positive integer"):
+            cache.check_numbers({**smoke_config()["data"], "workers": bad})
 
 
 def test_publish_lets_the_first_writer_win(tmp_path, monkeypatch):

@@ -76,3 +76,45 @@ def test_generate_options(gen):
         generate(gen, 2, gradients="none")
     ds = generate(gen, 3, gradients="none", keep_raw=False, noise=False, chunk=32)
     assert ds.missing == ("noise", "gradients", "raw samples")
+
+
+@pytest.mark.slow
+def test_generation_is_bit_identical_with_one_and_four_worker_processes(vehicle, tmp_path):
+    import os
+
+    import jax
+
+    from gpg.quadrotor import acoustics, bemt
+    from gpg.quadrotor.generator import Generator
+
+    # A coarse generator compiles quickly in each of the four spawned workers; they share the
+    # session's compilation cache through the environment (spawn inherits it).
+    gen = Generator(
+        vehicle,
+        bemt.BEMTConfig(n_radial=6, n_azimuth=8, coarse_radial=4, coarse_azimuth=4),
+        acoustics.AcousticsConfig(n_harmonics=2, thickness_stations=4),
+    )
+    env = {
+        "JAX_COMPILATION_CACHE_DIR": str(jax.config.jax_compilation_cache_dir),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+    }
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        meta = {"simple_model": {"P_F": 1.0, "T_z": 1.0}}
+        for name, workers in (("one", 1), ("four", 4)):
+            ds = generate(gen, 20, seed=3, chunk=16, meta=meta, workers=workers)
+            ds.save(tmp_path / name)  # 160 raw rows: ten chunks shared by the workers
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    for ext in (".npz", ".json"):
+        assert (tmp_path / f"one{ext}").read_bytes() == (tmp_path / f"four{ext}").read_bytes()
+
+
+def test_workers_must_be_a_positive_integer(gen):
+    with pytest.raises(ValueError, match="workers must be a positive integer, got 0"):
+        generate(gen, 2, chunk=32, workers=0)

@@ -33,3 +33,30 @@ def test_bench_run(smoke_cache, tmp_path):
     f32 = hyb["float32"]
     assert f32["dtype"] == "float32" and 0 <= f32["mean_error_over_std_max"] < 1e-2
     assert np.isfinite(f32["variance_error_over_var_max"])
+
+
+def test_bench_devices_suite(smoke_cache, tmp_path):
+    overrides = [
+        "data=smoke",
+        "suites=[devices]",
+        f"devices.cache_dir={smoke_cache}",
+        "devices.device_counts=[1]",
+        "devices.train_models=[gps_1x]",
+        "devices.predict_model=gps_1x",
+        "+devices.model.hyper.fit=false",
+        "+devices.model.partition.bins=2",
+        "devices.repeats=1",
+        "devices.batches=[40]",
+        "devices.chunk=16",
+        "devices.batch_repeats=1",
+        "devices.workers=[1]",
+        "devices.generate_rows=32",
+        "devices.chunk_generate=32",
+    ]
+    bench.run(compose_plain("bench", overrides), tmp_path)
+    saved = json.loads((tmp_path / "bench.json").read_text())["devices"]
+    assert finite_numbers(saved)
+    assert set(saved["build"]["gps_1x"]) == {"host", "1"}
+    assert set(saved["predict"]) == {"40/mean/1", "40/mean_var/1"}
+    assert saved["predict"]["40/mean/1"]["per_s"] > 0
+    assert saved["generate"]["rows"] == 32 and set(saved["generate"]["seconds"]) == {"1"}

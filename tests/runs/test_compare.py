@@ -194,3 +194,29 @@ def test_failed_cli_run_leaves_no_run_directory(tmp_path):
         cwd=ROOT,
     )
     assert p.returncode == 2 and not run.exists()
+
+
+def test_noise_model_both_runs_each_model_with_and_without_m_noise(tmp_path):
+    train, _ = synthetic_dataset(30, seed=1)
+    test, _ = synthetic_dataset(12, seed=2, raw=False)
+    train.save(tmp_path / "train")
+    test.save(tmp_path / "test")
+    over = [f"dataset.train={tmp_path / 'train'}", f"dataset.test={tmp_path / 'test'}"]
+    cfg = config(tmp_path, *over, "figures=false", "models=[gps_1x]", "noise_model=both")
+    cfg["model_overrides"] = {"hyper": {"fit": False}, "partition": {"bins": 3}}
+    out = tmp_path / "run"
+    out.mkdir()
+    res = compare.run(cfg, out, model_configs(cfg))
+    assert list(res["models"]) == ["gps_1x", "gps_1x+M_noise"] and finite_numbers(res)
+    plain, with_noise = (res["models"][k]["mae"] for k in ("gps_1x", "gps_1x+M_noise"))
+    assert plain["Fx"] == pytest.approx(with_noise["Fx"], rel=1e-9)  # same targets, same fit
+    assert plain["L3"] != with_noise["L3"]
+    ref = res["noise_reference"]
+    assert set(ref) == {"m_noise_alone", "training_mean"} and set(ref["training_mean"]) == {
+        "L1",
+        "L2",
+        "L3",
+    }
+    assert "of `M_noise` alone: L1" in (out / "results.md").read_text()
+    with pytest.raises(ValueError, match="noise_model must be true, false or both, got 'yes'"):
+        compare.run({**cfg, "noise_model": "yes"}, out, model_configs(cfg))
