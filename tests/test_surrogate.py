@@ -225,6 +225,7 @@ def test_without_noise_or_residual(data):
     np.testing.assert_allclose(p.force, data.y_aero[0, :3], rtol=1e-4, atol=2e-3)
 
 
+@pytest.mark.slow
 def test_noise_model_is_added_back(data):
     """With M_noise the GP learns L − M_noise; the surrogate adds M_noise back (a training
     point still returns its label; checkpoints store it as any other module field)."""

@@ -92,6 +92,7 @@ def test_exact_jacobian_matches_central_differences(y_of, jac_of, rng):
             np.testing.assert_allclose(J[:, j], fd, rtol=2e-5, atol=1e-7 * np.abs(J).max())
 
 
+@pytest.mark.slow
 def test_inflow_converges_everywhere(gen, rng):
     """Blade-element and momentum thrust agree at the solved inflow across the sampling box."""
     n = 300

@@ -4,6 +4,7 @@ including the float32 check of the surrogate."""
 import json
 
 import numpy as np
+import pytest
 
 from gpg.runs import bench
 from tests.helpers import compose_plain, finite_numbers
@@ -35,6 +36,7 @@ def test_bench_run(smoke_cache, tmp_path):
     assert np.isfinite(f32["variance_error_over_var_max"])
 
 
+@pytest.mark.slow
 def test_bench_devices_suite(smoke_cache, tmp_path):
     overrides = [
         "data=smoke",

@@ -196,6 +196,7 @@ def test_failed_cli_run_leaves_no_run_directory(tmp_path):
     assert p.returncode == 2 and not run.exists()
 
 
+@pytest.mark.slow
 def test_noise_model_both_runs_each_model_with_and_without_m_noise(tmp_path):
     train, _ = synthetic_dataset(30, seed=1)
     test, _ = synthetic_dataset(12, seed=2, raw=False)
