@@ -95,15 +95,13 @@ def test_map_units_keeps_the_order_and_chunks_cover_the_rows():
     assert [(s.start, s.stop) for s in sl] == [(0, 4), (4, 8), (8, 10)]
 
 
-SCRIPT = textwrap.dedent(
+PRECOMPUTE_SCRIPT = textwrap.dedent(
     """
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
     assert len(jax.devices()) == 4, jax.devices()
-    from tests.test_parallel import problem
-    from tests.helpers import synthetic_dataset
-    from gpg import Surrogate
-    from gpg.gp import schur
+    from tests.test_parallel import pic_problem, problem
+    from gpg.gp import pic, schur
 
     X, Ybar, h, near = problem()
     one = schur.precompute(X, Ybar, h, (0, 1), near, route="local", devices=1)
@@ -111,13 +109,22 @@ SCRIPT = textwrap.dedent(
     for a, b in zip(one, four, strict=True):
         assert np.array_equal(a.coef, b.coef) and np.array_equal(a.factor, b.factor)
 
-    from tests.test_parallel import pic_problem
-    from gpg.gp import pic
     X, Ybar, h, blocks, Z = pic_problem()
     p1 = list(pic.iter_precompute_devices(X, Ybar, h, (0, 1), blocks, Z, devices=1))
     p4 = list(pic.iter_precompute_devices(X, Ybar, h, (0, 1), blocks, Z, devices=4))
     for a, b in zip(p1, p4, strict=True):
         assert np.array_equal(a.coef, b.coef) and np.array_equal(a.factor, b.factor)
+    print("OK")
+    """
+)
+
+SURROGATE_SCRIPT = textwrap.dedent(
+    """
+    import jax, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    assert len(jax.devices()) == 4, jax.devices()
+    from tests.helpers import synthetic_dataset
+    from gpg import Surrogate
 
     data, _ = synthetic_dataset(60, seed=3)
     cfg = {"hyper": {"fit": False}, "partition": {"bins": 6}}
@@ -145,7 +152,7 @@ SCRIPT = textwrap.dedent(
 )
 
 
-def test_four_devices_give_the_single_device_results_bit_for_bit():
+def four_devices(script: str) -> None:
     env = {
         **os.environ,
         "XLA_FLAGS": "--xla_force_host_platform_device_count=4",
@@ -153,10 +160,19 @@ def test_four_devices_give_the_single_device_results_bit_for_bit():
         "PYTHONPATH": str(ROOT),
     }
     p = subprocess.run(
-        [sys.executable, "-c", SCRIPT], cwd=ROOT, env=env, capture_output=True, text=True
+        [sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True
     )
     assert p.returncode == 0, p.stderr[-3000:]
     assert p.stdout.strip().endswith("OK")
+
+
+def test_four_devices_give_the_single_device_precompute_bit_for_bit():
+    four_devices(PRECOMPUTE_SCRIPT)
+
+
+@pytest.mark.slow
+def test_four_devices_give_the_single_device_surrogate_and_predictions_bit_for_bit():
+    four_devices(SURROGATE_SCRIPT)
 
 
 HOST_SCRIPT = textwrap.dedent(
