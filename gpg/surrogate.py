@@ -300,11 +300,9 @@ class Replicated:
             block = [a[sl] for a in (rpm, euler, v_air)]
             pad = chunk - block[0].shape[0]  # the last block padded: one program for all
             units.append(tuple(np.concatenate([b, np.repeat(b[-1:], pad, 0)]) for b in block))
-        fn = partial(_predict_batch, with_var=not mean_only, chunk=chunk)
         with_var = not mean_only
-        out = parallel.gather_units(
-            parallel.map_units(fn, None, units, self.devices, replicas=self._replicas[with_var])
-        )
+        fn = partial(_predict_batch, with_var=with_var, chunk=chunk)
+        out = parallel.map_units(fn, None, units, self.devices, replicas=self._replicas[with_var])
         if not out:
             return jax.tree.map(
                 np.asarray, _predict_batch(self.surrogate, rpm, euler, v_air, with_var, chunk)

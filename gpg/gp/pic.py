@@ -103,6 +103,17 @@ class _Block:
         self.W = _tri(self.L, np.ascontiguousarray(self.V.T))
 
 
+def _inducing_factor(n, blocks, Z, hyper: Hyper, dims, jitter: float) -> np.ndarray:
+    """``L_u`` with ``K̄_uu (1 + jitter on the diagonal) = L_u L_uᵀ``, after checking that
+    ``blocks`` partition ``range(n)``."""
+    idx_all = np.sort(np.concatenate(blocks))
+    if idx_all.size != n or np.any(idx_all != np.arange(n)):
+        raise ValueError("blocks must partition the training points (each in exactly one)")
+    Kuu = _gram(Z, Z, hyper, dims)
+    Kuu.flat[:: Kuu.shape[0] + 1] *= 1.0 + jitter
+    return dense.cholesky_inplace(np.ascontiguousarray(Kuu), what="K̄_uu (inducing points)")
+
+
 def precompute(
     X: np.ndarray,
     Ybar: np.ndarray,
@@ -140,12 +151,7 @@ def iter_precompute(
     """
     dims = tuple(grad_dims)
     n, g = X.shape[0], len(dims)
-    idx_all = np.sort(np.concatenate(blocks))
-    if idx_all.size != n or np.any(idx_all != np.arange(n)):
-        raise ValueError("blocks must partition the training points (each in exactly one)")
-    Kuu = _gram(Z, Z, hyper, dims)
-    Kuu.flat[:: Kuu.shape[0] + 1] *= 1.0 + jitter
-    L_u = dense.cholesky_inplace(np.ascontiguousarray(Kuu), what="K̄_uu (inducing points)")
+    L_u = _inducing_factor(n, blocks, Z, hyper, dims, jitter)
     up = L_u.shape[0]
     m = Ybar.shape[1]
 
@@ -211,13 +217,8 @@ def iter_precompute_devices(
     """
     dims = tuple(grad_dims)
     n, g = X.shape[0], len(dims)
-    idx_all = np.sort(np.concatenate(blocks))
-    if idx_all.size != n or np.any(idx_all != np.arange(n)):
-        raise ValueError("blocks must partition the training points (each in exactly one)")
     devs = parallel.devices(devices)
-    Kuu = _gram(Z, Z, hyper, dims)
-    Kuu.flat[:: Kuu.shape[0] + 1] *= 1.0 + jitter
-    L_u = dense.cholesky_inplace(np.ascontiguousarray(Kuu), what="K̄_uu (inducing points)")
+    L_u = _inducing_factor(n, blocks, Z, hyper, dims, jitter)
     up = L_u.shape[0]
     width = max(b.size for b in blocks)
     units, pos = [], []
@@ -230,7 +231,7 @@ def iter_precompute_devices(
         units.append((Xp, Yp))
     shared = (hyper, jnp.asarray(Z), jnp.asarray(L_u))
     one = partial(_pass1_block, dims=dims)
-    parts = parallel.gather_units(parallel.map_units(jax.jit(one), shared, units, devs))
+    parts = parallel.map_units(jax.jit(one), shared, units, devs)
     Bm = np.eye(up)
     rhat = np.zeros((up, Ybar.shape[1]))
     for wtw, wty in parts:  # in block order: the same sums for any number of devices
@@ -243,9 +244,7 @@ def iter_precompute_devices(
     # Pass 2 in waves of one block per device: each block's dense form is stored compactly
     # by the consumer before the next wave is drawn.
     for start in range(0, len(units), len(devs)):
-        wave = parallel.gather_units(
-            parallel.map_units(two, shared2, units[start : start + len(devs)], devs)
-        )
+        wave = parallel.map_units(two, shared2, units[start : start + len(devs)], devs)
         for k, (coef, H) in enumerate(wave):
             b = start + k
             r = np.concatenate([np.arange(up), up + pos[b]])

@@ -248,7 +248,7 @@ def local_sharded(
         Yp[pos[-1]] = Ybar[near_rows(nb, n, g)]
         units.append((Xp, Yp))
     fn = jax.jit(partial(_local_block, dims=grad_dims))
-    results = parallel.gather_units(parallel.map_units(fn, hyper, units, devs))
+    results = parallel.map_units(fn, hyper, units, devs)
     out = []
     for b, ((coef, inv), r) in enumerate(zip(results, pos, strict=True)):
         if not (np.isfinite(coef).all() and np.isfinite(inv).all()):

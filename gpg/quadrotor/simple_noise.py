@@ -17,14 +17,13 @@ solution replaced by ``M`` and a prescribed inflow:
 * **Thickness** noise of the blades, as in the generator.
 
 The in-plane air velocity at each hub follows from the attitude and airspeed inputs as in the
-generator. Left out, with what trying them on data=default showed (spread of the training
-residual ``L − M_noise`` at 5–10 m/s, L1/L2/L3): the axial flow through the disk, with ``v₀``
-solved from momentum including it, 2.0/2.4/5.4 dB → 2.5/4.4/9.7 dB (``M``'s thrust, which
-sets ``v₀``, ignores the axial flow too); the generator's nonlinear polar in place of the
-linear lift, no change in spread (5.6 dB at L3) and a 1.4 dB larger L3 bias; more span
-elements (8 or 12 instead of 3), within 0.1 dB. Body rates are not inputs. What ``M_noise``
-misses (wake interference, the real inflow solution, the polar, tip loss) is what the GP learns.
-Its Jacobian comes from ``jax.jacfwd``.
+generator. Left out after an exploratory check on data=default (a script not kept in the
+repository): the axial flow through the disk, with ``v₀`` solved from momentum including it,
+made the training residual ``L − M_noise`` rougher, most at L3 (``M``'s thrust, which sets
+``v₀``, ignores the axial flow too); the generator's nonlinear polar in place of the linear lift
+did not make it smoother; more span elements changed it little. Body rates are not inputs.
+What ``M_noise`` misses (wake interference, the real inflow solution, the polar, tip loss) is
+what the GP learns. Its Jacobian comes from ``jax.jacfwd``.
 
 It needs the acoustic part of the vehicle (rotor geometry, airfoil, microphones, air
 properties): a vehicle file for ``M`` and flight only has none, and
