@@ -45,7 +45,7 @@ from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Normalizer, Training, simple_model_for
 from gpg.gp.predictor import Predictor
 from gpg.quadrotor.dynamics import AeroModel, Wrench
-from gpg.quadrotor.frames import euler_from_R, matvec, to_airflow_frame
+from gpg.quadrotor.frames import R_WB, euler_from_R, matmul, matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle, load_vehicle
@@ -200,6 +200,25 @@ class Surrogate(eqx.Module):
     ) -> Prediction:
         """The fast path: as :meth:`predict` without the variance (``variance`` is None)."""
         return _predict(self, *_as_state(rpm, euler, v_air), False)
+
+    def predict_body(
+        self,
+        rpm: Float[ArrayLike, " 4"],
+        R_WB: Float[ArrayLike, "3 3"],
+        v_air_body: Float[ArrayLike, " 3"],
+        *,
+        with_var: bool = True,
+    ) -> Prediction:
+        """The body-frame entry point, for simulators that integrate in the body frame: rotor
+        speeds ``rpm``, attitude ``R_WB`` (body FRD to world NED, 3x3) and the airspeed in the
+        body frame ``v_air_body = R_WBᵀ (v_vehicle − v_wind)`` (m/s) give the aerodynamic force
+        (N) and torque (N·m) in the body frame (FRD), their predictive variances in that frame,
+        the levels and ``in_domain``. Other simulators' conventions (z up, FLU, xyzw
+        quaternions, rad/s) are converted by :mod:`gpg.adapters.conventions`. Jittable and
+        differentiable like :meth:`predict`."""
+        R = _as_rotation(R_WB)
+        rpm, _, v_b = _as_state(rpm, np.zeros(3), v_air_body)
+        return _predict_body(self, rpm, R, v_b, bool(with_var))
 
     def predict_batch(
         self,
@@ -379,6 +398,21 @@ def _as_state(rpm, euler, v_air):
     return tuple(out)
 
 
+def _as_rotation(R):
+    """A 3x3 attitude matrix, checked like :func:`_as_state` checks a state."""
+    R = jnp.asarray(R, dtype=float) if isinstance(R, jax.core.Tracer) else np.asarray(R, float)
+    if R.shape != (3, 3):
+        raise ValueError(f"R_WB must be a 3x3 rotation matrix, got shape {R.shape}")
+    _require_finite("R_WB", R)
+    if not isinstance(R, jax.core.Tracer):
+        err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+        if err > 1e-6 or np.linalg.det(R) < 0:
+            raise ValueError(
+                f"R_WB must be a rotation matrix (RᵀR = I, det +1); it is off by {err:.1e}"
+            )
+    return R
+
+
 def _require_finite(name: str, a) -> None:
     """The NaN/inf policy: a call from Python with a non-finite input raises ``ValueError``
     naming it; under the caller's own ``jit``/``vmap``/``scan`` (a tracer, nothing to inspect)
@@ -401,10 +435,12 @@ def _require_finite(name: str, a) -> None:
 
 
 def predict_state(
-    sur: Surrogate, rpm: Array, euler: Array, v_air: Array, with_var: bool
+    sur: Surrogate, rpm: Array, euler: Array, v_air: Array, with_var: bool, *, body: bool = False
 ) -> Prediction:
     """The un-jitted pipeline for one state (see module docstring); jit, vmap or scan it.
-    The state is computed in the surrogate's float dtype (:meth:`Surrogate.astype`)."""
+    The state is computed in the surrogate's float dtype (:meth:`Surrogate.astype`).
+    ``body`` (static) returns force, torque and their variances in the body frame (FRD)
+    instead of the world frame."""
     dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)  # float32 where x64 is off
     rpm, euler, v_air = (jnp.asarray(a).astype(dt) for a in (rpm, euler, v_air))
     euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
@@ -423,16 +459,22 @@ def predict_state(
     else:
         mean_n, var_n = sur.model.mean_one(xn), None
     y = sur.normalizer.y_inv(mean_n)
-    force, torque = matvec(R_WH, y[:3]), matvec(R_WH, y[3:6])
+    # The GP's force and moment residuals live in H; R_out takes them to the output frame.
+    R_out = matmul(R_WB(euler).T, R_WH) if body else R_WH
+    force, torque = matvec(R_out, y[:3]), matvec(R_out, y[3:6])
     levels = y[6:] if sur.noise is None else y[6:] + sur.noise(x_h)
     if sur.simple is not None:
-        y_m = sur.simple(jnp.concatenate([rpm, euler]))  # M at the world attitude, world frame
-        force, torque = force + y_m[:3], torque + y_m[3:6]
+        if body:
+            f_m, t_m = sur.simple.wrench_body(rpm)
+        else:  # M at the world attitude, world frame
+            y_m = sur.simple(jnp.concatenate([rpm, euler]))
+            f_m, t_m = y_m[:3], y_m[3:6]
+        force, torque = force + f_m, torque + t_m
     variance = None
     if with_var:
         # An observation's predictive variance per output, H frame: c_m (latent + ν²) std_m².
         v = sur.model.predictive_variance(var_n) * sur.normalizer.y_std**2
-        rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_WH, d, R_WH)  # diag(R diag(d) Rᵀ)  # noqa: E731
+        rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_out, d, R_out)  # diag(R diag(d) Rᵀ)  # noqa: E731
         variance = jnp.concatenate([rot_var(v[:3]), rot_var(v[3:6]), v[6:]])
     return Prediction(
         force=force, torque=torque, noise=levels, variance=variance, in_domain=in_domain
@@ -465,6 +507,11 @@ def _realtime_fn(treedef, with_var: bool):
 @partial(jax.jit, static_argnums=(4,))
 def _predict(sur: Surrogate, rpm, euler, v_air, with_var: bool) -> Prediction:
     return predict_state(sur, rpm, euler, v_air, with_var)
+
+
+@partial(jax.jit, static_argnums=(4,))
+def _predict_body(sur: Surrogate, rpm, R, v_b, with_var: bool) -> Prediction:
+    return predict_state(sur, rpm, euler_from_R(R), matvec(R, v_b), with_var, body=True)
 
 
 @partial(jax.jit, static_argnums=(4, 5))

@@ -117,3 +117,19 @@ def smoke_compare(smoke_cache, tmp_path_factory):
     )
     out = tmp_path_factory.mktemp("smoke_compare")
     return out, compare.run(values, out, model_configs(values))
+
+
+@pytest.fixture(scope="session")
+def synthetic_surrogate():
+    """A default-model (gpgs_hybrid) surrogate on 50 synthetic points with fixed
+    hyperparameters: built in about a second, for the tests of what uses a surrogate."""
+    from gpg.surrogate import Surrogate
+    from tests.helpers import synthetic_dataset
+
+    cfg = {
+        "hyper": {"fit": False, "lengthscale": 0.8},
+        "partition": {"bins": 3, "points_per_bin": None},
+        "near": {"budget": 0.5, "points": None},
+        "variance_dtype": "float64",
+    }
+    return Surrogate.fit(synthetic_dataset(50, seed=3)[0], "gpgs_hybrid", cfg)

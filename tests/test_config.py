@@ -6,9 +6,10 @@ from pathlib import Path
 
 import pytest
 
+from gpg import conf as gpg_conf
 from gpg import models
 from gpg.config import ModelConfig
-from gpg.runs.common import CONF_DIR, conf
+from gpg.runs.common import conf
 from tests.helpers import compose_plain
 
 
@@ -31,7 +32,7 @@ def test_hydra_composes_the_same_model_config():
 
 
 def test_every_model_key_is_commented():
-    for path in sorted(Path(CONF_DIR, "model").glob("*.yaml")):
+    for path in sorted(Path(str(gpg_conf.group("model"))).glob("*.yaml")):
         for i, line in enumerate(path.read_text().splitlines(), 1):
             code = line.strip()
             if code and not code.startswith("#"):

@@ -237,3 +237,48 @@ def test_noise_model_is_added_back(data):
         np.testing.assert_allclose(sur.predict(*state(data.x[i])).noise, data.y_noise[i], rtol=1e-5)
     with pytest.raises(ValueError, match="noise_model=True needs residual=True"):
         Surrogate.fit(data, "gps_1x", BINNED, residual=False, noise_model=True)
+
+
+def test_body_frame_entry_point(binned, data):
+    from gpg.quadrotor.frames import R_WB
+
+    rpm, euler, v = state(data.x[5])
+    euler = euler + np.array([0.7, 0.05, -0.1])  # not the dataset frame: a rotated body
+    R = np.asarray(R_WB(euler))
+    w = binned.predict(rpm, euler, v)
+    b = binned.predict_body(rpm, R, R.T @ v)
+    np.testing.assert_allclose(b.force, R.T @ np.asarray(w.force), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(b.torque, R.T @ np.asarray(w.torque), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(b.noise, w.noise, rtol=1e-12)
+    # The variances are the same ellipsoid's diagonal in two frames: equal traces.
+    np.testing.assert_allclose(b.variance[:3].sum(), w.variance[:3].sum(), rtol=1e-10)
+    np.testing.assert_allclose(b.variance[6:], w.variance[6:], rtol=1e-12)
+    assert bool(b.in_domain) == bool(w.in_domain)
+    with pytest.raises(ValueError, match="rotation matrix"):
+        binned.predict_body(rpm, 2 * R, v)
+    with pytest.raises(ValueError, match="3x3"):
+        binned.predict_body(rpm, R[:2], v)
+
+
+@pytest.mark.parametrize("which", ["exact", "binned"])
+def test_jacobians_of_predict(which, exact, binned, data):
+    """jax.jacrev/jacfwd of the world-frame prediction (mean and variance) match central
+    differences and each other. The hybrid stores its variance factors in float32, which
+    makes its variance too rough for a finite difference: its float64 copy is differentiated."""
+    sur = exact if which == "exact" else binned.astype(jnp.float64)
+
+    def f(z):
+        p = sur.predict(z[:4], z[4:7], z[7:])
+        return jnp.concatenate([p.force, p.torque, p.noise, p.variance])
+
+    rpm, euler, v = state(data.x[9])
+    z = jnp.asarray(np.concatenate([rpm, euler + np.array([0.2, 0.0, 0.0]), v + 0.7]))
+    Jr = jax.jit(jax.jacrev(f))(z)
+    Jf = jax.jit(jax.jacfwd(f))(z)
+    h = np.maximum(np.abs(np.asarray(z)), 1.0) * 6e-6
+    Jd = np.stack(
+        [(f(z + hh * e) - f(z - hh * e)) / (2 * hh) for e, hh in zip(np.eye(10), h, strict=True)], 1
+    )
+    np.testing.assert_allclose(Jf, Jr, rtol=1e-9, atol=1e-12 * np.abs(Jd).max())
+    for sl in (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 18)):
+        assert np.max(np.abs(Jr[sl] - Jd[sl])) < 1e-6 * np.max(np.abs(Jd[sl]))

@@ -14,6 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Float, Int
 
 from gpg.gp import kernels, partition, schur
@@ -102,7 +103,10 @@ class BinnedGP(Predictor):
 # one-query code into a per-query gather (coefficients) or a select with every bin's factor
 # broadcast to the batch (variance), so both get a batch rule of their own (custom_vmap):
 # one dense product per bin for all queries, each query keeping its own bin's result.
-# Forward-mode differentiation works through them; reverse mode does not (custom_vmap).
+# custom_vmap has no reverse mode and its forward mode breaks on batched tangents, so each
+# function is wrapped in a custom_jvp whose tangent is written in plain, linear JAX (every
+# bin's product, then the query's own): JAX transposes that for reverse mode and batches it
+# for jacfwd/vmap, while an undifferentiated call keeps the custom batch rule and its speed.
 
 
 def _batched_args(axis_size, in_batched, b, k):
@@ -112,42 +116,129 @@ def _batched_args(axis_size, in_batched, b, k):
 
 
 @jax.custom_batching.custom_vmap
-def binned_contract(
-    coef: Float[Array, "B M R"], b: Int[Array, ""], k: Float[Array, " R"]
-) -> Float[Array, " M"]:
-    """``C_b k``: one bin's mean coefficients applied to a kernel row."""
+def _contract(coef: Float[Array, "B M R"], b: Int[Array, ""], k: Float[Array, " R"]):
     return jax.lax.dynamic_index_in_dim(coef, b, keepdims=False) @ k
 
 
-@binned_contract.def_vmap
-def _binned_contract_batched(axis_size, in_batched, coef, b, k):
+@_contract.def_vmap
+def _contract_batched(axis_size, in_batched, coef, b, k):
     bins, K = _batched_args(axis_size, in_batched, b, k)
     if in_batched[0]:  # a batch of models: one pair at a time
-        return jax.lax.map(lambda a: binned_contract(*a), (coef, bins, K)), True
+        return jax.lax.map(lambda a: _contract(*a), (coef, bins, K)), True
     every = jnp.einsum("qr,bmr->qbm", K, coef)  # all bins for all queries: one product
     return jnp.take_along_axis(every, bins[:, None, None], axis=1)[:, 0], True
 
 
+@jax.custom_jvp
+def binned_contract(
+    coef: Float[Array, "B M R"], b: Int[Array, ""], k: Float[Array, " R"]
+) -> Float[Array, " M"]:
+    """``C_b k``: one bin's mean coefficients applied to a kernel row."""
+    return _contract(coef, b, k)
+
+
+def _every_bin(coef, k):
+    """``C_i k`` for every bin ``i`` (B, M): linear in both, batches into one product."""
+    return jnp.einsum("bmr,r->bm", coef, k)
+
+
+def _binned_contract_jvp(primals, tangents):
+    coef, b, k = primals
+    dcoef, _, dk = tangents
+    out = binned_contract(coef, b, k)
+    tangent = jnp.zeros_like(out)
+    if not isinstance(dk, SymbolicZero):
+        tangent = tangent + _every_bin(coef, dk)[b]
+    if not isinstance(dcoef, SymbolicZero):
+        tangent = tangent + _every_bin(dcoef, k)[b]
+    return out, tangent
+
+
+binned_contract.defjvp(_binned_contract_jvp, symbolic_zeros=True)
+
+
 @jax.custom_batching.custom_vmap
-def binned_quadratic_form(
-    factor: tuple[BlockTriangular, ...], b: Int[Array, ""], k: Float[Array, " R"]
-) -> Float[Array, ""]:
-    """``‖F_b k‖²`` with bin ``b``'s factor: a ``lax.switch`` reads that bin's bands only."""
-    branches = [lambda kk, f=f: f.matvec(kk) for f in factor]
-    v = jax.lax.switch(b, branches, k)
-    return (v @ v).astype(k.dtype)
+def _quadratic_form(factor: tuple[BlockTriangular, ...], b: Int[Array, ""], k: Float[Array, " R"]):
+    return jnp.sum(jnp.square(_apply(factor, b, k))).astype(k.dtype)
 
 
-@binned_quadratic_form.def_vmap
-def _binned_quadratic_form_batched(axis_size, in_batched, factor, b, k):
+@_quadratic_form.def_vmap
+def _quadratic_form_batched(axis_size, in_batched, factor, b, k):
     bins, K = _batched_args(axis_size, in_batched, b, k)
     if any(jax.tree.leaves(in_batched[0])):
-        return jax.lax.map(lambda a: binned_quadratic_form(*a), (factor, bins, K)), True
+        return jax.lax.map(lambda a: _quadratic_form(*a), (factor, bins, K)), True
     out = jnp.zeros(axis_size, dtype=K.dtype)
     for i, f in enumerate(factor):
         V = f.rmatmul(K)
         out = jnp.where(bins == i, jnp.sum(V * V, axis=1).astype(K.dtype), out)
     return out, True
+
+
+@jax.custom_batching.custom_vmap
+def _quadratic_form_grad(factor: tuple[BlockTriangular, ...], b: Int[Array, ""], k):
+    """``‖F_b k‖²`` and its gradient in ``k``, ``2 F_bᵀ F_b k``."""
+    branches = [lambda kk, f=f: f.rmatvec(f.matvec(kk)) for f in factor]
+    v = _apply(factor, b, k)
+    g = jax.lax.switch(b, branches, k)
+    return jnp.sum(jnp.square(v)).astype(k.dtype), (2.0 * g).astype(k.dtype)
+
+
+@_quadratic_form_grad.def_vmap
+def _quadratic_form_grad_batched(axis_size, in_batched, factor, b, k):
+    bins, K = _batched_args(axis_size, in_batched, b, k)
+    if any(jax.tree.leaves(in_batched[0])):
+        out = jax.lax.map(lambda a: _quadratic_form_grad(*a), (factor, bins, K))
+        return out, (True, True)
+    q = jnp.zeros(axis_size, dtype=K.dtype)
+    G = jnp.zeros(K.shape, dtype=K.dtype)
+    for i, f in enumerate(factor):
+        V = f.rmatmul(K)
+        here = bins == i
+        q = jnp.where(here, jnp.sum(V * V, axis=1).astype(K.dtype), q)
+        G = jnp.where(here[:, None], 2.0 * f.lmatmul(V).astype(K.dtype), G)
+    return (q, G), (True, True)
+
+
+def _apply(factor: tuple[BlockTriangular, ...], b, k):
+    """``F_b k`` (in the factor's dtype): a ``lax.switch`` reads bin ``b``'s bands only."""
+    branches = [lambda kk, f=f: f.matvec(kk) for f in factor]
+    return jax.lax.switch(b, branches, k)
+
+
+@jax.custom_jvp
+def binned_quadratic_form(
+    factor: tuple[BlockTriangular, ...], b: Int[Array, ""], k: Float[Array, " R"]
+) -> Float[Array, ""]:
+    """``‖F_b k‖²`` with bin ``b``'s factor."""
+    return _quadratic_form(factor, b, k)
+
+
+def _binned_quadratic_form_jvp(primals, tangents):
+    # The tangent in k is g·dk with the gradient g = 2 F_bᵀ F_b k computed beside the value
+    # (batched per bin like the value): a dot product, which JAX transposes and batches at the
+    # cost of one product, where a tangent through the per-bin switch batched into every bin.
+    factor, b, k = primals
+    dfactor, _, dk = tangents
+    leaves = jax.tree.leaves(dfactor, is_leaf=lambda t: isinstance(t, SymbolicZero))
+    factor_moves = not all(isinstance(t, SymbolicZero) for t in leaves)
+    if isinstance(dk, SymbolicZero) and not factor_moves:
+        out = binned_quadratic_form(factor, b, k)
+        return out, jnp.zeros_like(out)
+    out, g = _quadratic_form_grad(factor, b, k)
+    tangent = jnp.zeros_like(out) if isinstance(dk, SymbolicZero) else jnp.dot(g, dk)
+    if factor_moves:  # derivatives in the stored factor itself (rare): plain JAX
+        dense = jax.tree.map(
+            lambda t, p: jnp.zeros_like(p) if isinstance(t, SymbolicZero) else t,
+            dfactor,
+            factor,
+            is_leaf=lambda t: isinstance(t, SymbolicZero),
+        )
+        v = _apply(factor, b, k)
+        tangent = tangent + (2.0 * jnp.sum(v * _apply(dense, b, k))).astype(k.dtype)
+    return out, tangent
+
+
+binned_quadratic_form.defjvp(_binned_quadratic_form_jvp, symbolic_zeros=True)
 
 
 def pack_points(

@@ -96,6 +96,21 @@ class BlockTriangular(eqx.Module):
             parts.append((blk @ Kp.T).T)
         return jnp.concatenate(parts, axis=1)
 
+    def rmatvec(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
+        """``Fᵀ v``, in the factor's storage dtype."""
+        return self.lmatmul(v[None])[0]
+
+    def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
+        """``V F`` for a batch of rows ``V`` (each row's ``Fᵀ v``)."""
+        V = V.astype(self.dtype)
+        out = jnp.zeros(V.shape, dtype=self.dtype)
+        for a, blk in zip(self._starts(), self.blocks, strict=True):
+            part = V[:, a : a + blk.shape[0]] @ blk  # (q, columns of the band)
+            cols = blk.shape[1]
+            pad = (0, self.n - cols) if self.lower else (self.n - cols, 0)
+            out = out + jnp.pad(part, ((0, 0), pad))
+        return out
+
     def to_dense(self) -> np.ndarray:
         out = np.zeros((self.n, self.n))
         for a, blk in zip(self._starts(), self.blocks, strict=True):

@@ -166,10 +166,21 @@ class GeometricController(eqx.Module):
 
     def __call__(self, s: State, ref: Reference) -> Float[Array, " 4"]:
         """Rotor speed commands (rpm)."""
+        thrust, R_d = self.thrust_and_attitude(s, ref)
+        R = s.R
+        e_R = 0.5 * vee(matmul(R_d.T, R) - matmul(R.T, R_d))
+        e_w = s.w  # the references here have no angular rate
+        tau = -self.kR * e_R - self.kw * e_w + jnp.cross(s.w, self.inertia * s.w)
+        return self.mix(thrust[0], tau)
+
+    def thrust_and_attitude(
+        self, s: State, ref: Reference
+    ) -> tuple[Float[Array, " 1"], Float[Array, "3 3"]]:
+        """The position loop: collective thrust (N, ≥ 0, shape (1,)) and desired attitude
+        ``R_d``."""
         R = s.R
         e_p, e_v = s.p - ref.p, s.v - ref.v
-        g_vec = jnp.array([0.0, 0.0, 1.0]) * self.gravity
-        F = self.mass * (ref.a - g_vec) - self.kp * e_p - self.kv * e_v
+        F = self.mass * ref.a.at[2].add(-self.gravity) - self.kp * e_p - self.kv * e_v
         # Limit the tilt: keep the upward component, shrink the horizontal one if needed.
         up = jnp.minimum(F[2], -0.2 * self.mass * self.gravity)
         horiz = F[:2]
@@ -178,23 +189,22 @@ class GeometricController(eqx.Module):
         horiz = horiz * jnp.minimum(1.0, h_max / h_norm)
         F = jnp.concatenate([horiz, up[None]])
         z_b = -F / jnp.linalg.norm(F)
-        x_c = jnp.stack([jnp.cos(ref.yaw), jnp.sin(ref.yaw), 0.0])
+        x_c = jnp.stack([jnp.cos(ref.yaw), jnp.sin(ref.yaw), jnp.zeros_like(ref.yaw)])
         y_b = jnp.cross(z_b, x_c)
         y_b = y_b / jnp.linalg.norm(y_b)
         x_b = jnp.cross(y_b, z_b)
         R_d = jnp.stack([x_b, y_b, z_b], axis=1)
         thrust = -jnp.dot(F, R[:, 2])
-        e_R = 0.5 * vee(matmul(R_d.T, R) - matmul(R.T, R_d))
-        e_w = s.w  # the references here have no angular rate
-        tau = -self.kR * e_R - self.kw * e_w + jnp.cross(s.w, self.inertia * s.w)
-        return self.mix(jnp.maximum(thrust, 0.0), tau)
+        return jnp.maximum(thrust, 0.0)[None], R_d
 
     def mix(self, thrust: Float[Array, ""], tau: Float[Array, " 3"]) -> Float[Array, " 4"]:
         """Rotor speeds for collective thrust and moment; yaw yields first when a rotor would
         leave its range (the rotors' drag torque is a weak yaw actuator, and spending thrust
         margin on it costs altitude and attitude)."""
         lo, hi = self.rpm_min**2, self.rpm_max**2
-        base = matvec(self.alloc_inv, jnp.concatenate([thrust[None], tau[:2], jnp.zeros(1)]))
+        base = matvec(
+            self.alloc_inv, jnp.concatenate([thrust[None], tau[:2], jnp.zeros(1, tau.dtype)])
+        )
         c = self.alloc_inv[:, 3]  # r² per unit yaw moment
         safe_c = jnp.where(jnp.abs(c) > 0, c, 1.0)
         a, b = (lo - base) / safe_c, (hi - base) / safe_c
@@ -202,7 +212,9 @@ class GeometricController(eqx.Module):
         t_hi = jnp.min(jnp.where(jnp.abs(c) > 0, jnp.maximum(a, b), jnp.inf))
         tz = jnp.clip(tau[2], jnp.minimum(t_lo, 0.0), jnp.maximum(t_hi, 0.0))
         r2 = jnp.clip(base + tz * c, lo, hi)
-        return jnp.sqrt(r2)
+        # sqrt has an infinite slope at 0: a rotor clipped to rest (rpm_min = 0) would turn the
+        # clip's zero gradient into NaN. A floor of 1e-6 rpm² changes no speed that matters.
+        return jnp.sqrt(jnp.maximum(r2, 1e-6))
 
 
 __all__: Sequence[str] = [

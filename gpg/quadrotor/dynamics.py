@@ -126,7 +126,7 @@ class SimpleAero(AeroModel):
 
     def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
         F, tau = self.model.wrench_body(rpm)
-        return Wrench(matvec(R_WB, F), matvec(R_WB, tau), jnp.zeros(0), jnp.asarray(True))
+        return Wrench(matvec(R_WB, F), matvec(R_WB, tau), jnp.zeros(0, F.dtype), jnp.asarray(True))
 
 
 class Wind(eqx.Module):
@@ -143,7 +143,11 @@ class Wind(eqx.Module):
 
     @classmethod
     def constant(cls, mean) -> Wind:
-        return cls(jnp.asarray(mean, dtype=float), jnp.zeros(3), jnp.asarray(1.0), jnp.asarray(0.0))
+        """A constant wind ``mean`` (m/s), in its own float dtype (a float32 mean stays float32)."""
+        m = jnp.asarray(mean)
+        m = m if jnp.issubdtype(m.dtype, jnp.floating) else m.astype(float)
+        one = jnp.ones((), m.dtype)
+        return cls(m, jnp.zeros(3, m.dtype), one, 0.0 * one)
 
     def __call__(self, t: Float[Array, ""]) -> Float[Array, " 3"]:
         return self.mean + self.gust_amplitude * jnp.sin(
@@ -184,7 +188,7 @@ class Quadrotor(eqx.Module):
     def derivatives(self, s: State, rpm_cmd: Float[Array, " 4"], wr: Wrench) -> State:
         """Time derivative of the state under a given aerodynamic wrench."""
         R = s.R
-        acc = wr.force / self.mass + jnp.array([0.0, 0.0, 1.0]) * self.gravity
+        acc = (wr.force / self.mass).at[2].add(self.gravity)
         tau_b = matvec(R.T, wr.torque)
         Jw = self.inertia * s.w
         w_dot = (tau_b - jnp.cross(s.w, Jw)) / self.inertia

@@ -1,5 +1,6 @@
-"""Vehicle parameters, loaded from ``conf/vehicle/<name>.yaml`` or any YAML file (units in the
-YAML comments).
+"""Vehicle parameters, loaded by name from the vehicle files shipped with gpg
+(``gpg/conf/vehicle/<name>.yaml``, package data) or from any YAML file (units in the YAML
+comments).
 
 A vehicle file has two parts. What the simplified model ``M``, the rigid body and the
 controller need is required: ``name``, ``mass``, ``inertia``, the ``layout`` (an X layout by
@@ -29,9 +30,9 @@ import numpy as np
 import yaml
 from jaxtyping import Array, Float
 
-INCH = 0.0254  # m
+from gpg import conf
 
-VEHICLE_DIR = Path(__file__).resolve().parents[2] / "conf" / "vehicle"
+INCH = 0.0254  # m
 
 
 class Airfoil(eqx.Module):
@@ -261,27 +262,42 @@ def _generator_part(c: _Reader) -> dict[str, Any]:
 
 
 def load_vehicle(name_or_path: str | Path = "sui_endurance") -> Vehicle:
-    """A vehicle by name (``conf/vehicle/<name>.yaml``) or from a YAML file at any path (any
-    suffix): an existing file is read as it is, anything else is looked up by name."""
+    """A vehicle by name (one of :func:`known_vehicles`, shipped with gpg) or from a YAML file at
+    any path (any suffix): an existing file is read as it is, anything else is looked up by
+    name."""
     return Vehicle.from_config(vehicle_config(name_or_path))
+
+
+def known_vehicles() -> list[str]:
+    """The names of the vehicle files shipped with gpg (``gpg/conf/vehicle``)."""
+    return conf.names("vehicle")
 
 
 def vehicle_config(name_or_path: str | Path = "sui_endurance") -> dict[str, Any]:
     """The plain mapping of a vehicle file (see :func:`load_vehicle`), e.g. to record in a
     dataset's metadata so that the dataset names its own vehicle."""
     path = Path(name_or_path)
-    if not path.is_file():
-        path = VEHICLE_DIR / f"{name_or_path}.yaml"
-    if not path.is_file():
-        known = sorted(p.stem for p in VEHICLE_DIR.glob("*.yaml"))
-        raise ValueError(f"no vehicle file {name_or_path!r}; known vehicles: {known}")
+    where: Any = path
+    if path.is_file():
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"vehicle file {path} is not valid YAML: {exc}") from exc
+    else:
+        # A bare name only: a path that is not a file is not looked up among the vehicles.
+        plain = path.name == str(name_or_path) and not path.name.startswith(".")
+        text = conf.read_text("vehicle", path.name) if plain else None
+        where = f"gpg/conf/vehicle/{name_or_path}.yaml"
+        if text is None:
+            raise ValueError(
+                f"no vehicle file {name_or_path!r}; known vehicles: {known_vehicles()}"
+            )
     try:
-        with open(path) as f:
-            cfg = yaml.safe_load(f)
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ValueError(f"vehicle file {path} is not valid YAML: {exc}") from exc
+        cfg = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"vehicle file {where} is not valid YAML: {exc}") from exc
     if not isinstance(cfg, Mapping):
-        raise ValueError(f"vehicle file {path} must hold a mapping, got {type(cfg).__name__}")
+        raise ValueError(f"vehicle file {where} must hold a mapping, got {type(cfg).__name__}")
     return dict(cfg)
 
 

@@ -15,6 +15,12 @@ Suites:
   the one-process host path), batched surrogate predictions, and dataset generation with 1,
   2, … worker processes.
   Speed-ups against one device are taken within the run.
+* ``derivatives``: for every model, ``jax.jacrev`` and ``jax.jacfwd`` of the whole
+  :meth:`gpg.Surrogate.predict` (force, torque, levels and their variances, in rpm, Euler
+  angles and airspeed) against central finite differences of the float64 copy, at test-set
+  states, and the time of a batched ``jacrev``.
+* ``envs``: environment steps per second of :class:`gpg.envs.QuadrotorEnv` (float32) on the
+  surrogate and on ``M``, for several numbers of vmapped environments.
 """
 
 from __future__ import annotations
@@ -289,6 +295,186 @@ def bench_devices(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _prediction_fn(sur):
+    """``z = (rpm, euler, v_air)`` (10,) ↦ force, torque, levels and variances (one vector)."""
+    from gpg.surrogate import predict_state
+
+    def f(z):
+        p = predict_state(sur, z[:4], z[4:7], z[7:10], True)
+        return jnp.concatenate([p.force, p.torque, p.noise, p.variance])
+
+    return f
+
+
+def _groups(n_noise: int) -> dict[str, slice]:
+    k = 6 + n_noise
+    return {
+        "force": slice(0, 3),
+        "torque": slice(3, 6),
+        "levels": slice(6, k),
+        "variance": slice(k, 2 * k),
+    }
+
+
+def bench_derivatives(cfg: dict[str, Any]) -> dict[str, Any]:
+    """Autodiff Jacobians of every model's surrogate against central differences."""
+    from gpg import models
+    from gpg.data.cache import ensure_datasets
+    from gpg.data.preprocess import simple_model_for
+    from gpg.quadrotor.vehicle import Vehicle
+    from gpg.surrogate import Surrogate
+
+    train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
+    simple = simple_model_for(train, Vehicle.from_config(cfg["vehicle"]))
+    rng = np.random.default_rng(cfg["seed"])
+    idx = rng.permutation(test.n)[: cfg["n_states"]]
+    Z = jnp.asarray(
+        np.concatenate([test.x[idx, :7], test.x[idx, 7:8], np.zeros((idx.size, 2))], axis=1)
+    )
+    rel = float(cfg["relative_step"])
+    H = np.maximum(np.abs(np.asarray(Z)), 1.0) * rel  # per-input central-difference steps
+    out: dict[str, Any] = {"dataset": info["key"], "n_states": int(idx.size), "models": {}}
+    hyper_cache: dict[tuple, Any] = {}
+    for name in tqdm(cfg["models"], desc="models"):
+        mcfg = models.resolve_config(name, deep_merge(conf(name, "model"), cfg.get("model")))
+        fitted = fit_model(name, mcfg, train, simple, hyper_cache)
+        sur = Surrogate.assemble(fitted.built.model, fitted.training, train, name, mcfg)
+        f, f64 = _prediction_fn(sur), _prediction_fn(sur.astype(jnp.float64))
+        J_rev = jax.jit(jax.vmap(jax.jacrev(f)))
+        J_fwd = jax.jit(jax.vmap(jax.jacfwd(f)))(Z)
+        J_rev64 = jax.jit(jax.vmap(jax.jacrev(f64)))(Z)
+
+        def central(z, h, f=f64):
+            E = jnp.diag(h)
+            return jax.vmap(lambda e, hh: (f(z + e) - f(z - e)) / (2 * hh), out_axes=1)(E, h)
+
+        J_fd = np.asarray(jax.jit(jax.vmap(central))(Z, jnp.asarray(H)))
+        Jr = np.asarray(J_rev(Z))
+        res: dict[str, Any] = {"in_domain": float(np.mean(_in_domain(sur, Z)))}
+        for g, sl in _groups(sur.n_noise).items():
+            if sl.stop == sl.start:
+                continue
+            scale = np.max(np.abs(J_fd[:, sl]), axis=(1, 2)) + 1e-300
+            err = np.max(np.abs(np.asarray(J_rev64)[:, sl] - J_fd[:, sl]), axis=(1, 2)) / scale
+            stored = np.max(np.abs(Jr[:, sl] - np.asarray(J_rev64)[:, sl]), axis=(1, 2)) / scale
+            fr = np.max(np.abs(Jr[:, sl] - np.asarray(J_fwd)[:, sl]), axis=(1, 2)) / scale
+            res[g] = {
+                "rev_vs_fd_max": float(err.max()),
+                "rev_vs_fd_median": float(np.median(err)),
+                "stored_dtype_vs_float64_max": float(stored.max()),
+                "fwd_vs_rev_max": float(fr.max()),
+            }
+        t = time_calls(lambda J=J_rev: J(Z), cfg["repeats"], warmup=1)
+        res["jacrev_batch"] = {**stats(t), "states_per_s": Z.shape[0] / float(np.median(t))}
+        out["models"][name] = res
+    return out
+
+
+def _in_domain(sur, Z) -> np.ndarray:
+    from gpg.surrogate import predict_state
+
+    return np.asarray(
+        jax.jit(jax.vmap(lambda z: predict_state(sur, z[:4], z[4:7], z[7:10], False).in_domain))(Z)
+    )
+
+
+def bench_envs(cfg: dict[str, Any]) -> dict[str, Any]:
+    """Environment steps per second, float32, for each aerodynamics and number of envs."""
+    from gpg import models
+    from gpg.data.cache import ensure_datasets
+    from gpg.data.preprocess import simple_model_for
+    from gpg.envs import EnvParams, QuadrotorEnv
+    from gpg.quadrotor.vehicle import Vehicle
+    from gpg.surrogate import Surrogate
+
+    train, _, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
+    vehicle = Vehicle.from_config(cfg["vehicle"])
+    simple = simple_model_for(train, vehicle)
+    name = cfg["model_name"]
+    mcfg = models.resolve_config(name, deep_merge(conf(name, "model"), cfg.get("model")))
+    fitted = fit_model(name, mcfg, train, simple, {})
+    sur = Surrogate.assemble(fitted.built.model, fitted.training, train, name, mcfg)
+    out: dict[str, Any] = {"dataset": info["key"], "model": name, "runs": {}}
+    params = EnvParams.create(cfg["task"])
+    T = int(cfg["steps"])
+    for aero_name, aero in (("surrogate", sur), ("M", simple)):
+        env = QuadrotorEnv.create(vehicle, aero, simple=simple, action=cfg["action"])
+        for n in cfg["n_envs"]:
+            keys = jax.random.split(jax.random.key(cfg["seed"]), n)
+            _, st = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+
+            @jax.jit
+            def roll(st, key, env=env, n=n):
+                def body(st, k):
+                    a = jnp.zeros((n, 4), jnp.float32)
+                    ks = jax.random.split(k, n)
+                    _, st, _, _, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                        ks, st, a, params
+                    )
+                    return st, info["in_domain"]
+
+                return jax.lax.scan(body, st, jax.random.split(key, T))
+
+            keys = iter(jax.random.split(jax.random.key(cfg["seed"] + 1), cfg["repeats"] + 1))
+            t = time_calls(lambda r=roll, s=st, k=keys: r(s, next(k)), cfg["repeats"], warmup=1)
+            out["runs"][f"{aero_name}/{n}"] = {
+                **stats(t),
+                "env_steps_per_s": n * T / float(np.median(t)),
+                "spread_per_s": [n * T / float(np.max(t)), n * T / float(np.min(t))],
+            }
+    return out
+
+
+def _derivatives_table(res: dict[str, Any]) -> str:
+    rows = []
+    for name, r in res["models"].items():
+        groups = [g for g in ("force", "torque", "levels", "variance") if g in r]
+        rows.append(
+            {
+                "name": name,
+                **{g: r[g]["rev_vs_fd_max"] for g in groups},
+                "fr": max(r[g]["fwd_vs_rev_max"] for g in groups),
+                "st": max(r[g]["stored_dtype_vs_float64_max"] for g in groups),
+                "per_s": r["jacrev_batch"]["states_per_s"],
+            }
+        )
+    cols = [
+        ("name", "model", ""),
+        ("force", "force: rev vs FD", ".1e"),
+        ("torque", "torque", ".1e"),
+        ("levels", "levels", ".1e"),
+        ("variance", "variance", ".1e"),
+        ("fr", "fwd vs rev", ".1e"),
+        ("st", "stored dtype vs f64", ".1e"),
+        ("per_s", "jacrev states/s", ",.0f"),
+    ]
+    return f"{res['n_states']} test states of {res['dataset']} (max relative error)\n\n" + table(
+        rows, cols
+    )
+
+
+def _envs_table(res: dict[str, Any]) -> str:
+    rows = []
+    for key, r in res["runs"].items():
+        aero, n = key.split("/")
+        lo, hi = r["spread_per_s"]
+        rows.append(
+            {
+                "aero": aero,
+                "n": int(n),
+                "per_s": r["env_steps_per_s"],
+                "range": f"{lo:,.0f}-{hi:,.0f}",
+            }
+        )
+    cols = [
+        ("aero", "aerodynamics", ""),
+        ("n", "environments", "d"),
+        ("per_s", "env-steps/s (median)", ",.0f"),
+        ("range", "range", ""),
+    ]
+    return f"QuadrotorEnv, float32, {res['model']} on {res['dataset']}\n\n" + table(rows, cols)
+
+
 def _devices_table(res: dict[str, Any]) -> str:
     """One row per measurement, with its speed-up against one device (or one worker)."""
     rows = []
@@ -351,7 +537,13 @@ def _models_table(res: dict[str, Any]) -> str:
     return f"dataset {res['dataset']} ({res['n_train']} training points)\n\n" + table(rows, cols)
 
 
-SUITES = {"exact_gp": bench_exact_gp, "models": bench_models, "devices": bench_devices}
+SUITES = {
+    "exact_gp": bench_exact_gp,
+    "models": bench_models,
+    "devices": bench_devices,
+    "derivatives": bench_derivatives,
+    "envs": bench_envs,
+}
 
 
 def _exact_gp_table(res: dict[str, Any]) -> str:
@@ -398,7 +590,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         # The models suite runs on the entry point's data and vehicle (data=..., vehicle=...).
         sub = (
             {**cfg[name], "data": cfg["data"], "vehicle": cfg["vehicle"]}
-            if name in ("models", "devices")
+            if name in ("models", "devices", "derivatives", "envs")
             else cfg[name]
         )
         results[name] = SUITES[name](sub)
@@ -408,4 +600,10 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     return results
 
 
-TABLES = {"exact_gp": _exact_gp_table, "models": _models_table, "devices": _devices_table}
+TABLES = {
+    "exact_gp": _exact_gp_table,
+    "models": _models_table,
+    "devices": _devices_table,
+    "derivatives": _derivatives_table,
+    "envs": _envs_table,
+}

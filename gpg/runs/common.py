@@ -26,8 +26,9 @@ if TYPE_CHECKING:
     from gpg.quadrotor.simple_model import SimpleModel
     from gpg.quadrotor.simple_noise import SimpleNoise
 
+# The entry points' own configs (compare.yaml, ...): in a checkout of the repository only. The
+# library's configs (data scales, models, vehicles) ship inside the package (gpg.conf).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-
 
 _log = logging.getLogger("gpg.runs")
 
@@ -42,17 +43,29 @@ def report(text: str) -> None:
 
 
 def conf(name: str, group: str | None = None) -> dict[str, Any]:
-    """A config file of ``conf/`` as plain values, without Hydra (for notebooks and scripts):
-    ``conf("smoke", "data")`` reads ``conf/data/smoke.yaml``. A defaults list naming files of
-    the same group (``conf/model/*.yaml`` extend ``_base``) is composed as Hydra does."""
+    """A config file as plain values, without Hydra (for notebooks and scripts):
+    ``conf("smoke", "data")`` reads the data scale ``smoke`` shipped with gpg
+    (``gpg/conf/data/smoke.yaml``; likewise the groups ``model`` and ``vehicle``, found in an
+    installed gpg too); other groups and the entry points' configs are read from the
+    repository's ``conf/``. A defaults list naming files of the same group
+    (``model/*.yaml`` extend ``_base``) is composed as Hydra does."""
     import yaml
 
-    path = CONF_DIR / (group or "") / f"{name}.yaml"
-    if not path.is_file():
-        known = sorted(p.stem for p in path.parent.glob("*.yaml") if not p.stem.startswith("_"))
-        raise ValueError(f"no config {path}; known: {known}")
-    with open(path) as f:
-        own = yaml.safe_load(f) or {}
+    from gpg import conf as package_conf
+
+    if group in package_conf.GROUPS:
+        text = package_conf.read_text(group, name)
+        where = f"gpg/conf/{group}/{name}.yaml"
+        if text is None:
+            raise ValueError(f"no config {where}; known: {package_conf.names(group)}")
+    else:
+        path = CONF_DIR / (group or "") / f"{name}.yaml"
+        where = str(path)
+        if not path.is_file():
+            known = sorted(p.stem for p in path.parent.glob("*.yaml") if not p.stem.startswith("_"))
+            raise ValueError(f"no config {path}; known: {known}")
+        text = path.read_text(encoding="utf-8")
+    own = yaml.safe_load(text) or {}
     defaults = own.pop("defaults", None)
     if defaults is None:
         return own
@@ -63,7 +76,7 @@ def conf(name: str, group: str | None = None) -> dict[str, Any]:
         elif isinstance(entry, str):
             out = deep_merge(out, conf(entry, group))
         else:
-            raise ValueError(f"{path}: only defaults of its own group can be read without Hydra")
+            raise ValueError(f"{where}: only defaults of its own group can be read without Hydra")
     return out
 
 
@@ -165,6 +178,20 @@ def fit_model(
         built.timings,
         mem.peak_delta if measure_memory else None,
     )
+
+
+def surrogate_from_config(cfg: Mapping[str, Any], vehicle) -> Any:
+    """The surrogate a flight experiment uses: ``cfg["surrogate_checkpoint"]`` loaded, or
+    ``cfg["model"]`` (its ``name`` and overrides) fitted on the configured training data."""
+    from gpg import checkpoint
+    from gpg.data.cache import load_train
+    from gpg.surrogate import Surrogate
+
+    if cfg.get("surrogate_checkpoint"):
+        return checkpoint.load(cfg["surrogate_checkpoint"])
+    model = dict(cfg["model"])
+    name = model.pop("name")
+    return Surrogate.fit(load_train(cfg), name, model, vehicle=vehicle)
 
 
 def machine() -> dict[str, Any]:

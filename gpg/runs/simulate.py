@@ -18,14 +18,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpg import checkpoint
 from gpg._dtype import float64
 from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
 from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import machine, report, set_dispatch, write_json
-from gpg.surrogate import Surrogate, SurrogateAero
+from gpg.runs.common import machine, report, set_dispatch, surrogate_from_config, write_json
+from gpg.surrogate import SurrogateAero
 
 
 def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> dict[str, Any]:
@@ -64,16 +63,6 @@ def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> d
         "final_position": p[-1].tolist(),
         "dt": dt,
     }
-
-
-def _surrogate(cfg: dict[str, Any], vehicle: Vehicle) -> Surrogate:
-    if cfg.get("surrogate_checkpoint"):
-        return checkpoint.load(cfg["surrogate_checkpoint"])
-    from gpg.data.cache import load_train
-
-    model = dict(cfg["model"])
-    name = model.pop("name")
-    return Surrogate.fit(load_train(cfg), name, model, vehicle=vehicle)
 
 
 def _wind(w: dict[str, Any]) -> Wind:
@@ -154,7 +143,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     outdir = Path(outdir)
     set_dispatch(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
-    sur = _surrogate(cfg, vehicle)
+    sur = surrogate_from_config(cfg, vehicle)
     simple = sur.simple
     if simple is None:
         raise ValueError("the surrogate has no simplified model; the controller needs one")

@@ -6,13 +6,12 @@ import numpy as np
 import pytest
 import yaml
 
-from gpg.quadrotor.vehicle import VEHICLE_DIR, Vehicle, load_vehicle
+from gpg.quadrotor.vehicle import Vehicle, known_vehicles, load_vehicle, vehicle_config
 
 
 @pytest.fixture(scope="module")
 def cfg():
-    with open(VEHICLE_DIR / "sui_endurance.yaml") as f:
-        return yaml.safe_load(f)
+    return vehicle_config("sui_endurance")
 
 
 def test_loads_public_numbers(vehicle):
@@ -100,3 +99,12 @@ def test_any_path_loads(cfg, tmp_path):
     (tmp_path / "broken.yaml").write_bytes(b"\xff\xfe: [")
     with pytest.raises(ValueError, match="is not valid YAML"):
         load_vehicle(tmp_path / "broken.yaml")
+
+
+def test_shipped_vehicles_are_found_by_name_and_paths_are_not_names(tmp_path):
+    assert {"sui_endurance", "minimal_example"} <= set(known_vehicles())
+    with pytest.raises(ValueError, match="known vehicles: \\[.*'sui_endurance'"):
+        load_vehicle("no_such_vehicle")
+    # A path that is not a file is not taken for the name of a shipped vehicle.
+    with pytest.raises(ValueError, match="no vehicle file"):
+        load_vehicle(tmp_path / "sui_endurance")

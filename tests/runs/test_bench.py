@@ -37,6 +37,34 @@ def test_bench_run(smoke_cache, tmp_path):
 
 
 @pytest.mark.slow
+def test_bench_derivatives_and_envs_suites(smoke_cache, tmp_path):
+    overrides = [
+        "data=smoke",
+        "suites=[derivatives,envs]",
+        f"derivatives.cache_dir={smoke_cache}",
+        f"envs.cache_dir={smoke_cache}",
+        "derivatives.models=[gpgs]",
+        "derivatives.n_states=4",
+        "derivatives.repeats=1",
+        "+derivatives.model.hyper.fit=false",
+        "+derivatives.model.partition.bins=2",
+        "+derivatives.model.near.budget=0.5",
+        "+envs.model.hyper.fit=false",
+        "+envs.model.partition.points_per_bin=30",
+        "envs.n_envs=[2]",
+        "envs.steps=3",
+        "envs.repeats=1",
+    ]
+    bench.run(compose_plain("bench", overrides), tmp_path)
+    saved = json.loads((tmp_path / "bench.json").read_text())
+    d = saved["derivatives"]["models"]["gpgs"]
+    assert d["force"]["rev_vs_fd_max"] < 1e-5 and d["variance"]["fwd_vs_rev_max"] < 1e-8
+    assert d["jacrev_batch"]["states_per_s"] > 0
+    assert set(saved["envs"]["runs"]) == {"surrogate/2", "M/2"}
+    assert all(r["env_steps_per_s"] > 0 for r in saved["envs"]["runs"].values())
+
+
+@pytest.mark.slow
 def test_bench_devices_suite(smoke_cache, tmp_path):
     overrides = [
         "data=smoke",

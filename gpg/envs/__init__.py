@@ -1,0 +1,9 @@
+"""gpg inside RL loops: a functional quadrotor environment in gymnax's conventions
+(:mod:`gpg.envs.quadrotor`), Dryden turbulence (:mod:`gpg.envs.wind`), analytic policy
+gradients through it (:mod:`gpg.envs.apg`, needs optax: the ``envs`` extra) and Gymnasium
+wrappers for NumPy and torch users (:mod:`gpg.envs.gymnasium`, the ``envs`` extra)."""
+
+from gpg.envs import apg
+from gpg.envs.quadrotor import ACTIONS, OBS_SIZE, TASKS, EnvParams, EnvState, QuadrotorEnv
+
+__all__ = ["ACTIONS", "OBS_SIZE", "TASKS", "EnvParams", "EnvState", "QuadrotorEnv", "apg"]
