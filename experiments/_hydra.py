@@ -8,8 +8,10 @@ not the library's (docs/design.md, "Dtype policy").
 
 from __future__ import annotations
 
+import os
 import shutil
 import sys
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,17 @@ from gpg.checkpoint import CheckpointError
 from gpg.linalg.memory import InsufficientMemory
 
 jax.config.update("jax_enable_x64", True)
+
+
+def _run_id() -> str:
+    """A suffix that tells apart runs started in the same second (process id and a random
+    part): every run gets its own directory, ``outputs/<date>/<time>-<id>``; the dataset cache
+    stays shared. Cached per config, so the run directory is resolved once."""
+    return f"{os.getpid()}-{uuid.uuid4().hex[:6]}"
+
+
+if not OmegaConf.has_resolver("gpg_run_id"):
+    OmegaConf.register_new_resolver("gpg_run_id", _run_id, use_cache=True)
 
 
 def plain(cfg: DictConfig) -> dict[str, Any]:

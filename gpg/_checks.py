@@ -13,7 +13,13 @@ import numpy as np
 
 
 def as_float_array(name: str, value, *, ndim: int | Sequence[int] | None = None) -> np.ndarray:
-    """``value`` as a float64 NumPy array, with its number of dimensions checked."""
+    """``value`` as a float64 NumPy array, with its number of dimensions checked. Complex and
+    boolean arrays are refused (an imaginary part would be dropped, a mask taken for numbers)."""
+    probe = np.asarray(value) if not isinstance(value, np.ndarray) else value
+    if np.iscomplexobj(probe):
+        raise ValueError(f"{name} must be real, got a complex array")
+    if probe.dtype == np.bool_:
+        raise ValueError(f"{name} must be numbers, got a boolean array")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:

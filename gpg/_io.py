@@ -34,3 +34,18 @@ def atomic_write(path: str | Path, data: bytes) -> Path:
             os.unlink(tmp)
         raise
     return path
+
+
+def require_writable(directory: str | Path, what: str) -> Path:
+    """``directory`` (created if missing) when this process can write into it, else a
+    ``ValueError`` naming ``what`` and the reason: checked before long work whose result would
+    otherwise be lost at the end."""
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=directory, prefix=".write-probe-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise ValueError(f"{what} {directory} is not writable: {exc.strerror or exc}") from exc
+    return directory

@@ -1,31 +1,50 @@
 """Save and load a :class:`~gpg.surrogate.Surrogate` (orbax for the arrays, JSON for the rest).
 
-A checkpoint is a directory::
+A checkpoint is a directory holding complete versions of the surrogate and a pointer to the
+current one::
 
-    <path>/metadata.json   format and version, model name and resolved config, output names,
-                           normalisation, hyperparameters, partition, the module structure,
-                           shape, dtype and SHA-256 of every array, SHA-256 of every file of
-                           arrays/, and a SHA-256 of the metadata itself
-    <path>/arrays/         an orbax checkpoint of the arrays
+    <path>/CURRENT                 the name of the current version directory
+    <path>/v-<id>/metadata.json    format and version, model name and resolved config, output
+                                   names, normalisation, hyperparameters, partition, the module
+                                   structure, shape, dtype and SHA-256 of every array, SHA-256 of
+                                   every file of arrays/, and a SHA-256 of the metadata itself
+    <path>/v-<id>/arrays/          an orbax checkpoint of the arrays
+
+Saving is atomic and exclusive. A new checkpoint is written completely into a temporary
+sibling and renamed into place: the rename fails if the path exists, so of two processes
+saving to one path with ``overwrite=False`` exactly one succeeds and the other gets a
+:class:`CheckpointError` (nothing of the first is touched). ``overwrite=True`` writes a new
+version beside the current one, switches ``CURRENT`` by an atomic replace, and only then
+removes the old version; writers of one path take turns (a lock file, ``fcntl.flock``). A
+reader resolves ``CURRENT`` and loads that version; if a writer removes it meanwhile, the
+reader sees ``CURRENT`` changed and loads the new one: a reader never sees a half-replaced
+checkpoint. Format version 4 (the arrays and metadata directly in ``<path>``) still loads, and
+``overwrite=True`` replaces it by the new layout.
 
 Every byte that changes a prediction is covered by a checksum: the metadata (which holds the
 static fields, e.g. ``hover_speed``) by its own, the orbax files by theirs, and the arrays once
 restored by theirs. Loading checks them all before orbax reads anything, so any corruption is
 one :class:`CheckpointError` naming the damaged file, and a restored surrogate predicts bit for
 bit what the saved one did. Loading rebuilds the exact module tree from the recorded structure
-(only gpg classes are accepted). Saving writes into a temporary sibling directory and renames
-it into place at the end: a failed save leaves nothing behind.
+(only gpg classes are accepted). A failed save leaves nothing behind.
+
+Dtypes: arrays load as they were saved (a float64 surrogate stays float64 in a float32 program,
+as the fitted one is: JAX converts its arrays at each call), so a loaded surrogate predicts
+exactly what the saved one did; ``load(path, dtype=jnp.float32)`` is the explicit conversion
+(:meth:`gpg.Surrogate.astype`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import hashlib
 import importlib
 import json
 import logging
 import shutil
+import threading
 import uuid
 from pathlib import Path
 from typing import Any
@@ -35,11 +54,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 4  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
-# 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels)
+FORMAT_VERSION = 5  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+# 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels);
+# 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads
+READABLE_VERSIONS = (4, 5)
+CURRENT = "CURRENT"
+LOAD_ATTEMPTS = 20  # reloads when a concurrent overwrite replaced the version being read
+# Orbax's writers and readers in one process interfere when run from several threads at once
+# (measured: a save failed with NOT_FOUND inside the other's temporary directory); threads of one
+# process take turns for the orbax step. Processes need no such lock: they write apart.
+_ORBAX = threading.Lock()
 
 
 class CheckpointError(ValueError):
@@ -74,7 +102,10 @@ def _describe(obj: Any, arrays: dict[str, np.ndarray], path: str) -> Any:
 
 def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
     if isinstance(desc, dict) and "__array__" in desc:
-        return jnp.asarray(arrays[desc["__array__"]])
+        a = arrays[desc["__array__"]]
+        # As saved: a float64 array stays float64 even where x64 is off (see module docstring).
+        with jax.enable_x64(a.dtype.itemsize > 4):
+            return jnp.asarray(a)
     if isinstance(desc, dict) and "__tuple__" in desc:
         return tuple(_rebuild(v, arrays) for v in desc["__tuple__"])
     if isinstance(desc, dict) and "__class__" in desc:
@@ -168,16 +199,54 @@ def _summary(sur) -> dict[str, Any]:
 
 
 def save(path: str | Path, surrogate, *, overwrite: bool = False) -> Path:
-    """Write ``surrogate`` to the directory ``path`` (atomically); returns the path."""
-    import orbax.checkpoint as ocp  # here, not at module level: `import gpg` stays fast
-
+    """Write ``surrogate`` to the directory ``path`` (atomically; see the module docstring);
+    returns the path. ``overwrite=False`` fails if ``path`` exists, also when another process
+    creates it while this one writes."""
     from gpg.surrogate import Surrogate
 
     if not isinstance(surrogate, Surrogate):
         raise ValueError(f"save expects a gpg.Surrogate, got {type(surrogate).__name__}")
     path = Path(path).absolute()
+    if path.exists() and not path.is_dir():
+        raise CheckpointError(f"{path} exists and is not a checkpoint directory")
     if path.exists() and not overwrite:
         raise CheckpointError(f"{path} exists; pass overwrite=True to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        require_writable(path.parent, "the checkpoint's directory")
+    except ValueError as exc:
+        raise CheckpointError(str(exc)) from exc
+    version = f"v-{uuid.uuid4().hex[:12]}"
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        tmp.mkdir()
+        _write_version(tmp / version, surrogate)
+        atomic_write(tmp / CURRENT, (version + "\n").encode())
+        try:
+            tmp.rename(path)  # atomic; fails when path exists and is not empty
+            return path
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR, errno.EISDIR):
+                raise
+            if not overwrite:
+                raise CheckpointError(
+                    f"{path} exists (another process saved it meanwhile); pass overwrite=True "
+                    "to replace it"
+                ) from None
+        with _writer_lock(path):
+            (tmp / version).rename(path / version)
+            _switch(path, version)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def _write_version(where: Path, surrogate) -> None:
+    """One complete version (metadata.json and arrays/) into the new directory ``where``."""
+    import orbax.checkpoint as ocp  # here, not at module level: `import gpg` stays fast
+
     arrays: dict[str, np.ndarray] = {}
     skeleton = _describe(surrogate, arrays, "surrogate")
     meta = {
@@ -194,37 +263,80 @@ def save(path: str | Path, surrogate, *, overwrite: bool = False) -> Path:
             for k, a in arrays.items()
         },
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    where.mkdir()
+    with _ORBAX, _quiet_orbax(), ocp.StandardCheckpointer() as ck:
+        ck.save(where / "arrays", arrays)
+        ck.wait_until_finished()
+    meta["files"] = _file_digests(where / "arrays")
+    meta["metadata_sha256"] = _meta_digest(meta)
+    atomic_write(
+        where / "metadata.json", (json.dumps(meta, indent=1, sort_keys=True) + "\n").encode()
+    )
+
+
+@contextlib.contextmanager
+def _writer_lock(path: Path):
+    """Writers of one checkpoint take turns (advisory ``flock`` on ``<path>/.lock``; readers
+    never wait). Without ``fcntl`` (Windows) concurrent overwrites are not serialised."""
     try:
-        tmp.mkdir()
-        with _quiet_orbax(), ocp.StandardCheckpointer() as ck:
-            ck.save(tmp / "arrays", arrays)
-            ck.wait_until_finished()
-        meta["files"] = _file_digests(tmp / "arrays")
-        meta["metadata_sha256"] = _meta_digest(meta)
-        (tmp / "metadata.json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
-            path.rename(old)
-            tmp.rename(path)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return path
+        import fcntl
+    except ImportError:  # pragma: no cover - not on POSIX
+        yield
+        return
+    with open(path / ".lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _switch(path: Path, version: str) -> None:
+    """Make ``version`` current, then remove every other version and a version-4 layout (under
+    the writer lock: no other writer is between its own steps)."""
+    atomic_write(path / CURRENT, (version + "\n").encode())
+    for p in path.iterdir():
+        old_version = p.is_dir() and p.name.startswith("v-") and p.name != version
+        if old_version or p.name in ("metadata.json", "arrays"):
+            if p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+
+
+def _current(path: Path) -> str | None:
+    """The name in ``<path>/CURRENT``, or None (a version-4 checkpoint, or none at all)."""
+    try:
+        name = (path / CURRENT).read_text(encoding="utf-8").strip()
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CheckpointError(f"{path / CURRENT} is damaged: {exc}") from exc
+    if not name.startswith("v-") or "/" in name or name != Path(name).name:
+        raise CheckpointError(f"{path / CURRENT} is damaged: it names {name!r}")
+    return name
+
+
+def version_dir(path: str | Path) -> Path:
+    """The directory of the checkpoint's current version (``path`` itself for version 4)."""
+    path = Path(path).absolute()
+    name = _current(path)
+    return path if name is None else path / name
 
 
 def read_metadata(path: str | Path) -> dict[str, Any]:
-    """The checkpoint's metadata, after checking format and version."""
+    """The checkpoint's metadata (of its current version), after checking format and
+    version."""
     path = Path(path).absolute()
     if not path.is_dir():
         raise CheckpointError(f"no checkpoint at {path}")
-    meta_file = path / "metadata.json"
+    return _read_metadata(version_dir(path))
+
+
+def _read_metadata(where: Path) -> dict[str, Any]:
+    meta_file = where / "metadata.json"
     if not meta_file.is_file():
-        raise CheckpointError(f"{path} is not a gpg checkpoint: metadata.json is missing")
+        raise CheckpointError(f"{where} is not a gpg checkpoint: metadata.json is missing")
     try:
         meta = json.loads(meta_file.read_bytes().decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -233,41 +345,64 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{meta_file} is damaged: it fails its checksum")
     if meta.get("format") != FORMAT:
         raise CheckpointError(
-            f"{path} is not a gpg surrogate checkpoint (format {meta.get('format')!r})"
+            f"{where} is not a gpg surrogate checkpoint (format {meta.get('format')!r})"
         )
-    if meta.get("format_version") != FORMAT_VERSION:
+    if meta.get("format_version") not in READABLE_VERSIONS:
         raise CheckpointError(
-            f"{path} has checkpoint format version {meta.get('format_version')}; "
-            f"this gpg ({__version__}) reads version {FORMAT_VERSION}"
+            f"{where} has checkpoint format version {meta.get('format_version')}; "
+            f"this gpg ({__version__}) reads versions {list(READABLE_VERSIONS)}"
         )
     return meta
 
 
-def load(path: str | Path):
-    """Read a :class:`~gpg.surrogate.Surrogate` written by :func:`save`."""
+def load(path: str | Path, *, dtype=None):
+    """Read a :class:`~gpg.surrogate.Surrogate` written by :func:`save`: bit for bit as saved,
+    or converted to ``dtype`` when given (e.g. ``jnp.float32``, :meth:`Surrogate.astype`).
+    Safe against a concurrent ``save(..., overwrite=True)`` of the same path."""
+    path = Path(path).absolute()
+    if not path.is_dir():
+        raise CheckpointError(f"no checkpoint at {path}")
+    for attempt in range(LOAD_ATTEMPTS):
+        name = _current(path)
+        try:
+            sur = _load_version(path if name is None else path / name)
+            break
+        except (CheckpointError, OSError) as exc:
+            # Replaced by a writer while we read it: read the new version instead.
+            if _current(path) != name and attempt + 1 < LOAD_ATTEMPTS:
+                continue
+            if isinstance(exc, CheckpointError):
+                raise
+            raise CheckpointError(f"checkpoint at {path} is damaged or incomplete: {exc}") from exc
+    return sur if dtype is None else sur.astype(dtype)
+
+
+def _load_version(where: Path):
     import orbax.checkpoint as ocp  # here, not at module level: `import gpg` stays fast
 
-    path = Path(path).absolute()
-    meta = read_metadata(path)
-    if not (path / "arrays").is_dir():
-        raise CheckpointError(f"{path} is incomplete: the arrays directory is missing")
-    want_files, have_files = meta.get("files", {}), _file_digests(path / "arrays")
+    meta = _read_metadata(where)
+    if not (where / "arrays").is_dir():
+        raise CheckpointError(f"{where} is incomplete: the arrays directory is missing")
+    want_files, have_files = meta.get("files", {}), _file_digests(where / "arrays")
     for name in sorted(set(want_files) | set(have_files)):
         if name not in have_files:
-            raise CheckpointError(f"{path / 'arrays' / name} is missing: incomplete checkpoint")
+            raise CheckpointError(f"{where / 'arrays' / name} is missing: incomplete checkpoint")
         if name not in want_files:
-            raise CheckpointError(f"{path / 'arrays' / name} is not part of the checkpoint")
+            raise CheckpointError(f"{where / 'arrays' / name} is not part of the checkpoint")
         if want_files[name] != have_files[name]:
-            raise CheckpointError(f"{path / 'arrays' / name} is damaged: it fails its checksum")
+            raise CheckpointError(f"{where / 'arrays' / name} is damaged: it fails its checksum")
     try:
-        with _quiet_orbax(), ocp.StandardCheckpointer() as ck:
-            restored = ck.restore(path / "arrays")
+        # x64 on while restoring: a float64 array must not come back as float32.
+        with _ORBAX, _quiet_orbax(), jax.enable_x64(True), ocp.StandardCheckpointer() as ck:
+            restored = ck.restore(where / "arrays")
     except Exception as exc:  # orbax/tensorstore raise many types for damaged files
-        raise CheckpointError(f"checkpoint data at {path} is damaged or incomplete: {exc}") from exc
+        raise CheckpointError(
+            f"checkpoint data at {where} is damaged or incomplete: {exc}"
+        ) from exc
     arrays = {k: np.asarray(v) for k, v in restored.items()}
     want = meta["arrays"]
     if set(arrays) != set(want):
-        raise CheckpointError(f"{path} holds arrays {sorted(arrays)} but records {sorted(want)}")
+        raise CheckpointError(f"{where} holds arrays {sorted(arrays)} but records {sorted(want)}")
     for k, spec in want.items():
         a = arrays[k]
         if (
@@ -276,6 +411,6 @@ def load(path: str | Path):
             or _digest(a) != spec["sha256"]
         ):
             raise CheckpointError(
-                f"array {k} of {path} fails its shape/dtype/checksum check: damaged"
+                f"array {k} of {where} fails its shape/dtype/checksum check: damaged"
             )
     return _rebuild(meta["skeleton"], arrays)

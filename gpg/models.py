@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -184,7 +185,35 @@ def fit_hyper(
     if h.lengthscale_scale != 1.0:
         scaled = hyper.lengthscale * h.lengthscale_scale
         hyper = eqx.tree_at(lambda t: t.lengthscale, hyper, scaled)
+    check_scaled_inputs(X, hyper)
     return hyper, res, seconds
+
+
+def check_scaled_inputs(X: np.ndarray, hyper: Hyper) -> None:
+    """The kernel divides the inputs by the lengthscales: a lengthscale so small that ``x/l``
+    overflows (1e-300 on inputs in [−1, 1]) would give a model that answers NaN everywhere."""
+    ls = np.asarray(hyper.lengthscale, dtype=float)
+    with np.errstate(all="ignore"):
+        r2 = np.sum((np.asarray(X) / ls) ** 2, axis=1)
+    if not np.all(np.isfinite(r2)):
+        raise ValueError(
+            f"lengthscale {ls.min():.3g} is too small for inputs in [-1, 1]: the scaled "
+            "distances overflow and every prediction would be NaN"
+        )
+
+
+def check_finite_model(name: str, model: Predictor) -> None:
+    """Every array a built model holds is finite (else ``ValueError`` naming where): a fit
+    never returns a model that answers NaN for finite queries."""
+    leaves = jax.tree_util.tree_leaves_with_path(eqx.filter(model, eqx.is_inexact_array))
+    for path, leaf in leaves:
+        if not np.all(np.isfinite(np.asarray(leaf))):
+            where = jax.tree_util.keystr(path)
+            raise ValueError(
+                f"model {name!r}: the fit produced NaN or inf in {where}; the data or the "
+                "hyperparameters are degenerate (e.g. too few points, duplicated inputs with "
+                "different outputs, or extreme values)"
+            )
 
 
 def required_bytes(
@@ -261,10 +290,13 @@ def build(
     fit_res = None
     if hyper is None:
         hyper, fit_res, timings["hyper_s"] = fit_hyper(name, training, cfg)
+    else:
+        check_scaled_inputs(X, hyper)
     if spec.kind == "exact":
         t0 = time.perf_counter()
         model = ExactGP.fit(X, Y, dY, grad_dims=dims if dY is not None else None, hyper=hyper)
         timings["fit_s"] = time.perf_counter() - t0
+        check_finite_model(name, model)
         return Built(name, _scales(model, cfg), cfg, hyper, fit_res, timings)
 
     dims = tuple(dims)
@@ -305,6 +337,7 @@ def build(
         if spec.schur:
             diagnostics = schur.diagnose(X, part, near, hyper.lengthscale, name=name)
     timings["fit_s"] = time.perf_counter() - t0
+    check_finite_model(name, model)
     return Built(name, _scales(model, cfg), cfg, hyper, fit_res, timings, near, diagnostics)
 
 

@@ -331,7 +331,11 @@ class Replicated:
 
 def _check_batch(rpm, euler, v_air, chunk):
     """``(rpm, euler, v_air)`` as float arrays of a batch, or ``ValueError`` naming the input."""
-    rpm, euler, v_air = (jnp.asarray(a, dtype=float) for a in (rpm, euler, v_air))
+    for name, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air)):
+        _require_real(name, a)
+    rpm, euler, v_air = (
+        jnp.asarray(_as_float(n, a)) for n, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air))
+    )
     for name, a, w in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
         if a.ndim != 2 or a.shape[1] != w:
             raise ValueError(f"{name} must have shape (N, {w}), got {a.shape}")
@@ -387,7 +391,8 @@ def _as_state(rpm, euler, v_air):
     NumPy arrays: converting each to a JAX array first cost more than the mean prediction."""
     out = []
     for name, a, n in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
-        a = jnp.asarray(a, dtype=float) if isinstance(a, jax.core.Tracer) else np.asarray(a, float)
+        _require_real(name, a)
+        a = jnp.asarray(a, dtype=float) if isinstance(a, jax.core.Tracer) else _as_float(name, a)
         if a.shape != (n,):
             raise ValueError(
                 f"{name} must have shape ({n},) for one state, got {a.shape}; "
@@ -400,7 +405,8 @@ def _as_state(rpm, euler, v_air):
 
 def _as_rotation(R):
     """A 3x3 attitude matrix, checked like :func:`_as_state` checks a state."""
-    R = jnp.asarray(R, dtype=float) if isinstance(R, jax.core.Tracer) else np.asarray(R, float)
+    _require_real("R_WB", R)
+    R = jnp.asarray(R, dtype=float) if isinstance(R, jax.core.Tracer) else _as_float("R_WB", R)
     if R.shape != (3, 3):
         raise ValueError(f"R_WB must be a 3x3 rotation matrix, got shape {R.shape}")
     _require_finite("R_WB", R)
@@ -411,6 +417,22 @@ def _as_rotation(R):
                 f"R_WB must be a rotation matrix (RᵀR = I, det +1); it is off by {err:.1e}"
             )
     return R
+
+
+def _require_real(name: str, a) -> None:
+    """Complex and boolean inputs are refused (checked on the dtype, also under a transform:
+    an imaginary part would be dropped, a mask taken for numbers)."""
+    dt = a.dtype if hasattr(a, "dtype") else np.asarray(a).dtype
+    if np.issubdtype(dt, np.complexfloating) or dt == np.bool_:
+        raise ValueError(f"{name} must be real numbers, got dtype {dt}")
+
+
+def _as_float(name: str, a):
+    """A concrete input as a float array, or ``ValueError`` naming it (text, huge integers)."""
+    try:
+        return np.asarray(a, float)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"{name} must be real numbers: {exc}") from None
 
 
 def _require_finite(name: str, a) -> None:
@@ -442,6 +464,8 @@ def predict_state(
     ``body`` (static) returns force, torque and their variances in the body frame (FRD)
     instead of the world frame."""
     dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)  # float32 where x64 is off
+    if sur.box_lo.dtype != dt:  # float64 arrays in a float32 program: convert once, explicitly
+        sur = sur.astype(dt)
     rpm, euler, v_air = (jnp.asarray(a).astype(dt) for a in (rpm, euler, v_air))
     euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
     x_h = jnp.concatenate([rpm, euler_h, speed[None]])
@@ -476,6 +500,9 @@ def predict_state(
         v = sur.model.predictive_variance(var_n) * sur.normalizer.y_std**2
         rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_out, d, R_out)  # diag(R diag(d) Rᵀ)  # noqa: E731
         variance = jnp.concatenate([rot_var(v[:3]), rot_var(v[3:6]), v[6:]])
+    # A prediction that is not finite is never "in domain" (the flag to check under jit).
+    outs = [force, torque, levels] + ([] if variance is None else [variance])
+    in_domain = in_domain & jnp.all(jnp.stack([jnp.all(jnp.isfinite(o)) for o in outs]))
     return Prediction(
         force=force, torque=torque, noise=levels, variance=variance, in_domain=in_domain
     )

@@ -64,8 +64,77 @@ def test_overwrite_and_existing(surrogate, tmp_path):
     checkpoint.save(tmp_path / "ck", surrogate)
     with pytest.raises(CheckpointError, match="exists; pass overwrite=True"):
         checkpoint.save(tmp_path / "ck", surrogate)
+    first = checkpoint.version_dir(tmp_path / "ck")
     checkpoint.save(tmp_path / "ck", surrogate, overwrite=True)
-    assert sorted(os.listdir(tmp_path)) == ["ck"]
+    assert sorted(os.listdir(tmp_path)) == ["ck"]  # no stray temporary or old directory
+    second = checkpoint.version_dir(tmp_path / "ck")
+    assert second != first and not first.exists()
+    assert sorted(os.listdir(tmp_path / "ck")) == sorted([".lock", "CURRENT", second.name])
+    # A regular file at the path is refused before anything is written.
+    (tmp_path / "file").write_text("mine")
+    with pytest.raises(CheckpointError, match="is not a checkpoint directory"):
+        checkpoint.save(tmp_path / "file", surrogate, overwrite=True)
+    assert (tmp_path / "file").read_text() == "mine"
+    assert sorted(os.listdir(tmp_path)) == ["ck", "file"]
+
+
+def test_version_4_layout_loads_and_is_replaced(surrogate, data, tmp_path):
+    """A checkpoint of the previous format (arrays and metadata directly in the directory)
+    loads, and an overwrite turns it into the new layout."""
+    checkpoint.save(tmp_path / "ck", surrogate)
+    v = checkpoint.version_dir(tmp_path / "ck")
+    old = tmp_path / "old"
+    shutil.copytree(v, old)
+    meta = json.loads((old / "metadata.json").read_text())
+    meta["format_version"] = 4
+    (old / "metadata.json").write_text(resign(meta))
+    back = checkpoint.load(old)
+    np.testing.assert_array_equal(
+        back.predict_batch(*queries(data)).force, surrogate.predict_batch(*queries(data)).force
+    )
+    checkpoint.save(old, surrogate, overwrite=True)
+    assert not (old / "metadata.json").exists() and (old / "CURRENT").is_file()
+    assert checkpoint.read_metadata(old)["format_version"] == checkpoint.FORMAT_VERSION
+
+
+def test_concurrent_savers_and_readers(surrogate, tmp_path):
+    """In-process threads: of two exclusive saves one wins and the other is told; loads during
+    overwrites always get a complete checkpoint (the subprocess stress test is in the slow set)."""
+    import threading
+
+    results = []
+
+    def save_excl():
+        try:
+            checkpoint.save(tmp_path / "ck", surrogate)
+            results.append("saved")
+        except Exception as exc:  # noqa: BLE001 - reported by the assertion below
+            results.append(repr(exc))
+
+    threads = [threading.Thread(target=save_excl) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(r == "saved" for r in results) == [False, True], results
+    assert "exists" in next(r for r in results if r != "saved")
+    assert sorted(p for p in os.listdir(tmp_path)) == ["ck"]
+    failures = []
+
+    def read():
+        for _ in range(6):
+            try:
+                checkpoint.load(tmp_path / "ck")
+            except Exception as exc:  # noqa: BLE001 - any failure is what this test counts
+                failures.append(exc)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    for _ in range(3):
+        checkpoint.save(tmp_path / "ck", surrogate, overwrite=True)
+    reader.join()
+    assert failures == []
+    assert len([p for p in os.listdir(tmp_path / "ck") if p.startswith("v-")]) == 1
 
 
 def test_missing_and_foreign(tmp_path):
@@ -74,6 +143,9 @@ def test_missing_and_foreign(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(CheckpointError, match="metadata.json is missing"):
         checkpoint.load(tmp_path / "empty")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(CheckpointError, match="no checkpoint at"):
+        checkpoint.load(tmp_path / "file")
 
 
 def resign(meta):
@@ -84,10 +156,10 @@ def resign(meta):
 
 def test_version_mismatch(surrogate, tmp_path):
     checkpoint.save(tmp_path / "ck", surrogate)
-    meta = json.loads((tmp_path / "ck" / "metadata.json").read_text())
+    meta = json.loads((checkpoint.version_dir(tmp_path / "ck") / "metadata.json").read_text())
     meta["format_version"] = 7
-    (tmp_path / "ck" / "metadata.json").write_text(resign(meta))
-    with pytest.raises(CheckpointError, match="format version 7; this gpg .* reads version 4"):
+    (checkpoint.version_dir(tmp_path / "ck") / "metadata.json").write_text(resign(meta))
+    with pytest.raises(CheckpointError, match="format version 7; this gpg .* reads versions"):
         checkpoint.load(tmp_path / "ck")
 
 
@@ -95,7 +167,9 @@ def test_truncated_or_damaged(surrogate, tmp_path, capfd):
     checkpoint.save(tmp_path / "ck", surrogate)
     shutil.copytree(tmp_path / "ck", tmp_path / "ck2")
     # Truncate the biggest data file of the orbax checkpoint: named, and nothing else printed.
-    files = [p for p in (tmp_path / "ck" / "arrays").rglob("*") if p.is_file()]
+    files = [
+        p for p in (checkpoint.version_dir(tmp_path / "ck") / "arrays").rglob("*") if p.is_file()
+    ]
     big = max(files, key=lambda p: p.stat().st_size)
     big.write_bytes(big.read_bytes()[: big.stat().st_size // 2])
     capfd.readouterr()
@@ -103,17 +177,17 @@ def test_truncated_or_damaged(surrogate, tmp_path, capfd):
         checkpoint.load(tmp_path / "ck")
     out, err = capfd.readouterr()
     assert "Traceback" not in err + out and "asyncio" not in err + out
-    shutil.rmtree(tmp_path / "ck2" / "arrays")
+    shutil.rmtree(checkpoint.version_dir(tmp_path / "ck2") / "arrays")
     with pytest.raises(CheckpointError, match="incomplete: the arrays directory is missing"):
         checkpoint.load(tmp_path / "ck2")
 
 
 def test_checksum_catches_silent_change(surrogate, tmp_path):
     checkpoint.save(tmp_path / "ck", surrogate)
-    meta = json.loads((tmp_path / "ck" / "metadata.json").read_text())
+    meta = json.loads((checkpoint.version_dir(tmp_path / "ck") / "metadata.json").read_text())
     key = next(iter(meta["arrays"]))
     meta["arrays"][key]["sha256"] = "0" * 64
-    (tmp_path / "ck" / "metadata.json").write_text(resign(meta))
+    (checkpoint.version_dir(tmp_path / "ck") / "metadata.json").write_text(resign(meta))
     with pytest.raises(CheckpointError, match=f"array {key} .* fails its shape/dtype/checksum"):
         checkpoint.load(tmp_path / "ck")
 
@@ -122,7 +196,7 @@ def test_metadata_bit_flip_is_caught(surrogate, tmp_path):
     """One flipped bit in a static field (hover_speed 0.5 -> 0.7 in the module tree) changes
     predictions: the metadata's own checksum catches it."""
     checkpoint.save(tmp_path / "ck", surrogate)
-    f = tmp_path / "ck" / "metadata.json"
+    f = checkpoint.version_dir(tmp_path / "ck") / "metadata.json"
     raw = bytearray(f.read_bytes())
     text = raw.decode()
     at = text.index('"hover_speed"')
@@ -136,7 +210,7 @@ def test_metadata_bit_flip_is_caught(surrogate, tmp_path):
 
 def test_non_utf8_metadata_is_a_checkpoint_error(surrogate, tmp_path):
     checkpoint.save(tmp_path / "ck", surrogate)
-    f = tmp_path / "ck" / "metadata.json"
+    f = checkpoint.version_dir(tmp_path / "ck") / "metadata.json"
     f.write_bytes(b"\xff\xfe" + f.read_bytes()[2:])
     with pytest.raises(CheckpointError, match=r"metadata.json is damaged"):
         checkpoint.load(tmp_path / "ck")
@@ -171,3 +245,28 @@ def test_noise_model_round_trip(data, tmp_path):
     a, ta = jax.tree.flatten(sur.noise)
     b, tb = jax.tree.flatten(back.noise)
     assert ta == tb and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_load_keeps_the_saved_dtypes_in_a_float32_program(surrogate, data, tmp_path):
+    """x64 off (a float32 program): the loaded surrogate holds the saved float64 arrays and
+    predicts exactly what the saved one does there; ``dtype=`` converts on request."""
+    import jax
+    import jax.numpy as jnp
+
+    path = checkpoint.save(tmp_path / "ck", surrogate)
+    with jax.enable_x64(False):
+        back = checkpoint.load(path)
+
+        def dtypes(s):
+            return [str(x.dtype) for x in jax.tree.leaves(s) if hasattr(x, "dtype")]
+
+        assert dtypes(back) == dtypes(surrogate) and "float64" in dtypes(back)
+        q = queries(data)
+        np.testing.assert_array_equal(
+            back.predict_batch(*q).force, surrogate.predict_batch(*q).force
+        )
+        small = checkpoint.load(path, dtype=jnp.float32)
+        assert {str(x.dtype) for x in jax.tree.leaves(small) if hasattr(x, "dtype")} >= {"float32"}
+        assert "float64" not in {
+            str(x.dtype) for x in jax.tree.leaves(small) if hasattr(x, "dtype")
+        }

@@ -223,3 +223,17 @@ def test_train_is_prepare_then_build_and_shares_one_hyper_fit(monkeypatch):
     np.testing.assert_array_equal(a.hyper.lengthscale, b.hyper.lengthscale)
     assert a.timings["hyper_s"] == b.timings["hyper_s"] and a.hyper_fit is b.hyper_fit
     np.testing.assert_array_equal(out["gpgs"][0].X, prepare(ds, simple).X)
+
+
+def test_degenerate_fits_are_refused(training):
+    """A fit never returns a model that answers NaN for finite queries."""
+    import equinox as eqx
+
+    with pytest.raises(ValueError, match="lengthscale 1e-300 is too small"):
+        models.build("gpg", training, {"hyper": {"fit": False, "lengthscale": 1e-300}})
+    with pytest.raises(ValueError, match="at least 2 points"):
+        models.build("gpg", training, {"hyper": {"subset": 1}})
+    built = models.build("gpgs", training, FAST)
+    broken = eqx.tree_at(lambda m: m.coef, built.model, built.model.coef.at[0, 0, 0].set(np.nan))
+    with pytest.raises(ValueError, match=r"model 'gpgs': the fit produced NaN or inf in \.coef"):
+        models.check_finite_model("gpgs", broken)

@@ -73,13 +73,30 @@ def test_linearisation_and_variance_jacobians(vehicle, synthetic_surrogate):
     )
     assert np.all(lin.state_variance[3:6] > 0) and np.all(lin.state_variance[10:13] > 0)
     assert np.all(lin.state_variance[:3] == 0)
-    # Covariance propagation over a horizon: Σ₁ = diag(q₀), Σ₂ = A₁ Σ₁ A₁ᵀ + diag(q₁).
-    lins = jax.jit(jax.vmap(dyn.linearize, in_axes=(None, None, 0)))(x, u, jnp.array([0.0, 0.01]))
-    S = propagate(lins)
-    S1 = jnp.diag(lins.state_variance[0])
-    np.testing.assert_allclose(
-        S[1], lins.A[1] @ S1 @ lins.A[1].T + jnp.diag(lins.state_variance[1]), rtol=1e-10
+
+
+def test_propagate_is_the_recursion():
+    """Σ₁ = A₀ Σ₀ A₀ᵀ + diag(q₀), Σ₂ = A₁ Σ₁ A₁ᵀ + diag(q₁), with a NumPy reference."""
+    from gpg.mpc import Linearization
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(2, 17, 17)) * 0.3
+    q = rng.uniform(0, 1, (2, 17))
+    z = np.zeros((2, 17))
+    lin = Linearization(
+        z,
+        jnp.asarray(A),
+        z[:, :4, None] * 0,
+        z[:, :6],
+        z[:, :6, None] * 0,
+        z[:, :4, None] * 0,
+        jnp.asarray(q),
     )
+    S0 = np.eye(17) * 0.1
+    S = np.asarray(propagate(lin, jnp.asarray(S0)))
+    S1 = A[0] @ S0 @ A[0].T + np.diag(q[0])
+    np.testing.assert_allclose(S[0], S1, rtol=1e-12)
+    np.testing.assert_allclose(S[1], A[1] @ S1 @ A[1].T + np.diag(q[1]), rtol=1e-12)
 
 
 def test_mppi_steers_a_double_integrator():

@@ -9,7 +9,7 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
 
-# All four run with `make test-slow`: their steps are covered in the fast set elsewhere (the
+# All five run with `make test-slow`: their steps are covered in the fast set elsewhere (the
 # tutorial's by tests/data/test_dataset.py's CSV import, tests/quadrotor/test_vehicle.py's
 # minimal vehicle, tests/test_checkpoint.py and tests/quadrotor/test_dynamics.py; the analysis
 # notebooks' by the compare and simulate runs), and each costs tens of seconds.
@@ -21,6 +21,7 @@ PARAMS = [p if p.stem in FAST else pytest.param(p, marks=pytest.mark.slow) for p
 def test_notebook_executes(path, smoke_cache, tmp_path, monkeypatch, request):
     monkeypatch.setenv("GPG_CACHE_DIR", str(smoke_cache))
     monkeypatch.setenv("GPG_NOTEBOOK_POINTS", "40")
+    monkeypatch.setenv("GPG_NOTEBOOK_ITERATIONS", "40")
     if path.stem == "02_model_comparison":
         monkeypatch.setenv("GPG_RESULTS_DIR", str(request.getfixturevalue("smoke_compare")[0]))
     nb = nbformat.read(path, as_version=4)
@@ -36,4 +37,5 @@ def test_notebooks_present():
         "02_model_comparison",
         "03_closed_loop",
         "04_your_own_vehicle",
+        "05_learning_a_policy",
     }

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from gpg._dtype import float64
-from gpg._io import umask
+from gpg._io import require_writable, umask
 from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
 from gpg.data.sampling import FDSteps, generate
@@ -162,6 +162,8 @@ def ensure(
     if (where / "train.npz").is_file() and (where / "test.npz").is_file():
         info.update(cached=True, generate_s=None)
         return gen, Dataset.load(where / "train"), Dataset.load(where / "test"), where, info
+    # Before minutes of generation whose result could not be kept.
+    require_writable(Path(cache_dir), "the dataset cache directory (cache_dir)")
     t0 = time.perf_counter()
     simple = fit_to_generator(gen)
     train, test = _generate_pair(gen, data_cfg, vehicle_cfg, simple, progress)

@@ -17,6 +17,7 @@ import csv
 import io
 import json
 import zipfile
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -24,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from gpg._checks import require_finite, require_shape
+from gpg._checks import as_float_array, require_finite, require_shape
 from gpg._io import atomic_write
 from gpg.names import AERO, GRAD_INPUTS, INPUTS, NOISE, UNITS
 
@@ -55,7 +56,7 @@ class Dataset:
         for name in _ARRAYS:
             v = getattr(self, name)
             if v is not None:
-                object.__setattr__(self, name, np.asarray(v, dtype=np.float64))
+                object.__setattr__(self, name, as_float_array(name, v))
         self.validate()
 
     # -- structure ------------------------------------------------------------------------------
@@ -131,6 +132,11 @@ class Dataset:
             require_shape("x_raw", self.x_raw, (None, 8))
             m = self.x_raw.shape[0]
             require_shape("y_raw", self.y_raw, (m, 9 if self.has_noise else 6))
+            if m != 8 * n:
+                raise ValueError(
+                    f"x_raw has {m} rows; the raw finite-difference samples of {n} points are "
+                    f"8 per point ({8 * n} rows: the base point and one step per input)"
+                )
         for name in _ARRAYS:
             v = getattr(self, name)
             if v is not None:
@@ -138,6 +144,11 @@ class Dataset:
         if np.any(self.x[:, :4] < 0):
             rows = np.flatnonzero(np.any(self.x[:, :4] < 0, axis=1))
             raise ValueError(f"x has negative rotor speeds in row(s) {rows[:10].tolist()}")
+        if np.any(self.x[:, 7] < 0):
+            rows = np.flatnonzero(self.x[:, 7] < 0)
+            raise ValueError(
+                f"x has a negative airspeed (a speed, ≥ 0 m/s) in row(s) {rows[:10].tolist()}"
+            )
 
     def subset(self, index: np.ndarray) -> Dataset:
         """The points ``index`` (and their raw samples)."""
@@ -199,9 +210,11 @@ class Dataset:
             if not p.is_file():
                 raise ValueError(f"dataset file {p} does not exist")
         try:
-            meta = json.loads(side.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{side} is not valid JSON: {exc}") from exc
+            meta = json.loads(side.read_bytes().decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{side} is not valid UTF-8 JSON: {exc}") from exc
+        if not isinstance(meta, dict):
+            raise ValueError(f"{side} must hold a JSON object, got {type(meta).__name__}")
         version = meta.get("schema_version")
         if version != SCHEMA_VERSION:
             raise ValueError(
@@ -210,8 +223,11 @@ class Dataset:
         try:
             with np.load(npz, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
-        except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError, zlib.error) as exc:
             raise ValueError(f"{npz} is not a readable .npz file: {exc}") from exc
+        bad = sorted(k for k, a in arrays.items() if not np.issubdtype(a.dtype, np.number))
+        if bad:
+            raise ValueError(f"{npz} holds non-numeric arrays {bad}")
         unknown = sorted(set(arrays) - set(_ARRAYS))
         if unknown:
             raise ValueError(f"{npz} holds unknown arrays {unknown}")
@@ -333,11 +349,13 @@ def from_csv(
     noise = [f for f in NOISE if f in columns]
     if noise and len(noise) != 3:
         raise ValueError(f"noise needs all of {list(NOISE)}, got {noise}")
+    _check_one_field_per_column(columns)
     outs = AERO + (NOISE if noise else ())
     if gradients is not None:
         if any(g in columns for g in GRADIENT_COLUMNS):
             raise ValueError("give gradient columns either one by one or by a pattern, not both")
         columns.update(_gradient_columns(gradients, columns, outs))
+        _check_one_field_per_column(columns)
     grads = [g for g in GRADIENT_COLUMNS if g in columns]
     want_grads = [f"d{o}/d{i}" for o in outs for i in GRAD_INPUTS]
     if grads and sorted(grads) != sorted(want_grads):
@@ -386,6 +404,21 @@ def from_csv(
     )
 
 
+def _check_one_field_per_column(columns: Mapping[str, str]) -> None:
+    """One CSV column cannot feed two fields (a typo that would silently copy data)."""
+    by_column: dict[str, list[str]] = {}
+    for name, head in columns.items():
+        if not isinstance(head, str):
+            raise ValueError(f"columns[{name!r}] must be a CSV header name, got {head!r}")
+        by_column.setdefault(head, []).append(name)
+    twice = {h: f for h, f in by_column.items() if len(f) > 1}
+    if twice:
+        h, f = next(iter(twice.items()))
+        raise ValueError(
+            f"CSV column {h!r} is mapped to {len(f)} fields {f}: one column, one field"
+        )
+
+
 def _gradient_columns(pattern: str, columns: Mapping[str, str], outs) -> dict[str, str]:
     """Schema gradient field -> CSV header, from a pattern (see :func:`from_csv`)."""
     out = {}
@@ -406,32 +439,77 @@ def _gradient_columns(pattern: str, columns: Mapping[str, str], outs) -> dict[st
 
 
 def _read_csv(path: Path, columns: Mapping[str, str]) -> np.ndarray:
-    """The mapped columns as floats; every bad cell named by CSV line and column."""
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        header = reader.fieldnames or []
-        absent = sorted(c for c in columns.values() if c not in header)
+    """The mapped columns as floats. Refused, with the file, line and column: bytes that are
+    not UTF-8, a duplicated header name, a row with more or fewer fields than the header (an
+    unquoted thousands separator, ``3,600.5``, makes one more), an over-long cell, and every
+    cell that is not a finite number. A UTF-8 byte-order mark is read and dropped."""
+    text = _decode(path)
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        header = next(reader, None)
+        if header is None:
+            raise ValueError(f"{path.name} is empty: no header line")
+        seen: dict[str, int] = {}
+        for j, h in enumerate(header, start=1):
+            if h in seen:
+                raise ValueError(
+                    f"{path.name}, line 1: header {h!r} appears twice (columns {seen[h]} and {j}); "
+                    "one of them would silently win"
+                )
+            seen[h] = j
+        absent = sorted(c for c in columns.values() if c not in seen)
         if absent:
             shown = absent[:8] + (["..."] if len(absent) > 8 else [])
             raise ValueError(f"CSV columns {shown} not in {path.name}; it has {header}")
+        where = [(head, seen[head] - 1) for head in columns.values()]
         rows, bad = [], []
-        for lineno, row in enumerate(reader, start=2):
+        for row in reader:
+            line = reader.line_num
+            if not row:  # a blank line
+                continue
+            if len(row) != len(header):
+                hint = (
+                    " (an unquoted thousands separator such as 3,600.5 adds a field)"
+                    if len(row) > len(header)
+                    else ""
+                )
+                raise ValueError(
+                    f"{path.name}, line {line}: {len(row)} fields, but the header has "
+                    f"{len(header)}{hint}"
+                )
             vals = []
-            for head in columns.values():
-                cell = row[head]
+            for head, j in where:
+                cell = row[j]
                 try:
                     v = float(cell)
-                except (TypeError, ValueError):
-                    bad.append(f"line {lineno}, column {head!r}: not a number ({cell!r})")
+                except ValueError:
+                    bad.append(f"line {line}, column {j + 1} ({head!r}): not a number ({cell!r})")
                     v = np.nan
                 else:
                     if not np.isfinite(v):
-                        bad.append(f"line {lineno}, column {head!r}: {cell}")
+                        bad.append(f"line {line}, column {j + 1} ({head!r}): {cell}")
                 vals.append(v)
             rows.append(vals)
+    except csv.Error as exc:  # e.g. a cell beyond the csv module's field size limit
+        raise ValueError(f"{path.name}, line {reader.line_num}: unreadable CSV: {exc}") from exc
     if bad:
         more = f" (and {len(bad) - 10} more)" if len(bad) > 10 else ""
         raise ValueError(f"{path.name} has bad values: " + "; ".join(bad[:10]) + more)
     if not rows:
         raise ValueError(f"{path.name} has a header but no data rows")
     return np.asarray(rows, dtype=float).reshape(-1, len(columns))
+
+
+def _decode(path: Path) -> str:
+    """The file as text: UTF-8 (a byte-order mark dropped), or a ``ValueError`` naming the
+    line and column of the first byte that is not UTF-8."""
+    raw = path.read_bytes()
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        col = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ValueError(
+            f"{path.name}, line {line}, byte {col}: not UTF-8 ({raw[exc.start : exc.start + 1]!r});"
+            " save the file as UTF-8"
+        ) from None

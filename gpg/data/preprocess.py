@@ -186,6 +186,7 @@ def prepare(
     if ds.has_raw:
         X_raw = np.asarray(norm.x(ds.x_raw))
         Y_raw = np.asarray(norm.y(y_raw))
+    _check_standardised(ds.output_names, y, norm, X, Y, dY, X_raw, Y_raw)
     return Training(
         X=X,
         Y=Y,
@@ -197,6 +198,34 @@ def prepare(
         output_names=ds.output_names,
         noise=noise if ds.has_noise else None,
     )
+
+
+def _check_standardised(names, y, norm, X, Y, dY, X_raw, Y_raw) -> None:
+    """Finite data can still overflow in the standardisation (a value of 1e308 squares to
+    inf): a ``ValueError`` naming the output or input, never a model that answers NaN."""
+    with np.errstate(all="ignore"):
+        std, mean = np.asarray(norm.y_std), np.asarray(norm.y_mean)
+        for m, name in enumerate(names):
+            if not (np.isfinite(std[m]) and np.isfinite(mean[m])) or not np.all(
+                np.isfinite(Y[:, m])
+            ):
+                big = float(np.max(np.abs(y[:, m])))
+                raise ValueError(
+                    f"output {name!r} cannot be standardised: its mean or spread overflows "
+                    f"float64 (largest |{name}| = {big:.3g}, after subtracting the simplified "
+                    "model); check the data's units and outliers"
+                )
+        for what, arr in (
+            ("inputs", X),
+            ("gradients", dY),
+            ("raw inputs", X_raw),
+            ("raw outputs", Y_raw),
+        ):
+            if arr is not None and not np.all(np.isfinite(arr)):
+                raise ValueError(
+                    f"the {what} overflow when normalised (values too large for float64); "
+                    "check the data's units and outliers"
+                )
 
 
 def restore(

@@ -111,6 +111,11 @@ def fit_hyperparameters(
     data = check_training_data(X, Y, dY, grad_dims)
     n, d = data.X.shape
     g = len(data.grad_dims)
+    if n < 2 or (subset_size is not None and subset_size < 2):
+        raise ValueError(
+            f"a marginal-likelihood fit needs at least 2 points (got {min(n, subset_size or n)}): "
+            "one point says nothing about lengthscales; fix the hyperparameters instead"
+        )
     init = Hyper() if init is None else init
     if ard and init.lengthscale.ndim == 0:
         init = eqx.tree_at(lambda h: h.lengthscale, init, jnp.full(d, init.lengthscale))

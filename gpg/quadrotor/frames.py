@@ -147,6 +147,44 @@ def airflow_direction(
     return v + c * jnp.stack([jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw)])
 
 
+def airflow_frame(
+    v_air_W: Float[ArrayLike, "3"], yaw: Float[ArrayLike, ""], hover_speed: float
+) -> Float[Array, "3 3"]:
+    """``R_WH`` of the airflow frame, continuous wherever it can be (see below).
+
+    ``x_H`` is the direction of :func:`airflow_direction` (``v̂_air`` above ``hover_speed``). Wind
+    axes then fix ``y_H`` horizontal and perpendicular to the airflow's horizontal part, which
+    is undefined when the airflow is vertical (climbs, descents): its heading jumps with the
+    sideways millimetres per second. Here ``y_H`` is the wind axes' ``z_W × d`` plus
+    ``c (−sin ψ, cos ψ, 0)``, the body's own right, with ``c = h (1 − ‖d_xy‖²/h²)²₊``, projected
+    perpendicular to ``x_H`` and normalised. ``c`` and its gradient vanish at ``‖d_xy‖ = h``,
+    so above that horizontal speed the frame is exactly wind axes; as the horizontal airspeed
+    vanishes the frame's heading turns to the body's, continuously and differentiably.
+
+    Singular set (no continuous frame of a direction exists everywhere, by the hairy-ball
+    theorem): ``y_H`` vanishes for airflow from the rear half of the body (``|χ − ψ| > 90°``)
+    at the one horizontal speed where the two terms cancel (about ``0.55 h`` directly from
+    behind, at any climb angle; horizontal airflow only, elsewhere in the rear half). With the
+    paper's yaw range (±90°) those states are out of the training domain.
+    """
+    v = jnp.asarray(v_air_W)
+    if hover_speed <= 0.0:
+        return R_WH(v)
+    h = float(hover_speed)
+    d = airflow_direction(v, yaw, hover_speed)
+    dxy2 = d[0] * d[0] + d[1] * d[1]
+    wind_axes = R_WH(d)
+    x = d / jnp.where(jnp.sum(d * d) > 0, safe_norm(d), 1.0)
+    c = h * jnp.maximum(1.0 - dxy2 / h**2, 0.0) ** 2
+    zero = jnp.zeros_like(d[0])
+    y_ref = jnp.stack([-d[1], d[0], zero]) + c * jnp.stack([-jnp.sin(yaw), jnp.cos(yaw), zero])
+    y = y_ref - jnp.sum(y_ref * x) * x
+    y = y / jnp.where(jnp.sum(y * y) > 0, safe_norm(y), 1.0)
+    blended = jnp.stack([x, y, jnp.cross(x, y)], axis=1)
+    # Where the blend weight is zero the frame is wind axes: the same bits as R_WH.
+    return jnp.where(dxy2 >= h**2, wind_axes, blended)
+
+
 def to_airflow_frame(
     euler_W: Float[ArrayLike, "3"], v_air_W: Float[ArrayLike, "3"], hover_speed: float = 0.0
 ) -> tuple[Float[Array, "3"], Float[Array, ""], Float[Array, "3 3"]]:
@@ -154,10 +192,11 @@ def to_airflow_frame(
 
     ``R_HB = R_WHᵀ R_WB`` (paper, Section "Real-time Simulation"); ``euler_H`` are its
     ``(yaw, pitch, roll)``, the angles a dataset case with the same relative airflow would have.
-    ``hover_speed > 0`` (m/s, static) turns ``H`` toward the body heading at low airspeed, see
-    :func:`airflow_direction`; 0 gives pure wind axes.
+    ``hover_speed > 0`` (m/s, static) turns ``H`` toward the body heading at low airspeed and
+    at low horizontal airspeed (vertical airflow), see :func:`airflow_direction` and
+    :func:`airflow_frame`; 0 gives pure wind axes.
     """
     euler_W = jnp.asarray(euler_W)
-    rwh = R_WH(airflow_direction(v_air_W, euler_W[0], hover_speed))
+    rwh = airflow_frame(v_air_W, euler_W[0], hover_speed)
     r_hb = matmul(rwh.T, R_WB(euler_W))
     return euler_from_R(r_hb), safe_norm(v_air_W), rwh

@@ -180,6 +180,40 @@ def fit_model(
     )
 
 
+def check_options(cfg: Mapping[str, Any], spec: Mapping[str, str]) -> None:
+    """An entry point's top-level options checked before any work, each named when wrong.
+
+    ``spec`` maps a key to its kind: ``count`` (integer >= 1), ``index`` (integer >= 0),
+    ``bool``, ``mapping?`` (a mapping or null), ``devices`` (null or a device count >= 1),
+    ``path`` (a non-empty string), ``path?`` (the same, or null).
+    """
+    for key, kind in spec.items():
+        if key not in cfg:
+            continue
+        v = cfg[key]
+        integer = isinstance(v, int) and not isinstance(v, bool)
+        ok = {
+            "count": integer and v >= 1,
+            "index": integer and v >= 0,
+            "bool": isinstance(v, bool),
+            "mapping?": v is None or isinstance(v, Mapping),
+            "devices": v is None or (integer and v >= 1),
+            "path": isinstance(v, str) and v != "",
+            "path?": v is None or (isinstance(v, str) and v != ""),
+        }[kind]
+        if not ok:
+            want = {
+                "count": "an integer >= 1",
+                "index": "an integer >= 0",
+                "bool": "true or false",
+                "mapping?": "a mapping or null",
+                "devices": "null or a number of devices >= 1",
+                "path": "a path",
+                "path?": "a path or null",
+            }[kind]
+            raise ValueError(f"{key} must be {want}, got {v!r}")
+
+
 def surrogate_from_config(cfg: Mapping[str, Any], vehicle) -> Any:
     """The surrogate a flight experiment uses: ``cfg["surrogate_checkpoint"]`` loaded, or
     ``cfg["model"]`` (its ``name`` and overrides) fitted on the configured training data."""

@@ -29,6 +29,7 @@ from gpg.linalg import memory
 from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.runs.common import (
+    check_options,
     deep_merge,
     fit_model,
     latency,
@@ -311,6 +312,18 @@ def noise_reference(noise: SimpleNoise, train: Dataset, test: Dataset) -> dict[s
 def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Compare the models of ``model_cfgs`` (name -> config) on the configured data."""
     outdir = Path(outdir)
+    check_options(
+        cfg,
+        {
+            "n_queries": "count",
+            "figures": "bool",
+            "sync_dispatch": "bool",
+            "model_overrides": "mapping?",
+            "variants": "mapping?",
+            "devices": "devices",
+            "cache_dir": "path",
+        },
+    )
     if not model_cfgs:
         raise ValueError(f"no model to compare; valid names: {list(models.NAMES)}")
     resolved = {}

@@ -18,7 +18,7 @@ from gpg.data.cache import ensure
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import simple_model_for
 from gpg.quadrotor.generator import Generator, evaluate_batch
-from gpg.runs.common import report, write_json
+from gpg.runs.common import check_options, report, write_json
 
 
 def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
@@ -38,6 +38,7 @@ def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Generate (or load from cache) the configured datasets, copy them to ``outdir``, plot."""
     outdir = Path(outdir)
+    check_options(cfg, {"figures": "bool", "sanity_points": "index", "cache_dir": "path"})
     data_cfg, vehicle_cfg = cfg["data"], cfg["vehicle"]
     gen, train, test, where, info = ensure(data_cfg, vehicle_cfg, cfg["cache_dir"])
     for split in ("train", "test"):

@@ -23,7 +23,7 @@ from gpg._dtype import float64
 from gpg.envs import apg
 from gpg.envs.quadrotor import EnvParams, QuadrotorEnv
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import machine, report, surrogate_from_config, write_json
+from gpg.runs.common import check_options, machine, report, surrogate_from_config, write_json
 
 
 def evaluate(env, params, act, key, n_envs: int, steps: int) -> dict[str, Any]:
@@ -60,6 +60,15 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Fit (or load) the surrogate, train the policy, evaluate both controllers; write the
     results into ``outdir``."""
     outdir = Path(outdir)
+    check_options(
+        cfg,
+        {
+            "figures": "bool",
+            "progress": "bool",
+            "cache_dir": "path",
+            "surrogate_checkpoint": "path?",
+        },
+    )
     a = cfg["apg"]
     train_cfg = apg.APGConfig(**{k: a[k] for k in apg.APGConfig.__dataclass_fields__})
     e = cfg["env"]
@@ -106,7 +115,8 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         report(
             f"{name:9s} RMS position error {r['rms_position_error_m']:.3f} m, final "
             f"{r['final_position_error_m']:.3f} m, "
-            f"in domain {100 * r['in_domain_fraction']:.0f} %, {100 * r['crashed_fraction']:.0f} %"
+            f"in domain {100 * r['in_domain_fraction']:.0f} %, "
+            f"crashed {100 * r['crashed_fraction']:.0f} %"
         )
     return out
 

@@ -38,7 +38,14 @@ from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, State, Wind
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import machine, report, set_dispatch, surrogate_from_config, write_json
+from gpg.runs.common import (
+    check_options,
+    machine,
+    report,
+    set_dispatch,
+    surrogate_from_config,
+    write_json,
+)
 from gpg.surrogate import Surrogate, SurrogateAero, predict_state
 
 
@@ -152,6 +159,16 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Fly the three controllers through the same gusts; write ``results.json`` (and a figure)
     into ``outdir``."""
     outdir = Path(outdir)
+    check_options(
+        cfg,
+        {
+            "figures": "bool",
+            "sync_dispatch": "bool",
+            "seed": "index",
+            "cache_dir": "path",
+            "surrogate_checkpoint": "path?",
+        },
+    )
     set_dispatch(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
     sur = surrogate_from_config(cfg, vehicle)

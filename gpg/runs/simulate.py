@@ -23,7 +23,14 @@ from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
 from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import machine, report, set_dispatch, surrogate_from_config, write_json
+from gpg.runs.common import (
+    check_options,
+    machine,
+    report,
+    set_dispatch,
+    surrogate_from_config,
+    write_json,
+)
 from gpg.surrogate import SurrogateAero
 
 
@@ -141,6 +148,15 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Fit the surrogate, fly the round trip on M and on the surrogate, time the batched
     environments, and write ``results.json`` and the figures into ``outdir``."""
     outdir = Path(outdir)
+    check_options(
+        cfg,
+        {
+            "figures": "bool",
+            "sync_dispatch": "bool",
+            "cache_dir": "path",
+            "surrogate_checkpoint": "path?",
+        },
+    )
     set_dispatch(cfg)
     vehicle = Vehicle.from_config(cfg["vehicle"])
     sur = surrogate_from_config(cfg, vehicle)

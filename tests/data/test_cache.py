@@ -36,3 +36,15 @@ def test_publish_lets_the_first_writer_win(tmp_path, monkeypatch):
     cache.publish(where, ds.subset(np.arange(4)), ds)  # the loser's data are dropped
     assert (where / "train.npz").read_bytes() == first
     assert sorted(p.name for p in tmp_path.iterdir()) == ["entry"]
+
+
+def test_unwritable_cache_is_found_before_generating(tmp_path):
+    from gpg.data.cache import ensure_datasets
+    from gpg.runs.common import conf
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    with pytest.raises(
+        ValueError, match="the dataset cache directory \\(cache_dir\\) .* is not writable"
+    ):
+        ensure_datasets(conf("smoke", "data"), conf("sui_endurance", "vehicle"), blocker / "cache")

@@ -229,12 +229,14 @@ def test_csv_bad_values_named_by_line_and_column(rng, tmp_path):
     rows[2, 9] = "nan"  # data row 3 = CSV line 4 (the header is line 1), column "fy"
     rows[0, 0] = "inf"
     write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
-    with pytest.raises(ValueError, match=r"line 2, column 'rpm_1': inf; line 4, column 'fy': nan$"):
+    with pytest.raises(
+        ValueError, match=r"line 2, column 1 \('rpm_1'\): inf; line 4, column 10 \('fy'\): nan$"
+    ):
         from_csv(tmp_path / "n.csv", COLUMNS)
     rows[0, 0] = 1.0
     rows[2, 9] = "abc"
     write_csv(tmp_path / "n.csv", rows, list(COLUMNS.values()))
-    with pytest.raises(ValueError, match=r"line 4, column 'fy': not a number \('abc'\)"):
+    with pytest.raises(ValueError, match=r"line 4, column 10 \('fy'\): not a number \('abc'\)"):
         from_csv(tmp_path / "n.csv", COLUMNS)
     with pytest.raises(ValueError, match="does not exist"):
         from_csv(tmp_path / "missing.csv", COLUMNS)
@@ -300,3 +302,60 @@ def test_names_table_is_consistent():
 
     assert names.GRAD_INPUTS == ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll")
     assert set(names.UNITS) == set(names.INPUTS + names.OUTPUTS)
+
+
+def test_csv_refuses_what_it_cannot_read_unambiguously(rng, tmp_path):
+    header = list(COLUMNS.values())
+    rows = rng.uniform(1, 2, (3, 14)).round(3)
+    good = ",".join(header) + "\n" + "\n".join(",".join(str(v) for v in r) for r in rows) + "\n"
+    f = tmp_path / "x.csv"
+    # An unquoted thousands separator: one field more on that line, named with a hint.
+    lines = good.splitlines()
+    lines[2] = "3,600.5," + lines[2].split(",", 1)[1]
+    f.write_text("\n".join(lines) + "\n")
+    with pytest.raises(
+        ValueError, match="x.csv, line 3: 15 fields, but the header has 14 .*thousands"
+    ):
+        from_csv(f, COLUMNS)
+    lines = good.splitlines()
+    lines[3] = lines[3].rsplit(",", 1)[0]
+    f.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match="x.csv, line 4: 13 fields, but the header has 14"):
+        from_csv(f, COLUMNS)
+    # A duplicated header name would let one of the two columns silently win.
+    f.write_text(good.replace("rpm_2", "rpm_1", 1))
+    with pytest.raises(ValueError, match="header 'rpm_1' appears twice \\(columns 1 and 2\\)"):
+        from_csv(f, COLUMNS)
+    # One CSV column mapped to two fields.
+    f.write_text(good)
+    with pytest.raises(ValueError, match="CSV column 'fx' is mapped to 2 fields \\['Fx', 'Fy'\\]"):
+        from_csv(f, {**COLUMNS, "Fy": "fx"})
+    # A UTF-8 byte-order mark is read (Excel writes one); other encodings are named.
+    f.write_bytes(b"\xef\xbb\xbf" + good.encode())
+    np.testing.assert_allclose(from_csv(f, COLUMNS).x[:, 0], rows[:, 0])
+    f.write_bytes(good.encode().replace(b"rpm_3", b"rpm\xe9_3", 1))
+    with pytest.raises(ValueError, match="x.csv, line 1, byte 16: not UTF-8"):
+        from_csv(f, COLUMNS)
+    # A cell beyond the csv module's limit (131072 characters).
+    f.write_text(good.replace(str(rows[1, 0]), '"' + "1" * 200_000 + '"', 1))
+    with pytest.raises(ValueError, match="x.csv, line 3: unreadable CSV: field larger"):
+        from_csv(f, COLUMNS)
+    f.write_text("")
+    with pytest.raises(ValueError, match="x.csv is empty"):
+        from_csv(f, COLUMNS)
+
+
+def test_dataset_values_checked_where_they_enter():
+    from tests.helpers import synthetic_dataset
+
+    ds, _ = synthetic_dataset(6, seed=2)
+    x = ds.x.copy()
+    x[2, 7] = -1.0
+    with pytest.raises(ValueError, match=r"negative airspeed .* row\(s\) \[2\]"):
+        Dataset(x=x, y_aero=ds.y_aero)
+    with pytest.raises(ValueError, match="x must be real, got a complex array"):
+        Dataset(x=ds.x + 1j, y_aero=ds.y_aero)
+    with pytest.raises(ValueError, match="y_aero must be numbers, got a boolean array"):
+        Dataset(x=ds.x, y_aero=ds.y_aero > 0)
+    with pytest.raises(ValueError, match="x_raw has 47 rows; .* 8 per point \\(48 rows"):
+        Dataset(x=ds.x, y_aero=ds.y_aero, x_raw=ds.x_raw[:47], y_raw=ds.y_raw[:47, :6])

@@ -130,3 +130,13 @@ def test_noise_residuals_round_trip_with_m_noise(data, vehicle):
     np.testing.assert_allclose(J[:, 6:], data.jac[:, 6:] - JN[:, :, :7], rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(with_noise.Y[:, :6], plain.Y[:, :6])  # forces untouched
     assert with_noise.noise is noise and plain.noise is None
+
+
+def test_overflowing_data_is_refused_by_name(data, vehicle):
+    """Finite data whose standardisation overflows (1e308 squared) never reach a model."""
+    from dataclasses import replace
+
+    y = data.y_aero.copy()
+    y[3, 1] = 1e308
+    with pytest.raises(ValueError, match="output 'Fy' cannot be standardised"):
+        prepare(replace(data, y_aero=y), simple_model_for(data, vehicle))

@@ -118,10 +118,12 @@ def test_safe_norm_gradient_at_zero():
 
 
 def test_hover_blend_is_wind_axes_above_hover_speed(rng):
-    """Above ``hover_speed`` the blended frame is exactly wind axes (``R_WH e_x = v̂``)."""
+    """Above ``hover_speed`` in horizontal airspeed the blended frame is exactly wind axes
+    (``R_WH e_x = v̂``), bit for bit."""
     for e in random_euler(rng, 10):
         d = rng.normal(size=3)
-        v = d / np.linalg.norm(d) * rng.uniform(0.5, 15.0)
+        d[:2] *= rng.uniform(0.5, 15.0) / np.linalg.norm(d[:2])
+        v = d
         a = frames.to_airflow_frame(e, v, 0.5)
         b = frames.to_airflow_frame(e, v, 0.0)
         for x, y in zip(a, b, strict=True):
@@ -168,3 +170,36 @@ def test_hover_blend_commutes_with_world_yaw(rng):
         eh2, _, R2 = frames.to_airflow_frame(e + [a, 0, 0], Rz @ v, 0.5)
         np.testing.assert_allclose(np.asarray(R2), Rz @ np.asarray(R), atol=1e-12)
         np.testing.assert_allclose(eh2, eh, atol=1e-12)
+
+
+def test_vertical_airflow_is_continuous_and_differentiable():
+    """Climbs and descents: the frame's heading follows the body's as the horizontal airspeed
+    vanishes, so 1 mm/s of sideways air changes the frame by about 1e-3 (not by 90°), and the
+    autodiff Jacobian matches central differences at and around vertical airflow."""
+    yaw = 0.3
+
+    def frame(v):
+        return frames.airflow_frame(v, yaw, 0.5)
+
+    for vz in (3.0, -3.0, 0.7):
+        ref = np.asarray(frame(jnp.array([0.0, 0.0, vz])))
+        # x_H along the airflow, y_H the body's right (level body) at exactly vertical airflow.
+        np.testing.assert_allclose(ref[:, 0], [0, 0, np.sign(vz)], atol=1e-15)
+        np.testing.assert_allclose(ref[:, 1], [-np.sin(yaw), np.cos(yaw), 0], atol=1e-15)
+        for t in np.linspace(0, 2 * np.pi, 9):
+            R = np.asarray(frame(jnp.array([1e-3 * np.cos(t), 1e-3 * np.sin(t), vz])))
+            assert np.max(np.abs(R - ref)) < 5e-3
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-14)
+            assert np.linalg.det(R) > 0
+        for v0 in ([0.0, 0.0, vz], [0.2, -0.1, vz], [0.0, 0.4999, vz]):
+            v0 = jnp.asarray(v0)
+            J = jax.jacfwd(lambda v: frame(v).ravel())(v0)
+            h = 1e-6
+            fd = np.stack(
+                [(frame(v0 + h * d) - frame(v0 - h * d)).ravel() / (2 * h) for d in np.eye(3)], 1
+            )
+            np.testing.assert_allclose(J, fd, atol=1e-8 * np.abs(fd).max())
+    # At the blend's edge (horizontal airspeed = hover_speed) value and slope match wind axes.
+    for w in (0.5 - 1e-7, 0.5 + 1e-7):
+        v = jnp.array([w * 0.6, w * 0.8, 2.0])
+        np.testing.assert_allclose(frame(v), frames.R_WH(v), atol=1e-6)

@@ -221,3 +221,40 @@ def test_noise_model_both_runs_each_model_with_and_without_m_noise(tmp_path):
     assert "of `M_noise` alone: L1" in (out / "results.md").read_text()
     with pytest.raises(ValueError, match="noise_model must be true, false or both, got 'yes'"):
         compare.run({**cfg, "noise_model": "yes"}, out, model_configs(cfg))
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("model_overrides=5", "model_overrides must be a mapping or null, got 5"),
+        ("devices=abc", "devices must be null or a number of devices >= 1, got 'abc'"),
+        ("n_queries=-1", "n_queries must be an integer >= 1, got -1"),
+        ("figures=maybe", "figures must be true or false"),
+    ],
+)
+def test_bad_overrides_fail_before_any_work(tmp_path, override, match):
+    from gpg.runs import compare
+
+    values = compose_plain(
+        "compare",
+        ["data=smoke", override, "dataset.train=/no/such/train", "dataset.test=/no/t"],
+    )
+    with pytest.raises(ValueError, match=match):  # not the missing dataset: checked first
+        compare.run(values, tmp_path, model_configs(values))
+
+
+def test_runs_started_in_the_same_second_get_their_own_directories():
+    """The run directory carries a per-run id next to the time (the cache stays shared)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    import experiments._hydra  # noqa: F401  (registers the resolver, as the entry points do)
+    from gpg.runs.common import CONF_DIR
+
+    dirs = []
+    for _ in range(2):
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="compare", return_hydra_config=True)
+            dirs.append(OmegaConf.to_container(cfg.hydra.run, resolve=True)["dir"])
+            assert cfg.cache_dir == "data/cache"
+    assert dirs[0] != dirs[1] and all(d.startswith("outputs/") for d in dirs)
