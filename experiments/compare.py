@@ -4,7 +4,8 @@ import hydra
 from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
-from gpg.models import NAMES
+from gpg import conf as gpg_conf
+from gpg import models
 from gpg.runs import compare
 from gpg.runs.common import conf
 
@@ -15,9 +16,11 @@ def model_configs(cfg: dict) -> dict[str, dict]:
         return {cfg["model"]["name"]: cfg["model"]}
     out = {}
     for name in cfg["models"]:
-        if name not in NAMES:
-            raise ValueError(f"unknown model {name!r} in models; valid: {list(NAMES)}")
-        out[name] = conf(name, "model")  # a known name without a file: conf lists the files
+        if name not in models.SPECS:
+            raise ValueError(f"unknown model {name!r} in models; valid: {list(models.SPECS)}")
+        # A built-in name has its gpg/conf/model file; one registered in code, its defaults.
+        has_file = name in gpg_conf.names("model")
+        out[name] = conf(name, "model") if has_file else models.model_defaults(name)
     return out
 
 

@@ -46,6 +46,7 @@ import logging
 import shutil
 import threading
 import uuid
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -54,14 +55,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpg import models
 from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 5  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+FORMAT_VERSION = 6  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
 # 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels);
-# 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads
-READABLE_VERSIONS = (4, 5)
+# 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads;
+# 6: fields renamed (ν² is ``noise``, M_noise ``noise_model``); 4 and 5 load through RENAMED
+READABLE_VERSIONS = (4, 5, 6)
+# Fields renamed since an older format: (module, class) -> {old field: new field}. Reading one
+# warns (DeprecationWarning): save the surrogate again to write the current format.
+RENAMED = {
+    ("gpg.gp.hyper", "Hyper"): {"jitter": "noise"},
+    ("gpg.gp.binned", "BinnedGP"): {"jitter": "noise"},
+    ("gpg.surrogate", "Surrogate"): {"noise": "noise_model"},
+}
 CURRENT = "CURRENT"
 LOAD_ATTEMPTS = 20  # reloads when a concurrent overwrite replaced the version being read
 # Orbax's writers and readers in one process interfere when run from several threads at once
@@ -74,10 +84,22 @@ class CheckpointError(ValueError):
     """A checkpoint is missing, damaged, or of another format version."""
 
 
+def _trusted(module: str, qualname: str) -> bool:
+    """Whether a checkpoint may name this class: gpg's own, or the predictor of a kind
+    registered with :func:`gpg.models.register` (loading imports the module it names)."""
+    if module.startswith("gpg."):
+        return True
+    return any(
+        (p.__module__, p.__qualname__) == (module, qualname)
+        for p in (spec.kind.predictor for spec in models.SPECS.values())
+        if p is not None
+    )
+
+
 def _describe(obj: Any, arrays: dict[str, np.ndarray], path: str) -> Any:
     if isinstance(obj, eqx.Module):
         cls = type(obj)
-        if not cls.__module__.startswith("gpg."):
+        if not _trusted(cls.__module__, cls.__qualname__):
             raise TypeError(f"cannot checkpoint {cls.__module__}.{cls.__qualname__} at {path}")
         return {
             "__module__": cls.__module__,
@@ -110,24 +132,42 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
         return tuple(_rebuild(v, arrays) for v in desc["__tuple__"])
     if isinstance(desc, dict) and "__class__" in desc:
         module = desc["__module__"]
-        if not module.startswith("gpg."):
-            raise CheckpointError(f"checkpoint names a class outside gpg: {module}")
+        if not _trusted(module, desc["__class__"]):
+            raise CheckpointError(
+                f"checkpoint names a class outside gpg and its registered kinds: "
+                f"{module}.{desc['__class__']}"
+            )
         cls = importlib.import_module(module)
         for part in desc["__class__"].split("."):
             cls = getattr(cls, part)
+        fields = _renamed_fields(module, desc["__class__"], desc["fields"])
         names = {f.name for f in dataclasses.fields(cls)}
-        if names != set(desc["fields"]):
+        if names != set(fields):
             raise CheckpointError(
                 f"{desc['__class__']} fields differ from this gpg version: "
-                f"{sorted(names ^ set(desc['fields']))}"
+                f"{sorted(names ^ set(fields))}"
             )
         obj = object.__new__(cls)
-        for name, value in desc["fields"].items():
+        for name, value in fields.items():
             object.__setattr__(obj, name, _rebuild(value, arrays))
         return obj
     if isinstance(desc, list):
         return [_rebuild(v, arrays) for v in desc]
     return desc
+
+
+def _renamed_fields(module: str, cls: str, fields: dict[str, Any]) -> dict[str, Any]:
+    """``fields`` under this version's names (:data:`RENAMED`), with a warning per old name."""
+    renames = RENAMED.get((module, cls), {})
+    old = [k for k in fields if k in renames]
+    for k in old:
+        warnings.warn(
+            f"checkpoint field {cls}.{k} was written by an earlier gpg and is read as "
+            f"{renames[k]}; save the surrogate again to write format {FORMAT_VERSION}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+    return {renames.get(k, k): v for k, v in fields.items()}
 
 
 def _digest(a: np.ndarray) -> str:
@@ -168,8 +208,8 @@ def _quiet_orbax():
 
 
 def _summary(sur) -> dict[str, Any]:
-    """Human-readable parts of the metadata (normalisation, hyperparameters, partition)."""
-    model = sur.model
+    """Human-readable parts of the metadata: normalisation, and what the model says of itself
+    (:meth:`gpg.gp.predictor.Predictor.describe`: hyperparameters, partition)."""
     out: dict[str, Any] = {
         "normalisation": {
             "x_lo": np.asarray(sur.normalizer.x_lo).tolist(),
@@ -177,22 +217,8 @@ def _summary(sur) -> dict[str, Any]:
             "y_mean": np.asarray(sur.normalizer.y_mean).tolist(),
             "y_std": np.asarray(sur.normalizer.y_std).tolist(),
         },
+        **sur.model.describe(),
     }
-    hyper = getattr(model, "hyper", None)
-    if hyper is not None:
-        out["hyperparameters"] = {k: np.asarray(v).tolist() for k, v in vars(hyper).items()}
-    else:
-        out["hyperparameters"] = {
-            "variance": np.asarray(model.variance).tolist(),
-            "lengthscale": np.asarray(model.lengthscale).tolist(),
-        }
-    part = getattr(model, "partition", None)
-    if part is not None:
-        out["partition"] = {
-            "scheme": part.scheme,
-            "n_bins": part.n_bins,
-            "near_points": np.asarray(model.n_near).tolist(),
-        }
     if sur.simple is not None:
         out["simple_model"] = {"P_F": float(sur.simple.P_F), "T_z": float(sur.simple.T_z)}
     return out

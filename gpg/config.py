@@ -6,20 +6,25 @@
 the object is made, and the error names the key (``hyper.subset must be ...``), so a bad
 value fails before any data are touched.
 
-:meth:`ModelConfig.resolve` is the one place where defaults meet overrides: the shared defaults
-are the field defaults below, a model's own differences are in :data:`MODEL_DEFAULTS`, and the
-caller's overrides (a mapping, e.g. from Hydra, or a :class:`ModelConfig`) come last.
-``conf/model/_base.yaml`` mirrors the shared defaults for Hydra (a test keeps the two equal) and
-each ``conf/model/<name>.yaml`` states only its differences.
+:meth:`ModelConfig.resolve` is the one place where defaults meet overrides: the shared
+defaults are the field defaults below, a model's own differences are in its
+``gpg/conf/model/<name>.yaml`` (read by :func:`package_defaults`, the same file Hydra
+composes), and the caller's overrides (a mapping, e.g. from Hydra, or a :class:`ModelConfig`)
+come last. ``gpg/conf/model/_base.yaml`` mirrors the shared defaults for Hydra (a test keeps
+the two equal).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import yaml
+
+from gpg import conf
 from gpg.gp.partition import SCHEMES
 from gpg.gp.schur import check_options
 
@@ -57,10 +62,10 @@ class HyperConfig:
     variance: float = 1.0  # σ (initial value, or fixed)
     lengthscale: float | tuple[float, ...] = 1.0  # l on inputs in [-1, 1] (initial, or fixed)
     ard: bool = True  # one lengthscale per input
-    jitter: float = 1e-8  # ν² on value rows when it is not fitted
-    fit_jitter: bool = True  # fit ν² jointly with σ and l (needs fit)
-    jitter_init: float = 1e-2  # initial ν²/σ of that fit
-    jitter_floor: float = 1e-6  # lower bound of the fitted ν²/σ
+    noise: float = 1e-8  # value noise ν² on value rows when it is not fitted
+    fit_noise: bool = True  # fit ν² jointly with σ and l (needs fit)
+    noise_init: float = 1e-2  # initial ν²/σ of that fit
+    noise_floor: float = 1e-6  # lower bound of the fitted ν²/σ
     grad_noise_scale: float = 0.3  # s in λ_i² = s·Var(∂_i Ỹ)
     fit_grad_noise: bool = False  # also fit s
     lengthscale_scale: float = 1.0  # multiplies the fitted (or given) lengthscales
@@ -68,12 +73,12 @@ class HyperConfig:
 
     def __post_init__(self):
         w = "hyper."
-        for k in ("fit", "ard", "fit_jitter", "fit_grad_noise", "output_scales"):
+        for k in ("fit", "ard", "fit_noise", "fit_grad_noise", "output_scales"):
             _bool(w + k, getattr(self, k))
         _int(w + "subset", self.subset, 1)
         _int(w + "seed", self.seed)
         _int(w + "max_steps", self.max_steps, 1)
-        for k in ("variance", "jitter", "jitter_init", "jitter_floor", "grad_noise_scale"):
+        for k in ("variance", "noise", "noise_init", "noise_floor", "grad_noise_scale"):
             _positive(w + k, getattr(self, k))
         _positive(w + "lengthscale_scale", self.lengthscale_scale)
         ls = self.lengthscale
@@ -83,10 +88,10 @@ class HyperConfig:
                 _positive(w + "lengthscale", v)
         else:
             _positive(w + "lengthscale", ls)
-        if self.fit_jitter and not self.jitter_floor < self.jitter_init:
+        if self.fit_noise and not self.noise_floor < self.noise_init:
             raise ValueError(
-                f"hyper.jitter_floor ({self.jitter_floor}) must be below hyper.jitter_init "
-                f"({self.jitter_init})"
+                f"hyper.noise_floor ({self.noise_floor}) must be below hyper.noise_init "
+                f"({self.noise_init})"
             )
 
 
@@ -193,23 +198,28 @@ class ModelConfig:
 
     @classmethod
     def resolve(
-        cls, name: str, overrides: Mapping[str, Any] | ModelConfig | None = None
+        cls,
+        name: str,
+        overrides: Mapping[str, Any] | ModelConfig | None = None,
+        defaults: Mapping[str, Any] | None = None,
     ) -> ModelConfig:
-        """Shared defaults, then model ``name``'s own (:data:`MODEL_DEFAULTS`), then
-        ``overrides``; unknown keys and bad values raise ``ValueError`` naming them. A
-        :class:`ModelConfig` is taken as it is (already resolved)."""
+        """Shared defaults, then model ``name``'s own ``defaults`` (by default its
+        ``gpg/conf/model/<name>.yaml``, :func:`package_defaults`), then ``overrides``; unknown
+        keys and bad values raise ``ValueError`` naming them. A :class:`ModelConfig` is taken
+        as it is (already resolved)."""
         if isinstance(overrides, ModelConfig):
             return overrides
-        base = merge(cls().to_dict(), MODEL_DEFAULTS.get(name, {}), "")
-        over = dict(overrides or {})
+        own = package_defaults(name) if defaults is None else defaults
+        base = merge(cls().to_dict(), renamed_keys(own), "")
+        over = renamed_keys(overrides or {})
         over.pop("name", None)
         return cls.from_dict(merge(base, over, ""))
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> ModelConfig:
-        """From a complete mapping (as :meth:`to_dict` writes it)."""
+        """From a complete mapping (as :meth:`to_dict` writes it, old key names included)."""
         kw = {}
-        for k, v in d.items():
+        for k, v in renamed_keys(d).items():
             kw[k] = _SECTIONS[k](**v) if k in _SECTIONS else v
         return cls(**kw)
 
@@ -220,6 +230,35 @@ class ModelConfig:
         if isinstance(ls, tuple):
             out["hyper"]["lengthscale"] = list(ls)
         return out
+
+
+# Keys renamed in gpg 0.2 (ν² is the value noise; "jitter" now only means numerical jitter, as
+# inducing.jitter): the old names are read for one release with a DeprecationWarning.
+RENAMED_KEYS = {
+    "jitter": "noise",
+    "fit_jitter": "fit_noise",
+    "jitter_init": "noise_init",
+    "jitter_floor": "noise_floor",
+}
+
+
+def renamed_keys(d: Mapping[str, Any]) -> dict[str, Any]:
+    """``d`` with the ``hyper`` keys of :data:`RENAMED_KEYS` under their new names."""
+    out = dict(d)
+    hyper = out.get("hyper")
+    if isinstance(hyper, Mapping) and any(k in RENAMED_KEYS for k in hyper):
+        new = {}
+        for k, v in hyper.items():
+            if k in RENAMED_KEYS:
+                warnings.warn(
+                    f"config key hyper.{k} is deprecated; use hyper.{RENAMED_KEYS[k]}",
+                    DeprecationWarning,
+                    stacklevel=4,
+                )
+                k = RENAMED_KEYS[k]
+            new[k] = v
+        out["hyper"] = new
+    return out
 
 
 def merge(base: Mapping[str, Any], over: Mapping[str, Any] | None, where: str) -> dict[str, Any]:
@@ -238,15 +277,11 @@ def merge(base: Mapping[str, Any], over: Mapping[str, Any] | None, where: str) -
     return out
 
 
-# A model's own defaults where they differ from the shared ones. The hybrid's partition serves
-# its variance only: bins of about 150 points and near sets of 160 points, whatever N, keep the
-# per-query bytes fixed; the variance factors of both new models are stored in float32, which
-# changed no NLPD or coverage digit at data=default and data=paper (README Measurements).
-MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
-    "gpgs_hybrid": {
-        "partition": {"scheme": "kdtree", "points_per_bin": 150},
-        "near": {"budget": None, "points": 160},
-        "variance_dtype": "float32",
-    },
-    "gpg_pic": {"variance_dtype": "float32"},
-}
+def package_defaults(name: str) -> dict[str, Any]:
+    """Model ``name``'s own defaults as its ``gpg/conf/model/<name>.yaml`` states them (the file
+    Hydra composes over ``_base.yaml``), or none for a name without a file."""
+    text = conf.read_text("model", name)
+    if text is None:
+        return {}
+    body = yaml.safe_load(text) or {}
+    return {k: v for k, v in body.items() if k not in ("defaults", "name")}

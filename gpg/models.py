@@ -1,28 +1,30 @@
 """gpg's models under one ``predict``, built by name: the paper's six baselines and two more.
 
-=========== ========= ====== =========== ================ ===================================
-name        gradients points partitioned far set          what
-=========== ========= ====== =========== ================ ===================================
-gp          no        raw 8X no          —                exact GP on every raw sample
-gpg         yes       1X     no          —                exact GP with gradients (GP-G)
-gps_1x      no        1X     yes         dropped          local GP per bin (GP-S-1X)
-gps_8x      no        raw 8X yes         dropped          local GP per bin (GP-S-8X)
-gpgs        yes       1X     yes         dropped          local GP-G per bin (GP-G-S)
-gpgs_schur  yes       1X     yes         Schur complement the paper's method (GP-G-S-Schur)
-gpgs_hybrid yes       1X     yes         exact mean       GP-G mean, near-set variance
-gpg_pic     yes       1X     yes         inducing points  PIC: exact block per bin + low rank
-=========== ========= ====== =========== ================ ===================================
+=========== ========= ====== ====== ================ ===================================
+name        gradients points kind   far set          what
+=========== ========= ====== ====== ================ ===================================
+gp          no        raw 8X exact  —                exact GP on every raw sample
+gpg         yes       1X     exact  —                exact GP with gradients (GP-G)
+gps_1x      no        1X     local  dropped          local GP per bin (GP-S-1X)
+gps_8x      no        raw 8X local  dropped          local GP per bin (GP-S-8X)
+gpgs        yes       1X     local  dropped          local GP-G per bin (GP-G-S)
+gpgs_schur  yes       1X     schur  Schur complement the paper's method (GP-G-S-Schur)
+gpgs_hybrid yes       1X     hybrid exact mean       GP-G mean, near-set variance
+gpg_pic     yes       1X     pic    inducing points  PIC: exact block per bin + low rank
+=========== ========= ====== ====== ================ ===================================
 
-Options (not new names): partition ``scheme`` (slab, kdtree), bins, near ``budget``,
-``points`` or ``epsilon``, ``mean`` form of ``gpgs_schur`` (exact, paper) and its precompute
-``route`` (global, direct), the storage ``variance_dtype`` of the variance factors, and the
-``inducing`` points of ``gpg_pic``.
+A name is a kind (:mod:`gpg.kinds`: how the predictor is built, and which options it reads)
+plus the data it trains on; :data:`SPECS` is the registry, one line per name, and
+``gpg/conf/model/<name>.yaml`` holds each name's own defaults. Options (not new names):
+partition ``scheme``, bins, near ``budget``, ``points`` or ``epsilon``, the ``mean`` form of
+``gpgs_schur`` (exact, paper) and its precompute ``route`` (global, direct), the storage
+``variance_dtype`` of the variance factors, and the ``inducing`` points of ``gpg_pic``; an
+option a name's kind does not read is refused (:func:`resolve_config`).
 """
 
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -34,75 +36,159 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpg._dtype import float64
-from gpg.config import ModelConfig
+from gpg.config import ModelConfig, package_defaults
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Training, prepare
-from gpg.gp import partition, pic, schur
-from gpg.gp.binned import BinnedGP, pack, pack_points
-from gpg.gp.exact import ExactGP
+from gpg.gp import partition
 from gpg.gp.fit import HyperFitResult, fit_hyperparameters
-from gpg.gp.gram import assemble_gram, stack_targets
-from gpg.gp.hybrid import HybridGP
 from gpg.gp.hyper import Hyper, gradient_noise
-from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor
-from gpg.linalg import dense, memory
+from gpg.kinds import KINDS, Arrays, Kind, base
+from gpg.linalg import memory
 from gpg.names import GRAD_DIMS
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
 
+DATA = ("values", "gradients", "raw")  # what a model trains on (see Spec.data)
+
 
 @dataclass(frozen=True)
 class Spec:
-    """What a model name means: its training data, whether it is partitioned, and how its
-    predictor is built (``kind``: exact, local, schur, hybrid or pic)."""
+    """What a model name means: the ``data`` it trains on (``values`` the base points without
+    their gradients, ``gradients`` the base points with them, ``raw`` every raw 8X sample), the
+    ``kind`` that builds it (:mod:`gpg.kinds`) and its ``title`` in tables and figures."""
 
-    gradients: bool
-    raw: bool
-    partitioned: bool
-    kind: str
+    data: str
+    kind: Kind
     title: str
+
+    def __post_init__(self):
+        if self.data not in DATA:
+            raise ValueError(f"Spec.data must be one of {list(DATA)}, got {self.data!r}")
+        if not isinstance(self.kind, Kind):
+            raise ValueError(f"Spec.kind must be a gpg.kinds.Kind, got {self.kind!r}")
+
+    @property
+    def gradients(self) -> bool:
+        return self.data == "gradients"
+
+    @property
+    def raw(self) -> bool:
+        return self.data == "raw"
+
+    @property
+    def partitioned(self) -> bool:
+        return self.kind.partitioned
 
     @property
     def schur(self) -> bool:
-        return self.kind == "schur"
+        return self.kind.name == "schur"
 
 
 SPECS: dict[str, Spec] = {
-    "gp": Spec(False, True, False, "exact", "GP"),
-    "gpg": Spec(True, False, False, "exact", "GP-G"),
-    "gps_1x": Spec(False, False, True, "local", "GP-S-1X"),
-    "gps_8x": Spec(False, True, True, "local", "GP-S-8X"),
-    "gpgs": Spec(True, False, True, "local", "GP-G-S"),
-    "gpgs_schur": Spec(True, False, True, "schur", "GP-G-S-Schur"),
-    "gpgs_hybrid": Spec(True, False, True, "hybrid", "GP-G-S-Hybrid"),
-    "gpg_pic": Spec(True, False, True, "pic", "GP-G-PIC"),
+    "gp": Spec("raw", KINDS["exact"], "GP"),
+    "gpg": Spec("gradients", KINDS["exact"], "GP-G"),
+    "gps_1x": Spec("values", KINDS["local"], "GP-S-1X"),
+    "gps_8x": Spec("raw", KINDS["local"], "GP-S-8X"),
+    "gpgs": Spec("gradients", KINDS["local"], "GP-G-S"),
+    "gpgs_schur": Spec("gradients", KINDS["schur"], "GP-G-S-Schur"),
+    "gpgs_hybrid": Spec("gradients", KINDS["hybrid"], "GP-G-S-Hybrid"),
+    "gpg_pic": Spec("gradients", KINDS["pic"], "GP-G-PIC"),
 }
 NAMES = tuple(SPECS)
 PAPER_NAMES = NAMES[:6]  # the paper's six baselines
+_DEFAULTS: dict[str, dict[str, Any]] = {}  # defaults of models registered in code
 
 
-def resolve_config(name: str, cfg: ModelConfig | ModelConfig | None = None) -> ModelConfig:
-    """Model ``name``'s :class:`~gpg.config.ModelConfig`: the shared defaults, the model's own,
-    then ``cfg``; unknown names, keys and values raise ``ValueError`` naming them (before any
-    data is touched). A :class:`ModelConfig` is taken as it is."""
+def register(
+    name: str, kind: Kind, data: str, title: str, defaults: Mapping[str, Any] | None = None
+) -> None:
+    """Add model ``name``: ``kind`` on ``data`` (see :class:`Spec`), with its own ``defaults``
+    over the shared ones (a built-in model keeps them in ``gpg/conf/model/<name>.yaml``).
+    It then builds, checkpoints and compares like the built-in ones (docs/design.md)."""
+    global NAMES
+    if not name.isidentifier():
+        raise ValueError(f"model name must be an identifier, got {name!r}")
+    if name in SPECS:
+        raise ValueError(f"model {name!r} is already registered")
+    spec = Spec(data, kind, title)
+    ModelConfig.resolve(name, None, dict(defaults or {}))  # bad defaults fail here
+    SPECS[name] = spec
+    _DEFAULTS[name] = dict(defaults or {})
+    NAMES = tuple(SPECS)
+
+
+def unregister(name: str) -> None:
+    """Remove a model added by :func:`register` (the built-in ones stay)."""
+    global NAMES
+    if name not in _DEFAULTS:
+        raise ValueError(f"model {name!r} was not added by register()")
+    del SPECS[name], _DEFAULTS[name]
+    NAMES = tuple(SPECS)
+
+
+def reads(name: str) -> tuple[str, ...]:
+    """The top-level config keys model ``name`` reads (``hyper`` and its kind's options)."""
+    return ("hyper", *SPECS[_known(name)].kind.reads)
+
+
+def restrict(name: str, overrides: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The top-level keys of ``overrides`` that model ``name`` reads (:func:`reads`): one
+    mapping of options for several models, each given what applies to it (the comparison's
+    ``model_overrides``)."""
+    read = reads(name)
+    return {k: v for k, v in (overrides or {}).items() if k in read}
+
+
+def model_defaults(name: str) -> dict[str, Any]:
+    """Model ``name``'s own defaults over the shared ones: its ``gpg/conf/model/<name>.yaml``
+    (:func:`gpg.config.package_defaults`) or what :func:`register` was given."""
+    if name in _DEFAULTS:
+        return dict(_DEFAULTS[name])
+    return package_defaults(name)
+
+
+def _known(name: str) -> str:
     if name not in SPECS:
         raise ValueError(f"unknown model {name!r}; valid: {list(NAMES)}")
-    return ModelConfig.resolve(name, cfg)
+    return name
+
+
+def resolve_config(name: str, cfg: Mapping[str, Any] | ModelConfig | None = None) -> ModelConfig:
+    """Model ``name``'s :class:`~gpg.config.ModelConfig`: the shared defaults, the model's own
+    (:func:`model_defaults`), then ``cfg``; unknown names, keys and values raise ``ValueError``
+    naming them (before any data is touched), and so does a key the model's kind does not read
+    set away from its default (``gpg`` with a partition, ``gpgs_schur`` with another route than
+    its own). A :class:`ModelConfig` is taken as it is, and checked the same way."""
+    _known(name)
+    defaults = model_defaults(name)
+    own = ModelConfig.resolve(name, None, defaults)
+    out = cfg if isinstance(cfg, ModelConfig) else ModelConfig.resolve(name, cfg, defaults)
+    read = reads(name)
+    base, got = own.to_dict(), out.to_dict()
+    for key in got:
+        if key not in read and got[key] != base[key]:
+            where = _first_difference(key, base[key], got[key])
+            raise ValueError(
+                f"model {name!r} does not read option {where!r} (its kind "
+                f"{SPECS[name].kind.name!r} reads: {', '.join(read)})"
+            )
+    return out
+
+
+def _first_difference(where: str, a: Any, b: Any) -> str:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in a:
+            if a[k] != b.get(k):
+                return _first_difference(f"{where}.{k}", a[k], b.get(k))
+    return where
 
 
 def build_partition(
     X: np.ndarray, cfg: ModelConfig, Y: np.ndarray | None = None
 ) -> partition.Partition:
-    """The partition a resolved config asks for, on training inputs ``X`` (the ``adaptive``
-    scheme also reads the targets ``Y``: its bins follow their local variation)."""
-    pc = cfg.partition
-    opts: dict[str, Any] = {"dim": pc.dim} if pc.scheme in ("slab", "adaptive") else {}
-    if pc.scheme == "adaptive":
-        if Y is None:
-            raise ValueError("partition.scheme=adaptive needs the training targets")
-        opts["weights"] = partition.variation_weights(X, Y)
-    return partition.build(X, pc.scheme, pc.n_bins(X.shape[0]), **opts)
+    """The partition a resolved config asks for (:func:`gpg.kinds.base.build_partition`)."""
+    return base.build_partition(X, cfg, Y)
 
 
 @dataclass
@@ -128,27 +214,28 @@ class Built:
         return sum(self.timings.values())
 
 
-def training_arrays(name: str, training: Training):
-    """``(X, Y, dY, grad_dims)`` a model trains on, or a ``ValueError`` saying what is missing."""
-    spec = SPECS[name]
+def training_arrays(name: str, training: Training) -> Arrays:
+    """The :class:`~gpg.kinds.Arrays` model ``name`` trains on, or a ``ValueError`` saying what
+    the dataset lacks."""
+    spec = SPECS[_known(name)]
     if spec.raw:
         if training.X_raw is None:
             raise ValueError(
                 f"model {name!r} trains on the raw 8X samples, which the dataset lacks"
             )
-        return training.X_raw, training.Y_raw, None, ()
+        return Arrays(training.X_raw, training.Y_raw, None, ())
     if spec.gradients:
         if training.dY is None:
             raise ValueError(f"model {name!r} needs gradients, which the dataset lacks")
-        return training.X, training.Y, training.dY, GRAD_DIMS
-    return training.X, training.Y, None, ()
+        return Arrays(training.X, training.Y, training.dY, GRAD_DIMS)
+    return Arrays(training.X, training.Y, None, ())
 
 
 def initial_hyper(cfg: ModelConfig, n_inputs: int, dY: np.ndarray | None) -> Hyper:
     h = cfg.hyper
     ls = np.broadcast_to(np.asarray(h.lengthscale, float), (n_inputs,)) if h.ard else h.lengthscale
     lam = gradient_noise(dY, h.grad_noise_scale) if dY is not None else 1e-6
-    return Hyper(variance=h.variance, lengthscale=ls, jitter=h.jitter, grad_noise=lam)
+    return Hyper(variance=h.variance, lengthscale=ls, noise=h.noise, grad_noise=lam)
 
 
 @float64
@@ -158,7 +245,8 @@ def fit_hyper(
     """Hyperparameters for ``name``: fitted by marginal likelihood or the configured values,
     then the lengthscales multiplied by ``hyper.lengthscale_scale``."""
     cfg = resolve_config(name, cfg)
-    X, Y, dY, dims = training_arrays(name, training)
+    arrays = training_arrays(name, training)
+    X, Y, dY, dims = arrays.X, arrays.Y, arrays.dY, arrays.dims
     init = initial_hyper(cfg, X.shape[1], dY)
     h = cfg.hyper
     res, seconds = None, 0.0
@@ -174,9 +262,9 @@ def fit_hyper(
             init=init,
             ard=h.ard,
             fit_grad_noise=h.fit_grad_noise,
-            fit_jitter=h.fit_jitter,
-            jitter_floor=h.jitter_floor,
-            jitter_init=h.jitter_init,
+            fit_noise=h.fit_noise,
+            noise_floor=h.noise_floor,
+            noise_init=h.noise_init,
             subset_size=h.subset,
             seed=h.seed,
             max_steps=h.max_steps,
@@ -221,27 +309,7 @@ def required_bytes(
 ) -> int:
     """Peak bytes the build of ``name`` needs beyond the data, estimated from sizes alone."""
     cfg = resolve_config(name, cfg)
-    spec = SPECS[name]
-    rows = n_points * (1 + n_grad)
-    if spec.kind in ("exact", "hybrid"):
-        return int(rows * rows * 8 * 1.2)  # one K̄, factorised in place
-    if spec.kind == "schur":
-        return int(rows * rows * 8 * (3 if cfg.route == "direct" else 1.5))
-    bins = cfg.partition.n_bins(n_points)
-    per_bin = math.ceil(n_points / bins) * (1 + n_grad)
-    if spec.kind == "pic":
-        u = cfg.inducing.points * (1 + n_grad)
-        width = per_bin + u
-        # per-bin blocks and cross-covariances while training; every bin's stored factor after
-        return int(8 * (3 * width * width + rows * u // bins + bins * 0.6 * width * width))
-    near = cfg.near
-    if near.points is not None:
-        width = max(near.points, math.ceil(n_points / bins)) * (1 + n_grad)
-    elif near.budget is not None and near.epsilon is None:
-        width = max(math.ceil(near.budget * n_points), math.ceil(n_points / bins)) * (1 + n_grad)
-    else:
-        width = rows  # an ε near set can hold every point
-    return int(8 * width * width * (3 + 0.6 * bins))
+    return SPECS[name].kind.required_bytes(cfg, n_points, n_grad)
 
 
 def check_feasible(
@@ -251,21 +319,12 @@ def check_feasible(
     against the data (bins, inducing points), and memory. Raises ``ValueError`` or
     :class:`gpg.linalg.memory.InsufficientMemory` with one clear message."""
     cfg = resolve_config(name, cfg)
-    X, _, _, dims = training_arrays(name, training)
-    n = X.shape[0]
-    spec = SPECS[name]
-    if spec.partitioned and cfg.partition.n_bins(n) > n:
-        raise ValueError(
-            f"model {name!r}: partition.bins={cfg.partition.n_bins(n)} exceeds the {n} "
-            "training points"
-        )
-    if spec.kind == "pic" and cfg.inducing.points > n:
-        raise ValueError(
-            f"model {name!r}: inducing.points={cfg.inducing.points} is more inducing "
-            f"points than the {n} training points"
-        )
-    need = required_bytes(name, cfg, n, len(dims))
-    hint = "" if spec.kind in ("local", "pic") else " (gpgs and gpg_pic train without K̄)"
+    arrays = training_arrays(name, training)
+    n = arrays.X.shape[0]
+    kind = SPECS[name].kind
+    kind.check(name, cfg, n)
+    need = kind.required_bytes(cfg, n, len(arrays.dims))
+    hint = " (gpgs and gpg_pic train without K̄)" if kind.needs_gram else ""
     memory.require(f"model {name!r} on {n} points{hint}", need)
 
 
@@ -278,67 +337,26 @@ def build(
     hyper: Hyper | None = None,
     devices=None,
 ) -> Built:
-    """Build model ``name`` on ``training`` (see the module table). ``hyper`` skips the fit.
-    ``devices`` spreads the per-bin precompute of the local models (``gps_*``, ``gpgs``, the
-    hybrid's variance) and of ``gpg_pic`` over JAX devices (:mod:`gpg.parallel`; None: one
-    process, LAPACK)."""
+    """Build model ``name`` on ``training`` (see the module table): check, fit the
+    hyperparameters (``hyper`` skips the fit), then the kind's build (:mod:`gpg.kinds`).
+    ``devices`` spreads the kinds' per-bin precompute (``gps_*``, ``gpgs``, the hybrid's
+    variance, ``gpg_pic``) over JAX devices (:mod:`gpg.parallel`; None: one process, LAPACK)."""
     cfg = resolve_config(name, cfg)
     check_feasible(name, cfg, training)
-    spec = SPECS[name]
-    X, Y, dY, dims = training_arrays(name, training)
+    arrays = training_arrays(name, training)
     timings: dict[str, float] = {}
     fit_res = None
     if hyper is None:
         hyper, fit_res, timings["hyper_s"] = fit_hyper(name, training, cfg)
     else:
-        check_scaled_inputs(X, hyper)
-    if spec.kind == "exact":
-        t0 = time.perf_counter()
-        model = ExactGP.fit(X, Y, dY, grad_dims=dims if dY is not None else None, hyper=hyper)
-        timings["fit_s"] = time.perf_counter() - t0
-        check_finite_model(name, model)
-        return Built(name, _scales(model, cfg), cfg, hyper, fit_res, timings)
-
-    dims = tuple(dims)
-    t0 = time.perf_counter()
-    nc = cfg.near
-    part = build_partition(X, cfg, Y)
-    near = None
-    if spec.kind != "pic":
-        near = partition.near_sets(X, part, hyper.lengthscale, **nc.rule())
-    timings["partition_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    Ybar = stack_targets(Y, dY)
-    diagnostics: dict[str, Any] = {}
-    dtype = cfg.variance_dtype
-    if spec.kind == "pic":
-        model, diagnostics = _build_pic(X, Ybar, hyper, dims, part, cfg, devices)
-    elif spec.kind == "hybrid":
-        alpha = exact_alpha(X, Ybar, hyper, dims)
-        factors = schur.precompute(X, Ybar, hyper, dims, near, route="local", devices=devices)
-        scale = output_scale(np.sum(Ybar * alpha, axis=0), Ybar.shape[0])
-        model = HybridGP(
-            mean=GlobalMean.from_alpha(X, alpha, hyper.variance, hyper.lengthscale, dims),
-            local=pack(X, factors, near, part, hyper, dims, dtype=dtype, scale=scale),
-        )
-    else:
-        route = cfg.route if spec.schur else "local"
-        factors = schur.precompute(
-            X,
-            Ybar,
-            hyper,
-            dims,
-            near,
-            route=route,
-            mean=cfg.mean,
-            devices=devices if route == "local" else None,
-        )
-        model = pack(X, factors, near, part, hyper, dims, dtype=dtype)
-        if spec.schur:
-            diagnostics = schur.diagnose(X, part, near, hyper.lengthscale, name=name)
-    timings["fit_s"] = time.perf_counter() - t0
-    check_finite_model(name, model)
-    return Built(name, _scales(model, cfg), cfg, hyper, fit_res, timings, near, diagnostics)
+        check_scaled_inputs(arrays.X, hyper)
+    product = SPECS[name].kind.build(arrays, hyper, cfg, devices=devices)
+    check_finite_model(name, product.model)
+    model = product.model
+    if not cfg.hyper.output_scales:  # one shared scale: the kernel's own amplitude
+        model = model.with_output_scale(jnp.ones_like(model.output_scale))
+    timings.update(product.timings)
+    return Built(name, model, cfg, hyper, fit_res, timings, product.near, product.diagnostics)
 
 
 @float64
@@ -348,24 +366,24 @@ def train(
     simple: SimpleModel | None,
     cfg: Mapping[str, Any] | ModelConfig | None = None,
     *,
-    noise: SimpleNoise | None = None,
+    noise_model: SimpleNoise | None = None,
     hyper_cache: dict | None = None,
     devices=None,
 ) -> tuple[Training, Built]:
     """The one path from a dataset to a built model: :func:`gpg.data.prepare` (residuals
-    against ``simple`` and, if given, ``noise`` = ``M_noise``; normalisation), then
+    against ``simple`` and, if given, ``noise_model`` = ``M_noise``; normalisation), then
     :func:`build`. With ``hyper_cache`` (a dict kept
     by the caller) the hyperparameters are fitted once per training arrays (raw samples or
     not, gradients or not) and hyperparameter config, and shared by every model that matches:
     the paper's comparison fits them once for all models on the same points. ``devices`` as
     for :func:`build`."""
     cfg = resolve_config(name, cfg)
-    training = prepare(dataset, simple, noise)
+    training = prepare(dataset, simple, noise_model)
     hyper = fit_res = None
     hyper_s = 0.0
     if hyper_cache is not None:
         spec = SPECS[name]
-        key = (spec.raw, spec.gradients, json.dumps(cfg.to_dict()["hyper"], sort_keys=True))
+        key = (spec.data, json.dumps(cfg.to_dict()["hyper"], sort_keys=True))
         if key not in hyper_cache:
             check_feasible(name, cfg, training)  # before a fit that would be wasted
             hyper_cache[key] = fit_hyper(name, training, cfg)
@@ -375,43 +393,3 @@ def train(
         built.hyper_fit = fit_res
         built.timings = {"hyper_s": hyper_s, **built.timings}
     return training, built
-
-
-def _scales(model: Predictor, cfg: ModelConfig) -> Predictor:
-    """Per-output variance scales as built, or ones when ``hyper.output_scales`` is off."""
-    if cfg.hyper.output_scales:
-        return model
-    ones = jnp.ones_like(model.output_scale)
-    if isinstance(model, HybridGP):
-        return eqx.tree_at(lambda m: m.local.output_scale, model, ones)
-    return eqx.tree_at(lambda m: m.output_scale, model, ones)
-
-
-def exact_alpha(X: np.ndarray, Ybar: np.ndarray, hyper: Hyper, dims: tuple[int, ...]) -> np.ndarray:
-    """``α = K̄⁻¹ Ȳ`` by one in-place Cholesky factorisation of ``K̄`` (no inverse kept)."""
-    r = Ybar.shape[0]
-    memory.require(f"the global α over {r} rows", int(r * r * 8 * 1.1))
-    buf = memory.square_buffer(r)
-    chol = dense.cholesky_inplace(assemble_gram(jnp.asarray(X), hyper, dims, out=buf.array))
-    alpha = dense.cho_solve(chol, Ybar)
-    del chol, buf
-    return alpha
-
-
-def _build_pic(X, Ybar, hyper, dims, part, cfg, devices=None) -> tuple[BinnedGP, dict[str, Any]]:
-    ic = cfg.inducing
-    Z = pic.inducing_inputs(X, ic.points, seed=ic.seed)
-    bins = np.asarray(part.lookup_batch(jnp.asarray(X)))
-    blocks = [np.flatnonzero(bins == b) for b in range(part.n_bins)]
-    if any(b.size == 0 for b in blocks):
-        raise ValueError("a PIC bin holds no training point; use fewer bins")
-    if devices is None:
-        factors = pic.iter_precompute(X, Ybar, hyper, dims, blocks, Z, jitter=ic.jitter)
-    else:
-        factors = pic.iter_precompute_devices(
-            X, Ybar, hyper, dims, blocks, Z, jitter=ic.jitter, devices=devices
-        )
-    points = [X[b] for b in blocks]
-    model = pack_points(points, factors, part, hyper, dims, dtype=cfg.variance_dtype, shared=Z)
-    info = {"inducing_points": int(Z.shape[0]), "block_points": [int(b.size) for b in blocks]}
-    return model, info

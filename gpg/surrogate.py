@@ -38,6 +38,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from gpg import models, parallel
+from gpg._deprecated import deprecated
 from gpg._dtype import float64
 from gpg.config import ModelConfig
 from gpg.data.bounds import Bounds
@@ -55,7 +56,8 @@ class Prediction(eqx.Module):
     """World-frame prediction for one state (or a batch, with a leading axis).
 
     ``force`` (3,) N and ``torque`` (3,) N·m about the centre of mass, aerodynamic only (add
-    gravity yourself); ``noise`` (K,) dB at the K microphones (K = 0 without noise data);
+    gravity yourself); ``levels`` (K,) tonal noise levels in dB at the K microphones (K = 0
+    without level data; called ``noise`` before gpg 0.2, a name still read with a warning);
     ``variance`` (6+K,) predictive variance of each of those components in the same frame and
     units: the GP's latent variance plus its fitted value noise ``ν²``, times each output's
     signal scale (None from ``predict_mean``); ``in_domain`` False for extrapolation or bad input.
@@ -63,9 +65,15 @@ class Prediction(eqx.Module):
 
     force: Float[Array, "*batch 3"]
     torque: Float[Array, "*batch 3"]
-    noise: Float[Array, "*batch K"]
+    levels: Float[Array, "*batch K"]
     variance: Float[Array, "*batch C"] | None
     in_domain: Bool[Array, "*batch"]
+
+    @property
+    def noise(self) -> Float[Array, "*batch K"]:
+        """Deprecated name of :attr:`levels` (the dB levels; ``noise`` is ν², the value noise)."""
+        deprecated("Prediction.noise", "Prediction.levels")
+        return self.levels
 
 
 # Below this airspeed (m/s) the airflow frame follows the body heading. Small against the
@@ -87,7 +95,7 @@ class Surrogate(eqx.Module):
     config_json: str = eqx.field(static=True)  # resolved model config, for records
     # m/s: below it the airflow frame turns toward the body heading (frames.airflow_direction)
     hover_speed: float = eqx.field(static=True, default=HOVER_SPEED)
-    noise: SimpleNoise | None = None  # M_noise, added back to the levels (None: not used)
+    noise_model: SimpleNoise | None = None  # M_noise, added back to the levels (None: not used)
 
     @classmethod
     @float64
@@ -125,13 +133,15 @@ class Surrogate(eqx.Module):
         box = None if bounds is None else Bounds.from_config(bounds).arrays()
         if noise_model and not residual:
             raise ValueError("noise_model=True needs residual=True (M_noise uses M's loads)")
-        simple = noise = None
+        simple = noise = None  # M and M_noise
         if residual:
             veh = dataset_vehicle(dataset, vehicle)
             simple = simple_model_for(dataset, veh)
             if noise_model and dataset.has_noise:
                 noise = SimpleNoise.from_vehicle(veh, simple)
-        training, built = models.train(model, dataset, simple, cfg, noise=noise, devices=devices)
+        training, built = models.train(
+            model, dataset, simple, cfg, noise_model=noise, devices=devices
+        )
         return cls.assemble(
             built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
         )
@@ -158,7 +168,7 @@ class Surrogate(eqx.Module):
             model=model,
             normalizer=training.normalizer,
             simple=training.simple,
-            noise=training.noise,
+            noise_model=training.noise_model,
             box_lo=jnp.asarray(box_lo),
             box_hi=jnp.asarray(box_hi),
             output_names=training.output_names,
@@ -174,8 +184,21 @@ class Surrogate(eqx.Module):
         return json.loads(self.config_json)
 
     @property
-    def n_noise(self) -> int:
+    def n_levels(self) -> int:
+        """Number of level outputs (microphones)."""
         return len(self.output_names) - 6
+
+    @property
+    def n_noise(self) -> int:
+        """Deprecated name of :attr:`n_levels`."""
+        deprecated("Surrogate.n_noise", "Surrogate.n_levels")
+        return self.n_levels
+
+    @property
+    def noise(self) -> SimpleNoise | None:
+        """Deprecated name of :attr:`noise_model` (``M_noise``)."""
+        deprecated("Surrogate.noise", "Surrogate.noise_model")
+        return self.noise_model
 
     # -- prediction -------------------------------------------------------------------------
 
@@ -486,7 +509,7 @@ def predict_state(
     # The GP's force and moment residuals live in H; R_out takes them to the output frame.
     R_out = matmul(R_WB(euler).T, R_WH) if body else R_WH
     force, torque = matvec(R_out, y[:3]), matvec(R_out, y[3:6])
-    levels = y[6:] if sur.noise is None else y[6:] + sur.noise(x_h)
+    levels = y[6:] if sur.noise_model is None else y[6:] + sur.noise_model(x_h)
     if sur.simple is not None:
         if body:
             f_m, t_m = sur.simple.wrench_body(rpm)
@@ -504,7 +527,7 @@ def predict_state(
     outs = [force, torque, levels] + ([] if variance is None else [variance])
     in_domain = in_domain & jnp.all(jnp.stack([jnp.all(jnp.isfinite(o)) for o in outs]))
     return Prediction(
-        force=force, torque=torque, noise=levels, variance=variance, in_domain=in_domain
+        force=force, torque=torque, levels=levels, variance=variance, in_domain=in_domain
     )
 
 
@@ -516,7 +539,7 @@ class SurrogateAero(AeroModel):
 
     def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
         p = predict_state(self.surrogate, rpm, euler_from_R(R_WB), v_air, False)
-        return Wrench(p.force, p.torque, p.noise, p.in_domain)
+        return Wrench(p.force, p.torque, p.levels, p.in_domain)
 
 
 @lru_cache(maxsize=32)

@@ -7,13 +7,13 @@ import shutil
 import numpy as np
 import pytest
 
-from gpg import checkpoint
+from gpg import checkpoint, models
 from gpg.checkpoint import CheckpointError
 from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_dataset
 
 CFG = {
-    "hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-4},
+    "hyper": {"fit": False, "lengthscale": 0.8, "noise": 1e-4},
     "partition": {"bins": 3, "points_per_bin": None},
     "near": {"budget": 0.5, "points": None},
     "inducing": {"points": 6},
@@ -27,7 +27,7 @@ def data():
 
 @pytest.fixture(scope="module")
 def surrogate(data):
-    return Surrogate.fit(data, "gpgs_hybrid", CFG)
+    return Surrogate.fit(data, "gpgs_hybrid", models.restrict("gpgs_hybrid", CFG))
 
 
 def queries(data):
@@ -43,13 +43,13 @@ def test_round_trip_bit_for_bit(data, surrogate, tmp_path, name):
     if name == "gpgs_hybrid":
         sur = surrogate
     elif name == "gpg_pic":
-        sur = Surrogate.fit(data, "gpg_pic", CFG)
+        sur = Surrogate.fit(data, "gpg_pic", models.restrict("gpg_pic", CFG))
     else:
         sur = Surrogate.fit(data, "gpg", {"hyper": {"fit": False}}, hover_speed=0.3)
     checkpoint.save(tmp_path / "ck", sur)
     back = checkpoint.load(tmp_path / "ck")
     a, b = sur.predict_batch(*queries(data)), back.predict_batch(*queries(data))
-    for field in ("force", "torque", "noise", "variance", "in_domain"):
+    for field in ("force", "torque", "levels", "variance", "in_domain"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
     assert back.config == sur.config and back.output_names == sur.output_names
     assert back.hover_speed == sur.hover_speed
@@ -242,8 +242,8 @@ def test_noise_model_round_trip(data, tmp_path):
         data, "gps_1x", {"hyper": {"fit": False}, "partition": {"bins": 2}}, noise_model=True
     )
     back = checkpoint.load(checkpoint.save(tmp_path / "ck", sur))
-    a, ta = jax.tree.flatten(sur.noise)
-    b, tb = jax.tree.flatten(back.noise)
+    a, ta = jax.tree.flatten(sur.noise_model)
+    b, tb = jax.tree.flatten(back.noise_model)
     assert ta == tb and all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
 
 
@@ -270,3 +270,26 @@ def test_load_keeps_the_saved_dtypes_in_a_float32_program(surrogate, data, tmp_p
         assert "float64" not in {
             str(x.dtype) for x in jax.tree.leaves(small) if hasattr(x, "dtype")
         }
+
+
+@pytest.mark.parametrize("which", ["hybrid_noise_model", "gpg"])
+def test_format_5_checkpoints_of_the_previous_release_load(which, data, tmp_path):
+    """Checkpoints written by the previous release (format 5, with the value noise saved as
+    ``jitter`` and M_noise as ``noise``) load with a DeprecationWarning and predict what that
+    release predicted from them (its predictions stored beside them, float64); saving again
+    writes the current format."""
+    from pathlib import Path
+
+    fixtures = Path(__file__).parent / "fixtures" / "checkpoints_v5"
+    old = tmp_path / which
+    shutil.copytree(fixtures / which, old)
+    assert checkpoint.read_metadata(old)["format_version"] == 5
+    with pytest.warns(DeprecationWarning, match="read as noise"):
+        back = checkpoint.load(old)
+    assert (back.noise_model is not None) == (which == "hybrid_noise_model")
+    p = back.predict_batch(*queries(data))
+    then = json.loads((fixtures / "predictions.json").read_text())[which]
+    for field in ("force", "torque", "levels", "variance"):
+        np.testing.assert_allclose(getattr(p, field), np.array(then[field]), rtol=1e-12, atol=1e-12)
+    checkpoint.save(old, back, overwrite=True)
+    assert checkpoint.read_metadata(old)["format_version"] == checkpoint.FORMAT_VERSION

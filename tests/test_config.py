@@ -67,3 +67,15 @@ def test_config_is_frozen_and_resolved_once():
 def test_bad_values_name_their_key(over, match):
     with pytest.raises(ValueError, match=match):
         models.resolve_config("gpgs", over)
+
+
+def test_old_noise_keys_work_with_a_deprecation_warning():
+    """hyper.jitter and friends (the value noise ν², before it was called noise) still
+    configure the same model for one release."""
+    old = {"jitter": 1e-5, "fit_jitter": False, "jitter_init": 0.05, "jitter_floor": 1e-4}
+    with pytest.warns(DeprecationWarning, match="hyper.jitter is deprecated; use hyper.noise"):
+        cfg = models.resolve_config("gpg", {"hyper": old})
+    new = {"noise": 1e-5, "fit_noise": False, "noise_init": 0.05, "noise_floor": 1e-4}
+    assert cfg == models.resolve_config("gpg", {"hyper": new})
+    with pytest.warns(DeprecationWarning):
+        assert ModelConfig.from_dict({**cfg.to_dict(), "hyper": old | {"fit": True}}).hyper.noise

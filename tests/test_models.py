@@ -34,15 +34,15 @@ pytestmark = pytest.mark.filterwarnings("ignore::gpg.gp.schur.SchurAssumptionWar
 
 @pytest.mark.parametrize("name", models.NAMES)
 def test_every_model_builds_and_predicts(training, name):
-    built = models.build(name, training, FAST)
+    built = models.build(name, training, models.restrict(name, FAST))
     Xq = training.X[:7] * 0.9
     mean, var = built.model.predict(Xq)
     assert mean.shape == (7, 9) and var.shape == (7,)
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(var))
     np.testing.assert_allclose(built.model.predict_mean(Xq), mean, rtol=1e-12, atol=1e-12)
     # The normalised latent variance: at most the signal variance, about zero on a training
-    # input (jitter 1e-8), the whole signal variance far from every training input.
-    X = models.training_arrays(name, training)[0]
+    # input (noise 1e-8), the whole signal variance far from every training input.
+    X = models.training_arrays(name, training).X
     sigma = float(built.hyper.variance)
     _, var_train = built.model.predict(X[:5])
     _, var_far = built.model.predict(np.array([[3.0] * 8, [-3.0] * 8]))
@@ -65,15 +65,17 @@ def test_every_model_builds_and_predicts(training, name):
 
 def test_exact_models_interpolate(training):
     for name in ("gpg", "gp"):
-        cfg = {"hyper": {"fit": False, "lengthscale": 1.0, "jitter": 1e-10}}
-        m, _ = models.build(name, training, cfg).model.predict(training.X[:5])
+        cfg = {"hyper": {"fit": False, "lengthscale": 1.0, "noise": 1e-10}}
+        m, _ = models.build(name, training, models.restrict(name, cfg)).model.predict(
+            training.X[:5]
+        )
         np.testing.assert_allclose(m, training.Y[:5], atol=1e-3)
 
 
 def test_hyperparameter_fit_reports(training):
     built = models.build("gpg", training, {"hyper": {"subset": 30, "max_steps": 300}})
     assert built.hyper_fit.converged, built.hyper_fit.message
-    assert built.hyper_fit.jitter_fitted and built.hyper_fit.noise_ratio >= 1e-6
+    assert built.hyper_fit.noise_fitted and built.hyper_fit.noise_ratio >= 1e-6
     assert built.hyper_fit is not None and built.hyper_fit.subset.size == 30
     assert set(built.timings) == {"hyper_s", "fit_s"} and built.timings["hyper_s"] > 0
 
@@ -86,7 +88,9 @@ def test_unknown_names_and_keys(training):
     with pytest.raises(ValueError, match=r"unknown key hyper.'sigma'"):
         models.build("gpgs", training, {"hyper": {"sigma": 1.0}})
     with pytest.raises(ValueError, match=r"unknown mean form"):
-        models.build("gpgs_schur", training, {**FAST, "mean": "median"})
+        models.build(
+            "gpgs_schur", training, models.restrict("gpgs_schur", {**FAST, "mean": "median"})
+        )
 
 
 def test_missing_data_is_named(training):
@@ -96,14 +100,14 @@ def test_missing_data_is_named(training):
     with pytest.raises(
         ValueError, match=r"model 'gpgs_schur' needs gradients, which the dataset lacks"
     ):
-        models.build("gpgs_schur", no_grad, FAST)
+        models.build("gpgs_schur", no_grad, models.restrict("gpgs_schur", FAST))
     no_raw = replace(training, X_raw=None, Y_raw=None)
     with pytest.raises(ValueError, match=r"model 'gps_8x' trains on the raw 8X samples"):
-        models.build("gps_8x", no_raw, FAST)
+        models.build("gps_8x", no_raw, models.restrict("gps_8x", FAST))
 
 
 def test_predict_traces_once(training, caplog):
-    model = models.build("gpgs_schur", training, FAST).model
+    model = models.build("gpgs_schur", training, models.restrict("gpgs_schur", FAST)).model
     model.predict(training.X[:4])
     with caplog.at_level(logging.WARNING), jax.log_compiles():
         for s in (0.1, 0.2, 0.3):
@@ -113,11 +117,13 @@ def test_predict_traces_once(training, caplog):
 
 def test_kdtree_and_paper_mean_options(training):
     cfg = {**FAST, "partition": {"scheme": "kdtree", "bins": 4}, "mean": "paper", "route": "direct"}
-    built = models.build("gpgs_schur", training, cfg)
+    built = models.build("gpgs_schur", training, models.restrict("gpgs_schur", cfg))
     assert built.model.partition.scheme == "kdtree" and built.config.mean == "paper"
     # The direct route (a factorisation of K̄_ff per bin) and the global one (one of K̄) give
     # the same predictor.
-    ref = models.build("gpgs_schur", training, {**cfg, "route": "global"})
+    ref = models.build(
+        "gpgs_schur", training, models.restrict("gpgs_schur", {**cfg, "route": "global"})
+    )
     Xq = np.concatenate([training.X[:7] * 0.9, np.random.default_rng(0).uniform(-1, 1, (20, 8))])
     m, v = built.model.predict(Xq)
     rm, rv = ref.model.predict(Xq)
@@ -131,9 +137,13 @@ def test_hybrid_mean_is_exact_and_variance_an_upper_bound(training):
     and never below the exact GP-G variance."""
     from gpg.gp import kernels, stack_targets
 
-    cfg = {**FAST, "hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-3}}
-    hyb = models.build("gpgs_hybrid", training, {**cfg, "variance_dtype": "float64"})
-    ref = models.build("gpg", training, cfg, hyper=hyb.hyper).model
+    cfg = {**FAST, "hyper": {"fit": False, "lengthscale": 0.8, "noise": 1e-3}}
+    hyb = models.build(
+        "gpgs_hybrid",
+        training,
+        models.restrict("gpgs_hybrid", {**cfg, "variance_dtype": "float64"}),
+    )
+    ref = models.build("gpg", training, models.restrict("gpg", cfg), hyper=hyb.hyper).model
     Xq = np.random.default_rng(4).uniform(-1, 1, (25, 8))
     m, v = hyb.model.predict_unclipped(Xq)
     me, ve = ref.predict_unclipped(Xq)
@@ -154,9 +164,17 @@ def test_hybrid_mean_is_exact_and_variance_an_upper_bound(training):
 
 
 def test_hybrid_float32_variance_factor(training):
-    cfg = {**FAST, "hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-3}}
-    f64 = models.build("gpgs_hybrid", training, {**cfg, "variance_dtype": "float64"}).model
-    f32 = models.build("gpgs_hybrid", training, {**cfg, "variance_dtype": "float32"}).model
+    cfg = {**FAST, "hyper": {"fit": False, "lengthscale": 0.8, "noise": 1e-3}}
+    f64 = models.build(
+        "gpgs_hybrid",
+        training,
+        models.restrict("gpgs_hybrid", {**cfg, "variance_dtype": "float64"}),
+    ).model
+    f32 = models.build(
+        "gpgs_hybrid",
+        training,
+        models.restrict("gpgs_hybrid", {**cfg, "variance_dtype": "float32"}),
+    ).model
     assert f32.nbytes() < f64.nbytes()
     Xq = np.random.default_rng(5).uniform(-1, 1, (20, 8))
     (m64, v64), (m32, v32) = f64.predict(Xq), f32.predict(Xq)
@@ -166,13 +184,19 @@ def test_hybrid_float32_variance_factor(training):
 
 def test_bad_sizes_fail_before_training(training):
     with pytest.raises(ValueError, match="inducing.points must be a positive integer"):
-        models.build("gpg_pic", training, {**FAST, "inducing": {"points": 0}})
+        models.build(
+            "gpg_pic", training, models.restrict("gpg_pic", {**FAST, "inducing": {"points": 0}})
+        )
     with pytest.raises(ValueError, match="more inducing points than the 40 training points"):
-        models.build("gpg_pic", training, {**FAST, "inducing": {"points": 41}})
+        models.build(
+            "gpg_pic", training, models.restrict("gpg_pic", {**FAST, "inducing": {"points": 41}})
+        )
     with pytest.raises(ValueError, match="partition.bins=50 exceeds the 40 training points"):
-        models.build("gpgs", training, {**FAST, "partition": {"bins": 50}})
+        models.build("gpgs", training, models.restrict("gpgs", {**FAST, "partition": {"bins": 50}}))
     with pytest.raises(ValueError, match="variance_dtype must be one of"):
-        models.build("gpgs", training, {**FAST, "variance_dtype": "float16"})
+        models.build(
+            "gpgs", training, models.restrict("gpgs", {**FAST, "variance_dtype": "float16"})
+        )
 
 
 def test_memory_is_checked_before_training(training, monkeypatch):
@@ -187,9 +211,11 @@ def test_memory_is_checked_before_training(training, monkeypatch):
 
 
 def test_lengthscale_scale(training):
-    base = models.build("gpgs", training, FAST)
+    base = models.build("gpgs", training, models.restrict("gpgs", FAST))
     half = models.build(
-        "gpgs", training, {**FAST, "hyper": {**FAST["hyper"], "lengthscale_scale": 0.5}}
+        "gpgs",
+        training,
+        models.restrict("gpgs", {**FAST, "hyper": {**FAST["hyper"], "lengthscale_scale": 0.5}}),
     )
     np.testing.assert_allclose(half.hyper.lengthscale, 0.5 * np.asarray(base.hyper.lengthscale))
 
@@ -216,8 +242,13 @@ def test_train_is_prepare_then_build_and_shares_one_hyper_fit(monkeypatch):
     monkeypatch.setattr(models, "fit_hyper", lambda *a, **k: fits.append(a[0]) or real(*a, **k))
     cfg = {**FAST, "hyper": {"subset": 20, "max_steps": 2}}
     cache: dict = {}
-    out = {n: models.train(n, ds, simple, cfg, hyper_cache=cache) for n in ("gpgs", "gpgs_hybrid")}
-    out["gps_1x"] = models.train("gps_1x", ds, simple, cfg, hyper_cache=cache)
+    out = {
+        n: models.train(n, ds, simple, models.restrict(n, cfg), hyper_cache=cache)
+        for n in ("gpgs", "gpgs_hybrid")
+    }
+    out["gps_1x"] = models.train(
+        "gps_1x", ds, simple, models.restrict("gps_1x", cfg), hyper_cache=cache
+    )
     assert fits == ["gpgs", "gps_1x"] and len(cache) == 2
     a, b = out["gpgs"][1], out["gpgs_hybrid"][1]
     np.testing.assert_array_equal(a.hyper.lengthscale, b.hyper.lengthscale)
@@ -233,7 +264,7 @@ def test_degenerate_fits_are_refused(training):
         models.build("gpg", training, {"hyper": {"fit": False, "lengthscale": 1e-300}})
     with pytest.raises(ValueError, match="at least 2 points"):
         models.build("gpg", training, {"hyper": {"subset": 1}})
-    built = models.build("gpgs", training, FAST)
+    built = models.build("gpgs", training, models.restrict("gpgs", FAST))
     broken = eqx.tree_at(lambda m: m.coef, built.model, built.model.coef.at[0, 0, 0].set(np.nan))
     with pytest.raises(ValueError, match=r"model 'gpgs': the fit produced NaN or inf in \.coef"):
         models.check_finite_model("gpgs", broken)

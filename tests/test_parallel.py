@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from gpg import parallel
-from gpg.gp import partition, pic, schur
+from gpg.gp import local, partition, pic
 from gpg.gp.gram import stack_targets
 from gpg.gp.hyper import Hyper
 
@@ -27,7 +27,7 @@ def problem(seed=0):
     X = rng.uniform(-1, 1, (90, 3))
     Y = np.stack([np.sin(3 * X[:, 0]) * X[:, 1], X[:, 2] ** 2], 1)
     dY = rng.normal(size=(90, 2, 2))
-    h = Hyper(variance=1.3, lengthscale=np.array([0.7, 0.9, 1.1]), jitter=1e-4, grad_noise=1e-3)
+    h = Hyper(variance=1.3, lengthscale=np.array([0.7, 0.9, 1.1]), noise=1e-4, grad_noise=1e-3)
     part = partition.build(X, "slab", 5, dim=0)
     near = partition.near_sets(X, part, h.lengthscale, budget=0.3)
     return X, stack_targets(Y, dY), h, near
@@ -35,8 +35,8 @@ def problem(seed=0):
 
 def test_jax_local_precompute_matches_the_lapack_path():
     X, Ybar, h, near = problem()
-    ref = schur.precompute(X, Ybar, h, (0, 1), near, route="local")
-    got = schur.precompute(X, Ybar, h, (0, 1), near, route="local", devices=1)
+    ref = local.precompute(X, Ybar, h, (0, 1), near)
+    got = local.precompute(X, Ybar, h, (0, 1), near, devices=1)
     assert len(got) == len(ref) == 5
     for a, b in zip(ref, got, strict=True):
         assert b.lower and b.n_rows == a.n_rows
@@ -82,9 +82,6 @@ def test_devices_are_checked():
         parallel.devices([])
     with pytest.raises(ValueError, match="devices must be a count or a list"):
         parallel.devices(True)
-    X, Ybar, h, near = problem()
-    with pytest.raises(ValueError, match="devices applies to the local route only"):
-        schur.precompute(X, Ybar, h, (0, 1), near, route="global", devices=1)
 
 
 def test_map_units_keeps_the_order_and_chunks_cover_the_rows():
@@ -101,11 +98,11 @@ PRECOMPUTE_SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     assert len(jax.devices()) == 4, jax.devices()
     from tests.test_parallel import pic_problem, problem
-    from gpg.gp import pic, schur
+    from gpg.gp import local, pic
 
     X, Ybar, h, near = problem()
-    one = schur.precompute(X, Ybar, h, (0, 1), near, route="local", devices=1)
-    four = schur.precompute(X, Ybar, h, (0, 1), near, route="local", devices=4)
+    one = local.precompute(X, Ybar, h, (0, 1), near, devices=1)
+    four = local.precompute(X, Ybar, h, (0, 1), near, devices=4)
     for a, b in zip(one, four, strict=True):
         assert np.array_equal(a.coef, b.coef) and np.array_equal(a.factor, b.factor)
 
@@ -142,7 +139,7 @@ SURROGATE_SCRIPT = textwrap.dedent(
     r1 = s1.replicate(1).predict_batch(rpm, euler, v, chunk=256)
     r4 = s1.replicate(4).predict_batch(rpm, euler, v, chunk=256)
     m4 = s1.replicate(4).predict_batch(rpm, euler, v, chunk=256, mean_only=True)
-    for f in ("force", "torque", "noise", "variance", "in_domain"):
+    for f in ("force", "torque", "levels", "variance", "in_domain"):
         a, b = np.asarray(getattr(r1, f)), np.asarray(getattr(r4, f))
         assert a.shape[0] == n and np.array_equal(a, b), f
         np.testing.assert_allclose(b, np.asarray(getattr(ref, f)), rtol=1e-12, atol=1e-12)
@@ -185,9 +182,9 @@ HOST_SCRIPT = textwrap.dedent(
     )
     assert len(jax.devices()) == 2 and len(jax.local_devices()) == 1
     from tests.test_parallel import problem
-    from gpg.gp import schur
+    from gpg.gp import local
     X, Ybar, h, near = problem()
-    got = schur.precompute(X, Ybar, h, (0, 1), near, route="local", devices=2)
+    got = local.precompute(X, Ybar, h, (0, 1), near, devices=2)
     flat = [f.factor.ravel() for f in got] + [f.coef.ravel() for f in got]
     np.save(sys.argv[3], np.concatenate(flat))
     """
@@ -225,7 +222,7 @@ def test_two_processes_share_the_bins_and_both_hold_every_result(tmp_path):
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err[-3000:]
     X, Ybar, h, near = problem()
-    ref = schur.precompute(X, Ybar, h, (0, 1), near, route="local", devices=1)
+    ref = local.precompute(X, Ybar, h, (0, 1), near, devices=1)
     want = np.concatenate([f.factor.ravel() for f in ref] + [f.coef.ravel() for f in ref])
     for i in range(2):
         np.testing.assert_array_equal(np.load(tmp_path / f"{i}.npy"), want)

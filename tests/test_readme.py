@@ -1,14 +1,16 @@
-"""The README's Python blocks run as written (```python blocks; ```py blocks illustrate calls
-on the reader's own files, and notebooks/04_your_own_vehicle.ipynb runs those steps). A block
-whose first line is ``# continues the block above`` runs in the namespace of the one before."""
+"""The README's and the docs pages' Python blocks run as written (```python blocks; ```py
+blocks illustrate calls on the reader's own files, and notebooks/04_your_own_vehicle.ipynb runs
+those steps). A block whose first line is ``# continues the block above`` runs in the namespace
+of the one before. Every relative link of those pages points at a file and heading that exist."""
 
 import re
 from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+PAGES = [README, *sorted((ROOT / "docs").glob("*.md"))]
 CONTINUED = "# continues the block above"
 
 
@@ -23,7 +25,12 @@ def chains(blocks: list[str]) -> list[list[str]]:
     return out
 
 
-CHAINS = chains(BLOCKS)
+def page_chains(page: Path) -> list[list[str]]:
+    return chains(re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S))
+
+
+CHAINS = page_chains(README)
+DOC_CHAINS = [(p.name, i, c) for p in PAGES[1:] for i, c in enumerate(page_chains(p))]
 
 
 @pytest.mark.parametrize("index", range(len(CHAINS)))
@@ -31,6 +38,38 @@ def test_readme_block_runs(index, capsys):
     namespace = {"__name__": "__readme__"}
     for i, block in enumerate(CHAINS[index]):
         exec(compile(block, f"README.md chain {index}, block {i}", "exec"), namespace)
+
+
+@pytest.mark.parametrize(
+    "page, index, chain", DOC_CHAINS, ids=[f"{p}-{i}" for p, i, _ in DOC_CHAINS]
+)
+def test_docs_block_runs(page, index, chain, capsys):
+    namespace = {"__name__": "__readme__"}
+    for i, block in enumerate(chain):
+        exec(compile(block, f"docs/{page} chain {index}, block {i}", "exec"), namespace)
+
+
+def _anchors(page: Path) -> set[str]:
+    """GitHub's heading anchors of a Markdown page (headings outside code blocks)."""
+    out, fence = set(), False
+    for line in page.read_text().splitlines():
+        fence ^= line.startswith("```")
+        if not fence and re.match(r"#{1,6} ", line):
+            out.add(re.sub(r"[^\w\- ]", "", line.lstrip("#").strip().lower()).replace(" ", "-"))
+    return out
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_relative_links_resolve(page):
+    broken = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+        if target.startswith(("http://", "https://", "mailto:")):
+            continue
+        path, _, anchor = target.partition("#")
+        dest = (page.parent / path).resolve() if path else page
+        if not dest.exists() or (anchor and dest.suffix == ".md" and anchor not in _anchors(dest)):
+            broken.append(target)
+    assert not broken, f"{page.name}: broken links {broken}"
 
 
 FRESH = """
@@ -44,16 +83,21 @@ exec(compile(code, "README.md", "exec"), {"__name__": "__readme__"})
 """
 
 
+ALL_CHAINS = [("README.md", i, c) for i, c in enumerate(CHAINS)] + DOC_CHAINS
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
-@pytest.mark.parametrize("index", range(len(CHAINS)))
-def test_readme_chain_in_a_fresh_interpreter(index, dtype, tmp_path):
+@pytest.mark.parametrize(
+    "page, index, chain", ALL_CHAINS, ids=[f"{p}-{i}" for p, i, _ in ALL_CHAINS]
+)
+def test_readme_chain_in_a_fresh_interpreter(page, index, chain, dtype, tmp_path):
     """As a user runs it: a new interpreter, outside the repository, in a float32 program (JAX's
     default) and in a float64 one."""
     import subprocess
     import sys
 
-    code = "\n".join(CHAINS[index])
+    code = "\n".join(chain)
     res = subprocess.run(
         [sys.executable, "-c", FRESH, dtype],
         input=code,

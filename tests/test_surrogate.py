@@ -13,7 +13,7 @@ from gpg.quadrotor.frames import rot_z
 from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_dataset
 
-EXACT = {"hyper": {"fit": False, "lengthscale": 0.8, "jitter": 1e-10, "grad_noise_scale": 1e-6}}
+EXACT = {"hyper": {"fit": False, "lengthscale": 0.8, "noise": 1e-10, "grad_noise_scale": 1e-6}}
 BINNED = {
     "hyper": {"fit": False, "lengthscale": 0.8},
     "partition": {"bins": 3, "points_per_bin": None},
@@ -47,7 +47,7 @@ def test_training_point_returns_its_label(exact, data):
         assert bool(p.in_domain)
         np.testing.assert_allclose(p.force, data.y_aero[i, :3], rtol=1e-4, atol=1e-4 * 20)
         np.testing.assert_allclose(p.torque, data.y_aero[i, 3:], rtol=1e-4, atol=1e-4)
-        np.testing.assert_allclose(p.noise, data.y_noise[i], rtol=1e-5)
+        np.testing.assert_allclose(p.levels, data.y_noise[i], rtol=1e-5)
         assert p.variance.shape == (9,) and np.all(  # ~0 here, the signal variance far away
             np.asarray(p.variance) < 1e-6 * exact.predict(*state(3 * data.x.max(0))).variance
         )
@@ -65,7 +65,7 @@ def test_world_yaw_rotates_force_and_torque(which, exact, binned, data, rng):
         q = sur.predict(rpm, euler + np.array([a, 0, 0]), R @ v)
         np.testing.assert_allclose(q.force, R @ np.asarray(p.force), atol=1e-9)
         np.testing.assert_allclose(q.torque, R @ np.asarray(p.torque), atol=1e-9)
-        np.testing.assert_allclose(q.noise, p.noise, atol=1e-9)
+        np.testing.assert_allclose(q.levels, p.levels, atol=1e-9)
         assert bool(q.in_domain) == bool(p.in_domain)
 
 
@@ -189,11 +189,11 @@ def test_predict_batch_for_every_output_set(noise, mean_only, chunk):
     sur = Surrogate.fit(ds, "gps_1x", cfg, residual=False)
     rpm, euler, v = ds.x[:, :4], ds.x[:, 4:7], np.column_stack([ds.x[:, 7], 0 * ds.x[:, :2]])
     out = sur.predict_batch(rpm, euler, v, mean_only=mean_only, chunk=chunk)
-    assert out.force.shape == (30, 3) and out.noise.shape == (30, 3 if noise else 0)
+    assert out.force.shape == (30, 3) and out.levels.shape == (30, 3 if noise else 0)
     assert (out.variance is None) == mean_only
     one = (sur.predict_mean if mean_only else sur.predict)(rpm[11], euler[11], v[11])
     np.testing.assert_allclose(out.force[11], one.force, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(out.noise[11], one.noise, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(out.levels[11], one.levels, rtol=1e-12, atol=1e-12)
     assert np.all(np.asarray(out.in_domain))
 
 
@@ -221,7 +221,7 @@ def test_foreign_data_needs_a_vehicle():
 def test_without_noise_or_residual(data):
     sur = Surrogate.fit(data.without("noise"), "gpg", EXACT, residual=False)
     p = sur.predict(*state(data.x[0]))
-    assert p.noise.shape == (0,) and p.variance.shape == (6,) and sur.simple is None
+    assert p.levels.shape == (0,) and p.variance.shape == (6,) and sur.simple is None
     np.testing.assert_allclose(p.force, data.y_aero[0, :3], rtol=1e-4, atol=2e-3)
 
 
@@ -232,9 +232,11 @@ def test_noise_model_is_added_back(data):
     from gpg.quadrotor.simple_noise import SimpleNoise
 
     sur = Surrogate.fit(data, "gpg", EXACT, noise_model=True)
-    assert isinstance(sur.noise, SimpleNoise)
+    assert isinstance(sur.noise_model, SimpleNoise)
     for i in (0, 7):
-        np.testing.assert_allclose(sur.predict(*state(data.x[i])).noise, data.y_noise[i], rtol=1e-5)
+        np.testing.assert_allclose(
+            sur.predict(*state(data.x[i])).levels, data.y_noise[i], rtol=1e-5
+        )
     with pytest.raises(ValueError, match="noise_model=True needs residual=True"):
         Surrogate.fit(data, "gps_1x", BINNED, residual=False, noise_model=True)
 
@@ -249,7 +251,7 @@ def test_body_frame_entry_point(binned, data):
     b = binned.predict_body(rpm, R, R.T @ v)
     np.testing.assert_allclose(b.force, R.T @ np.asarray(w.force), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(b.torque, R.T @ np.asarray(w.torque), rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(b.noise, w.noise, rtol=1e-12)
+    np.testing.assert_allclose(b.levels, w.levels, rtol=1e-12)
     # The variances are the same ellipsoid's diagonal in two frames: equal traces.
     np.testing.assert_allclose(b.variance[:3].sum(), w.variance[:3].sum(), rtol=1e-10)
     np.testing.assert_allclose(b.variance[6:], w.variance[6:], rtol=1e-12)
@@ -269,7 +271,7 @@ def test_jacobians_of_predict(which, exact, binned, data):
 
     def f(z):
         p = sur.predict(z[:4], z[4:7], z[7:])
-        return jnp.concatenate([p.force, p.torque, p.noise, p.variance])
+        return jnp.concatenate([p.force, p.torque, p.levels, p.variance])
 
     rpm, euler, v = state(data.x[9])
     z = jnp.asarray(np.concatenate([rpm, euler + np.array([0.2, 0.0, 0.0]), v + 0.7]))
@@ -334,3 +336,15 @@ def test_prediction_is_continuous_and_differentiable_at_vertical_airflow(synthet
     h = 1e-5
     fd = np.stack([(f(v0 + h * e) - f(v0 - h * e)) / (2 * h) for e in jnp.eye(3)], 1)
     np.testing.assert_allclose(J, fd, atol=1e-6 * np.abs(fd).max())
+
+
+def test_old_level_and_noise_model_names_warn(synthetic_surrogate):
+    """``Prediction.noise`` (the levels) and ``Surrogate.noise`` (M_noise) before gpg 0.2."""
+    sur = synthetic_surrogate
+    p = sur.predict(np.full(4, 3000.0), np.zeros(3), np.array([3.0, 0.0, 0.0]))
+    with pytest.warns(DeprecationWarning, match="Prediction.noise is deprecated"):
+        np.testing.assert_array_equal(p.noise, p.levels)
+    with pytest.warns(DeprecationWarning, match="Surrogate.noise is deprecated"):
+        assert sur.noise is sur.noise_model
+    with pytest.warns(DeprecationWarning, match="Surrogate.n_noise is deprecated"):
+        assert sur.n_noise == sur.n_levels

@@ -302,6 +302,9 @@ def _factor(field: str, unit: str | None) -> float:
     return table[unit]
 
 
+# Long by design: one pass over the CSV whose steps (columns, units, gradients, raw samples,
+# vehicle, bounds) each check and name their own input; split, they would pass a dozen
+# half-built arrays between them.
 def from_csv(
     path: str | Path,
     columns: Mapping[str, str],

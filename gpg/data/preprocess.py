@@ -92,7 +92,7 @@ class Training:
     """The GP's view of a dataset: normalised residual targets and what produced them.
 
     ``X`` (N, 8), ``Y`` (N, M), ``dY`` (N, M, 7) or None, ``X_raw``/``Y_raw`` the normalised
-    raw 8X samples or None; ``simple`` is ``M`` and ``noise`` ``M_noise`` (None when unused).
+    raw 8X samples or None; ``simple`` is ``M`` and ``noise_model`` ``M_noise`` (None when unused).
     """
 
     X: np.ndarray
@@ -103,7 +103,7 @@ class Training:
     normalizer: Normalizer
     simple: SimpleModel | None
     output_names: tuple[str, ...]
-    noise: SimpleNoise | None = None
+    noise_model: SimpleNoise | None = None
 
 
 class FittedCoefficientsWarning(UserWarning):
@@ -145,10 +145,10 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
 
 
 def residuals(
-    ds: Dataset, simple: SimpleModel | None, noise: SimpleNoise | None = None
+    ds: Dataset, simple: SimpleModel | None, noise_model: SimpleNoise | None = None
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``(y, J, y_raw)`` with ``M`` subtracted from the six aerodynamic outputs (and their
-    Jacobians and raw samples), and ``M_noise`` (``noise``) from the three levels if given;
+    Jacobians and raw samples), and ``M_noise`` (``noise_model``) from the three levels if given;
     unchanged where a model is None."""
     y, J = ds.y.copy(), None if ds.jac is None else ds.jac.copy()
     y_raw = None if ds.y_raw is None else ds.y_raw.copy()
@@ -159,25 +159,25 @@ def residuals(
             J[:, :6] -= JM
         if y_raw is not None:
             y_raw[:, :6] -= np.asarray(jax.vmap(simple)(jnp.asarray(ds.x_raw[:, :7])))
-    if noise is not None and ds.has_noise:
-        yN, JN = (np.asarray(a) for a in noise.batch(ds.x))
+    if noise_model is not None and ds.has_noise:
+        yN, JN = (np.asarray(a) for a in noise_model.batch(ds.x))
         y[:, 6:9] -= yN
         if J is not None:
             J[:, 6:9] -= JN[:, :, : J.shape[2]]
         if y_raw is not None:
-            y_raw[:, 6:9] -= np.asarray(noise.batch(ds.x_raw)[0])
+            y_raw[:, 6:9] -= np.asarray(noise_model.batch(ds.x_raw)[0])
     return y, J, y_raw
 
 
 def prepare(
     ds: Dataset,
     simple: SimpleModel | None,
-    noise: SimpleNoise | None = None,
+    noise_model: SimpleNoise | None = None,
 ) -> Training:
     """Residuals (against ``M`` and, if given, ``M_noise``) and normalisation for ``ds``; the
     statistics come from its base points (the gradient noise ``λ²`` is the model's:
     :func:`gpg.models.initial_hyper`)."""
-    y, J, y_raw = residuals(ds, simple, noise)
+    y, J, y_raw = residuals(ds, simple, noise_model)
     norm = Normalizer.fit(ds.x, y)
     X = np.asarray(norm.x(ds.x))
     Y = np.asarray(norm.y(y))
@@ -196,7 +196,7 @@ def prepare(
         normalizer=norm,
         simple=simple,
         output_names=ds.output_names,
-        noise=noise if ds.has_noise else None,
+        noise_model=noise_model if ds.has_noise else None,
     )
 
 
@@ -236,6 +236,6 @@ def restore(
     y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
     if training.simple is not None:
         y[:, :6] += np.asarray(jax.vmap(training.simple)(jnp.asarray(x)[:, :7]))
-    if training.noise is not None and y.shape[1] > 6:
-        y[:, 6:9] += np.asarray(training.noise.batch(x)[0])
+    if training.noise_model is not None and y.shape[1] > 6:
+        y[:, 6:9] += np.asarray(training.noise_model.batch(x)[0])
     return y

@@ -62,7 +62,15 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from gpg._identity import ByIdentity
 from gpg.envs.wind import Dryden
 from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan, vee
-from gpg.quadrotor.dynamics import AeroModel, Quadrotor, SimpleAero, State, Wind, quat_from_euler
+from gpg.quadrotor.dynamics import (
+    AeroModel,
+    Quadrotor,
+    SimpleAero,
+    State,
+    Wind,
+    body_parameters,
+    quat_from_euler,
+)
 from gpg.quadrotor.frames import matmul, safe_atan2
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
@@ -263,12 +271,7 @@ class QuadrotorEnv(ByIdentity):
         env = cls(
             aero=aero,
             controller=ctrl,
-            mass=vehicle.mass,
-            inertia=vehicle.inertia,
-            gravity=vehicle.gravity,
-            motor_time_constant=vehicle.motor_time_constant,
-            rpm_min=vehicle.rpm_min,
-            rpm_max=vehicle.rpm_max,
+            **body_parameters(vehicle),
             rpm_hover=simple.hover_rpm(float(vehicle.weight)),
             action_mode=action,
             substeps=substeps,
@@ -370,6 +373,8 @@ class QuadrotorEnv(ByIdentity):
         state = _cast(state, dt)
         return self.observation(state, params), state
 
+    # Long by design: one environment step in the order the physics happens (wind, actions,
+    # dynamics, observation, reward, termination); the state threads through every line.
     def step_env(
         self, key: PRNGKeyArray, state: EnvState, action, params: EnvParams
     ) -> tuple[Array, EnvState, Array, Array, dict]:

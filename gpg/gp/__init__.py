@@ -3,7 +3,8 @@
 kernels (RBF with value and gradient rows), hyper (σ, l, ν², λ²), gram (``K̄``, ``Ȳ``, the log
 likelihood), fit (hyperparameters by marginal likelihood), exact (GP-G), mean (the folded exact
 mean), predictor (the one predict interface), partition (bins and near sets), binned (the
-partitioned predictors), schur (the paper's correction and its diagnostics), pic (GP-G-PIC).
+partitioned predictor and its per-bin format), local (near-set GPs, the far set dropped), schur
+(the paper's correction and its diagnostics), hybrid (GP-G-S-Hybrid), pic (GP-G-PIC).
 """
 
 from gpg.gp.exact import ExactGP

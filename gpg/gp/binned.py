@@ -2,29 +2,82 @@
 
 One class serves GP-S, GP-G-S, GP-G-S-Schur, the hybrid's variance and GP-G-PIC: what
 differs between them is only how each bin's mean coefficients and variance factor were
-computed (:mod:`gpg.gp.schur`, :mod:`gpg.gp.pic`); :func:`pack_points` stores them padded and
-stacked so that one jitted query reads one bin.
+computed (:mod:`gpg.gp.local`, :mod:`gpg.gp.schur`, :mod:`gpg.gp.pic`), each handing over one
+:class:`BinFactors` per bin; :func:`pack_points` stores them padded and stacked so that one
+jitted query reads one bin. This module owns that per-bin format, the row order of a bin
+(:func:`near_rows`) and the padding of bins to one width (:func:`pad_units`) that both device
+precomputes use.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
-from gpg.gp import kernels, partition, schur
+from gpg.gp import kernels, partition
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import output_scale
-from gpg.gp.predictor import Predictor
+from gpg.gp.predictor import Predictor, plain
 from gpg.linalg.tri import BlockTriangular
 
-FAR = schur.FAR  # padding position of the packed near sets
+FAR = 1e3  # padding position: its kernel with any query in [-1, 1]^D underflows to 0
 FACTOR_BANDS = 8  # row bands per variance factor (gpg.linalg.tri): 56 % of the dense bytes
+
+
+@dataclass(frozen=True)
+class BinFactors:
+    """One bin, over its near rows (:func:`near_rows`, bin-local dimension-major order): mean
+    coefficients ``coef`` (r, M) and variance factor ``factor`` (r, r), triangular (``lower`` or
+    upper). An upper factor may be dense in its first ``dense_rows`` rows (PIC's inducing
+    block, :mod:`gpg.gp.pic`); below them it is triangular."""
+
+    coef: np.ndarray
+    factor: np.ndarray
+    lower: bool
+    dense_rows: int = 0
+    # ``Ȳ_bᵀ K_b⁻¹ Ȳ_b`` (M,) over the bin's own rows and their number: pooled over bins they
+    # give the per-output signal scale (:func:`gpg.gp.mean.output_scale`).
+    yty: np.ndarray | None = None
+    n_rows: int = 0
+
+
+def near_rows(near: np.ndarray, n_points: int, n_grad: int) -> np.ndarray:
+    """Rows of ``K̄`` for near points ``near``: value rows, then each gradient dimension's rows."""
+    return np.concatenate([near + k * n_points for k in range(1 + n_grad)])
+
+
+def bin_yty(Ybar_n: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """``Ȳ_nᵀ c`` per output: a bin's share of the output scale (:class:`BinFactors`)."""
+    return np.sum(Ybar_n * coef, axis=0)
+
+
+def pad_units(
+    X: np.ndarray, Ybar: np.ndarray, sets: Sequence[np.ndarray], n_grad: int
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
+    """Every point set ``X[s]`` and its target rows padded to the largest set with points at
+    :data:`FAR`, whose kernel with every real point underflows to zero: a padded ``K̄`` is block
+    diagonal, so any factorisation restricted to the real rows is the real one, and every bin
+    runs the same compiled program (bit-identical for any device count, :mod:`gpg.parallel`).
+    Returns the units ``(X_b, Ȳ_b)`` and, per set, its real rows in the padded order."""
+    n, d = X.shape
+    width = max(s.size for s in sets)
+    units, pos = [], []
+    for s in sets:
+        Xp = np.full((width, d), FAR)
+        Xp[: s.size] = X[s]
+        pos.append(near_rows(np.arange(s.size), width, n_grad))
+        Yp = np.zeros((width * (1 + n_grad), Ybar.shape[1]))
+        Yp[pos[-1]] = Ybar[near_rows(s, n, n_grad)]
+        units.append((Xp, Yp))
+    return units, pos
 
 
 class BinnedGP(Predictor):
@@ -33,7 +86,7 @@ class BinnedGP(Predictor):
     ``Xn`` (B, P, D) near points per bin, padded to P with far-away points; ``coef`` (B, M, Rp)
     mean coefficients and ``factor`` one triangular variance factor per bin (row bands, see
     :mod:`gpg.linalg.tri`) over the bin's rows (``Rp = P(1+G)``, value rows then gradient rows),
-    zero on padding; ``jitter`` the value-noise variance ``ν²`` of an observation. The mean
+    zero on padding; ``noise`` the value-noise variance ``ν²`` of an observation. The mean
     computes the query's kernel row against its own bin only, then multiplies it by every bin's
     small coefficient block and keeps its own: under ``vmap`` that is one dense product instead
     of a per-query gather of coefficients, which the CPU serves several times faster.
@@ -51,7 +104,7 @@ class BinnedGP(Predictor):
     factor: tuple[BlockTriangular, ...]
     variance: Float[Array, ""]
     lengthscale: Float[Array, "*L"]
-    jitter: Float[Array, ""]
+    noise: Float[Array, ""]
     output_scale: Float[Array, " M"]
     n_near: Int[Array, " B"]
     grad_dims: tuple[int, ...] = eqx.field(static=True)
@@ -64,9 +117,22 @@ class BinnedGP(Predictor):
     def n_outputs(self) -> int:
         return self.coef.shape[1]
 
-    @property
-    def noise(self) -> Float[Array, ""]:
-        return self.jitter
+    def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> BinnedGP:
+        return eqx.tree_at(lambda m: m.output_scale, self, jnp.asarray(scale))
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "hyperparameters": {
+                "variance": plain(self.variance),
+                "lengthscale": plain(self.lengthscale),
+                "noise": plain(self.noise),
+            },
+            "partition": {
+                "scheme": self.partition.scheme,
+                "n_bins": self.partition.n_bins,
+                "near_points": plain(self.n_near),
+            },
+        }
 
     def kernel_row(self, x: Float[Array, " D"], b: Int[Array, ""]) -> Float[Array, " Rp"]:
         """``k̄(x, X_n)`` against bin ``b``'s near set: values, then gradient rows."""
@@ -243,7 +309,7 @@ binned_quadratic_form.defjvp(_binned_quadratic_form_jvp, symbolic_zeros=True)
 
 def pack_points(
     points: Sequence[np.ndarray],
-    factors: Iterable[schur.BinFactors],
+    factors: Iterable[BinFactors],
     part: partition.Partition,
     hyper: Hyper,
     grad_dims: tuple[int, ...],
@@ -270,7 +336,7 @@ def pack_points(
         p = pts.shape[0]
         Xn[b, :p] = pts
         # Local row -> padded row is increasing, so a triangular factor stays triangular.
-        pos = np.concatenate([np.arange(up), up + schur.near_rows(np.arange(p), P, g)])
+        pos = np.concatenate([np.arange(up), up + near_rows(np.arange(p), P, g)])
         coef = np.zeros((f.coef.shape[1], Rp))
         coef[:, pos] = f.coef.T
         coefs.append(coef)
@@ -300,7 +366,7 @@ def pack_points(
         factor=tuple(bands),
         variance=hyper.variance,
         lengthscale=hyper.lengthscale,
-        jitter=hyper.jitter,
+        noise=hyper.noise,
         output_scale=jnp.asarray(scale, dtype=float),
         n_near=jnp.asarray([p.shape[0] for p in points]),
         grad_dims=grad_dims,
@@ -309,7 +375,7 @@ def pack_points(
 
 def pack(
     X: np.ndarray,
-    factors: list[schur.BinFactors],
+    factors: list[BinFactors],
     near: partition.NearSets,
     part: partition.Partition,
     hyper: Hyper,

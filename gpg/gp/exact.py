@@ -4,7 +4,7 @@ Paper, Sections "Gaussian Processes" and "Gaussian Processes with Gradient Infor
 ``N`` training inputs ``X`` (the paper's ``X_d = X_g``), ``M`` outputs ``Y`` sharing one kernel,
 and gradients ``dY`` for the ``G`` input dimensions ``grad_dims`` (Remark "no gradient": the
 other dimensions simply have no rows), the covariance ``K̄ = K̄(X_a, X_a)`` of Eq. (barK) carries
-jitter ``ν²`` on value rows and ``λ_i²`` on the rows of gradient dimension ``i``
+noise ``ν²`` on value rows and ``λ_i²`` on the rows of gradient dimension ``i``
 (Eq. gradient_covariance_noise). One Cholesky factorisation of ``K̄`` serves all ``M`` outputs:
 
 * mean ``μ = K̄_qa K̄⁻¹ Ȳ`` (Eq. GPGmean),
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -30,7 +31,7 @@ from gpg.gp import kernels, predictor
 from gpg.gp.gram import assemble_gram, check_training_data, stack_targets
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
-from gpg.gp.predictor import Predictor
+from gpg.gp.predictor import Predictor, plain
 from gpg.linalg import dense, memory
 from gpg.linalg.tri import BlockTriangular
 
@@ -127,11 +128,30 @@ class ExactGP(Predictor):
 
     @property
     def noise(self) -> Float[Array, ""]:
-        return self.hyper.jitter
+        return self.hyper.noise
 
     @property
     def n_inputs(self) -> int:
         return self.X.shape[1]
+
+    @property
+    def partition(self) -> None:
+        """No bins: every query conditions on every training row."""
+        return None
+
+    def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> ExactGP:
+        return eqx.tree_at(lambda m: m.output_scale, self, jnp.asarray(scale))
+
+    def describe(self) -> dict[str, Any]:
+        h = self.hyper
+        return {
+            "hyperparameters": {
+                "variance": plain(h.variance),
+                "lengthscale": plain(h.lengthscale),
+                "noise": plain(h.noise),
+                "grad_noise": plain(h.grad_noise),
+            }
+        }
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
         """Posterior mean (M,) at one query, Eq. (GPGmean), in the folded form of

@@ -9,6 +9,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -17,6 +18,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Float
 
+from gpg._deprecated import deprecated
 from gpg._dtype import float64
 from gpg.gp.gram import check_training_data, log_marginal_likelihood, stack_targets
 from gpg.gp.hyper import Hyper, gradient_noise
@@ -46,69 +48,37 @@ class HyperFitResult:
     message: str
     subset: np.ndarray
     grad_noise_scale: float | None
-    jitter_fitted: bool = False
+    noise_fitted: bool = False
 
     @property
     def noise_ratio(self) -> float:
         """The value-noise nugget relative to the signal variance, ``ν²/σ``."""
-        return float(self.hyper.jitter / self.hyper.variance)
+        return float(self.hyper.noise / self.hyper.variance)
 
 
-def _unpack(params, base: Hyper, grad_var, jitter_floor: float):
+def _unpack(params, base: Hyper, grad_var, noise_floor: float):
     variance = jnp.exp(params["log_variance"])
     grad_noise = base.grad_noise
     if "log_s" in params:
         grad_noise = jnp.exp(params["log_s"]) * grad_var
-    jitter = base.jitter
+    noise = base.noise
     if "log_noise_ratio" in params:
         # ν² = σ (floor + e^θ): the bound holds exactly for every θ, so an unconstrained
         # optimiser can be used (no projection, no clipping of the gradient).
-        jitter = variance * (jitter_floor + jnp.exp(params["log_noise_ratio"]))
+        noise = variance * (noise_floor + jnp.exp(params["log_noise_ratio"]))
     return Hyper(
         variance=variance,
         lengthscale=jnp.exp(params["log_lengthscale"]),
-        jitter=jitter,
+        noise=noise,
         grad_noise=grad_noise,
     )
 
 
-@float64
-def fit_hyperparameters(
-    X: Float[ArrayLike, "N D"],
-    Y: Float[ArrayLike, "N M"],
-    dY: Float[ArrayLike, "N M G"] | None = None,
-    *,
-    grad_dims: Sequence[int] | None = None,
-    init: Hyper | None = None,
-    ard: bool = True,
-    fit_grad_noise: bool = False,
-    fit_jitter: bool = True,
-    jitter_floor: float = 1e-6,
-    jitter_init: float = 1e-2,
-    subset_size: int | None = 400,
-    seed: int = 0,
-    max_steps: int = 200,
-    rtol: float = 1e-6,
-    atol: float = 1e-6,
-    on_failure: str = "warn",
-) -> HyperFitResult:
-    """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
+_RENAMED = {"fit_jitter": "fit_noise", "jitter_floor": "noise_floor", "jitter_init": "noise_init"}
 
-    Fitted: signal variance σ, lengthscale(s) ``l`` (one per input if ``ard``), the value-noise
-    nugget ``ν²`` if ``fit_jitter`` (bounded below by ``jitter_floor·σ``, started from
-    ``jitter_init·σ``; otherwise it stays as in ``init``), and, if ``fit_grad_noise``, the scale
-    ``s`` of the gradient noise ``λ_i² = s·Var(∂_i Ỹ)``. A fixed tiny ``ν²`` leaves the model
-    overconfident on data that no smooth function fits exactly (finite-difference gradients,
-    a simulator's own discretisation): the nugget is what absorbs that misfit. When N exceeds
-    ``subset_size`` the likelihood is evaluated on a random subset of that many points (drawn
-    with ``seed``), since each step factorises K̄.
 
-    ``on_failure``: ``"warn"`` (a :class:`FitWarning`, result returned with
-    ``converged=False``), ``"raise"`` (:class:`FitError`) or ``"ignore"``.
-    """
-    if on_failure not in ("warn", "raise", "ignore"):
-        raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
-    data = check_training_data(X, Y, dY, grad_dims)
+def _checked_init(data, init: Hyper | None, ard: bool, fit_grad_noise: bool, subset_size):
+    """The starting hyperparameters, checked against the data (``ValueError`` naming what)."""
     n, d = data.X.shape
     g = len(data.grad_dims)
     if n < 2 or (subset_size is not None and subset_size < 2):
@@ -121,26 +91,21 @@ def fit_hyperparameters(
         init = eqx.tree_at(lambda h: h.lengthscale, init, jnp.full(d, init.lengthscale))
     if not ard and init.lengthscale.ndim != 0:
         raise ValueError("init.lengthscale must be a scalar when ard=False")
-    init = init.validate(d, g)
     if fit_grad_noise and g == 0:
         raise ValueError("fit_grad_noise=True needs gradient observations (dY)")
-    if fit_jitter and not (0 < jitter_floor < jitter_init):
-        raise ValueError(
-            "jitter_floor and jitter_init (ν²/σ) must satisfy 0 < jitter_floor < jitter_init, "
-            f"got {jitter_floor} and {jitter_init}"
-        )
+    return init.validate(d, g)
 
-    rng = np.random.default_rng(seed)
-    if subset_size is not None and n > subset_size:
-        subset = np.sort(rng.choice(n, size=subset_size, replace=False))
-    else:
-        subset = np.arange(n)
-    Xs = jnp.asarray(data.X[subset])
-    Ys = jnp.asarray(data.Y[subset])
-    dYs = None if data.dY is None else jnp.asarray(data.dY[subset])
-    Ybar = stack_targets(Ys, dYs)
-    scale = float(Ybar.size)
 
+def _subset(n: int, size: int | None, seed: int) -> np.ndarray:
+    """The points the likelihood is evaluated on: all, or ``size`` drawn with ``seed``."""
+    if size is not None and n > size:
+        return np.sort(np.random.default_rng(seed).choice(n, size=size, replace=False))
+    return np.arange(n)
+
+
+def _initial_params(data, init: Hyper, fit_grad_noise, fit_noise, noise_init, noise_floor):
+    """The optimiser's log-parameters at ``init``, and the gradients' variances that ``s``
+    scales (None unless ``fit_grad_noise``)."""
     grad_var = None
     params = {
         "log_variance": jnp.log(init.variance),
@@ -148,32 +113,103 @@ def fit_hyperparameters(
     }
     if fit_grad_noise:
         grad_var = gradient_noise(data.dY, s=1.0)
-        lam = jnp.broadcast_to(init.grad_noise, (g,))
+        lam = jnp.broadcast_to(init.grad_noise, (len(data.grad_dims),))
         params["log_s"] = jnp.mean(jnp.log(lam / grad_var))
-    if fit_jitter:
-        params["log_noise_ratio"] = jnp.log(jnp.asarray(jitter_init - jitter_floor))
+    if fit_noise:
+        params["log_noise_ratio"] = jnp.log(jnp.asarray(noise_init - noise_floor))
+    return params, grad_var
+
+
+def _outcome(sol, hyper: Hyper, nll: float) -> tuple[bool, str]:
+    """Whether the optimiser converged to a finite likelihood, and what to say if not."""
+    ok = bool(sol.result == optx.RESULTS.successful)
+    message = "converged" if ok else f"optimistix stopped: {_result_message(sol.result)}"
+    finite = all(np.all(np.isfinite(np.asarray(v))) for v in jax.tree.leaves(hyper))
+    if ok and (not finite or nll >= 1e10):
+        ok, message = False, "the likelihood is not finite at the optimum"
+    return ok, message
+
+
+def _renamed_keywords(kw: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for old, value in kw.items():
+        if old not in _RENAMED:
+            raise TypeError(f"fit_hyperparameters() got an unexpected keyword argument {old!r}")
+        deprecated(f"fit_hyperparameters({old}=...)", f"{_RENAMED[old]}=...")
+        out[_RENAMED[old]] = value
+    return out
+
+
+# Long by design: its signature, one documented keyword per option of the fit, is a third of it.
+@float64
+def fit_hyperparameters(
+    X: Float[ArrayLike, "N D"],
+    Y: Float[ArrayLike, "N M"],
+    dY: Float[ArrayLike, "N M G"] | None = None,
+    *,
+    grad_dims: Sequence[int] | None = None,
+    init: Hyper | None = None,
+    ard: bool = True,
+    fit_grad_noise: bool = False,
+    fit_noise: bool = True,
+    noise_floor: float = 1e-6,
+    noise_init: float = 1e-2,
+    subset_size: int | None = 400,
+    seed: int = 0,
+    max_steps: int = 200,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    on_failure: str = "warn",
+    **renamed: Any,
+) -> HyperFitResult:
+    """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
+
+    Fitted: signal variance σ, lengthscale(s) ``l`` (one per input if ``ard``), the value-noise
+    nugget ``ν²`` if ``fit_noise`` (bounded below by ``noise_floor·σ``, started from
+    ``noise_init·σ``; otherwise it stays as in ``init``), and, if ``fit_grad_noise``, the scale
+    ``s`` of the gradient noise ``λ_i² = s·Var(∂_i Ỹ)``. A fixed tiny ``ν²`` leaves the model
+    overconfident on data that no smooth function fits exactly (finite-difference gradients,
+    a simulator's own discretisation): the nugget is what absorbs that misfit. When N exceeds
+    ``subset_size`` the likelihood is evaluated on a random subset of that many points (drawn
+    with ``seed``), since each step factorises K̄.
+
+    ``on_failure``: ``"warn"`` (a :class:`FitWarning`, result returned with
+    ``converged=False``), ``"raise"`` (:class:`FitError`) or ``"ignore"``. The keywords
+    ``fit_jitter``, ``jitter_floor`` and ``jitter_init`` of earlier releases are read as the
+    ``noise`` ones with a ``DeprecationWarning``.
+    """
+    new = {"fit_noise": fit_noise, "noise_floor": noise_floor, "noise_init": noise_init}
+    fit_noise, noise_floor, noise_init = {**new, **_renamed_keywords(renamed)}.values()
+    if on_failure not in ("warn", "raise", "ignore"):
+        raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
+    if fit_noise and not (0 < noise_floor < noise_init):
+        raise ValueError(
+            "noise_floor and noise_init (ν²/σ) must satisfy 0 < noise_floor < noise_init, "
+            f"got {noise_floor} and {noise_init}"
+        )
+    data = check_training_data(X, Y, dY, grad_dims)
+    init = _checked_init(data, init, ard, fit_grad_noise, subset_size)
+    subset = _subset(data.X.shape[0], subset_size, seed)
+    Xs = jnp.asarray(data.X[subset])
+    dYs = None if data.dY is None else jnp.asarray(data.dY[subset])
+    Ybar = stack_targets(jnp.asarray(data.Y[subset]), dYs)
+    scale = float(Ybar.size)
+    params, grad_var = _initial_params(
+        data, init, fit_grad_noise, fit_noise, noise_init, noise_floor
+    )
 
     def loss(p, _):
-        h = _unpack(p, init, grad_var, jitter_floor)
+        h = _unpack(p, init, grad_var, noise_floor)
         nll = -log_marginal_likelihood(Xs, Ybar, h, data.grad_dims) / scale
         # A non-PD trial point gives NaN: report it as a bad step so the line search backs off.
         return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
 
     nll0 = float(loss(params, None))
-    sol = optx.minimise(
-        loss,
-        optx.BFGS(rtol=rtol, atol=atol),
-        params,
-        max_steps=max_steps,
-        throw=False,
-    )
-    hyper = _unpack(sol.value, init, grad_var, jitter_floor)
+    solver = optx.BFGS(rtol=rtol, atol=atol)
+    sol = optx.minimise(loss, solver, params, max_steps=max_steps, throw=False)
+    hyper = _unpack(sol.value, init, grad_var, noise_floor)
     nll1 = float(loss(sol.value, None))
-    ok = bool(sol.result == optx.RESULTS.successful)
-    message = "converged" if ok else f"optimistix stopped: {_result_message(sol.result)}"
-    finite = all(np.all(np.isfinite(np.asarray(v))) for v in jax.tree.leaves(hyper))
-    if ok and (not finite or nll1 >= 1e10):
-        ok, message = False, "the likelihood is not finite at the optimum"
+    ok, message = _outcome(sol, hyper, nll1)
     result = HyperFitResult(
         hyper=hyper,
         converged=ok,
@@ -183,18 +219,23 @@ def fit_hyperparameters(
         message=message,
         subset=subset,
         grad_noise_scale=float(jnp.exp(sol.value["log_s"])) if fit_grad_noise else None,
-        jitter_fitted=fit_jitter,
+        noise_fitted=fit_noise,
     )
     if not ok:
-        text = (
-            f"hyperparameter fit did not converge after {result.num_steps} steps ({message}); "
-            f"negative log likelihood {result.nll_initial:.6g} -> {result.nll_final:.6g}"
-        )
-        if on_failure == "raise":
-            raise FitError(text)
-        if on_failure == "warn":
-            warnings.warn(text, FitWarning, stacklevel=3)
+        _failed(result, on_failure)
     return result
+
+
+def _failed(result: HyperFitResult, on_failure: str) -> None:
+    text = (
+        f"hyperparameter fit did not converge after {result.num_steps} steps "
+        f"({result.message}); negative log likelihood {result.nll_initial:.6g} -> "
+        f"{result.nll_final:.6g}"
+    )
+    if on_failure == "raise":
+        raise FitError(text)
+    if on_failure == "warn":
+        warnings.warn(text, FitWarning, stacklevel=4)
 
 
 def _result_message(result) -> str:

@@ -114,6 +114,16 @@ def assemble_gram(
     return out
 
 
+def noisy_gram(
+    X: Float[Array, "N D"], hyper: Hyper, grad_dims: tuple[int, ...]
+) -> Float[Array, "R R"]:
+    """``K̄(X, X)`` plus its noise diagonal (``ν²`` on value rows, ``λ²`` on gradient rows) in
+    JAX: the one form every traced factorisation starts from (the likelihood, the local bins
+    on devices, PIC's blocks). :func:`assemble_gram` is its host twin for large ``K̄``."""
+    K = kernels.gram(X, X, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
+    return K + jnp.diag(hyper.noise_diagonal(X.shape[0], len(grad_dims)))
+
+
 def log_marginal_likelihood(
     X: Float[Array, "N D"],
     Ybar: Float[Array, "R M"],
@@ -124,11 +134,7 @@ def log_marginal_likelihood(
 
     ``Ybar`` is the stacked target of :func:`stack_targets`.
     """
-    n = X.shape[0]
-    g = len(grad_dims)
-    K = kernels.gram(X, X, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
-    K = K + jnp.diag(hyper.noise_diagonal(n, g))
-    c, lower = jsl.cho_factor(K, lower=True)
+    c, lower = jsl.cho_factor(noisy_gram(X, hyper, grad_dims), lower=True)
     alpha = jsl.cho_solve((c, lower), Ybar)
     r, m = Ybar.shape
     return (

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from jaxtyping import Array, Float, Int
+from typing import Any
+
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from gpg.gp import partition
 from gpg.gp.binned import BinnedGP
@@ -33,7 +35,7 @@ class HybridGP(Predictor):
 
     @property
     def noise(self) -> Float[Array, ""]:
-        return self.local.jitter
+        return self.local.noise
 
     @property
     def output_scale(self) -> Float[Array, " M"]:
@@ -54,6 +56,13 @@ class HybridGP(Predictor):
     @property
     def lengthscale(self) -> Float[Array, "*L"]:
         return self.local.lengthscale
+
+    def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> HybridGP:
+        return HybridGP(mean=self.mean, local=self.local.with_output_scale(scale))
+
+    def describe(self) -> dict[str, Any]:
+        """The near sets' description: the mean shares their hyperparameters."""
+        return self.local.describe()
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
         return self.mean(x)

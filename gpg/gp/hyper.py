@@ -12,6 +12,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg import _checks
+from gpg._deprecated import deprecated
 
 
 class Hyper(eqx.Module):
@@ -20,28 +21,39 @@ class Hyper(eqx.Module):
     Attributes:
         variance: signal variance σ of the RBF kernel.
         lengthscale: radius scale ``l``: a scalar (isotropic) or one per input (ARD).
-        jitter: ``ν²`` added to the diagonal of value rows.
+        noise: ``ν²``, the value-noise variance, added to the diagonal of value rows (called
+            ``jitter`` before gpg 0.2: that name still reads and constructs it, with a
+            ``DeprecationWarning``, for one release).
         grad_noise: ``λ_i²`` added to the diagonal of the rows of gradient dimension ``i``;
             a scalar (same for all) or one per gradient dimension.
     """
 
     variance: Float[Array, ""]
     lengthscale: Float[Array, "*L"]
-    jitter: Float[Array, ""]
+    noise: Float[Array, ""]
     grad_noise: Float[Array, "*G"]
 
-    def __init__(self, variance=1.0, lengthscale=1.0, jitter=1e-8, grad_noise=1e-6):
+    def __init__(self, variance=1.0, lengthscale=1.0, noise=1e-8, grad_noise=1e-6, *, jitter=None):
+        if jitter is not None:
+            deprecated("Hyper(jitter=...)", "Hyper(noise=...)")
+            noise = jitter
         self.variance = jnp.asarray(variance, dtype=float)
         self.lengthscale = jnp.asarray(lengthscale, dtype=float)
-        self.jitter = jnp.asarray(jitter, dtype=float)
+        self.noise = jnp.asarray(noise, dtype=float)
         self.grad_noise = jnp.asarray(grad_noise, dtype=float)
+
+    @property
+    def jitter(self) -> Float[Array, ""]:
+        """Deprecated name of :attr:`noise` (``ν²``); numerical jitter is another thing."""
+        deprecated("Hyper.jitter", "Hyper.noise")
+        return self.noise
 
     def validate(self, n_inputs: int, n_grad: int) -> Hyper:
         """Check shapes and positivity against ``n_inputs`` inputs and ``n_grad`` gradient dims.
 
         Raises ``ValueError`` naming the offending field. Needs concrete values (not under jit).
         """
-        for name in ("variance", "jitter"):
+        for name in ("variance", "noise"):
             if getattr(self, name).ndim != 0:
                 raise ValueError(f"hyper.{name} must be a scalar, got {getattr(self, name).shape}")
         if self.lengthscale.shape not in ((), (n_inputs,)):
@@ -55,16 +67,16 @@ class Hyper(eqx.Module):
                 f"hyper.grad_noise must be a scalar or have shape ({n_grad},), "
                 f"got {self.grad_noise.shape}"
             )
-        for name in ("variance", "lengthscale", "jitter", "grad_noise"):
+        for name in ("variance", "lengthscale", "noise", "grad_noise"):
             _checks.require_positive(f"hyper.{name}", np.asarray(getattr(self, name)))
         return self
 
     def noise_diagonal(self, n_points: int, n_grad: int) -> Float[Array, " R"]:
         """Diagonal ``(ν², …, ν², λ_1², …, λ_G², …)`` of length ``n_points·(1+n_grad)``."""
         if n_grad == 0:
-            return jnp.full(n_points, self.jitter)
+            return jnp.full(n_points, self.noise)
         lam = jnp.broadcast_to(self.grad_noise, (n_grad,))
-        per_block = jnp.concatenate([self.jitter[None], lam])
+        per_block = jnp.concatenate([self.noise[None], lam])
         return jnp.repeat(per_block, n_points)
 
 

@@ -42,9 +42,9 @@ from jaxtyping import ArrayLike, Float
 
 from gpg import parallel
 from gpg.gp import kernels
-from gpg.gp.gram import assemble_gram
+from gpg.gp.binned import BinFactors, near_rows, pad_units
+from gpg.gp.gram import assemble_gram, noisy_gram
 from gpg.gp.hyper import Hyper
-from gpg.gp.schur import FAR, BinFactors, near_rows
 from gpg.linalg import dense
 
 
@@ -142,7 +142,7 @@ def iter_precompute(
     yielded block by block so that a consumer can store each one compactly before the next is
     computed (the dense factors of all blocks together would dominate the peak memory).
 
-    ``X`` (N, D) and ``Ybar`` (N(1+G), M) as for :func:`gpg.gp.schur.precompute`; ``blocks`` the
+    ``X`` (N, D) and ``Ybar`` (N(1+G), M) as for :func:`gpg.gp.local.precompute`; ``blocks`` the
     training indices of each bin (a partition of ``range(N)``); ``Z`` (U, D) the inducing
     inputs; ``jitter`` is added to ``K̄_uu``'s diagonal relative to it (inducing values are
     noise-free). Each :class:`BinFactors` is over the rows ``[u; b]``: the inducing rows
@@ -220,15 +220,7 @@ def iter_precompute_devices(
     devs = parallel.devices(devices)
     L_u = _inducing_factor(n, blocks, Z, hyper, dims, jitter)
     up = L_u.shape[0]
-    width = max(b.size for b in blocks)
-    units, pos = [], []
-    for idx in blocks:
-        Xp = np.full((width, X.shape[1]), FAR)
-        Xp[: idx.size] = X[idx]
-        pos.append(near_rows(np.arange(idx.size), width, g))
-        Yp = np.zeros((width * (1 + g), Ybar.shape[1]))
-        Yp[pos[-1]] = Ybar[near_rows(idx, n, g)]
-        units.append((Xp, Yp))
+    units, pos = pad_units(X, Ybar, blocks, g)
     shared = (hyper, jnp.asarray(Z), jnp.asarray(L_u))
     one = partial(_pass1_block, dims=dims)
     parts = parallel.map_units(jax.jit(one), shared, units, devs)
@@ -267,8 +259,7 @@ def _block_terms(h: Hyper, Z, L_u, Xb, dims):
     V = jsl.solve_triangular(
         L_u, kernels.gram(Z, Xb, h.variance, h.lengthscale, dims, dims), lower=True
     )
-    lam = kernels.gram(Xb, Xb, h.variance, h.lengthscale, dims, dims)
-    lam = lam + jnp.diag(h.noise_diagonal(Xb.shape[0], len(dims))) - V.T @ V
+    lam = noisy_gram(Xb, h, dims) - V.T @ V
     L = jnp.linalg.cholesky(lam)
     return V, L, jsl.solve_triangular(L, V.T, lower=True)
 

@@ -14,18 +14,33 @@ kernel; the scale is each output's closed-form maximum-likelihood amplitude,
 :func:`gpg.gp.mean.output_scale`): ``var_m = output_scale[m] · (latent + ν²)``.
 """
 
-from __future__ import annotations
-
 import abc
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from equinox import AbstractVar
 from jaxtyping import Array, ArrayLike, Float
+
+from gpg.gp.partition import Partition
 
 
 class Predictor(eqx.Module):
-    """Interface of every GP model in gpg (exact, partitioned, Schur-corrected)."""
+    """Interface of every GP model in gpg (exact, partitioned, Schur-corrected).
+
+    A subclass provides ``output_scale`` (M,), the per-output scale of the predictive variance
+    (ones for a shared scale), ``partition``, its bins (None for a model without), and
+    ``noise``, the value-noise variance ``ν²``, each as a field or a property; and the
+    abstract methods below. Callers (the builds, checkpoints, the comparison) use nothing
+    else, so a new kind of model needs no branch elsewhere.
+    """
+
+    output_scale: AbstractVar[Float[Array, " M"]]
+    partition: AbstractVar[Partition | None]
+    # Value-noise variance ν² of an observation (normalised units).
+    noise: AbstractVar[Float[Array, ""]]
 
     @property
     @abc.abstractmethod
@@ -35,14 +50,14 @@ class Predictor(eqx.Module):
     @abc.abstractmethod
     def n_outputs(self) -> int: ...
 
-    @property
     @abc.abstractmethod
-    def noise(self) -> Float[Array, ""]:
-        """Value-noise variance ``ν²`` of an observation (normalised units)."""
+    def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> "Predictor":
+        """This model with the per-output variance scale replaced by ``scale`` (M,)."""
 
-    # Every model also has ``output_scale`` (M,), the per-output scale of the predictive
-    # variance (ones for a shared scale), as a field or a property: declaring it here would
-    # make it a dataclass field of the models that implement it as a property.
+    @abc.abstractmethod
+    def describe(self) -> dict[str, Any]:
+        """Plain values a person reads in a checkpoint's metadata: at least
+        ``hyperparameters`` (signal ``variance``, ``lengthscale``, value ``noise`` ν²)."""
 
     def predictive_variance(self, var: Float[ArrayLike, "*Q"]) -> Float[Array, "*Q M"]:
         """An observation's predictive variance per output (normalised units) from the latent
@@ -57,7 +72,7 @@ class Predictor(eqx.Module):
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
         """Posterior mean and latent variance at one query."""
 
-    def mean_view(self) -> Predictor:
+    def mean_view(self) -> "Predictor":
         """A predictor whose ``mean_one`` equals this one's, holding only what the mean reads
         (for mean-only real-time loops; its variance is not to be used)."""
         return self
@@ -89,13 +104,18 @@ class Predictor(eqx.Module):
         return int(sum(x.nbytes for x in jax.tree.leaves(eqx.filter(self, eqx.is_array))))
 
 
+def plain(x: Any) -> Any:
+    """An array as nested lists (JSON-ready), for :meth:`Predictor.describe`."""
+    return np.asarray(x).tolist()
+
+
 def check_query(Xq: Array, n_inputs: int) -> None:
     if Xq.ndim != 2 or Xq.shape[1] != n_inputs:
         raise ValueError(f"Xq must have shape (Q, {n_inputs}), got {Xq.shape}")
 
 
 @eqx.filter_jit
-def _batch(model: Predictor, Xq: Array, with_var: bool):
+def _batch(model: "Predictor", Xq: Array, with_var: bool):
     check_query(Xq, model.n_inputs)
     Xq = eqx.error_if(Xq, ~jnp.all(jnp.isfinite(Xq)), "Xq holds NaN or inf")
     if with_var:

@@ -17,12 +17,14 @@ simulation rate, as a simulator querying an aerodynamic model at a fixed rate do
 from __future__ import annotations
 
 import abc
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from gpg._deprecated import deprecated
 from gpg.quadrotor.frames import matvec
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
@@ -102,8 +104,14 @@ class Wrench(eqx.Module):
 
     force: Float[Array, " 3"]
     torque: Float[Array, " 3"]
-    noise: Float[Array, " K"]
+    levels: Float[Array, " K"]
     in_domain: Bool[Array, ""]
+
+    @property
+    def noise(self) -> Float[Array, " K"]:
+        """Deprecated name of :attr:`levels`."""
+        deprecated("Wrench.noise", "Wrench.levels")
+        return self.levels
 
 
 class AeroModel(eqx.Module):
@@ -155,6 +163,19 @@ class Wind(eqx.Module):
         )
 
 
+def body_parameters(vehicle: Vehicle) -> dict[str, Any]:
+    """The rigid body and motors of ``vehicle`` as the dynamics read them (mass, inertia,
+    gravity, motor lag, rotor speed limits)."""
+    return {
+        "mass": vehicle.mass,
+        "inertia": vehicle.inertia,
+        "gravity": vehicle.gravity,
+        "motor_time_constant": vehicle.motor_time_constant,
+        "rpm_min": vehicle.rpm_min,
+        "rpm_max": vehicle.rpm_max,
+    }
+
+
 class Quadrotor(eqx.Module):
     """Rigid body + motors of a vehicle, with an aerodynamic model."""
 
@@ -171,16 +192,7 @@ class Quadrotor(eqx.Module):
     def from_vehicle(
         cls, vehicle: Vehicle, aero: AeroModel, *, hold_aero: bool = True
     ) -> Quadrotor:
-        return cls(
-            aero=aero,
-            mass=vehicle.mass,
-            inertia=vehicle.inertia,
-            gravity=vehicle.gravity,
-            motor_time_constant=vehicle.motor_time_constant,
-            rpm_min=vehicle.rpm_min,
-            rpm_max=vehicle.rpm_max,
-            hold_aero=hold_aero,
-        )
+        return cls(aero=aero, hold_aero=hold_aero, **body_parameters(vehicle))
 
     def wrench(self, s: State, wind_velocity: Float[Array, " 3"]) -> Wrench:
         return self.aero.wrench(s.rpm, s.R, s.v - wind_velocity, s.w)

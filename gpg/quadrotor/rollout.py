@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from gpg._deprecated import deprecated
 from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, State, Wind
 from gpg.quadrotor.frames import euler_from_R
@@ -29,8 +30,14 @@ class Trace(eqx.Module):
     rpm_cmd: Float[Array, "T 4"]
     ref_p: Float[Array, "T 3"]
     force: Float[Array, "T 3"]
-    noise: Float[Array, "T K"]
+    levels: Float[Array, "T K"]
     in_domain: Bool[Array, " T"]
+
+    @property
+    def noise(self) -> Float[Array, "T K"]:
+        """Deprecated name of :attr:`levels`."""
+        deprecated("Trace.noise", "Trace.levels")
+        return self.levels
 
 
 def simulate(
@@ -58,7 +65,7 @@ def simulate(
             rpm_cmd=cmd,
             ref_p=ref.p,
             force=wr.force,
-            noise=wr.noise,
+            levels=wr.levels,
             in_domain=wr.in_domain,
         )
         return new, rec

@@ -76,7 +76,7 @@ def bench_exact_gp(cfg: dict[str, Any]) -> dict[str, Any]:
     n, d, dims = cfg["n_points"], cfg["n_inputs"], tuple(cfg["grad_dims"])
     reps = cfg["repeats"]
     X, Y, dY = _synthetic(n, d, dims, cfg["n_outputs"], cfg["seed"])
-    hyper = Hyper(variance=1.0, lengthscale=cfg["lengthscale"], jitter=1e-8, grad_noise=1e-6)
+    hyper = Hyper(variance=1.0, lengthscale=cfg["lengthscale"], noise=1e-8, grad_noise=1e-6)
     hyper = hyper.validate(d, len(dims))
     Xj = jnp.asarray(X)
     rows = n * (1 + len(dims))
@@ -138,7 +138,7 @@ def _float32_check(sur, test, states, n: int) -> dict[str, Any]:
     R, E, V = (np.stack(a) for a in zip(*world_states(test.x, test.n), strict=True))
 
     def stack(p):
-        return np.concatenate([np.asarray(p.force), np.asarray(p.torque), np.asarray(p.noise)], 1)
+        return np.concatenate([np.asarray(p.force), np.asarray(p.torque), np.asarray(p.levels)], 1)
 
     p64 = sur.predict_batch(R, E, V)
     with jax.enable_x64(False):
@@ -217,6 +217,7 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+# Long by design: a measurement script read top to bottom (set-up, each timed step, record).
 def bench_devices(cfg: dict[str, Any]) -> dict[str, Any]:
     """Per-bin precompute, batched prediction and generation over 1..n devices or workers."""
     from gpg import models
@@ -301,13 +302,13 @@ def _prediction_fn(sur):
 
     def f(z):
         p = predict_state(sur, z[:4], z[4:7], z[7:10], True)
-        return jnp.concatenate([p.force, p.torque, p.noise, p.variance])
+        return jnp.concatenate([p.force, p.torque, p.levels, p.variance])
 
     return f
 
 
-def _groups(n_noise: int) -> dict[str, slice]:
-    k = 6 + n_noise
+def _groups(n_levels: int) -> dict[str, slice]:
+    k = 6 + n_levels
     return {
         "force": slice(0, 3),
         "torque": slice(3, 6),
@@ -316,6 +317,7 @@ def _groups(n_noise: int) -> dict[str, slice]:
     }
 
 
+# Long by design: a measurement script read top to bottom (set-up, each timed step, record).
 def bench_derivatives(cfg: dict[str, Any]) -> dict[str, Any]:
     """Autodiff Jacobians of every model's surrogate against central differences."""
     from gpg import models
@@ -363,7 +365,7 @@ def bench_derivatives(cfg: dict[str, Any]) -> dict[str, Any]:
         J64 = np.asarray(J_rev64)
         values = np.asarray(jax.jit(jax.vmap(f64))(Z))
         res: dict[str, Any] = {"in_domain": float(np.mean(_in_domain(sur, Z)))}
-        for g, sl in _groups(sur.n_noise).items():
+        for g, sl in _groups(sur.n_levels).items():
             if sl.stop == sl.start:
                 continue
             jmax = np.max(np.abs(J_fd[:, sl]), axis=(1, 2))
@@ -396,7 +398,7 @@ def _stencil_crosses_bins(sur, Z, H) -> np.ndarray:
     another bin than the state itself (always False for an unpartitioned model)."""
     from gpg.quadrotor.frames import to_airflow_frame
 
-    part = getattr(sur.model, "partition", None)
+    part = sur.model.partition
     if part is None:
         return np.zeros(Z.shape[0], bool)
 

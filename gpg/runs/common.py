@@ -90,8 +90,9 @@ def deep_merge(base: dict[str, Any], over: dict[str, Any] | None) -> dict[str, A
 
 def set_dispatch(cfg: Mapping[str, Any]) -> None:
     """Apply ``cfg['sync_dispatch']`` (default true): run JAX CPU computations on the calling
-    thread. JAX otherwise runs them on a worker thread, and waking the caller afterwards costs
-    10-50 µs of noisy latency per call, more than a mean prediction (see the README)."""
+    thread. JAX otherwise runs them on a worker thread, and waking the caller afterwards adds a
+    noisy latency per call comparable to a mean prediction (the README's real-time quick start
+    says how much)."""
     jax.config.update("jax_cpu_enable_async_dispatch", not cfg.get("sync_dispatch", True))
 
 
@@ -154,7 +155,7 @@ def fit_model(
     simple: SimpleModel | None,
     hyper_cache: dict,
     *,
-    noise: SimpleNoise | None = None,
+    noise_model: SimpleNoise | None = None,
     measure_memory: bool = False,
     devices=None,
 ) -> Fitted:
@@ -169,7 +170,13 @@ def fit_model(
 
     with memory.PeakRSS() if measure_memory else contextlib.nullcontext() as mem:
         training, built = models.train(
-            name, train, simple, mcfg, noise=noise, hyper_cache=hyper_cache, devices=devices
+            name,
+            train,
+            simple,
+            mcfg,
+            noise_model=noise_model,
+            hyper_cache=hyper_cache,
+            devices=devices,
         )
     return Fitted(
         training,
@@ -226,6 +233,21 @@ def surrogate_from_config(cfg: Mapping[str, Any], vehicle) -> Any:
     model = dict(cfg["model"])
     name = model.pop("name")
     return Surrogate.fit(load_train(cfg), name, model, vehicle=vehicle)
+
+
+def flight_setup(cfg: Mapping[str, Any], options: Mapping[str, str]):
+    """What every flight experiment starts with: its ``options`` checked, the dispatch set,
+    the vehicle and the surrogate (:func:`surrogate_from_config`), which must carry the
+    simplified model ``M`` the controller is designed on."""
+    from gpg.quadrotor.vehicle import Vehicle
+
+    check_options(cfg, options)
+    set_dispatch(cfg)
+    vehicle = Vehicle.from_config(cfg["vehicle"])
+    sur = surrogate_from_config(cfg, vehicle)
+    if sur.simple is None:
+        raise ValueError("the surrogate has no simplified model; the controller needs one")
+    return vehicle, sur
 
 
 def machine() -> dict[str, Any]:

@@ -10,6 +10,8 @@ prediction time (median and p95) with its ratio to ``gp`` as in the paper's Tabl
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -38,8 +40,8 @@ from gpg.runs.common import (
     set_dispatch,
     table,
     world_states,
-    write_json,
 )
+from gpg.runs.results import Comparison, ModelRun, Run, Skipped, write_results
 from gpg.surrogate import Surrogate
 
 AIRSPEED_BINS = 10
@@ -129,71 +131,90 @@ def evaluate(
     simple,
     hyper_cache: dict,
     n_queries: int,
-    noise=None,
+    noise_model=None,
     devices=None,
-) -> dict[str, Any]:
-    """Build one model and measure it (see module docstring); ``noise`` is ``M_noise`` or None;
+) -> tuple[ModelRun, np.ndarray]:
+    """Build one model and measure it (see module docstring): its :class:`ModelRun` and the
+    absolute test errors (Q, M) the figures draw. ``noise_model`` is ``M_noise`` or None;
     ``devices`` spreads the local models' per-bin precompute (:mod:`gpg.parallel`)."""
     fitted = fit_model(
-        name, mcfg, train, simple, hyper_cache, noise=noise, measure_memory=True, devices=devices
+        name,
+        mcfg,
+        train,
+        simple,
+        hyper_cache,
+        noise_model=noise_model,
+        measure_memory=True,
+        devices=devices,
     )
-    training, built, timings = fitted.training, fitted.built, fitted.timings
-    hyper, fit_res = built.hyper, fitted.hyper_fit
-
+    training, built = fitted.training, fitted.built
     norm = training.normalizer
     Xn = np.asarray(norm.x(test.x))
     mean_n, var_n = _predict_test(built.model, Xn)
     y_pred = restore(training, test.x, mean_n)
     # A variance below zero is a model failure (Schur): counted, and kept out of NLPD/coverage.
-    negative = var_n < -1e-10 * float(hyper.variance)
+    negative = var_n < -1e-10 * float(built.hyper.variance)
     # Predictive variance of an observation: output scale × (latent variance + noise ν²).
     var_y = np.asarray(built.model.predictive_variance(var_n)) * np.asarray(norm.y_std) ** 2
     y_true = test.y[:, : y_pred.shape[1]]
     names = list(training.output_names)
-    part = getattr(built.model, "partition", None)
+    part = built.model.partition
     if part is None or part.n_bins == 1:  # no boundary of its own: the paper's 10 slabs
         part = models.build_partition(training.X, ModelConfig())
-    res: dict[str, Any] = {
-        "model": name,
-        "title": models.SPECS[name].title,
-        "config": mcfg.to_dict(),
-        **timings,
-        "train_s": float(sum(timings.values())),
+    abs_err = np.abs(y_pred - y_true)
+    lo, hi = float(train.x[:, 7].min()), float(train.x[:, 7].max())
+    lat = _latencies(built.model, training, train, name, mcfg, test, n_queries)
+    run = ModelRun(
+        model=name,
+        title=models.SPECS[name].title,
+        config=mcfg.to_dict(),
+        timings=dict(fitted.timings),
+        train_s=float(sum(fitted.timings.values())),
         **metrics(y_true, y_pred, var_y, names, valid=~negative),
-        "negative_variance_count": int(negative.sum()),
-        "negative_variance_fraction": float(negative.mean()),
-        "continuity": continuity(built.model, part, Xn, np.asarray(norm.y_std), names),
+        negative_variance_count=int(negative.sum()),
+        negative_variance_fraction=float(negative.mean()),
+        continuity=continuity(built.model, part, Xn, np.asarray(norm.y_std), names),
+        **_hyper_record(built, fitted.hyper_fit),
+        model_bytes=built.model.nbytes(),
+        peak_memory_bytes=fitted.peak_memory_bytes,
+        error_vs_airspeed=error_vs_airspeed(test.x[:, 7], abs_err, lo, hi),
+        **lat,
+    )
+    return run, abs_err
+
+
+def _hyper_record(built: models.Built, fit_res) -> dict[str, Any]:
+    """The hyperparameters, output scales and near sets of a built model, as recorded."""
+    hyper = built.hyper
+    near = built.near
+    return {
         "output_scale": np.asarray(built.model.output_scale).tolist(),
         "hyper_converged": None if fit_res is None else bool(fit_res.converged),
         "lengthscale": np.asarray(hyper.lengthscale).tolist(),
         "signal_variance": float(hyper.variance),
-        "noise_variance": float(hyper.jitter),
-        "noise_ratio": float(hyper.jitter / hyper.variance),
+        "noise_variance": float(hyper.noise),
+        "noise_ratio": float(hyper.noise / hyper.variance),
         "diagnostics": built.diagnostics,
-        "near_fraction": None if built.near is None else float(np.mean(built.near.fraction)),
+        "near_fraction": None if near is None else float(np.mean(near.fraction)),
         # The smallest kernel correlation admitted to a near set (mean over bins): far points
         # correlate up to about this with the bin, so the Schur forms' k_qf ≈ 0 needs it ≪ 1.
-        "near_epsilon": None if built.near is None else float(np.mean(built.near.epsilon)),
-        "model_bytes": built.model.nbytes(),
-        "peak_memory_bytes": fitted.peak_memory_bytes,
+        "near_epsilon": None if near is None else float(np.mean(near.epsilon)),
     }
-    lo, hi = float(train.x[:, 7].min()), float(train.x[:, 7].max())
-    res["error_vs_airspeed"] = error_vs_airspeed(test.x[:, 7], np.abs(y_pred - y_true), lo, hi)
 
-    sur = Surrogate.assemble(built.model, training, train, name, mcfg)
+
+def _latencies(model, training, train, name, mcfg, test, n_queries) -> dict[str, float]:
+    """Single world-frame query latency (ms) of the assembled surrogate, with and without
+    the variance."""
+    sur = Surrogate.assemble(model, training, train, name, mcfg)
     states = world_states(test.x, n_queries)
     lat = latency(sur.realtime(with_var=True), states, n_queries)
     fast = latency(sur.realtime(with_var=False), states, n_queries)
-    res.update(
-        predict_ms_median=lat["median_s"] * 1e3,
-        predict_ms_p95=lat["p95_s"] * 1e3,
-        predict_mean_ms_median=fast["median_s"] * 1e3,
-        predict_mean_ms_p95=fast["p95_s"] * 1e3,
-    )
-    # Kept for the figures, not written to results.json.
-    res["_abs_err"] = np.abs(y_pred - y_true)
-    res["_label"] = label
-    return res
+    return {
+        "predict_ms_median": lat["median_s"] * 1e3,
+        "predict_ms_p95": lat["p95_s"] * 1e3,
+        "predict_mean_ms_median": fast["median_s"] * 1e3,
+        "predict_mean_ms_p95": fast["p95_s"] * 1e3,
+    }
 
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -210,43 +231,44 @@ def _variant_label(name: str, over: dict[str, Any]) -> str:
     return name + "[" + ",".join(f"{k}={v}" for k, v in sorted(_flat(over).items())) + "]"
 
 
-def _rows(results: dict[str, Any], names: list[str]) -> list[dict[str, Any]]:
+def _rows(results: dict[str, Run], names: list[str]) -> list[dict[str, Any]]:
     rows = []
-    ref = results.get("gp", {}).get("predict_ms_median")
+    ref = results.get("gp")
+    ref_ms = ref.predict_ms_median if isinstance(ref, ModelRun) else None
     for label, r in results.items():
-        if "skipped" in r:
+        if not isinstance(r, ModelRun):
             continue
-        cont = r.get("continuity") or {}
-        jm, js = cont.get("mean_jump_max") or {}, cont.get("std_jump_max") or {}
+        jm = r.continuity.get("mean_jump_max") or {}
+        js = r.continuity.get("std_jump_max") or {}
         row = {
             "label": label,
-            "train": r["train_s"],
-            "pm": r["predict_ms_median"],
-            "pmm": r["predict_mean_ms_median"] * 1e3,
-            "p95": r["predict_ms_p95"],
-            "ratio": 100 * r["predict_ms_median"] / ref if ref else None,
-            "nlpd": r["nlpd_mean"],
-            "cov": r["coverage95_mean"],
-            "neg": r["negative_variance_count"],
+            "train": r.train_s,
+            "pm": r.predict_ms_median,
+            "pmm": r.predict_mean_ms_median * 1e3,
+            "p95": r.predict_ms_p95,
+            "ratio": 100 * r.predict_ms_median / ref_ms if ref_ms else None,
+            "nlpd": r.nlpd_mean,
+            "cov": r.coverage95_mean,
+            "neg": r.negative_variance_count,
             "jump": jm.get(names[0]),
             "sjump": js.get(names[0]),
-            "near": r["near_fraction"],
-            "eps": r["near_epsilon"],
-            "mb": r["model_bytes"] / 2**20,
-            "peak": r["peak_memory_bytes"] / 2**20,
+            "near": r.near_fraction,
+            "eps": r.near_epsilon,
+            "mb": r.model_bytes / 2**20,
+            "peak": r.peak_memory_bytes / 2**20,
         }
         for n in names:
-            row[n] = r["mae"][n]
+            row[n] = r.mae[n]
         rows.append(row)
     return rows
 
 
-def _skipped(results: dict[str, Any]) -> str:
-    lines = [f"- {k}: skipped ({r['skipped']})" for k, r in results.items() if "skipped" in r]
+def _skipped(results: dict[str, Run]) -> str:
+    lines = [f"- {k}: skipped ({r.reason})" for k, r in results.items() if isinstance(r, Skipped)]
     return "\n\n" + "\n".join(lines) if lines else ""
 
 
-def _table_md(results: dict[str, Any], names: list[str]) -> str:
+def _table_md(results: dict[str, Run], names: list[str]) -> str:
     """Every column (results.md)."""
     cols = [
         ("label", "model", ""),
@@ -269,7 +291,7 @@ def _table_md(results: dict[str, Any], names: list[str]) -> str:
     return table(_rows(results, names), cols) + _skipped(results)
 
 
-def _table_short(results: dict[str, Any], names: list[str]) -> str:
+def _table_short(results: dict[str, Run], names: list[str]) -> str:
     """The columns that fit a terminal (printed and logged; results.md has them all)."""
     show = [n for n in ("Fx", "Mx", "L1") if n in names] or names[:3]
     cols = [
@@ -310,27 +332,11 @@ def noise_reference(noise: SimpleNoise, train: Dataset, test: Dataset) -> dict[s
 
 @float64
 def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Compare the models of ``model_cfgs`` (name -> config) on the configured data."""
+    """Compare the models of ``model_cfgs`` (name -> config) on the configured data; returns
+    what ``results.json`` holds (:func:`gpg.runs.results.write_results`)."""
     outdir = Path(outdir)
-    check_options(
-        cfg,
-        {
-            "n_queries": "count",
-            "figures": "bool",
-            "sync_dispatch": "bool",
-            "model_overrides": "mapping?",
-            "variants": "mapping?",
-            "devices": "devices",
-            "cache_dir": "path",
-        },
-    )
-    if not model_cfgs:
-        raise ValueError(f"no model to compare; valid names: {list(models.NAMES)}")
-    resolved = {}
-    for name, mc in model_cfgs.items():
-        # Unknown names and keys fail here, before any data is generated or loaded.
-        resolved[name] = models.resolve_config(name, deep_merge(mc, cfg.get("model_overrides")))
-    single = len(resolved) == 1
+    check_options(cfg, OPTIONS)
+    resolved = resolve_models(model_cfgs, cfg.get("model_overrides"))
     flags = noise_flags(cfg.get("noise_model", False))
     # Devices only overlap with JAX's asynchronous CPU dispatch (fixed when JAX starts).
     set_dispatch(
@@ -341,29 +347,77 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
     vehicle = Vehicle.from_config(cfg["vehicle"])
     simple = simple_model_for(train, vehicle)
     report(f"data: {train.summary()}\ntest: {test.n} points")
-
     noise = None
     if any(flags) and train.has_noise:
         noise = SimpleNoise.from_vehicle(vehicle, simple)
+    jobs = _jobs(resolved, cfg.get("variants"), flags)
+    single = len(resolved) == 1
+    # Everything that can fail from sizes alone (missing data, bins or inducing points beyond
+    # the data, memory) fails here, before any model is trained.
+    training = prepare(train, simple, None)  # sizes only: the same with or without M_noise
+    ready, results = _feasible(jobs, training, single)
+    errors = _run_jobs(ready, results, cfg, train, test, simple, noise, single)
+    comp = _record(cfg, resolved, results, errors, train, test, data_info, noise, outdir)
+    comp = dataclasses.replace(comp, wall_s=time.perf_counter() - t_start)
+    write_results(outdir / "results.json", comp)
+    _write_tables(outdir, comp, train, test)
+    return json.loads((outdir / "results.json").read_text())
+
+
+OPTIONS = {
+    "n_queries": "count",
+    "figures": "bool",
+    "sync_dispatch": "bool",
+    "model_overrides": "mapping?",
+    "variants": "mapping?",
+    "devices": "devices",
+    "cache_dir": "path",
+}
+
+
+def resolve_models(
+    model_cfgs: dict[str, dict[str, Any]], overrides: dict[str, Any] | None
+) -> dict[str, ModelConfig]:
+    """Each model's resolved config with the keys of ``overrides`` it reads merged in (a key
+    that no model of the run reads is an error: it would change nothing). Unknown names, keys
+    and values fail here, before any data is generated or loaded."""
+    if not model_cfgs:
+        raise ValueError(f"no model to compare; valid names: {list(models.NAMES)}")
+    overrides = dict(overrides or {})
+    for name in model_cfgs:
+        models.resolve_config(name)  # an unknown name fails before the overrides are read
+    read = {k for name in model_cfgs for k in models.reads(name)}
+    unread = sorted(set(overrides) - read)
+    if unread:
+        raise ValueError(
+            f"model_overrides {unread} are read by none of the models {list(model_cfgs)}"
+        )
+    out = {}
+    for name, mc in model_cfgs.items():
+        out[name] = models.resolve_config(name, deep_merge(mc, models.restrict(name, overrides)))
+    return out
+
+
+def _jobs(resolved, variants, flags) -> list[tuple[str, str, ModelConfig, bool]]:
+    """(label, name, config, with M_noise) of every run: each model, its variants, and each
+    of them once per ``noise_model`` flag."""
     jobs = []
     for name, mc in resolved.items():
         runs = [(name, mc)]
-        for over in (cfg.get("variants") or {}).get(name, []):
-            runs.append(
-                (
-                    _variant_label(name, over),
-                    models.resolve_config(name, deep_merge(mc.to_dict(), over)),
-                )
-            )
+        for over in (variants or {}).get(name, []):
+            label = _variant_label(name, over)
+            runs.append((label, models.resolve_config(name, deep_merge(mc.to_dict(), over))))
         for with_noise in flags:
             # With both, the M_noise runs carry a suffix; the runs without keep the plain label.
             tag = "+M_noise" if with_noise and len(flags) == 2 else ""
             jobs += [(label + tag, name, m, with_noise) for label, m in runs]
-    results: dict[str, Any] = {}
-    # Everything that can fail from sizes alone (missing data, bins or inducing points beyond
-    # the data, memory) fails here, before any model is trained.
-    ready = []
-    training = prepare(train, simple, None)  # sizes only: the same with or without M_noise
+    return jobs
+
+
+def _feasible(jobs, training, single: bool):
+    """The jobs that pass :func:`gpg.models.check_feasible`, and a :class:`Skipped` for each
+    other one (or the error itself when only one model was asked for)."""
+    ready, results = [], {}
     for label, name, mc, with_noise in jobs:
         try:
             models.check_feasible(name, mc, training)
@@ -371,17 +425,23 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         except (ValueError, memory.InsufficientMemory) as exc:
             if single:
                 raise
-            results[label] = {"model": name, "skipped": str(exc)}
+            results[label] = Skipped(name, str(exc))
             report(f"{label}: skipped: {exc}")
+    return ready, results
+
+
+def _run_jobs(ready, results, cfg, train, test, simple, noise, single) -> dict[str, np.ndarray]:
+    """Build and measure every ready job into ``results``; the absolute errors by label."""
     # Hyperparameters are shared between the models fitted on the same targets only: the
     # residuals against M_noise are other targets than the levels themselves.
     hyper_caches: dict[bool, dict] = {False: {}, True: {}}
+    errors = {}
     bar = tqdm(ready, desc="models", unit="model")
     for label, name, mc, with_noise in bar:
         bar.set_postfix_str(label)
         _interrupt.check()  # a deferred Ctrl-C stops between models
         try:
-            results[label] = evaluate(
+            results[label], errors[label] = evaluate(
                 label,
                 name,
                 mc,
@@ -396,41 +456,46 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
         except (ValueError, memory.InsufficientMemory) as exc:
             if single:
                 raise
-            results[label] = {"model": name, "skipped": str(exc)}
+            results[label] = Skipped(name, str(exc))
             report(f"{label}: skipped: {exc}")
-    if all("skipped" in r for r in results.values()):
-        raise ValueError("no model could run: " + "; ".join(r["skipped"] for r in results.values()))
+    if not errors:
+        raise ValueError("no model could run: " + "; ".join(r.reason for r in results.values()))
+    return errors
 
-    names = list(next(r for r in results.values() if "skipped" not in r)["mae"])
+
+def _record(cfg, resolved, results, errors, train, test, data_info, noise, outdir) -> Comparison:
+    """The :class:`Comparison` of a finished run (figures drawn, latency ratios to ``gp``)."""
+    names = list(next(r for r in results.values() if isinstance(r, ModelRun)).mae)
     figures = []
     if cfg.get("figures", True):
         from gpg.runs import plots
 
-        figures = plots.compare_figures(results, names, outdir / "figures")
-    clean = {
-        k: {kk: vv for kk, vv in v.items() if not kk.startswith("_")} for k, v in results.items()
-    }
-    ref = clean.get("gp", {}).get("predict_ms_median")
-    for r in clean.values():
-        if "skipped" not in r and ref:
-            r["predict_ratio_to_gp"] = r["predict_ms_median"] / ref
-    reference = noise_reference(noise, train, test) if noise is not None else None
-    out = {
-        "machine": machine(),
-        "data": data_info,
-        "noise_reference": reference,
-        "n_train": train.n,
-        "n_test": test.n,
-        "outputs": names,
-        "models": clean,
-        "figures": [str(p.relative_to(outdir)) for p in figures],
-        "wall_s": time.perf_counter() - t_start,
-        "config": {**cfg, "models": {k: v.to_dict() for k, v in resolved.items()}},
-    }
-    write_json(outdir / "results.json", out)
-    md = _table_md(results, names)
+        figures = plots.compare_figures(results, errors, names, outdir / "figures")
+    ref = results.get("gp")
+    if isinstance(ref, ModelRun):
+        for label, r in results.items():
+            if isinstance(r, ModelRun):
+                ratio = r.predict_ms_median / ref.predict_ms_median
+                results[label] = dataclasses.replace(r, predict_ratio_to_gp=ratio)
+    return Comparison(
+        models=results,
+        outputs=names,
+        n_train=train.n,
+        n_test=test.n,
+        data=data_info,
+        noise_reference=noise_reference(noise, train, test) if noise is not None else None,
+        figures=[str(p.relative_to(outdir)) for p in figures],
+        wall_s=0.0,
+        machine=machine(),
+        config={**cfg, "models": {k: v.to_dict() for k, v in resolved.items()}},
+    )
+
+
+def _write_tables(outdir: Path, comp: Comparison, train: Dataset, test: Dataset) -> None:
+    """``results.md`` (every column) and the short table on the terminal and in the log."""
+    names, reference = comp.outputs, comp.noise_reference
     header = (
-        f"# Comparison on {data_info.get('key') or data_info.get('train')}\n\n"
+        f"# Comparison on {comp.data.get('key') or comp.data.get('train')}\n\n"
         f"{train.n} training points, {test.n} test points; errors in N, N·m and dB; "
         "predict = one world-frame query, mean and variance (`Surrogate.realtime`).\n\n"
     )
@@ -442,7 +507,6 @@ def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]
             + ", ".join(f"{k} {v:.3g}" for k, v in reference["training_mean"].items())
             + ".\n\n"
         )
-    (outdir / "results.md").write_text(header + md + "\n")
-    report(_table_short(results, names))
-    report(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({out['wall_s']:.0f} s)")
-    return out
+    (outdir / "results.md").write_text(header + _table_md(comp.models, names) + "\n")
+    report(_table_short(comp.models, names))
+    report(f"wrote {outdir / 'results.json'} and {outdir / 'results.md'} ({comp.wall_s:.0f} s)")

@@ -55,20 +55,21 @@ def evaluate(env, params, act, key, n_envs: int, steps: int) -> dict[str, Any]:
     }
 
 
+OPTIONS = {
+    "figures": "bool",
+    "progress": "bool",
+    "cache_dir": "path",
+    "surrogate_checkpoint": "path?",
+}  # the run's own keys besides its config groups (runs.common.check_options)
+
+
+# Long by design: the experiment's steps in order (config, data, train, evaluate, write).
 @float64
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Fit (or load) the surrogate, train the policy, evaluate both controllers; write the
     results into ``outdir``."""
     outdir = Path(outdir)
-    check_options(
-        cfg,
-        {
-            "figures": "bool",
-            "progress": "bool",
-            "cache_dir": "path",
-            "surrogate_checkpoint": "path?",
-        },
-    )
+    check_options(cfg, OPTIONS)
     a = cfg["apg"]
     train_cfg = apg.APGConfig(**{k: a[k] for k in apg.APGConfig.__dataclass_fields__})
     e = cfg["env"]

@@ -38,14 +38,7 @@ from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, State, Wind
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import (
-    check_options,
-    machine,
-    report,
-    set_dispatch,
-    surrogate_from_config,
-    write_json,
-)
+from gpg.runs.common import flight_setup, machine, report, write_json
 from gpg.surrogate import Surrogate, SurrogateAero, predict_state
 
 
@@ -154,26 +147,21 @@ def _wind_sequence(key, c: dict[str, Any], n: int, dt: float) -> np.ndarray:
     return np.asarray(mean[None] + g + turb_v)
 
 
+OPTIONS = {
+    "figures": "bool",
+    "sync_dispatch": "bool",
+    "seed": "index",
+    "cache_dir": "path",
+    "surrogate_checkpoint": "path?",
+}  # the run's own keys besides its config groups (runs.common.check_options)
+
+
 @float64
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Fly the three controllers through the same gusts; write ``results.json`` (and a figure)
     into ``outdir``."""
     outdir = Path(outdir)
-    check_options(
-        cfg,
-        {
-            "figures": "bool",
-            "sync_dispatch": "bool",
-            "seed": "index",
-            "cache_dir": "path",
-            "surrogate_checkpoint": "path?",
-        },
-    )
-    set_dispatch(cfg)
-    vehicle = Vehicle.from_config(cfg["vehicle"])
-    sur = surrogate_from_config(cfg, vehicle)
-    if sur.simple is None:
-        raise ValueError("the surrogate has no simplified model; the controller needs one")
+    vehicle, sur = flight_setup(cfg, OPTIONS)
     c = cfg["mpc"]
     _check_mpc(c)
     ctrl = GeometricController.create(vehicle, sur.simple, cfg["controller"])
@@ -203,44 +191,9 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     flights, traces = {}, {}
     for name, beta in runs.items():
         solve = None if beta is None else make_solver(sur32, vehicle, ctrl, plan, c, beta)
-        s, u_nom = s0, np.zeros((int(c["horizon"]), 3))
-        offset = np.zeros(3)
-        p, ref_p, ok, sig, solve_s = [], [], [], [], []
-        for k in range(n):
-            t = k * dt
-            if solve is not None and k % every == 0:
-                args = (jax.random.fold_in(key, 1000 + k), pack(s), u_nom, t, winds[k])
-                if k == 0:
-                    jax.block_until_ready(solve(*args))  # compile outside the timing
-                t0 = time.perf_counter()
-                u_new, _ = jax.block_until_ready(solve(*args))
-                solve_s.append(time.perf_counter() - t0)
-                offset = np.asarray(u_new[0], float)
-                u_nom = np.asarray(MPPI.shift(u_new))
-            p.append(np.asarray(s.p))
-            ref_p.append(np.asarray(plan(t).p))
-            s, in_dom, sd = plant_step(s, jnp.asarray(offset), t, jnp.asarray(winds[k]))
-            ok.append(bool(in_dom))
-            sig.append(float(sd))
-        p, ref_p = np.array(p), np.array(ref_p)
-        err = np.linalg.norm(p - ref_p, axis=1)
-        flights[name] = {
-            "rms_tracking_error_m": float(np.sqrt(np.mean(err**2))),
-            "max_tracking_error_m": float(err.max()),
-            "in_domain_fraction": float(np.mean(ok)),
-            "mean_force_std_N": float(np.mean(sig)),
-            "finite": bool(np.all(np.isfinite(p))),
-            **(
-                {}
-                if not solve_s
-                else {
-                    "solve_ms_median": 1e3 * float(np.median(solve_s)),
-                    "solve_ms_p95": 1e3 * float(np.percentile(solve_s, 95)),
-                    "solves": len(solve_s),
-                }
-            ),
-        }
-        traces[name] = err
+        flights[name], traces[name] = _fly(
+            solve, plant_step, s0, plan, winds, key, dt, every, int(c["horizon"])
+        )
     figures = []
     if cfg.get("figures", True):
         figures = [_figure(traces, dt, outdir / "figures")]
@@ -252,6 +205,51 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         "config": cfg,
     }
     write_json(outdir / "results.json", out)
+    _report(flights)
+    return out
+
+
+def _fly(solve, plant_step, s0, plan, winds, key, dt: float, every: int, horizon: int):
+    """One flight of ``len(winds)`` steps: MPPI's offsets every ``every`` steps when ``solve``
+    is given (the geometric controller alone otherwise). Its record and tracking errors."""
+    s, u_nom = s0, np.zeros((horizon, 3))
+    offset = np.zeros(3)
+    p, ref_p, ok, sig, solve_s = [], [], [], [], []
+    for k in range(len(winds)):
+        t = k * dt
+        if solve is not None and k % every == 0:
+            args = (jax.random.fold_in(key, 1000 + k), pack(s), u_nom, t, winds[k])
+            if k == 0:
+                jax.block_until_ready(solve(*args))  # compile outside the timing
+            t0 = time.perf_counter()
+            u_new, _ = jax.block_until_ready(solve(*args))
+            solve_s.append(time.perf_counter() - t0)
+            offset = np.asarray(u_new[0], float)
+            u_nom = np.asarray(MPPI.shift(u_new))
+        p.append(np.asarray(s.p))
+        ref_p.append(np.asarray(plan(t).p))
+        s, in_dom, sd = plant_step(s, jnp.asarray(offset), t, jnp.asarray(winds[k]))
+        ok.append(bool(in_dom))
+        sig.append(float(sd))
+    p, ref_p = np.array(p), np.array(ref_p)
+    err = np.linalg.norm(p - ref_p, axis=1)
+    record = {
+        "rms_tracking_error_m": float(np.sqrt(np.mean(err**2))),
+        "max_tracking_error_m": float(err.max()),
+        "in_domain_fraction": float(np.mean(ok)),
+        "mean_force_std_N": float(np.mean(sig)),
+        "finite": bool(np.all(np.isfinite(p))),
+    }
+    if solve_s:
+        record.update(
+            solve_ms_median=1e3 * float(np.median(solve_s)),
+            solve_ms_p95=1e3 * float(np.percentile(solve_s, 95)),
+            solves=len(solve_s),
+        )
+    return record, err
+
+
+def _report(flights: dict[str, dict[str, Any]]) -> None:
     for name, f in flights.items():
         solve = (
             f" solve {f['solve_ms_median']:.1f} ms (p95 {f['solve_ms_p95']:.1f})"
@@ -264,7 +262,6 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
             f"in domain {100 * f['in_domain_fraction']:.0f} %, "
             f"mean σ_F {f['mean_force_std_N']:.3f} N{solve}"
         )
-    return out
 
 
 def _check_mpc(c: dict[str, Any]) -> None:

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from gpg import models
 from gpg.names import INPUTS, OUTPUTS
 from gpg.quadrotor.generator import evaluate_batch
 from gpg.quadrotor.simple_model import hover_sweep
@@ -46,8 +47,16 @@ def save(fig, path: Path, formats=("png", "pdf")) -> list[Path]:
 
 def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     """Thrust vs rpm, wrench vs airspeed, OASPL vs rpm, FD vs exact gradients."""
-    paths: list[Path] = []
     rpm = np.linspace(0, 7000, 29)
+    paths = _thrust_figure(gen, simple, rpm, outdir)
+    paths += _wrench_figure(gen, simple, outdir)
+    paths += _levels_figure(gen, rpm, outdir)
+    if check:
+        paths += _gradient_figure(check["scaled_error"], outdir)
+    return paths
+
+
+def _thrust_figure(gen, simple, rpm: np.ndarray, outdir: Path) -> list[Path]:
     T, Q = hover_sweep(gen, rpm)
     T, Q = T[:, 0], Q[:, 0]  # one rotor: at hover all four carry the same load
     fig, ax = _subplots(1, 2, figsize=(9, 3.5))
@@ -60,8 +69,10 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     for a in ax:
         a.legend()
         a.grid(alpha=0.3)
-    paths += save(fig, outdir / "thrust_vs_rpm")
+    return save(fig, outdir / "thrust_vs_rpm")
 
+
+def _wrench_figure(gen, simple, outdir: Path) -> list[Path]:
     hover = float(simple.hover_rpm(float(gen.vehicle.weight)))
     V = np.linspace(0, 20, 21)
     fig, ax = _subplots(1, 3, figsize=(13, 3.5))
@@ -99,8 +110,10 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     for a in ax:
         a.legend(fontsize=6)
         a.grid(alpha=0.3)
-    paths += save(fig, outdir / "wrench_vs_airspeed")
+    return save(fig, outdir / "wrench_vs_airspeed")
 
+
+def _levels_figure(gen, rpm: np.ndarray, outdir: Path) -> list[Path]:
     X = np.zeros((rpm.size, 8))
     X[:, :4] = rpm[:, None]
     Y0 = evaluate_batch(gen, X, chunk=SANITY_CHUNK)
@@ -113,22 +126,22 @@ def data_sanity(gen, simple, check: dict[str, Any], outdir: Path) -> list[Path]:
     ax.set(xlabel="rpm", ylabel="OASPL [dB re 20 µPa]", title="Tonal noise at 20 R", ylim=(0, None))
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
-    paths += save(fig, outdir / "oaspl_vs_rpm")
+    return save(fig, outdir / "oaspl_vs_rpm")
 
-    if check:
-        err = check["scaled_error"]  # (n, M, 7)
-        fig, ax = _subplots(figsize=(7, 3.5))
-        data = [err[:, :, j].ravel() for j in range(err.shape[2])]
-        ax.boxplot(data, showfliers=False)
-        ax.set_xticks(range(1, err.shape[2] + 1), INPUTS[: err.shape[2]])
-        ax.set(
-            ylabel="|FD − exact| / std(exact)",
-            yscale="log",
-            title=f"Finite-difference gradient error ({err.shape[0]} points, all outputs)",
-        )
-        ax.grid(alpha=0.3)
-        paths += save(fig, outdir / "fd_vs_exact_gradients")
-    return paths
+
+def _gradient_figure(err: np.ndarray, outdir: Path) -> list[Path]:
+    """Finite-difference against exact gradients, ``err`` (n, M, 7) scaled by their spread."""
+    fig, ax = _subplots(figsize=(7, 3.5))
+    data = [err[:, :, j].ravel() for j in range(err.shape[2])]
+    ax.boxplot(data, showfliers=False)
+    ax.set_xticks(range(1, err.shape[2] + 1), INPUTS[: err.shape[2]])
+    ax.set(
+        ylabel="|FD − exact| / std(exact)",
+        yscale="log",
+        title=f"Finite-difference gradient error ({err.shape[0]} points, all outputs)",
+    )
+    ax.grid(alpha=0.3)
+    return save(fig, outdir / "fd_vs_exact_gradients")
 
 
 def _boxes(ax, data, labels, title, ylabel):
@@ -165,17 +178,21 @@ def _compare_panels(axes, labels, err, outputs):
             ax.text(0.0, -0.42, note, transform=ax.transAxes, fontsize=7, va="top", wrap=True)
 
 
-def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> list[Path]:
-    """Error distributions (paper Fig. model comparison), all outputs, Schur vs no Schur,
-    error vs airspeed, and the two mean forms of ``gpgs_schur``. Models that fail on an output
-    are listed under its panel instead of stretching its axis (their own figures show them)."""
-    ok = {k: v for k, v in results.items() if "skipped" not in v}
+def compare_figures(
+    results: dict[str, Any], errors: dict[str, np.ndarray], names: list[str], outdir: Path
+) -> list[Path]:
+    """Error distributions (paper Fig. model comparison), all outputs, the Schur model against
+    its no-Schur counterpart, error vs airspeed, and every mean form of the Schur model.
+    ``results`` are the runs by label (:class:`gpg.runs.results.ModelRun`, others skipped) and
+    ``errors`` their absolute test errors (Q, M). Models that fail on an output are listed under
+    its panel instead of stretching its axis (their own figures show them)."""
+    ok = {k: v for k, v in results.items() if k in errors}
     labels = list(ok)
     paths: list[Path] = []
     key = [n for n in ("Fx", "Mx", "L1") if n in names]
 
     def err(label, n):
-        return ok[label]["_abs_err"][:, names.index(n)]
+        return errors[label][:, names.index(n)]
 
     fig, axes = _subplots(1, len(key), figsize=(4.6 * len(key), 4.4))
     _compare_panels(axes, labels, err, key)
@@ -192,14 +209,22 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
     fig.tight_layout()
     paths += save(fig, outdir / "model_compare_all_outputs")
 
-    pair = [lab for lab in ("gpgs", "gpgs_schur") if lab in ok]
-    if len(pair) == 2:
+    paths += _schur_figures(ok, err, key, outdir)
+    paths += _airspeed_figure(ok, err, names, key, outdir)
+    return paths
+
+
+def _schur_figures(ok, err, key, outdir: Path) -> list[Path]:
+    """The Schur model against its no-Schur counterpart, and its mean forms side by side."""
+    paths: list[Path] = []
+    pair = _schur_pair(ok)
+    if pair:
         fig, axes = _subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
         for ax, n in zip(np.atleast_1d(axes), key, strict=True):
             _boxes(
                 ax,
                 [err(lab, n) for lab in pair],
-                ["no Schur (gpgs)", "Schur (gpgs_schur)"],
+                [f"no Schur ({pair[0]})", f"Schur ({pair[1]})"],
                 n,
                 f"|error| [{UNITS[n[0]]}]",
             )
@@ -207,24 +232,28 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
         fig.tight_layout()
         paths += save(fig, outdir / "schur_compare")
 
-    forms = [lab for lab in ok if lab.startswith("gpgs_schur")]
+    forms = [lab for lab, r in ok.items() if models.SPECS[r.model].schur]
     if len(forms) >= 2:
         fig, axes = _subplots(1, len(key), figsize=(4.2 * len(key), 3.8))
         for ax, n in zip(np.atleast_1d(axes), key, strict=True):
             _boxes(ax, [err(lab, n) for lab in forms], forms, n, f"|error| [{UNITS[n[0]]}]")
         fig.suptitle(
-            r"gpgs_schur: mean forms (exact = $k_{qn}^\top \alpha_n$, "
+            r"Schur model: mean forms (exact = $k_{qn}^\top \alpha_n$, "
             r"paper = $k_{qn}^\top S^{-1} \bar{Y}_n$)"
         )
         fig.tight_layout()
         paths += save(fig, outdir / "schur_mean_forms")
+    return paths
 
+
+def _airspeed_figure(ok, err, names, key, outdir: Path) -> list[Path]:
+    labels = list(ok)
     fig, axes = _subplots(1, len(key), figsize=(4.6 * len(key), 3.8))
     for ax, n in zip(np.atleast_1d(axes), key, strict=True):
         j = names.index(n)
         good, bad, _ = _split(labels, err, n)
         for lab in good:
-            ev = ok[lab]["error_vs_airspeed"]
+            ev = ok[lab].error_vs_airspeed
             mid = 0.5 * (np.array(ev["edges"][1:]) + np.array(ev["edges"][:-1]))
             vals = [np.nan if row is None else row[j] for row in ev["mean_abs_error"]]
             ax.plot(mid, vals, marker="o", ms=3, label=lab)
@@ -238,8 +267,24 @@ def compare_figures(results: dict[str, Any], names: list[str], outdir: Path) -> 
     fig.legend(handles, lbls, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
     fig.suptitle("Prediction error vs airspeed")
     fig.tight_layout()
-    paths += save(fig, outdir / "error_vs_airspeed")
-    return paths
+    return save(fig, outdir / "error_vs_airspeed")
+
+
+def _schur_pair(runs: dict[str, Any]) -> tuple[str, str] | None:
+    """The plain runs (no variant label) of a Schur model and of the local model on the same
+    data, if the comparison has both: what the Schur correction adds."""
+    plain = {r.model: lab for lab, r in runs.items() if lab == r.model}
+    schur = [n for n in plain if models.SPECS[n].schur]
+    for s in schur:
+        data = models.SPECS[s].data
+        local = [
+            n
+            for n in plain
+            if models.SPECS[n].kind.name == "local" and models.SPECS[n].data == data
+        ]
+        if local:
+            return plain[local[0]], plain[s]
+    return None
 
 
 def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -> list[Path]:
@@ -278,7 +323,7 @@ def flight_figures(traces: dict, noise_simple: np.ndarray, plan, outdir: Path) -
     paths += save(fig, outdir / "average_rpm")
 
     sur = traces["surrogate"]
-    noise = np.asarray(sur.noise)
+    noise = np.asarray(sur.levels)
     if noise.shape[-1]:
         fig, ax = _subplots(figsize=(6, 3.4))
         t = np.asarray(sur.t)

@@ -22,15 +22,7 @@ from gpg._dtype import float64
 from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
 from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
-from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import (
-    check_options,
-    machine,
-    report,
-    set_dispatch,
-    surrogate_from_config,
-    write_json,
-)
+from gpg.runs.common import flight_setup, machine, report, write_json
 from gpg.surrogate import SurrogateAero
 
 
@@ -143,26 +135,23 @@ def _report(flights: dict[str, Any], speed: dict[str, Any]) -> None:
     )
 
 
+OPTIONS = {
+    "figures": "bool",
+    "sync_dispatch": "bool",
+    "cache_dir": "path",
+    "surrogate_checkpoint": "path?",
+}  # the run's own keys besides its config groups (runs.common.check_options)
+
+
+# Long by design: the experiment's steps in order (config, fit, two flights, batched
+# throughput, write).
 @float64
 def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     """Fit the surrogate, fly the round trip on M and on the surrogate, time the batched
     environments, and write ``results.json`` and the figures into ``outdir``."""
     outdir = Path(outdir)
-    check_options(
-        cfg,
-        {
-            "figures": "bool",
-            "sync_dispatch": "bool",
-            "cache_dir": "path",
-            "surrogate_checkpoint": "path?",
-        },
-    )
-    set_dispatch(cfg)
-    vehicle = Vehicle.from_config(cfg["vehicle"])
-    sur = surrogate_from_config(cfg, vehicle)
+    vehicle, sur = flight_setup(cfg, OPTIONS)
     simple = sur.simple
-    if simple is None:
-        raise ValueError("the surrogate has no simplified model; the controller needs one")
     ctrl = GeometricController.create(vehicle, simple, cfg["controller"])
     fl = cfg["flight"]
     plan = WaypointPlan.create(
@@ -188,7 +177,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     tr = traces["simplified"]
     wind_t = jax.vmap(wind)(tr.t)
     noise_simple = np.asarray(
-        sur.predict_batch(tr.rpm, tr.euler, tr.v - wind_t, mean_only=True).noise
+        sur.predict_batch(tr.rpm, tr.euler, tr.v - wind_t, mean_only=True).levels
     )
     speed = {
         **_single_env_speed(fly, quads["surrogate"], s0, n_steps, dt),

@@ -129,7 +129,7 @@ def test_noise_residuals_round_trip_with_m_noise(data, vehicle):
     np.testing.assert_allclose(y[:, 6:], data.y[:, 6:] - yN, rtol=1e-12)
     np.testing.assert_allclose(J[:, 6:], data.jac[:, 6:] - JN[:, :, :7], rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(with_noise.Y[:, :6], plain.Y[:, :6])  # forces untouched
-    assert with_noise.noise is noise and plain.noise is None
+    assert with_noise.noise_model is noise and plain.noise_model is None
 
 
 def test_overflowing_data_is_refused_by_name(data, vehicle):

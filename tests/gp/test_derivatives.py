@@ -41,7 +41,7 @@ def _central(f, X, h=1e-6):
 
 @pytest.mark.parametrize("name", models.NAMES)
 def test_jacobians_match_finite_differences_and_each_other(training, name):
-    model = models.build(name, training, FAST).model
+    model = models.build(name, training, models.restrict(name, FAST)).model
     f = _outputs(model)
     X = jnp.asarray(training.X[:5] * 0.9)
     J_rev = jax.jit(jax.vmap(jax.jacrev(f)))(X)
@@ -63,7 +63,7 @@ def test_jacobians_match_finite_differences_and_each_other(training, name):
 @pytest.mark.parametrize("name", ["gpgs_hybrid", "gpg_pic"])
 def test_float32_factors_differentiate_as_their_float64_copies(training, name):
     cfg = {**FAST, "variance_dtype": "float32"}
-    model = models.build(name, training, cfg).model
+    model = models.build(name, training, models.restrict(name, cfg)).model
     wide = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model)
     X = jnp.asarray(training.X[:4] * 0.9)
     J32 = eqx.filter_jit(lambda m, X: jax.vmap(jax.jacrev(_outputs(m)))(X))(model, X)
@@ -74,7 +74,7 @@ def test_float32_factors_differentiate_as_their_float64_copies(training, name):
 
 def test_gradient_in_the_models_own_arrays(training):
     """Derivatives in the stored coefficients and factors (not only the query) are exact."""
-    model = models.build("gpgs", training, FAST).model
+    model = models.build("gpgs", training, models.restrict("gpgs", FAST)).model
     X = jnp.asarray(training.X[:3] * 0.9)
 
     @eqx.filter_jit

@@ -37,7 +37,7 @@ def ref_posterior(X, Y, dY, dims, hyper, Xq):
     lam = np.broadcast_to(np.asarray(hyper.grad_noise), (len(dims),))
     obs = []  # (point, dim or None, noise, target row)
     for i in range(X.shape[0]):
-        obs.append((i, None, float(hyper.jitter), Y[i]))
+        obs.append((i, None, float(hyper.noise), Y[i]))
         for g, d in enumerate(dims):
             obs.append((i, d, lam[g], dY[i, :, g]))
     R = len(obs)
@@ -64,7 +64,7 @@ def problem(rng):
     hyper = Hyper(
         variance=1.3,
         lengthscale=np.array([0.6, 0.9, 0.7]),
-        jitter=1e-6,
+        noise=1e-6,
         grad_noise=np.array([1e-4, 3e-4]),
     )
     Xq = rng.uniform(-1.2, 1.2, (7, D))
@@ -124,7 +124,7 @@ def test_interpolates_values_and_gradients(rng):
     X = rng.uniform(-1, 1, (30, 2))
     Y = np.sin(3 * X[:, 0]) + X[:, 1] ** 2
     dY = np.stack([3 * np.cos(3 * X[:, 0]), 2 * X[:, 1]], axis=1)[:, None, :]
-    model = ExactGP.fit(X, Y, dY, hyper=Hyper(1.0, 0.5, jitter=1e-10, grad_noise=1e-10))
+    model = ExactGP.fit(X, Y, dY, hyper=Hyper(1.0, 0.5, noise=1e-10, grad_noise=1e-10))
     mean, var = model.predict(X)
     np.testing.assert_allclose(mean[:, 0], Y, atol=1e-5)
     assert np.all(np.asarray(var) < 1e-6)
@@ -168,14 +168,14 @@ def test_fit_recovers_prior_hyperparameters():
     floor above the truth is binding and moves σ (the likelihood is that sharp in ν²)."""
     rng = np.random.default_rng(7)
     N, D = 150, 2
-    true = Hyper(variance=2.0, lengthscale=np.array([0.4, 0.8]), jitter=1e-5, grad_noise=1e-4)
+    true = Hyper(variance=2.0, lengthscale=np.array([0.4, 0.8]), noise=1e-5, grad_noise=1e-4)
     X = rng.uniform(-1, 1, (N, D))
     K = gpmod.assemble_gram(jnp.asarray(X), true, (0, 1))
     draws = np.linalg.cholesky(K) @ rng.standard_normal((K.shape[0], 3))  # M = 3 outputs
     Y = draws[:N]
     dY = np.stack([draws[N : 2 * N], draws[2 * N :]], axis=-1)
     res = gpmod.fit_hyperparameters(
-        X, Y, dY, init=Hyper(1.0, 1.0, jitter=1e-6, grad_noise=1e-4), subset_size=None
+        X, Y, dY, init=Hyper(1.0, 1.0, noise=1e-6, grad_noise=1e-4), subset_size=None
     )
     assert res.converged, res.message
     assert res.nll_final < res.nll_initial
@@ -187,7 +187,7 @@ def test_fit_recovers_a_known_nugget():
     """Values with noise ν² = 0.05σ and gradients: the joint fit finds ν² within 30 %."""
     rng = np.random.default_rng(8)
     N, D = 150, 2
-    true = Hyper(variance=1.5, lengthscale=np.array([0.5, 0.7]), jitter=0.075, grad_noise=1e-4)
+    true = Hyper(variance=1.5, lengthscale=np.array([0.5, 0.7]), noise=0.075, grad_noise=1e-4)
     X = rng.uniform(-1, 1, (N, D))
     K = gpmod.assemble_gram(jnp.asarray(X), true, (0, 1))
     draws = np.linalg.cholesky(K) @ rng.standard_normal((K.shape[0], 4))
@@ -195,11 +195,11 @@ def test_fit_recovers_a_known_nugget():
         X,
         draws[:N],
         np.stack([draws[N : 2 * N], draws[2 * N :]], axis=-1),
-        init=Hyper(1.0, 1.0, jitter=1e-8, grad_noise=1e-4),
+        init=Hyper(1.0, 1.0, noise=1e-8, grad_noise=1e-4),
         subset_size=None,
     )
-    assert res.converged and res.jitter_fitted, res.message
-    np.testing.assert_allclose(res.hyper.jitter, 0.075, rtol=0.3)
+    assert res.converged and res.noise_fitted, res.message
+    np.testing.assert_allclose(res.hyper.noise, 0.075, rtol=0.3)
     np.testing.assert_allclose(res.noise_ratio, 0.05, rtol=0.35)
     np.testing.assert_allclose(res.hyper.lengthscale, [0.5, 0.7], rtol=0.2)
 
@@ -211,24 +211,24 @@ def test_fixed_nugget_stays_and_floor_holds(problem):
         Y,
         dY,
         grad_dims=dims,
-        fit_jitter=False,
-        init=Hyper(jitter=3e-4),
+        fit_noise=False,
+        init=Hyper(noise=3e-4),
         max_steps=30,
         on_failure="ignore",
     )
-    assert float(fixed.hyper.jitter) == 3e-4 and not fixed.jitter_fitted
+    assert float(fixed.hyper.noise) == 3e-4 and not fixed.noise_fitted
     # Noise-free data push ν² down; the bound ν² ≥ floor·σ holds exactly.
     floor = gpmod.fit_hyperparameters(
-        X, Y, dY, grad_dims=dims, jitter_floor=1e-3, max_steps=60, on_failure="ignore"
+        X, Y, dY, grad_dims=dims, noise_floor=1e-3, max_steps=60, on_failure="ignore"
     )
     assert floor.noise_ratio >= 1e-3 * (1 - 1e-12)
-    with pytest.raises(ValueError, match="jitter_floor < jitter_init"):
-        gpmod.fit_hyperparameters(X, Y, dY, grad_dims=dims, jitter_floor=0.1, jitter_init=0.01)
+    with pytest.raises(ValueError, match="noise_floor < noise_init"):
+        gpmod.fit_hyperparameters(X, Y, dY, grad_dims=dims, noise_floor=0.1, noise_init=0.01)
 
 
 def test_fit_grad_noise_scale_and_subset(problem):
     X, Y, dY, dims, _, _ = problem
-    init = Hyper(1.0, 1.0, jitter=1e-6, grad_noise=gpmod.gradient_noise(dY, s=0.3))
+    init = Hyper(1.0, 1.0, noise=1e-6, grad_noise=gpmod.gradient_noise(dY, s=0.3))
     res = gpmod.fit_hyperparameters(
         X, Y, dY, grad_dims=dims, init=init, fit_grad_noise=True, subset_size=20, seed=3
     )
@@ -341,7 +341,7 @@ def test_gradients_without_dims_need_all_inputs(problem):
         ("variance", 0.0),
         ("variance", -1.0),
         ("lengthscale", np.array([0.5, -0.1, 1.0])),
-        ("jitter", 0.0),
+        ("noise", 0.0),
         ("grad_noise", np.array([1e-3, 0.0])),
         ("lengthscale", np.nan),
     ],
@@ -351,7 +351,7 @@ def test_non_positive_hyperparameters(problem, field, value):
     kwargs = dict(
         variance=hyper.variance,
         lengthscale=hyper.lengthscale,
-        jitter=hyper.jitter,
+        noise=hyper.noise,
         grad_noise=hyper.grad_noise,
     )
     kwargs[field] = value
@@ -368,9 +368,9 @@ def test_hyper_shapes(problem):
 
 
 def test_not_positive_definite_is_reported():
-    X = np.zeros((3, 2))  # three identical points, essentially no jitter
+    X = np.zeros((3, 2))  # three identical points, essentially no noise
     with pytest.raises(NotPositiveDefiniteError, match="not numerically positive definite"):
-        ExactGP.fit(X, np.ones(3), hyper=Hyper(jitter=1e-300))
+        ExactGP.fit(X, np.ones(3), hyper=Hyper(noise=1e-300))
 
 
 def test_bad_queries(problem):

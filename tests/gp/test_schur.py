@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg.gp import ExactGP, Hyper, assemble_gram, partition, schur, stack_targets
+from gpg.gp import ExactGP, Hyper, assemble_gram, local, partition, schur, stack_targets
 from gpg.gp.binned import pack
 
 
@@ -27,7 +27,11 @@ def binned(problem, n_bins=4, route="global", mean="exact", **near):
     X, Y, dY, dims, hyper, _ = problem
     part = partition.slab(X, n_bins, dim=0)
     ns = partition.near_sets(X, part, hyper.lengthscale, **(near or {"budget": 0.4}))
-    f = schur.precompute(X, stack_targets(Y, dY), hyper, dims, ns, route=route, mean=mean)
+    Ybar = stack_targets(Y, dY)
+    if route == "local":  # no Schur correction: gpg.gp.local
+        f = local.precompute(X, Ybar, hyper, dims, ns)
+    else:
+        f = schur.precompute(X, Ybar, hyper, dims, ns, route=route, mean=mean)
     return pack(X, f, ns, part, hyper, dims), f, ns
 
 
@@ -100,7 +104,7 @@ def test_matches_dense_computation_with_kqf_zero(problem, mean):
     )
 
 
-def test_local_route_is_gp_on_the_near_set(problem):
+def test_local_precompute_is_gp_on_the_near_set(problem):
     X, Y, dY, dims, hyper, Xq = problem
     model, _, ns = binned(problem, route="local")
     bins = np.asarray(model.partition.lookup_batch(jnp.asarray(Xq)))
@@ -134,6 +138,8 @@ def test_bad_options(problem):
         schur.precompute(X, stack_targets(Y, dY), hyper, dims, ns, mean="median")
     with pytest.raises(ValueError, match=r"unknown precompute route 'lu'"):
         schur.precompute(X, stack_targets(Y, dY), hyper, dims, ns, route="lu")
+    with pytest.raises(ValueError, match=r"route 'local'.*no Schur correction is gpg.gp.local"):
+        schur.precompute(X, stack_targets(Y, dY), hyper, dims, ns, route="local")
 
 
 def test_diagnostics_flag_a_correlated_far_set(problem):

@@ -42,7 +42,7 @@ class DragAero(AeroModel):
     def wrench(self, rpm, R_WB, v_air, omega):
         w = self.simple.wrench(rpm, R_WB, v_air, omega)
         drag = -self.k * jnp.sqrt(jnp.sum(v_air**2)) * v_air
-        return Wrench(w.force + drag, w.torque, w.noise, w.in_domain)
+        return Wrench(w.force + drag, w.torque, w.levels, w.in_domain)
 
 
 def test_steady_wind_offset_matches_position_gain(setup, vehicle):

@@ -138,7 +138,7 @@ def test_surrogate_and_simple_share_the_interface(vehicle, simple):
     for w in (a, b):  # the same Wrench, field by field (no noise outputs in this dataset)
         assert isinstance(w, Wrench)
         assert w.force.shape == w.torque.shape == (3,)
-        assert w.noise.shape == (0,)
+        assert w.levels.shape == (0,)
         assert w.in_domain.shape == () and w.in_domain.dtype == bool
     np.testing.assert_allclose(b.force, a.force, atol=1e-6)
     np.testing.assert_allclose(b.torque, a.torque, atol=1e-6)

@@ -85,19 +85,16 @@ def test_whole_comparison_on_smoke(smoke_compare):
     assert res["n_train"] == 60 and res["n_test"] == 200
 
 
+def user_dataset_config(tmp_path, *extra):
+    """The comparison's config on a small saved train/test pair of the user's own."""
+    synthetic_dataset(30, seed=1)[0].save(tmp_path / "train")
+    synthetic_dataset(12, seed=2, raw=False)[0].save(tmp_path / "test")
+    paths = [f"dataset.train={tmp_path / 'train'}", f"dataset.test={tmp_path / 'test'}"]
+    return config(tmp_path, *paths, "figures=false", *extra)
+
+
 def test_single_model_and_user_dataset(tmp_path):
-    train, _ = synthetic_dataset(30, seed=1)
-    test, _ = synthetic_dataset(12, seed=2, raw=False)
-    train.save(tmp_path / "train")
-    test.save(tmp_path / "test")
-    cfg = config(
-        tmp_path,
-        "+model=gpgs",
-        f"dataset.train={tmp_path / 'train'}",
-        f"dataset.test={tmp_path / 'test'}",
-        "figures=false",
-        "model.partition.bins=3",
-    )
+    cfg = user_dataset_config(tmp_path, "+model=gpgs", "model.partition.bins=3")
     out = tmp_path / "run"
     out.mkdir()
     res = compare.run(cfg, out, model_configs(cfg))

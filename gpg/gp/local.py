@@ -1,0 +1,84 @@
+"""The local precompute: an exact GP on each bin's near set alone, the far set dropped.
+
+Used by the no-Schur baselines (``gps_1x``, ``gps_8x``, ``gpgs``) and by the hybrid's variance.
+Bin ``b`` with near points ``n`` gets mean coefficients ``c = K̄_nn⁻¹ Ȳ_n`` and the lower
+factor ``F = L⁻¹`` of ``K̄_nn = L Lᵀ``, so that ``var = σ − ‖F k_qn‖²``
+(:class:`gpg.gp.binned.BinFactors`). It never forms ``K̄``.
+
+Two executions of the one formula: on the host, one LAPACK factorisation per bin at its own
+size (:func:`gpg.linalg.dense.cholesky_inplace`); with ``devices``, the bins padded to one
+width (:func:`gpg.gp.binned.pad_units`) and spread over JAX devices by
+:func:`gpg.parallel.map_units`, the same compiled program for every bin. Both start from the
+same ``K̄_nn`` plus noise (:func:`gpg.gp.gram.assemble_gram` on the host,
+:func:`gpg.gp.gram.noisy_gram` traced) and agree to rounding (tests/test_parallel.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jaxtyping import Array, Float
+
+from gpg import parallel
+from gpg.gp.binned import BinFactors, bin_yty, near_rows, pad_units
+from gpg.gp.gram import assemble_gram, noisy_gram
+from gpg.gp.hyper import Hyper
+from gpg.gp.partition import NearSets
+from gpg.linalg import dense
+
+
+def precompute(
+    X: Float[np.ndarray, "N D"],
+    Ybar: Float[np.ndarray, "R M"],
+    hyper: Hyper,
+    grad_dims: Sequence[int],
+    near: NearSets,
+    *,
+    devices=None,
+) -> list[BinFactors]:
+    """Per-bin coefficients and factors of the local GPs over ``near.near``.
+
+    ``X`` the normalised training inputs (N, D), ``Ybar`` the stacked targets (N(1+G), M) in the
+    layout of :mod:`gpg.gp.kernels`; ``devices`` (a mesh, a device count or list,
+    :mod:`gpg.parallel`) spreads the bins over JAX devices, None keeps the host path.
+    """
+    dims = tuple(grad_dims)
+    if devices is not None:
+        return _sharded(X, Ybar, hyper, dims, near.near, parallel.devices(devices))
+    n, g = X.shape[0], len(dims)
+    return [_host(X, Ybar, hyper, dims, nb, near_rows(nb, n, g)) for nb in near.near]
+
+
+def _host(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray) -> BinFactors:
+    L = dense.cholesky_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), what="K̄_nn")
+    coef = dense.cho_solve(L, Ybar[r])
+    inv = dense.triangular_inverse_inplace(L)
+    return BinFactors(coef, inv, True, yty=bin_yty(Ybar[r], coef), n_rows=r.size)
+
+
+def _sharded(X, Ybar, hyper, dims, near: Sequence[np.ndarray], devs) -> list[BinFactors]:
+    """Peak memory: one padded ``K̄_nn`` and its inverse factor per device."""
+    n, g = X.shape[0], len(dims)
+    units, pos = pad_units(X, Ybar, near, g)
+    results = parallel.map_units(jax.jit(partial(_block, dims=dims)), hyper, units, devs)
+    out = []
+    for b, ((coef, inv), r) in enumerate(zip(results, pos, strict=True)):
+        if not (np.isfinite(coef).all() and np.isfinite(inv).all()):
+            raise dense.NotPositiveDefiniteError(f"K̄_nn of bin {b} is not positive definite")
+        c = coef[r]
+        yty = bin_yty(Ybar[near_rows(near[b], n, g)], c)
+        inv_r = np.ascontiguousarray(inv[np.ix_(r, r)])
+        out.append(BinFactors(c, inv_r, True, yty=yty, n_rows=r.size))
+    return out
+
+
+def _block(h: Hyper, Xb: Array, Yb: Array, *, dims: tuple[int, ...]):
+    """One (padded) bin: coefficients ``K̄_nn⁻¹ Ȳ_n`` and the lower factor ``L⁻¹``."""
+    L = jnp.linalg.cholesky(noisy_gram(Xb, h, dims))
+    coef = jsl.cho_solve((L, True), Yb)
+    return coef, jsl.solve_triangular(L, jnp.eye(L.shape[0], dtype=L.dtype), lower=True)

@@ -1,0 +1,128 @@
+"""What every kind of model provides: the options it reads, the bytes it needs, and its build.
+
+A *kind* is a way of building a predictor from prepared training arrays (exact, local, Schur,
+hybrid, PIC); a *model name* (``gpgs``, ``gps_8x``, …) is a kind plus the data it trains on
+(:mod:`gpg.models`). A kind is a frozen dataclass whose fields, if any, are fixed settings of
+the kind itself; what a user may change per run is read from the
+:class:`~gpg.config.ModelConfig`, and only the keys named in :attr:`Kind.reads` (a run that
+sets any other key away from the model's defaults is refused by :func:`gpg.models.resolve_config`).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from gpg.config import ModelConfig
+from gpg.gp import partition
+from gpg.gp.gram import stack_targets
+from gpg.gp.hyper import Hyper
+from gpg.gp.predictor import Predictor
+
+
+@dataclass(frozen=True)
+class Arrays:
+    """What a model trains on (normalised): inputs ``X`` (N, D), targets ``Y`` (N, M), their
+    gradients ``dY`` (N, M, G) or None, and the gradient dimensions ``dims`` they cover."""
+
+    X: np.ndarray
+    Y: np.ndarray
+    dY: np.ndarray | None
+    dims: tuple[int, ...]
+
+    @property
+    def n_grad(self) -> int:
+        return len(self.dims) if self.dY is not None else 0
+
+
+@dataclass
+class Product:
+    """A kind's build: the predictor, the near sets it conditions on (if any), what was measured
+    at build time (``diagnostics``) and the seconds of each step (``timings``)."""
+
+    model: Predictor
+    near: partition.NearSets | None = None
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class Kind(abc.ABC):
+    """The interface of a kind (module docstring). Subclasses set the class attributes and
+    implement :meth:`build` and :meth:`required_bytes`."""
+
+    name: ClassVar[str]  # the kind's word in the registry and in messages
+    reads: ClassVar[tuple[str, ...]]  # top-level ModelConfig keys read besides ``hyper``
+    partitioned: ClassVar[bool]  # cuts the inputs into bins (``partition`` is read)
+    needs_gram: ClassVar[bool] = False  # forms and factorises the whole K̄
+    # The predictor class a kind defined outside gpg builds: checkpoints name classes, and load
+    # only those of gpg and of registered kinds (gpg's own kinds leave it None).
+    predictor: ClassVar[type[Predictor] | None] = None
+
+    @abc.abstractmethod
+    def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
+        """The predictor on ``arrays`` with fixed hyperparameters ``hyper``; ``devices`` spreads
+        the kind's per-bin work over JAX devices where it has any (:mod:`gpg.parallel`)."""
+
+    @abc.abstractmethod
+    def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
+        """Peak bytes of :meth:`build` beyond the data, estimated from sizes alone."""
+
+    def check(self, model: str, cfg: ModelConfig, n_points: int) -> None:
+        """Size checks against the data before any work (``ValueError`` naming ``model``)."""
+        if self.partitioned and cfg.partition.n_bins(n_points) > n_points:
+            raise ValueError(
+                f"model {model!r}: partition.bins={cfg.partition.n_bins(n_points)} exceeds the "
+                f"{n_points} training points"
+            )
+
+
+def build_partition(
+    X: np.ndarray, cfg: ModelConfig, Y: np.ndarray | None = None
+) -> partition.Partition:
+    """The partition a resolved config asks for, on training inputs ``X`` (the ``adaptive``
+    scheme also reads the targets ``Y``: its bins follow their local variation)."""
+    pc = cfg.partition
+    opts: dict[str, Any] = {"dim": pc.dim} if pc.scheme in ("slab", "adaptive") else {}
+    if pc.scheme == "adaptive":
+        if Y is None:
+            raise ValueError("partition.scheme=adaptive needs the training targets")
+        opts["weights"] = partition.variation_weights(X, Y)
+    return partition.build(X, pc.scheme, pc.n_bins(X.shape[0]), **opts)
+
+
+def bins_and_near(
+    arrays: Arrays, hyper: Hyper, cfg: ModelConfig
+) -> tuple[partition.Partition, partition.NearSets, np.ndarray, dict[str, float]]:
+    """The partition, every bin's near set (``near`` options), the stacked targets ``Ȳ``
+    (:func:`gpg.gp.gram.stack_targets`) and the build's timings so far (``partition_s``)."""
+    t0 = time.perf_counter()
+    part = build_partition(arrays.X, cfg, arrays.Y)
+    near = partition.near_sets(arrays.X, part, hyper.lengthscale, **cfg.near.rule())
+    Ybar = stack_targets(arrays.Y, arrays.dY)
+    return part, near, Ybar, {"partition_s": time.perf_counter() - t0}
+
+
+def near_set_bytes(cfg: ModelConfig, n_points: int, n_grad: int) -> int:
+    """Peak bytes of a per-bin near-set precompute: a few dense near blocks while one bin is
+    factorised, and every bin's stored factor after."""
+    bins = cfg.partition.n_bins(n_points)
+    near = cfg.near
+    per_bin = math.ceil(n_points / bins)
+    if near.points is not None:
+        width = max(near.points, per_bin) * (1 + n_grad)
+    elif near.budget is not None and near.epsilon is None:
+        width = max(math.ceil(near.budget * n_points), per_bin) * (1 + n_grad)
+    else:
+        width = n_points * (1 + n_grad)  # an ε near set can hold every point
+    return int(8 * width * width * (3 + 0.6 * bins))
+
+
+def gram_bytes(n_points: int, n_grad: int, copies: float = 1.2) -> int:
+    """Bytes of ``copies`` dense ``K̄`` over ``n_points`` points with ``n_grad`` gradient rows."""
+    rows = n_points * (1 + n_grad)
+    return int(rows * rows * 8 * copies)
