@@ -172,11 +172,38 @@ class InducingConfig:
         _positive("inducing.jitter", self.jitter)
 
 
+SOLVERS = ("auto", "cholesky", "cg")
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """How ``gpgs_hybrid`` solves ``K̄ α = Ȳ`` for its exact mean (:mod:`gpg.gp.cg`)."""
+
+    # cholesky: form and factorise K̄ | cg: matrix-free conjugate gradients, K̄ never formed |
+    # auto: cholesky when K̄ fits in the available memory, else cg
+    method: str = "auto"
+    tol: float = 1e-6  # cg: relative residual of every output's solve
+    max_iter: int = 2000  # cg: iteration budget (an error past it)
+    points: int = 250  # cg: inducing inputs of the Nyström preconditioner (each 1+G rows)
+    seed: int = 0  # cg: k-means start of those inputs
+    tile: int = 256  # cg: points per tile of K in a product (memory: tile x N)
+
+    def __post_init__(self):
+        _choice("solver.method", self.method, SOLVERS)
+        if not (isinstance(self.tol, int | float) and 0 < self.tol < 1):
+            raise ValueError(f"solver.tol must be in (0, 1), got {self.tol!r}")
+        _int("solver.max_iter", self.max_iter, 1)
+        _int("solver.points", self.points, 1)
+        _int("solver.seed", self.seed)
+        _int("solver.tile", self.tile, 1)
+
+
 _SECTIONS = {
     "hyper": HyperConfig,
     "partition": PartitionConfig,
     "near": NearConfig,
     "inducing": InducingConfig,
+    "solver": SolverConfig,
 }
 
 
@@ -188,6 +215,7 @@ class ModelConfig:
     partition: PartitionConfig = field(default_factory=PartitionConfig)
     near: NearConfig = field(default_factory=NearConfig)
     inducing: InducingConfig = field(default_factory=InducingConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
     variance_dtype: str = "float64"  # storage of the variance factors (float32: half the bytes)
     mean: str = "exact"  # gpgs_schur: exact k_qnᵀ α_n | paper k_qnᵀ S⁻¹ Ȳ_n
     route: str = "global"  # gpgs_schur: one factorisation for all bins | direct: K̄_ff per bin

@@ -324,7 +324,8 @@ def check_feasible(
     kind = SPECS[name].kind
     kind.check(name, cfg, n)
     need = kind.required_bytes(cfg, n, len(arrays.dims))
-    hint = " (gpgs and gpg_pic train without K̄)" if kind.needs_gram else ""
+    hint = " (gpgs and gpg_pic train without K̄, gpgs_hybrid too with solver.method=cg)"
+    hint = hint if kind.needs_gram else ""
     memory.require(f"model {name!r} on {n} points{hint}", need)
 
 

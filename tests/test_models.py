@@ -268,3 +268,43 @@ def test_degenerate_fits_are_refused(training):
     broken = eqx.tree_at(lambda m: m.coef, built.model, built.model.coef.at[0, 0, 0].set(np.nan))
     with pytest.raises(ValueError, match=r"model 'gpgs': the fit produced NaN or inf in \.coef"):
         models.check_finite_model("gpgs", broken)
+
+
+def test_hybrid_mean_by_conjugate_gradients_equals_the_cholesky_one(training):
+    """solver.method=cg (matrix-free products, Nyström-preconditioned CG) gives the hybrid the
+    Cholesky model's α to its tolerance: the same predictions, the same variances (they come
+    from the near sets either way), and a record of the solve."""
+    cfg = {
+        "hyper": {"fit": False, "lengthscale": 0.8, "noise": 1e-3},
+        "variance_dtype": "float64",
+    }
+    chol = models.build("gpgs_hybrid", training, {**cfg, "solver": {"method": "cholesky"}})
+    solver = {"method": "cg", "tol": 1e-10, "points": 10, "tile": 16}
+    cg = models.build("gpgs_hybrid", training, {**cfg, "solver": solver})
+    Xq = training.X[:9] * 0.95
+    (m1, v1), (m2, v2) = chol.model.predict(Xq), cg.model.predict(Xq)
+    np.testing.assert_allclose(m2, m1, rtol=0, atol=1e-7 * float(np.abs(m1).max()))
+    np.testing.assert_array_equal(v2, v1)
+    d = cg.diagnostics
+    assert d["solver"] == "cg" and max(d["cg_residual"]) <= 1e-10 and d["cg_iterations"] > 0
+    assert chol.diagnostics == {}
+
+
+def test_solver_auto_picks_cg_when_the_dense_matrix_does_not_fit(monkeypatch):
+    """The memory check before training accounts for the CG path: at data=large's size the
+    dense K̄ (205 GB) is refused, while auto (and cg) ask for a few GB."""
+    from gpg.kinds import hybrid
+    from gpg.linalg import memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 24 * 2**30)
+    n, g = 20000, 7
+    auto = models.resolve_config("gpgs_hybrid")
+    dense = models.resolve_config("gpgs_hybrid", {"solver": {"method": "cholesky"}})
+    assert hybrid.solver_method(auto, n, g) == "cg"
+    assert models.required_bytes("gpgs_hybrid", dense, n, g) > 200e9
+    assert models.required_bytes("gpgs_hybrid", auto, n, g) < 8 * 2**30
+    assert hybrid.solver_method(auto, 1000, g) == "cholesky"
+    with pytest.raises(ValueError, match="model 'gpg' does not read option 'solver.method'"):
+        models.resolve_config("gpg", {"solver": {"method": "cg"}})
+    with pytest.raises(ValueError, match="solver.method must be one of"):
+        models.resolve_config("gpgs_hybrid", {"solver": {"method": "lu"}})

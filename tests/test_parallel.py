@@ -111,6 +111,13 @@ PRECOMPUTE_SCRIPT = textwrap.dedent(
     p4 = list(pic.iter_precompute_devices(X, Ybar, h, (0, 1), blocks, Z, devices=4))
     for a, b in zip(p1, p4, strict=True):
         assert np.array_equal(a.coef, b.coef) and np.array_equal(a.factor, b.factor)
+
+    from gpg.gp.matfree import gram_matvec_devices
+    rng = np.random.default_rng(3)
+    V = rng.normal(size=(X.shape[0] * 3, 2))
+    m1 = gram_matvec_devices(X, h, (0, 1), V, devices=1, tile=16)
+    m4 = gram_matvec_devices(X, h, (0, 1), V, devices=4, tile=16)
+    assert np.array_equal(np.asarray(m1), np.asarray(m4))
     print("OK")
     """
 )

@@ -39,6 +39,7 @@ from gpg.gp.exact import ExactGP
 from gpg.gp.gram import assemble_gram
 from gpg.gp.hyper import Hyper
 from gpg.linalg import dense
+from gpg.runs.bench_solver import bench_solver, solver_table
 from gpg.runs.common import (
     conf,
     deep_merge,
@@ -586,6 +587,7 @@ SUITES = {
     "devices": bench_devices,
     "derivatives": bench_derivatives,
     "envs": bench_envs,
+    "solver": bench_solver,
 }
 
 
@@ -633,7 +635,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         # The models suite runs on the entry point's data and vehicle (data=..., vehicle=...).
         sub = (
             {**cfg[name], "data": cfg["data"], "vehicle": cfg["vehicle"]}
-            if name in ("models", "devices", "derivatives", "envs")
+            if name in ("models", "devices", "derivatives", "envs", "solver")
             else cfg[name]
         )
         results[name] = SUITES[name](sub)
@@ -649,4 +651,5 @@ TABLES = {
     "devices": _devices_table,
     "derivatives": _derivatives_table,
     "envs": _envs_table,
+    "solver": solver_table,
 }

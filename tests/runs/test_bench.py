@@ -24,6 +24,11 @@ def test_bench_run(smoke_cache, tmp_path):
         "models.batch_repeats=2",
         "+models.model.hyper.fit=false",
         "+models.model.partition.bins=2",
+        "suites=[exact_gp,models,solver]",
+        f"solver.cache_dir={smoke_cache}",
+        "solver.tols=[1e-6]",
+        "+solver.model.hyper.fit=false",
+        "+solver.model.solver.points=20",
     ]
     bench.run(compose_plain("bench", overrides), tmp_path)
     saved = json.loads((tmp_path / "bench.json").read_text())
@@ -34,6 +39,9 @@ def test_bench_run(smoke_cache, tmp_path):
     f32 = hyb["float32"]
     assert f32["dtype"] == "float32" and 0 <= f32["mean_error_over_std_max"] < 1e-2
     assert np.isfinite(f32["variance_error_over_var_max"])
+    runs = saved["solver"]["runs"]
+    assert set(runs) == {"cg tol=1e-06", "cholesky"} and runs["cg tol=1e-06"]["cg_iterations"] > 0
+    assert max(runs["cg tol=1e-06"]["max_diff_std"].values()) < 1e-3
 
 
 @pytest.mark.slow

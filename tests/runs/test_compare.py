@@ -94,7 +94,9 @@ def user_dataset_config(tmp_path, *extra):
 
 
 def test_single_model_and_user_dataset(tmp_path):
-    cfg = user_dataset_config(tmp_path, "+model=gpgs", "model.partition.bins=3")
+    cfg = user_dataset_config(
+        tmp_path, "+model=gpgs", "model.partition.bins=3", "model.hyper.fit=false"
+    )
     out = tmp_path / "run"
     out.mkdir()
     res = compare.run(cfg, out, model_configs(cfg))

@@ -1,0 +1,177 @@
+"""``α = K̄⁻¹ Ȳ`` by preconditioned conjugate gradients, never forming ``K̄``.
+
+The products are :func:`gpg.gp.matfree.gram_matvec`; the preconditioner is a Nyström
+approximation from inducing inputs that carry value and gradient rows (gpg's PIC inducing
+points, :func:`gpg.gp.pic.inducing_inputs`), with the diagonal left over:
+
+``P = Q + D``, ``Q = K̄_xu K̄_uu⁻¹ K̄_ux``, ``D = diag(K̄ − Q) + diag(ν², λ²)``,
+
+applied by the Woodbury identity through one Cholesky factor of size ``U(1+G)``. Each output
+(column of ``Ȳ``) is its own CG run, all advanced together; a run stops counting once its
+relative residual ``‖Ȳ_m − K̄ α_m‖ / ‖Ȳ_m‖`` is below ``tol``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jaxtyping import Array, Float
+from tqdm.auto import tqdm
+
+from gpg.gp import kernels
+from gpg.gp.hyper import Hyper
+
+
+class NotConverged(ValueError):
+    """A CG solve did not reach its tolerance within its iteration budget."""
+
+
+@dataclass(frozen=True)
+class CGInfo:
+    """How a solve went: ``iterations`` run, each output's final relative ``residual``,
+    whether all reached ``tol``, and the seconds of setup (preconditioner) and of iterations."""
+
+    iterations: int
+    residual: np.ndarray
+    tol: float
+    converged: bool
+    setup_s: float
+    solve_s: float
+
+
+class Nystrom(eqx.Module):
+    """The preconditioner ``P = V Vᵀ + D`` (module docstring) as ``P⁻¹ r``.
+
+    ``V = K̄_xu L_u⁻ᵀ`` (R, P) with ``K̄_uu = L_u L_uᵀ``, ``d_inv = 1/D`` (R,), ``chol`` the
+    lower factor of ``I + Vᵀ D⁻¹ V`` (P, P)."""
+
+    V: Float[Array, "R P"]
+    d_inv: Float[Array, " R"]
+    chol: Float[Array, "P P"]
+
+    @classmethod
+    def create(
+        cls,
+        X: Float[Array, "N D"],
+        hyper: Hyper,
+        grad_dims: tuple[int, ...],
+        Z: Float[Array, "U D"],
+        *,
+        jitter: float = 1e-6,
+        chunk: int = 512,
+    ) -> Nystrom:
+        """From training inputs ``X``, inducing inputs ``Z`` (with gradient rows for
+        ``grad_dims`` too) and a relative ``jitter`` on ``K̄_uu``'s diagonal."""
+        X, Z = jnp.asarray(X), jnp.asarray(Z)
+        n, g = X.shape[0], len(grad_dims)
+        Kuu = kernels.gram(Z, Z, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
+        Lu = jnp.linalg.cholesky(Kuu + jitter * jnp.diag(jnp.diag(Kuu)))
+        # V = K̄_xu L_u⁻ᵀ a chunk of points at a time, into one host buffer in the
+        # dimension-major row layout: K̄_xu itself is never held whole.
+        V = np.empty((n * (1 + g), Lu.shape[0]))
+        block = jax.jit(partial(_nystrom_rows, grad_dims=grad_dims))
+        for s in range(0, n, chunk):
+            rows = np.asarray(block(X[s : s + chunk], Z, Lu, hyper))
+            w = min(chunk, n - s)
+            for k in range(1 + g):
+                V[k * n + s : k * n + s + w] = rows[k * w : (k + 1) * w]
+        ls = jnp.broadcast_to(jnp.asarray(hyper.lengthscale, X.dtype), (X.shape[1],))
+        prior = np.concatenate(
+            [np.full(n, float(hyper.variance))]
+            + [np.full(n, float(hyper.variance / ls[d] ** 2)) for d in grad_dims]
+        )
+        noise = np.asarray(hyper.noise_diagonal(n, g))
+        D = np.maximum(prior - np.einsum("ij,ij->i", V, V), 0.0) + noise
+        d_inv = 1.0 / D
+        inner = np.eye(V.shape[1])
+        for s in range(0, V.shape[0], chunk * (1 + g)):
+            Vc = V[s : s + chunk * (1 + g)]
+            inner += Vc.T @ (Vc * d_inv[s : s + chunk * (1 + g), None])
+        return cls(V=jnp.asarray(V), d_inv=jnp.asarray(d_inv), chol=jnp.linalg.cholesky(inner))
+
+    def __call__(self, r: Float[Array, "R M"]) -> Float[Array, "R M"]:
+        y = self.d_inv[:, None] * r
+        t = jsl.cho_solve((self.chol, True), self.V.T @ y)
+        return y - self.d_inv[:, None] * (self.V @ t)
+
+
+def _nystrom_rows(Xc, Z, Lu, hyper, *, grad_dims):
+    """Rows of ``V = K̄_xu L_u⁻ᵀ`` for the points ``Xc`` (their own dimension-major order)."""
+    K = kernels.gram(Xc, Z, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
+    return jsl.solve_triangular(Lu, K.T, lower=True).T
+
+
+@eqx.filter_jit
+def _first(precond, B):
+    z = precond(B)
+    return jnp.zeros_like(B), B, z, z, jnp.sum(B * z, 0)
+
+
+@eqx.filter_jit
+def _step(matvec, precond, x, r, p, rz):
+    q = matvec(p)
+    pq = jnp.sum(p * q, 0)
+    # A column already solved has r = 0 exactly: its step lengths stay 0, not 0/0.
+    alpha = jnp.where(pq > 0, rz / jnp.where(pq > 0, pq, 1.0), 0.0)
+    x = x + alpha * p
+    r = r - alpha * q
+    z = precond(r)
+    rz_new = jnp.sum(r * z, 0)
+    beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
+    return x, r, z + beta * p, rz_new, jnp.linalg.norm(r, axis=0)
+
+
+def solve(
+    matvec: Callable[[Array], Array],
+    B: Float[Array, "R M"],
+    precond: Callable[[Array], Array],
+    *,
+    tol: float = 1e-6,
+    max_iter: int = 1000,
+    progress: bool = True,
+    what: str = "K̄ α = Ȳ",
+) -> tuple[Array, CGInfo]:
+    """``X`` with ``matvec(X) = B`` for a symmetric positive definite operator, by
+    preconditioned CG on every column of ``B`` at once; ``precond`` approximates the inverse.
+    Stops when every column's relative residual is at most ``tol``; raises
+    :class:`NotConverged` naming ``what`` and the residuals reached if ``max_iter`` iterations
+    do not get there. A progress bar shows the worst residual."""
+    if not (isinstance(tol, float | int) and 0 < tol < 1):
+        raise ValueError(f"tol must be in (0, 1), got {tol!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
+        raise ValueError(f"max_iter must be a positive integer, got {max_iter!r}")
+    t0 = time.perf_counter()
+    bnorm = np.asarray(jnp.linalg.norm(B, axis=0))
+    bnorm = np.where(bnorm > 0, bnorm, 1.0)
+    x, r, z, p, rz = _first(precond, B)
+    res = np.asarray(jnp.linalg.norm(r, axis=0)) / bnorm
+    it = 0
+    bar = tqdm(total=max_iter, desc=f"CG {what}", unit="it", disable=not progress, leave=False)
+    while res.max() > tol and it < max_iter:
+        x, r, p, rz, rn = _step(matvec, precond, x, r, p, rz)
+        res = np.asarray(rn) / bnorm
+        it += 1
+        bar.update()
+        bar.set_postfix_str(f"residual {res.max():.1e}")
+    bar.close()
+    info = CGInfo(it, res, float(tol), bool(res.max() <= tol), 0.0, time.perf_counter() - t0)
+    if not info.converged:
+        raise NotConverged(
+            f"CG for {what} did not reach the relative residual {tol:g} in {max_iter} "
+            f"iterations (worst output {res.max():.3g}); raise solver.max_iter, loosen "
+            "solver.tol, or use more preconditioner points (solver.points)"
+        )
+    return x, info
+
+
+def jax_tree_bytes(tree) -> int:
+    """Bytes of the arrays of a pytree (the preconditioner's memory)."""
+    return int(sum(a.nbytes for a in jax.tree.leaves(eqx.filter(tree, eqx.is_array))))
