@@ -70,11 +70,20 @@ class HyperConfig:
     fit_grad_noise: bool = False  # also fit s
     lengthscale_scale: float = 1.0  # multiplies the fitted (or given) lengthscales
     output_scales: bool = True  # per-output ML variance scale (closed form, from α)
+    full: bool = False  # then refit on all points by the stochastic likelihood (gpg.gp.slq)
+    full_max_steps: int = 100  # BFGS steps of that refit
+    probes: int = 30  # its fixed Gaussian probes of log|K̄|
+    cg_tol: float = 1e-5  # relative residual of its CG solves
+    cg_max_iter: int = 500  # iteration budget of each of those solves
 
     def __post_init__(self):
         w = "hyper."
-        for k in ("fit", "ard", "fit_noise", "fit_grad_noise", "output_scales"):
+        for k in ("fit", "ard", "fit_noise", "fit_grad_noise", "output_scales", "full"):
             _bool(w + k, getattr(self, k))
+        for k in ("full_max_steps", "probes", "cg_max_iter"):
+            _int(w + k, getattr(self, k), 1)
+        if not (isinstance(self.cg_tol, int | float) and 0 < self.cg_tol < 1):
+            raise ValueError(f"hyper.cg_tol must be in (0, 1), got {self.cg_tol!r}")
         _int(w + "subset", self.subset, 1)
         _int(w + "seed", self.seed)
         _int(w + "max_steps", self.max_steps, 1)

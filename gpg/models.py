@@ -40,7 +40,7 @@ from gpg.config import ModelConfig, package_defaults
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Training, prepare
 from gpg.gp import partition
-from gpg.gp.fit import HyperFitResult, fit_hyperparameters
+from gpg.gp.fit import HyperFitResult, Stochastic, fit_hyperparameters
 from gpg.gp.hyper import Hyper, gradient_noise
 from gpg.gp.predictor import Predictor
 from gpg.kinds import KINDS, Arrays, Kind, base
@@ -254,27 +254,36 @@ def fit_hyper(
         hyper = init.validate(X.shape[1], len(dims))
     else:
         t0 = time.perf_counter()
+        common = {
+            "grad_dims": dims if dY is not None else None,
+            "ard": h.ard,
+            "fit_grad_noise": h.fit_grad_noise,
+            "fit_noise": h.fit_noise,
+            "noise_floor": h.noise_floor,
+        }
         res = fit_hyperparameters(
-            X,
-            Y,
-            dY,
-            grad_dims=dims if dY is not None else None,
-            init=init,
-            ard=h.ard,
-            fit_grad_noise=h.fit_grad_noise,
-            fit_noise=h.fit_noise,
-            noise_floor=h.noise_floor,
-            noise_init=h.noise_init,
-            subset_size=h.subset,
-            seed=h.seed,
-            max_steps=h.max_steps,
-        )
+            X, Y, dY, init=init, noise_init=h.noise_init, subset_size=h.subset, seed=h.seed,
+            max_steps=h.max_steps, **common,
+        )  # fmt: skip
+        if h.full:
+            # From the subset's optimum: the refit on all points then needs few of its steps.
+            res = fit_hyperparameters(
+                X, Y, dY, init=res.hyper, noise_init=_noise_ratio(res, h), subset_size=None,
+                max_steps=h.full_max_steps, likelihood="stochastic",
+                stochastic=Stochastic(probes=h.probes, tol=h.cg_tol, max_iter=h.cg_max_iter),
+                **common,
+            )  # fmt: skip
         hyper, seconds = res.hyper, time.perf_counter() - t0
     if h.lengthscale_scale != 1.0:
         scaled = hyper.lengthscale * h.lengthscale_scale
         hyper = eqx.tree_at(lambda t: t.lengthscale, hyper, scaled)
     check_scaled_inputs(X, hyper)
     return hyper, res, seconds
+
+
+def _noise_ratio(res: HyperFitResult, h) -> float:
+    """Where the refit on all points starts ``ν²/σ``: the subset fit's, kept above the floor."""
+    return max(res.noise_ratio, h.noise_floor * (1 + 1e-6)) if h.fit_noise else h.noise_init
 
 
 def check_scaled_inputs(X: np.ndarray, hyper: Hyper) -> None:

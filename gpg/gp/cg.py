@@ -66,14 +66,21 @@ class Nystrom(eqx.Module):
         Z: Float[Array, "U D"],
         *,
         jitter: float = 1e-6,
-        chunk: int = 512,
+        chunk: int | None = 512,
     ) -> Nystrom:
         """From training inputs ``X``, inducing inputs ``Z`` (with gradient rows for
-        ``grad_dims`` too) and a relative ``jitter`` on ``K̄_uu``'s diagonal."""
+        ``grad_dims`` too) and a relative ``jitter`` on ``K̄_uu``'s diagonal; ``K̄_xu`` made
+        ``chunk`` points at a time into a host buffer, or, with ``chunk=None``, in pure JAX
+        (traceable, ``K̄_xu`` held whole: the likelihood on all points rebuilds it at every
+        hyperparameter step, :mod:`gpg.gp.slq`)."""
         X, Z = jnp.asarray(X), jnp.asarray(Z)
         n, g = X.shape[0], len(grad_dims)
-        Kuu = kernels.gram(Z, Z, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
-        Lu = jnp.linalg.cholesky(Kuu + jitter * jnp.diag(jnp.diag(Kuu)))
+        Lu = _inducing_factor(Z, hyper, grad_dims, jitter)
+        if chunk is None:
+            V = _nystrom_rows(X, Z, Lu, hyper, grad_dims=grad_dims)
+            d_inv = 1.0 / _residual_diagonal(jnp.sum(V * V, 1), hyper, grad_dims, n, X)
+            inner = jnp.eye(V.shape[1], dtype=V.dtype) + V.T @ (V * d_inv[:, None])
+            return cls(V=V, d_inv=d_inv, chol=jnp.linalg.cholesky(inner))
         # V = K̄_xu L_u⁻ᵀ a chunk of points at a time, into one host buffer in the
         # dimension-major row layout: K̄_xu itself is never held whole.
         V = np.empty((n * (1 + g), Lu.shape[0]))
@@ -83,24 +90,37 @@ class Nystrom(eqx.Module):
             w = min(chunk, n - s)
             for k in range(1 + g):
                 V[k * n + s : k * n + s + w] = rows[k * w : (k + 1) * w]
-        ls = jnp.broadcast_to(jnp.asarray(hyper.lengthscale, X.dtype), (X.shape[1],))
-        prior = np.concatenate(
-            [np.full(n, float(hyper.variance))]
-            + [np.full(n, float(hyper.variance / ls[d] ** 2)) for d in grad_dims]
-        )
-        noise = np.asarray(hyper.noise_diagonal(n, g))
-        D = np.maximum(prior - np.einsum("ij,ij->i", V, V), 0.0) + noise
-        d_inv = 1.0 / D
+        q = np.einsum("ij,ij->i", V, V)
+        d_inv = 1.0 / np.asarray(_residual_diagonal(q, hyper, grad_dims, n, X))
         inner = np.eye(V.shape[1])
         for s in range(0, V.shape[0], chunk * (1 + g)):
             Vc = V[s : s + chunk * (1 + g)]
             inner += Vc.T @ (Vc * d_inv[s : s + chunk * (1 + g), None])
         return cls(V=jnp.asarray(V), d_inv=jnp.asarray(d_inv), chol=jnp.linalg.cholesky(inner))
 
+    def log_det(self) -> Float[Array, ""]:
+        """``log|P̂| = log|D| + log|I + Vᵀ D⁻¹ V|`` (the matrix determinant lemma)."""
+        return -jnp.sum(jnp.log(self.d_inv)) + 2.0 * jnp.sum(jnp.log(jnp.diag(self.chol)))
+
     def __call__(self, r: Float[Array, "R M"]) -> Float[Array, "R M"]:
         y = self.d_inv[:, None] * r
         t = jsl.cho_solve((self.chol, True), self.V.T @ y)
         return y - self.d_inv[:, None] * (self.V @ t)
+
+
+def _inducing_factor(Z, hyper: Hyper, grad_dims: tuple[int, ...], jitter: float) -> Array:
+    """``L_u`` with ``L_u L_uᵀ = K̄_uu`` plus ``jitter`` times its diagonal."""
+    Kuu = kernels.gram(Z, Z, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
+    return jnp.linalg.cholesky(Kuu + jitter * jnp.diag(jnp.diag(Kuu)))
+
+
+def _residual_diagonal(q, hyper: Hyper, grad_dims: tuple[int, ...], n: int, X) -> Array:
+    """``D = diag(K̄ − Q) + diag(ν², λ²)`` from ``diag Q = q``: each row's prior variance (σ
+    on values, σ/l_d² on gradient d) less what the inducing rows explain, floored at 0."""
+    ls = jnp.broadcast_to(jnp.asarray(hyper.lengthscale, X.dtype), (X.shape[1],))
+    per_block = jnp.stack([hyper.variance] + [hyper.variance / ls[d] ** 2 for d in grad_dims])
+    prior = jnp.repeat(per_block, n)
+    return jnp.maximum(prior - q, 0.0) + hyper.noise_diagonal(n, len(grad_dims))
 
 
 def _nystrom_rows(Xc, Z, Lu, hyper, *, grad_dims):

@@ -17,11 +17,99 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Float
+from tqdm.auto import tqdm
 
 from gpg._deprecated import deprecated
 from gpg._dtype import float64
+from gpg.gp import slq
+from gpg.gp.cg import NotConverged
 from gpg.gp.gram import check_training_data, log_marginal_likelihood, stack_targets
 from gpg.gp.hyper import Hyper, gradient_noise
+from gpg.gp.pic import inducing_inputs
+
+
+@dataclass(frozen=True)
+class Stochastic:
+    """Options of the stochastic likelihood (:mod:`gpg.gp.slq`): ``probes`` fixed Gaussian
+    probes drawn with ``seed``, CG to relative residual ``tol`` within ``max_iter`` steps,
+    at most ``lanczos`` of them in each quadrature, a Nyström preconditioner on ``points``
+    k-means inducing inputs, products ``tile`` points at a time."""
+
+    probes: int = 30
+    tol: float = 1e-5
+    max_iter: int = 500
+    lanczos: int = 100
+    points: int = 250
+    seed: int = 0
+    tile: int = 256
+    progress: bool = True
+
+    def __post_init__(self):
+        for name in ("probes", "max_iter", "lanczos", "points", "tile"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"stochastic.{name} must be a positive integer, got {value!r}")
+        if not (isinstance(self.tol, float | int) and 0 < self.tol < 1):
+            raise ValueError(f"stochastic.tol must be in (0, 1), got {self.tol!r}")
+
+    def arguments(self, X, n_grad: int, rows: int) -> tuple:
+        """The inducing inputs and the fixed probes for the points ``X``."""
+        Z = inducing_inputs(np.asarray(X), min(self.points, X.shape[0]), seed=self.seed)
+        Z = jnp.asarray(Z)
+        return Z, slq.Probes.draw(rows, Z.shape[0] * (1 + n_grad), self.probes, self.seed)
+
+
+def _stochastic(X, Ybar, hyper, grad_dims, args, opts: Stochastic) -> slq.StochasticLML:
+    Z, probes = args
+    return slq.stochastic_log_marginal_likelihood(
+        X, Ybar, hyper, grad_dims, Z, probes,
+        tol=opts.tol, max_iter=opts.max_iter, lanczos=opts.lanczos, tile=opts.tile,
+    )  # fmt: skip
+
+
+def _stochastic_lml(X, Ybar, hyper, grad_dims, args, opts: Stochastic):
+    """The stochastic log likelihood, −∞ (a rejected step) where a CG solve fell short."""
+    out = _stochastic(X, Ybar, hyper, grad_dims, args, opts)
+    return jnp.where(out.converged, out.value, -jnp.inf)
+
+
+def _check_solves(X, Ybar, hyper, data, args, opts: Stochastic) -> float:
+    """The log likelihood at the starting point, whose CG solves must reach their tolerance,
+    else ``NotConverged`` saying what to change (later steps that fall short are rejected
+    by the line search)."""
+    out = eqx.filter_jit(_stochastic)(X, Ybar, hyper, data.grad_dims, args, opts)
+    if not bool(out.converged):
+        raise NotConverged(
+            f"the likelihood's CG solves did not reach the relative residual {opts.tol:g} in "
+            f"{opts.max_iter} iterations at the starting hyperparameters; raise "
+            "stochastic.max_iter (hyper.cg_max_iter), loosen stochastic.tol (hyper.cg_tol), or "
+            "use more preconditioner points"
+        )
+    return float(out.value)
+
+
+def _minimise_with_progress(loss, solver, params, args, max_steps: int, progress: bool):
+    """``optx.minimise`` one jitted step at a time (optimistix's own stepping interface), so
+    a fit whose steps take seconds shows its progress: the solution, status and step count."""
+    fn = lambda y, a: (loss(y, a), None)  # noqa: E731
+    f_struct = jax.ShapeDtypeStruct((), jnp.result_type(float))
+    state = solver.init(fn, params, args, {}, f_struct, None, frozenset())
+    step = eqx.filter_jit(lambda y, s, a: solver.step(fn, y, a, {}, s, frozenset()))
+    terminate = eqx.filter_jit(lambda y, s, a: solver.terminate(fn, y, a, {}, s, frozenset()))
+    y, aux, n = params, None, 0
+    done, status = terminate(y, state, args)
+    bar = tqdm(total=max_steps, desc="likelihood fit", unit="step", disable=not progress)
+    with bar:
+        while not bool(done) and n < max_steps:
+            y, state, aux = step(y, state, args)
+            done, status = terminate(y, state, args)
+            n += 1
+            bar.update()
+            bar.set_postfix_str(f"nll {float(state.f_info.f):.6g}")
+    if not bool(done):
+        status = optx.RESULTS.max_steps_reached
+    y, _, _ = solver.postprocess(fn, y, aux, args, {}, state, frozenset(), status)
+    return y, status, n
 
 
 class FitWarning(UserWarning):
@@ -120,10 +208,10 @@ def _initial_params(data, init: Hyper, fit_grad_noise, fit_noise, noise_init, no
     return params, grad_var
 
 
-def _outcome(sol, hyper: Hyper, nll: float) -> tuple[bool, str]:
+def _outcome(status, hyper: Hyper, nll: float) -> tuple[bool, str]:
     """Whether the optimiser converged to a finite likelihood, and what to say if not."""
-    ok = bool(sol.result == optx.RESULTS.successful)
-    message = "converged" if ok else f"optimistix stopped: {_result_message(sol.result)}"
+    ok = bool(status == optx.RESULTS.successful)
+    message = "converged" if ok else f"optimistix stopped: {_result_message(status)}"
     finite = all(np.all(np.isfinite(np.asarray(v))) for v in jax.tree.leaves(hyper))
     if ok and (not finite or nll >= 1e10):
         ok, message = False, "the likelihood is not finite at the optimum"
@@ -160,6 +248,8 @@ def fit_hyperparameters(
     rtol: float = 1e-6,
     atol: float = 1e-6,
     on_failure: str = "warn",
+    likelihood: str = "dense",
+    stochastic: Stochastic | None = None,
     **renamed: Any,
 ) -> HyperFitResult:
     """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
@@ -174,12 +264,19 @@ def fit_hyperparameters(
     with ``seed``), since each step factorises K̄.
 
     ``on_failure``: ``"warn"`` (a :class:`FitWarning`, result returned with
-    ``converged=False``), ``"raise"`` (:class:`FitError`) or ``"ignore"``. The keywords
+    ``converged=False``), ``"raise"`` (:class:`FitError`) or ``"ignore"``.
+
+    ``likelihood``: ``"dense"`` factorises ``K̄`` of the (subset's) points at every step;
+    ``"stochastic"`` never forms it (:mod:`gpg.gp.slq`: CG solves and stochastic Lanczos
+    quadrature with fixed probes, options in ``stochastic``), so ``subset_size=None`` fits on
+    all points at any N; it shows a progress bar per step. The keywords
     ``fit_jitter``, ``jitter_floor`` and ``jitter_init`` of earlier releases are read as the
     ``noise`` ones with a ``DeprecationWarning``.
     """
     new = {"fit_noise": fit_noise, "noise_floor": noise_floor, "noise_init": noise_init}
     fit_noise, noise_floor, noise_init = {**new, **_renamed_keywords(renamed)}.values()
+    if likelihood not in ("dense", "stochastic"):
+        raise ValueError(f"likelihood must be 'dense' or 'stochastic', got {likelihood!r}")
     if on_failure not in ("warn", "raise", "ignore"):
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
     if fit_noise and not (0 < noise_floor < noise_init):
@@ -198,27 +295,42 @@ def fit_hyperparameters(
         data, init, fit_grad_noise, fit_noise, noise_init, noise_floor
     )
 
-    def loss(p, _):
+    def loss(p, args):
         h = _unpack(p, init, grad_var, noise_floor)
-        nll = -log_marginal_likelihood(Xs, Ybar, h, data.grad_dims) / scale
+        if likelihood == "dense":
+            lml = log_marginal_likelihood(Xs, Ybar, h, data.grad_dims)
+        else:
+            lml = _stochastic_lml(Xs, Ybar, h, data.grad_dims, args, opts)
+        nll = -lml / scale
         # A non-PD trial point gives NaN: report it as a bad step so the line search backs off.
         return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
 
-    nll0 = float(loss(params, None))
     solver = optx.BFGS(rtol=rtol, atol=atol)
-    sol = optx.minimise(loss, solver, params, max_steps=max_steps, throw=False)
-    hyper = _unpack(sol.value, init, grad_var, noise_floor)
-    nll1 = float(loss(sol.value, None))
-    ok, message = _outcome(sol, hyper, nll1)
+    if likelihood == "dense":
+        nll0 = float(loss(params, None))
+        sol = optx.minimise(loss, solver, params, max_steps=max_steps, throw=False)
+        value, status, steps = sol.value, sol.result, int(sol.stats["num_steps"])
+        nll1 = float(loss(value, None))
+    else:
+        opts = Stochastic() if stochastic is None else stochastic
+        args = opts.arguments(Xs, len(data.grad_dims), Ybar.shape[0])
+        h0 = _unpack(params, init, grad_var, noise_floor)
+        nll0 = -_check_solves(Xs, Ybar, h0, data, args, opts) / scale
+        value, status, steps = _minimise_with_progress(
+            loss, solver, params, args, max_steps, opts.progress
+        )
+        nll1 = float(eqx.filter_jit(loss)(value, args))
+    hyper = _unpack(value, init, grad_var, noise_floor)
+    ok, message = _outcome(status, hyper, nll1)
     result = HyperFitResult(
         hyper=hyper,
         converged=ok,
-        num_steps=int(sol.stats["num_steps"]),
+        num_steps=steps,
         nll_initial=nll0 * scale,
         nll_final=nll1 * scale,
         message=message,
         subset=subset,
-        grad_noise_scale=float(jnp.exp(sol.value["log_s"])) if fit_grad_noise else None,
+        grad_noise_scale=float(jnp.exp(value["log_s"])) if fit_grad_noise else None,
         noise_fitted=fit_noise,
     )
     if not ok:

@@ -115,9 +115,12 @@ def gram_matvec(
     the ``(G+1)(G+2)·M`` columns it multiplies."""
     n, g, m = X.shape[0], len(grad_dims), V.shape[1]
     W, ls, il2 = _prepare(X, hyper, grad_dims, V)
-    value, grad = jax.lax.map(
-        lambda xt: _tile_product(xt, X, W, hyper.variance, ls, il2, grad_dims, m), _tiles(X, tile)
+    # Rematerialised in reverse mode: a gradient through the product (the likelihood on all
+    # points, :mod:`gpg.gp.slq`) keeps one tile of K at a time, not all N² entries.
+    tile_product = jax.checkpoint(
+        lambda xt: _tile_product(xt, X, W, hyper.variance, ls, il2, grad_dims, m)
     )
+    value, grad = jax.lax.map(tile_product, _tiles(X, tile))
     return _assemble(value, grad, V, hyper, n, g)
 
 
