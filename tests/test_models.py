@@ -317,7 +317,7 @@ def test_full_hyper_refits_on_every_point_from_the_subset_fit(training):
     from gpg.gp.gram import log_marginal_likelihood, stack_targets
 
     cfg = {"hyper": {"fit": True, "subset": 15, "max_steps": 30, "full": True,
-                     "full_max_steps": 8, "probes": 20}}  # fmt: skip
+                     "full_max_steps": 3, "probes": 10}}  # fmt: skip
     sub = {"hyper": {**cfg["hyper"], "full": False}}
     hyper, res, _ = models.fit_hyper("gpg", training, cfg)
     start, _, _ = models.fit_hyper("gpg", training, sub)
