@@ -37,13 +37,12 @@ class NotConverged(ValueError):
 @dataclass(frozen=True)
 class CGInfo:
     """How a solve went: ``iterations`` run, each output's final relative ``residual``,
-    whether all reached ``tol``, and the seconds of setup (preconditioner) and of iterations."""
+    whether all reached ``tol``, and the seconds the iterations took."""
 
     iterations: int
     residual: np.ndarray
     tol: float
     converged: bool
-    setup_s: float
     solve_s: float
 
 
@@ -182,7 +181,7 @@ def solve(
         bar.update()
         bar.set_postfix_str(f"residual {res.max():.1e}")
     bar.close()
-    info = CGInfo(it, res, float(tol), bool(res.max() <= tol), 0.0, time.perf_counter() - t0)
+    info = CGInfo(it, res, float(tol), bool(res.max() <= tol), time.perf_counter() - t0)
     if not info.converged:
         raise NotConverged(
             f"CG for {what} did not reach the relative residual {tol:g} in {max_iter} "
@@ -190,8 +189,3 @@ def solve(
             "solver.tol, or use more preconditioner points (solver.points)"
         )
     return x, info
-
-
-def jax_tree_bytes(tree) -> int:
-    """Bytes of the arrays of a pytree (the preconditioner's memory)."""
-    return int(sum(a.nbytes for a in jax.tree.leaves(eqx.filter(tree, eqx.is_array))))

@@ -117,7 +117,7 @@ def lanczos_log_quadrature(
     off = jnp.where(off_valid, jnp.sqrt(jnp.maximum(b[:, :-1], 0.0)) * inv_a[:, :-1], 0.0)
     T = jax.vmap(jnp.diag)(diag) + jax.vmap(lambda o: jnp.diag(o, 1) + jnp.diag(o, -1))(off)
     lam, U = jnp.linalg.eigh(T)
-    return jnp.sum(U[:, 0, :] ** 2 * jnp.log(jnp.maximum(lam, 1e-300)), axis=1)
+    return jnp.sum(U[:, 0, :] ** 2 * jnp.log(jnp.maximum(lam, jnp.finfo(lam.dtype).tiny)), axis=1)
 
 
 class StochasticLML(NamedTuple):
