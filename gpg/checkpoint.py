@@ -60,11 +60,12 @@ from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 6  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+FORMAT_VERSION = 7  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
 # 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels);
 # 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads;
-# 6: fields renamed (ν² is ``noise``, M_noise ``noise_model``); 4 and 5 load through RENAMED
-READABLE_VERSIONS = (4, 5, 6)
+# 6: fields renamed (ν² is ``noise``, M_noise ``noise_model``); 4 and 5 load through RENAMED;
+# 7: ExactGP.order/observed and HybridGP.record (conditioning); older files load them as None
+READABLE_VERSIONS = (4, 5, 6, 7)
 # Fields renamed since an older format: (module, class) -> {old field: new field}. Reading one
 # warns (DeprecationWarning): save the surrogate again to write the current format.
 RENAMED = {
@@ -141,13 +142,18 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
         for part in desc["__class__"].split("."):
             cls = getattr(cls, part)
         fields = _renamed_fields(module, desc["__class__"], desc["fields"])
-        names = {f.name for f in dataclasses.fields(cls)}
-        if names != set(fields):
+        known = {f.name: f for f in dataclasses.fields(cls)}
+        # A field added since the file was written takes its default (format 7 added the
+        # exact model's row order and the hybrid's training record, both None before).
+        added = {n for n, f in known.items() if n not in fields and f.default is None}
+        if set(known) - added != set(fields):
             raise CheckpointError(
                 f"{desc['__class__']} fields differ from this gpg version: "
-                f"{sorted(names ^ set(fields))}"
+                f"{sorted((set(known) - added) ^ set(fields))}"
             )
         obj = object.__new__(cls)
+        for name in added:
+            object.__setattr__(obj, name, None)
         for name, value in fields.items():
             object.__setattr__(obj, name, _rebuild(value, arrays))
         return obj

@@ -227,8 +227,17 @@ def training_arrays(name: str, training: Training) -> Arrays:
     if spec.gradients:
         if training.dY is None:
             raise ValueError(f"model {name!r} needs gradients, which the dataset lacks")
-        return Arrays(training.X, training.Y, training.dY, GRAD_DIMS)
+        return gradient_arrays(training.X, training.Y, training.dY)
     return Arrays(training.X, training.Y, None, ())
+
+
+def gradient_arrays(X: np.ndarray, Y: np.ndarray, dY: np.ndarray) -> Arrays:
+    """Arrays with gradients; NaN in ``dY`` marks a gradient dim a case was not run for (all
+    outputs alike, :attr:`gpg.data.Dataset.gradient_mask`), which becomes ``observed``."""
+    missing = np.isnan(dY)
+    if not missing.any():
+        return Arrays(X, Y, dY, GRAD_DIMS)
+    return Arrays(X, Y, np.where(missing, 0.0, dY), GRAD_DIMS, ~missing[:, 0, :])
 
 
 def initial_hyper(cfg: ModelConfig, n_inputs: int, dY: np.ndarray | None) -> Hyper:
@@ -247,7 +256,8 @@ def fit_hyper(
     cfg = resolve_config(name, cfg)
     arrays = training_arrays(name, training)
     X, Y, dY, dims = arrays.X, arrays.Y, arrays.dY, arrays.dims
-    init = initial_hyper(cfg, X.shape[1], dY)
+    seen = dY if arrays.observed is None else np.where(arrays.observed[:, None], dY, np.nan)
+    init = initial_hyper(cfg, X.shape[1], seen)
     h = cfg.hyper
     res, seconds = None, 0.0
     if not h.fit:
@@ -260,6 +270,7 @@ def fit_hyper(
             "fit_grad_noise": h.fit_grad_noise,
             "fit_noise": h.fit_noise,
             "noise_floor": h.noise_floor,
+            "observed": arrays.observed,
         }
         res = fit_hyperparameters(
             X, Y, dY, init=init, noise_init=h.noise_init, subset_size=h.subset, seed=h.seed,
@@ -332,6 +343,11 @@ def check_feasible(
     n = arrays.X.shape[0]
     kind = SPECS[name].kind
     kind.check(name, cfg, n)
+    if arrays.observed is not None and not kind.partial_gradients:
+        raise ValueError(
+            f"model {name!r} needs every gradient at every case, and some cases lack some "
+            "(NaN gradients in the dataset); gpg and gpgs_hybrid train on such data"
+        )
     need = kind.required_bytes(cfg, n, len(arrays.dims))
     hint = " (gpgs and gpg_pic train without K̄, gpgs_hybrid too with solver.method=cg)"
     hint = hint if kind.needs_gram else ""

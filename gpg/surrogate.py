@@ -179,6 +179,18 @@ class Surrogate(eqx.Module):
             hover_speed=hover_speed,
         )
 
+    def condition(self, dataset: Dataset) -> Surrogate:
+        """This surrogate conditioned on the cases of ``dataset`` without a refit: the
+        hyperparameters, normaliser, ``M`` and bins kept, the same model as a rebuild with
+        them (to rounding); cases may carry any subset of the gradients (NaN for a
+        perturbation not run). ``gpg``/``gp`` by a bordered Cholesky update, ``gpgs_hybrid``
+        by re-forming ``α`` and the bins whose near set changed (:mod:`gpg.design`, with the
+        rule for when to refit instead). Bad cases (other outputs, outside the box, duplicates
+        of training cases, NaN) raise ``ValueError``; this surrogate is never changed."""
+        from gpg import design
+
+        return design.condition(self, dataset)
+
     @property
     def config(self) -> dict[str, Any]:
         return json.loads(self.config_json)

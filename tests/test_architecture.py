@@ -30,6 +30,7 @@ RANKS = {
     "gpg.config": 4,
     "gpg.kinds": 4.5,
     "gpg.models": 5,
+    "gpg.design": 5.5,
     "gpg.surrogate": 6,
     "gpg.checkpoint": 7,
     "gpg.envs": 7,

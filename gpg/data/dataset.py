@@ -139,8 +139,9 @@ class Dataset:
                 )
         for name in _ARRAYS:
             v = getattr(self, name)
-            if v is not None:
+            if v is not None and name not in ("jac_aero", "jac_noise"):
                 require_finite(name, v)  # names the offending row indices
+        self._validate_gradients()
         if np.any(self.x[:, :4] < 0):
             rows = np.flatnonzero(np.any(self.x[:, :4] < 0, axis=1))
             raise ValueError(f"x has negative rotor speeds in row(s) {rows[:10].tolist()}")
@@ -149,6 +150,41 @@ class Dataset:
             raise ValueError(
                 f"x has a negative airspeed (a speed, ≥ 0 m/s) in row(s) {rows[:10].tolist()}"
             )
+
+    def _validate_gradients(self) -> None:
+        """Gradients are finite, or NaN for every output of a (case, input): a perturbation
+        that was not run (:attr:`gradient_mask`). Anything else names the rows."""
+        jac = self.jac if self.jac_aero is not None else None
+        if jac is None:
+            return
+        nan = np.isnan(jac)
+        if np.isinf(jac).any():
+            require_finite("jac_aero" if np.isinf(self.jac_aero).any() else "jac_noise", jac)
+        partial = np.any(nan.any(axis=1) & ~nan.all(axis=1), axis=1)
+        if partial.any():
+            rows = np.flatnonzero(partial)[:10].tolist()
+            raise ValueError(
+                f"gradients are NaN for some outputs but not others in row(s) {rows}: NaN "
+                "marks a perturbation that was not run, so it is NaN for every output or none"
+            )
+        if self.jac_noise is not None and self.y_noise is not None:
+            aero_nan, noise_nan = np.isnan(self.jac_aero), np.isnan(self.jac_noise)
+            if np.any(aero_nan.all(axis=1) != noise_nan.all(axis=1)):
+                raise ValueError("jac_aero and jac_noise must lack the same perturbations")
+
+    @property
+    def gradient_mask(self) -> np.ndarray | None:
+        """(N, 7) which gradient inputs each case has (True: its perturbation was run), or
+        None when the dataset has no gradients. A case's missing ones are NaN in ``jac_*``."""
+        if self.jac_aero is None:
+            return None
+        return ~np.isnan(self.jac_aero[:, 0, :])
+
+    @property
+    def runs(self) -> int:
+        """Simulator runs behind the dataset: per case one, plus one per gradient input run."""
+        mask = self.gradient_mask
+        return self.n + (0 if mask is None else int(mask.sum()))
 
     def subset(self, index: np.ndarray) -> Dataset:
         """The points ``index`` (and their raw samples)."""
@@ -323,7 +359,9 @@ def from_csv(
     ``gradients`` pattern naming the CSV header of ``∂output/∂input`` from the CSV headers of
     the two (``{output}``, ``{input}``) or from their schema names (``{output_field}``,
     ``{input_field}``), e.g. ``"d{output}_d{input}"``; they must be complete if present.
-    ``units`` maps a field to its unit in the file (e.g. ``{"yaw": "deg", "airspeed": "km/h"}``);
+    An empty gradient cell means that perturbation was not run for that case (it must then be
+    empty for every output). ``units`` maps a field to its unit in the file (e.g.
+    ``{"yaw": "deg", "airspeed": "km/h"}``);
     gradients are converted with the units of their output and input.
 
     ``vehicle`` (a name in ``conf/vehicle`` or a YAML path) is recorded in the dataset, so that
@@ -382,7 +420,7 @@ def from_csv(
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"CSV file {path} does not exist")
-    data = _read_csv(path, columns)
+    data = _read_csv(path, columns, blank={columns[g] for g in GRADIENT_COLUMNS if g in columns})
     col = {k: data[:, j] for j, k in enumerate(columns)}
 
     def get(fields):
@@ -441,11 +479,13 @@ def _gradient_columns(pattern: str, columns: Mapping[str, str], outs) -> dict[st
     return out
 
 
-def _read_csv(path: Path, columns: Mapping[str, str]) -> np.ndarray:
+def _read_csv(path: Path, columns: Mapping[str, str], blank=frozenset()) -> np.ndarray:
     """The mapped columns as floats. Refused, with the file, line and column: bytes that are
     not UTF-8, a duplicated header name, a row with more or fewer fields than the header (an
     unquoted thousands separator, ``3,600.5``, makes one more), an over-long cell, and every
-    cell that is not a finite number. A UTF-8 byte-order mark is read and dropped."""
+    cell that is not a finite number, except an empty cell in a column of ``blank`` (a
+    gradient whose perturbation was not run), read as NaN. A UTF-8 byte-order mark is read and
+    dropped."""
     text = _decode(path)
     reader = csv.reader(io.StringIO(text, newline=""))
     try:
@@ -483,6 +523,9 @@ def _read_csv(path: Path, columns: Mapping[str, str]) -> np.ndarray:
             vals = []
             for head, j in where:
                 cell = row[j]
+                if head in blank and not cell.strip():
+                    vals.append(np.nan)
+                    continue
                 try:
                     v = float(cell)
                 except ValueError:

@@ -24,11 +24,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg._dtype import float64
 from gpg.gp import kernels, predictor
-from gpg.gp.gram import assemble_gram, check_training_data, stack_targets
+from gpg.gp.gram import assemble_gram, check_training_data, mask_gram_inplace
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor, plain
@@ -53,6 +53,11 @@ class ExactGP(Predictor):
             (:func:`gpg.gp.mean.output_scale`).
         grad_dims: input dimensions with gradient observations (static).
         log_marginal_likelihood: ``log p(Ȳ | X)`` summed over the M outputs.
+        order: None, or for a model grown by :meth:`condition`, the row of the layout of
+            :mod:`gpg.gp.kernels` that each row of ``chol_inv`` stands for (R,): the factor
+            of a bordered ``K̄`` keeps its blocks in the order the data came.
+        observed: None when every row was observed, else which rows were (R,) in the layout
+            (:func:`gpg.gp.gram.observed_rows`: cases without some gradients).
     """
 
     X: Float[Array, "N D"]
@@ -63,6 +68,8 @@ class ExactGP(Predictor):
     output_scale: Float[Array, " M"]
     log_marginal_likelihood: Float[Array, ""]
     grad_dims: tuple[int, ...] = eqx.field(static=True)
+    order: Int[Array, " R"] | None = None
+    observed: Bool[Array, " R"] | None = None
 
     @classmethod
     @float64
@@ -74,6 +81,7 @@ class ExactGP(Predictor):
         *,
         grad_dims: Sequence[int] | None = None,
         hyper: Hyper | None = None,
+        observed: Bool[ArrayLike, "N G"] | None = None,
     ) -> ExactGP:
         """Condition the GP on values ``Y`` and, optionally, gradients ``dY``.
 
@@ -83,30 +91,36 @@ class ExactGP(Predictor):
             dY: gradients (N, M, G): ``dY[i, m, g] = ∂y_m/∂x_{grad_dims[g]}`` at ``X[i]``.
             grad_dims: the G input dimensions of ``dY`` (default: all D when ``dY`` is given).
             hyper: kernel and noise hyperparameters (default ``Hyper()``).
+            observed: (N, G) which gradients each case has (default: all); the others'
+                ``dY`` entries are never read (:func:`gpg.gp.gram.observed_rows`).
 
         Raises:
             ValueError: mismatched shapes, NaN/inf in an input, bad ``grad_dims`` or
                 non-positive hyperparameters (the message names the input), or a ``K̄`` that
                 is not numerically positive definite.
         """
-        data = check_training_data(X, Y, dY, grad_dims)
+        data = check_training_data(X, Y, dY, grad_dims, observed)
         hyper = (Hyper() if hyper is None else hyper).validate(data.X.shape[1], len(data.grad_dims))
         Xj = jnp.asarray(data.X)
-        Ybar = stack_targets(data.Y, data.dY)
+        Ybar, rows = data.targets(), data.rows
         r = Ybar.shape[0]
+        n_obs = r if rows is None else int(rows.sum())
         # One dense R x R buffer, factorised and inverted in place, then moved into JAX band by
         # band while its rows are released: the peak stays near one copy (12.8 GB at 40000 rows).
         memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
         buf = memory.square_buffer(r)
-        chol = dense.cholesky_inplace(assemble_gram(Xj, hyper, data.grad_dims, out=buf.array))
+        gram = mask_gram_inplace(assemble_gram(Xj, hyper, data.grad_dims, out=buf.array), rows)
+        chol = dense.cholesky_inplace(gram)
         alpha = dense.cho_solve(chol, Ybar)
         m = Ybar.shape[1]
         lml = (
             -0.5 * float(np.sum(Ybar * alpha))
             - m * float(np.sum(np.log(np.diag(chol))))
-            - 0.5 * m * r * math.log(2 * math.pi)
+            - 0.5 * m * n_obs * math.log(2 * math.pi)
         )
         dense.triangular_inverse_inplace(chol)  # overwrites the factor: one buffer
+        if rows is not None:
+            chol[:, ~rows] = 0.0
         bands = BlockTriangular.from_buffer(buf, lower=True, n_blocks=8)
         del chol, buf
         return cls(
@@ -117,10 +131,45 @@ class ExactGP(Predictor):
             mean=GlobalMean.from_alpha(
                 data.X, alpha, hyper.variance, hyper.lengthscale, data.grad_dims
             ),
-            output_scale=jnp.asarray(output_scale(np.sum(Ybar * alpha, axis=0), r)),
+            output_scale=jnp.asarray(output_scale(np.sum(Ybar * alpha, axis=0), n_obs)),
             log_marginal_likelihood=jnp.asarray(lml),
             grad_dims=data.grad_dims,
+            observed=None if rows is None else jnp.asarray(rows),
         )
+
+    @float64
+    def condition(
+        self,
+        X: Float[ArrayLike, "n D"],
+        Y: Float[ArrayLike, "n M"],
+        dY: Float[ArrayLike, "n M G"] | None = None,
+        *,
+        observed: Bool[ArrayLike, "n G"] | None = None,
+    ) -> ExactGP:
+        """This GP conditioned on ``n`` more cases, hyperparameters kept: the same model as
+        :meth:`fit` on all the points (to rounding), by a bordered Cholesky update.
+
+        With ``K̄ = L Lᵀ`` over the ``R`` rows already in, ``B = K̄(X_old, X)`` and
+        ``C = K̄(X, X)`` plus noise over the ``r`` new rows, the grown factor is
+        ``[[L, 0], [S, L₂]]`` with ``S = (L⁻¹ B)ᵀ`` and ``L₂ L₂ᵀ = C − S Sᵀ`` (the Schur
+        complement), and its inverse gains one band of rows, ``[−L₂⁻¹ S L⁻¹, L₂⁻¹]``; the
+        rows already stored are not touched. ``α`` follows from ``E = S L⁻¹ = Bᵀ K̄⁻¹``:
+        ``α₂ = (C − S Sᵀ)⁻¹ (Ȳ₂ − Bᵀ α)`` and ``α₁ = α − Eᵀ α₂``. Cost ``O(r R²)`` (two
+        products with the stored ``L⁻¹``) against ``O(R³)`` for a refit; memory ``O(r R)``.
+
+        ``dY`` (n, M, G) over the model's gradient dims, with ``observed`` (n, G) as in
+        :meth:`fit`; without ``dY`` the new cases are values only. ``output_scale`` is
+        re-formed as a refit would (from ``Ȳᵀ α``); a model whose scales were set to ones
+        keeps ones.
+
+        Raises:
+            ValueError: inputs, outputs or gradient dims that do not match the model, NaN,
+                or new cases that make ``K̄`` singular (a duplicate of a training point with
+                too little noise): the model is unchanged.
+        """
+        from gpg.gp.update import bordered
+
+        return bordered(self, X, Y, dY, observed)
 
     @property
     def n_outputs(self) -> int:
@@ -165,7 +214,7 @@ class ExactGP(Predictor):
         :class:`gpg.gp.predictor.Predictor`.
         """
         k = _cross(self, x[None])[0]
-        v = self.chol_inv.matvec(k)
+        v = self.chol_inv.matvec(k if self.order is None else k[self.order])
         # Rounding can push the difference a hair below zero on training points: predict clips.
         return self.mean(x), self.hyper.variance - v @ v
 

@@ -16,14 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike, Bool, Float
 from tqdm.auto import tqdm
 
 from gpg._deprecated import deprecated
 from gpg._dtype import float64
 from gpg.gp import slq
 from gpg.gp.cg import NotConverged
-from gpg.gp.gram import check_training_data, log_marginal_likelihood, stack_targets
+from gpg.gp.gram import Checked, check_training_data, log_marginal_likelihood
 from gpg.gp.hyper import Hyper, gradient_noise
 from gpg.gp.pic import inducing_inputs
 
@@ -200,7 +200,7 @@ def _initial_params(data, init: Hyper, fit_grad_noise, fit_noise, noise_init, no
         "log_lengthscale": jnp.log(init.lengthscale),
     }
     if fit_grad_noise:
-        grad_var = gradient_noise(data.dY, s=1.0)
+        grad_var = gradient_noise(data.gradients(), s=1.0)
         lam = jnp.broadcast_to(init.grad_noise, (len(data.grad_dims),))
         params["log_s"] = jnp.mean(jnp.log(lam / grad_var))
     if fit_noise:
@@ -250,6 +250,7 @@ def fit_hyperparameters(
     on_failure: str = "warn",
     likelihood: str = "dense",
     stochastic: Stochastic | None = None,
+    observed: Bool[ArrayLike, "N G"] | None = None,
     **renamed: Any,
 ) -> HyperFitResult:
     """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
@@ -269,7 +270,8 @@ def fit_hyperparameters(
     ``likelihood``: ``"dense"`` factorises ``K̄`` of the (subset's) points at every step;
     ``"stochastic"`` never forms it (:mod:`gpg.gp.slq`: CG solves and stochastic Lanczos
     quadrature with fixed probes, options in ``stochastic``), so ``subset_size=None`` fits on
-    all points at any N; it shows a progress bar per step. The keywords
+    all points at any N; it shows a progress bar per step. ``observed`` (N, G) marks the
+    gradients a case has (:func:`gpg.gp.gram.observed_rows`; dense likelihood only). The keywords
     ``fit_jitter``, ``jitter_floor`` and ``jitter_init`` of earlier releases are read as the
     ``noise`` ones with a ``DeprecationWarning``.
     """
@@ -284,13 +286,17 @@ def fit_hyperparameters(
             "noise_floor and noise_init (ν²/σ) must satisfy 0 < noise_floor < noise_init, "
             f"got {noise_floor} and {noise_init}"
         )
-    data = check_training_data(X, Y, dY, grad_dims)
+    data = check_training_data(X, Y, dY, grad_dims, observed)
+    if data.observed is not None and likelihood != "dense":
+        raise ValueError("observed (cases without some gradients) needs likelihood='dense'")
     init = _checked_init(data, init, ard, fit_grad_noise, subset_size)
     subset = _subset(data.X.shape[0], subset_size, seed)
     Xs = jnp.asarray(data.X[subset])
-    dYs = None if data.dY is None else jnp.asarray(data.dY[subset])
-    Ybar = stack_targets(jnp.asarray(data.Y[subset]), dYs)
-    scale = float(Ybar.size)
+    pick = (None if a is None else a[subset] for a in (data.dY, data.observed))
+    sub = Checked(data.X[subset], data.Y[subset], next(pick), data.grad_dims, next(pick))
+    rows = sub.rows
+    Ybar = jnp.asarray(sub.targets())
+    scale = float(Ybar.size if rows is None else rows.sum() * Ybar.shape[1])
     params, grad_var = _initial_params(
         data, init, fit_grad_noise, fit_noise, noise_init, noise_floor
     )
@@ -298,7 +304,7 @@ def fit_hyperparameters(
     def loss(p, args):
         h = _unpack(p, init, grad_var, noise_floor)
         if likelihood == "dense":
-            lml = log_marginal_likelihood(Xs, Ybar, h, data.grad_dims)
+            lml = log_marginal_likelihood(Xs, Ybar, h, data.grad_dims, rows)
         else:
             lml = _stochastic_lml(Xs, Ybar, h, data.grad_dims, args, opts)
         nll = -lml / scale

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from gpg import _checks
 from gpg.gp import kernels
@@ -41,9 +41,26 @@ class Checked:
     Y: np.ndarray
     dY: np.ndarray | None
     grad_dims: tuple[int, ...]
+    observed: np.ndarray | None = None  # (N, G) bool, None when every gradient was observed
+
+    @property
+    def rows(self) -> np.ndarray | None:
+        """The observed stacked rows (:func:`observed_rows`)."""
+        return observed_rows(self.observed, self.X.shape[0])
+
+    def gradients(self) -> np.ndarray | None:
+        """``dY`` with NaN where a gradient was not observed (what :mod:`gpg.data` passes)."""
+        if self.dY is None or self.observed is None:
+            return self.dY
+        return np.where(self.observed[:, None], self.dY, np.nan)
+
+    def targets(self) -> np.ndarray:
+        """``Ȳ`` (R, M), 0 on the unobserved rows."""
+        dY = self.dY if self.observed is None else np.where(self.observed[:, None], self.dY, 0.0)
+        return stack_targets(self.Y, dY)
 
 
-def check_training_data(X, Y, dY, grad_dims) -> Checked:
+def check_training_data(X, Y, dY, grad_dims, observed=None) -> Checked:
     X = _checks.as_float_array("X", X, ndim=2)
     Y = _checks.as_float_array("Y", Y, ndim=(1, 2))
     if Y.ndim == 1:
@@ -58,6 +75,8 @@ def check_training_data(X, Y, dY, grad_dims) -> Checked:
     if dY is None:
         if grad_dims not in (None, (), []):
             raise ValueError(f"grad_dims={tuple(grad_dims)} given but dY is None")
+        if observed is not None:
+            raise ValueError("observed given but dY is None: it marks which gradients exist")
         return Checked(X, Y, None, ())
     dY = _checks.as_float_array("dY", dY, ndim=(2, 3))
     if dY.ndim == 2:
@@ -75,8 +94,17 @@ def check_training_data(X, Y, dY, grad_dims) -> Checked:
     grad_dims = kernels.check_dims(grad_dims, d)
     if len(grad_dims) != dY.shape[2]:
         raise ValueError(f"grad_dims names {len(grad_dims)} dims but dY has {dY.shape[2]}")
-    _checks.require_finite("dY", dY)
-    return Checked(X, Y, dY, grad_dims)
+    if observed is None:
+        _checks.require_finite("dY", dY)
+        return Checked(X, Y, dY, grad_dims)
+    observed = np.asarray(observed)
+    if observed.dtype != bool or observed.shape != (n, len(grad_dims)):
+        raise ValueError(
+            f"observed must be a boolean array of shape (N, G) = ({n}, {len(grad_dims)}), "
+            f"got {observed.dtype} {observed.shape}"
+        )
+    _checks.require_finite("dY", np.where(observed[:, None, :], dY, 0.0))
+    return Checked(X, Y, dY, grad_dims, None if observed.all() else observed)
 
 
 def assemble_gram(
@@ -115,13 +143,60 @@ def assemble_gram(
 
 
 def noisy_gram(
-    X: Float[Array, "N D"], hyper: Hyper, grad_dims: tuple[int, ...]
+    X: Float[Array, "N D"],
+    hyper: Hyper,
+    grad_dims: tuple[int, ...],
+    rows: Bool[ArrayLike, " R"] | None = None,
 ) -> Float[Array, "R R"]:
     """``K̄(X, X)`` plus its noise diagonal (``ν²`` on value rows, ``λ²`` on gradient rows) in
     JAX: the one form every traced factorisation starts from (the likelihood, the local bins
-    on devices, PIC's blocks). :func:`assemble_gram` is its host twin for large ``K̄``."""
+    on devices, PIC's blocks). :func:`assemble_gram` is its host twin for large ``K̄``.
+    ``rows`` (R,) marks the observed rows (:func:`observed_rows`); the others are decoupled."""
     K = kernels.gram(X, X, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
-    return K + jnp.diag(hyper.noise_diagonal(X.shape[0], len(grad_dims)))
+    K = K + jnp.diag(hyper.noise_diagonal(X.shape[0], len(grad_dims)))
+    if rows is None:
+        return K
+    m = jnp.asarray(rows, dtype=K.dtype)
+    return K * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
+
+
+def observed_rows(observed: Bool[np.ndarray, "N G"] | None, n: int) -> np.ndarray | None:
+    """Per stacked row (R,), whether it was observed: value rows always, gradient row ``(i,
+    g)`` where ``observed[i, g]``; None when every gradient was (the common case, no mask).
+
+    A case whose simulator run skipped some finite-difference perturbations has no rows for
+    those gradient dims. Rather than change the layout per case, gpg keeps every row and
+    decouples the missing ones: their rows and columns of ``K̄`` become those of the identity
+    and their targets 0, so ``α`` is 0 there and the factor ``L⁻¹``'s columns for them are
+    zeroed (:func:`mask_factor_columns`). The posterior is then exactly the one conditioned on
+    the observed rows alone, with no change to the query code.
+    """
+    if observed is None:
+        return None
+    observed = np.asarray(observed, dtype=bool)
+    if observed.all():
+        return None
+    return np.concatenate([np.ones(n, dtype=bool), observed.T.ravel()])
+
+
+def mask_gram_inplace(K: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+    """Decouple the unobserved rows of a host ``K̄`` (see :func:`observed_rows`)."""
+    if rows is None:
+        return K
+    miss = np.flatnonzero(~rows)
+    K[miss, :] = 0.0
+    K[:, miss] = 0.0
+    K[miss, miss] = 1.0
+    return K
+
+
+def mask_targets(Ybar: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+    """``Ȳ`` with the unobserved rows 0 (their stored values, NaN or not, are never read)."""
+    if rows is None:
+        return Ybar
+    out = np.array(Ybar, dtype=float, copy=True)
+    out[~rows] = 0.0
+    return out
 
 
 def log_marginal_likelihood(
@@ -129,14 +204,17 @@ def log_marginal_likelihood(
     Ybar: Float[Array, "R M"],
     hyper: Hyper,
     grad_dims: tuple[int, ...] = (),
+    rows: Bool[ArrayLike, " R"] | None = None,
 ) -> Float[Array, ""]:
     """``Σ_m log N(Ȳ_m | 0, K̄)``: pure JAX, differentiable in ``hyper`` (small N only).
 
-    ``Ybar`` is the stacked target of :func:`stack_targets`.
+    ``Ybar`` is the stacked target of :func:`stack_targets` (0 on unobserved rows); ``rows``
+    the observed rows (:func:`observed_rows`), which alone count.
     """
-    c, lower = jsl.cho_factor(noisy_gram(X, hyper, grad_dims), lower=True)
+    c, lower = jsl.cho_factor(noisy_gram(X, hyper, grad_dims, rows), lower=True)
     alpha = jsl.cho_solve((c, lower), Ybar)
-    r, m = Ybar.shape
+    m = Ybar.shape[1]
+    r = Ybar.shape[0] if rows is None else jnp.sum(jnp.asarray(rows))
     return (
         -0.5 * jnp.sum(Ybar * alpha)
         - m * jnp.sum(jnp.log(jnp.diag(c)))

@@ -4,12 +4,25 @@ from __future__ import annotations
 
 from typing import Any
 
-from jaxtyping import Array, ArrayLike, Float, Int
+import equinox as eqx
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg.gp import partition
 from gpg.gp.binned import BinnedGP
+from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean
 from gpg.gp.predictor import Predictor
+
+
+class Record(eqx.Module):
+    """The training data a hybrid was built on, normalised: inputs ``X`` (N, D), stacked
+    targets ``Ybar`` (R, M) in the layout of :mod:`gpg.gp.kernels`, the hyperparameters, and
+    which rows were observed (R,) or None for all."""
+
+    X: Float[Array, "N D"]
+    Ybar: Float[Array, "R M"]
+    hyper: Hyper
+    rows: Bool[Array, " R"] | None = None
 
 
 class HybridGP(Predictor):
@@ -24,6 +37,9 @@ class HybridGP(Predictor):
 
     mean: GlobalMean
     local: BinnedGP
+    # What :meth:`gpg.kinds.hybrid.Hybrid.condition` needs to add cases (None: a model saved
+    # before gpg 0.3, or a mean view): small next to the near sets' factors.
+    record: Record | None = None
 
     @property
     def n_inputs(self) -> int:
@@ -58,7 +74,7 @@ class HybridGP(Predictor):
         return self.local.lengthscale
 
     def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> HybridGP:
-        return HybridGP(mean=self.mean, local=self.local.with_output_scale(scale))
+        return HybridGP(self.mean, self.local.with_output_scale(scale), self.record)
 
     def describe(self) -> dict[str, Any]:
         """The near sets' description: the mean shares their hyperparameters."""
@@ -72,4 +88,4 @@ class HybridGP(Predictor):
 
     def mean_view(self) -> HybridGP:
         """The global mean with the near sets' arrays dropped (the mean does not read them)."""
-        return HybridGP(mean=self.mean, local=self.local.mean_view())
+        return HybridGP(mean=self.mean, local=self.local.mean_view(), record=None)

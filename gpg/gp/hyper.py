@@ -83,11 +83,18 @@ class Hyper(eqx.Module):
 def gradient_noise(dY: Float[ArrayLike, "N M G"], s: float = 0.3) -> Float[Array, " G"]:
     """The paper's rule ``λ_i² = s · Var(∂_i Ỹ)``, the variance taken over points and outputs.
 
-    ``dY`` are the (normalised) gradients, ``s`` the paper's scale (0.3 in the paper).
+    ``dY`` are the (normalised) gradients, ``s`` the paper's scale (0.3 in the paper). NaN
+    marks a gradient a case does not have (:func:`gpg.gp.gram.observed_rows`); a dimension
+    no case has gets the variance 1 of a normalised gradient.
     """
     dY = _checks.as_float_array("dY", dY, ndim=3)
     if not s > 0:
         raise ValueError(f"s must be > 0, got {s}")
-    var = np.var(dY.reshape(-1, dY.shape[2]), axis=0)
+    flat = dY.reshape(-1, dY.shape[2])
+    seen = ~np.isnan(flat)
+    count = seen.sum(axis=0)
+    mean = np.where(seen, flat, 0.0).sum(axis=0) / np.maximum(count, 1)
+    var = np.where(seen, (flat - mean) ** 2, 0.0).sum(axis=0) / np.maximum(count, 1)
+    var = np.where(count > 0, var, 1.0)
     # A dimension whose gradients are all equal would get zero noise; keep K̄ positive definite.
     return jnp.asarray(s * np.maximum(var, np.finfo(float).tiny))

@@ -26,7 +26,7 @@ from jaxtyping import Array, Float
 
 from gpg import parallel
 from gpg.gp.binned import BinFactors, bin_yty, near_rows, pad_units
-from gpg.gp.gram import assemble_gram, noisy_gram
+from gpg.gp.gram import assemble_gram, mask_gram_inplace, noisy_gram
 from gpg.gp.hyper import Hyper
 from gpg.gp.partition import NearSets
 from gpg.linalg import dense
@@ -40,25 +40,37 @@ def precompute(
     near: NearSets,
     *,
     devices=None,
+    rows: np.ndarray | None = None,
+    bins: Sequence[int] | None = None,
 ) -> list[BinFactors]:
     """Per-bin coefficients and factors of the local GPs over ``near.near``.
 
     ``X`` the normalised training inputs (N, D), ``Ybar`` the stacked targets (N(1+G), M) in the
     layout of :mod:`gpg.gp.kernels`; ``devices`` (a mesh, a device count or list,
     :mod:`gpg.parallel`) spreads the bins over JAX devices, None keeps the host path.
+    ``rows`` (R,) marks the observed rows (:func:`gpg.gp.gram.observed_rows`; host path
+    only); ``bins`` restricts the work to those bins (the others are not returned).
     """
     dims = tuple(grad_dims)
+    chosen = near.near if bins is None else [near.near[b] for b in bins]
     if devices is not None:
-        return _sharded(X, Ybar, hyper, dims, near.near, parallel.devices(devices))
+        if rows is not None:
+            raise ValueError("cases without some gradients are built on the host: devices=None")
+        return _sharded(X, Ybar, hyper, dims, chosen, parallel.devices(devices))
     n, g = X.shape[0], len(dims)
-    return [_host(X, Ybar, hyper, dims, nb, near_rows(nb, n, g)) for nb in near.near]
+    return [_host(X, Ybar, hyper, dims, nb, near_rows(nb, n, g), rows) for nb in chosen]
 
 
-def _host(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray) -> BinFactors:
-    L = dense.cholesky_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), what="K̄_nn")
+def _host(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray, rows=None) -> BinFactors:
+    seen = None if rows is None else rows[r]
+    gram = mask_gram_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), seen)
+    L = dense.cholesky_inplace(gram, what="K̄_nn")
     coef = dense.cho_solve(L, Ybar[r])
     inv = dense.triangular_inverse_inplace(L)
-    return BinFactors(coef, inv, True, yty=bin_yty(Ybar[r], coef), n_rows=r.size)
+    if seen is not None:
+        inv[:, ~seen] = 0.0
+    n_rows = r.size if seen is None else int(seen.sum())
+    return BinFactors(coef, inv, True, yty=bin_yty(Ybar[r], coef), n_rows=n_rows)
 
 
 def _sharded(X, Ybar, hyper, dims, near: Sequence[np.ndarray], devs) -> list[BinFactors]:

@@ -20,7 +20,7 @@ import numpy as np
 
 from gpg.config import ModelConfig
 from gpg.gp import partition
-from gpg.gp.gram import stack_targets
+from gpg.gp.gram import mask_targets, observed_rows, stack_targets
 from gpg.gp.hyper import Hyper
 from gpg.gp.predictor import Predictor
 
@@ -34,10 +34,21 @@ class Arrays:
     Y: np.ndarray
     dY: np.ndarray | None
     dims: tuple[int, ...]
+    # (N, G): which gradients each case has; None when all (cases without some perturbations)
+    observed: np.ndarray | None = None
 
     @property
     def n_grad(self) -> int:
         return len(self.dims) if self.dY is not None else 0
+
+    @property
+    def rows(self) -> np.ndarray | None:
+        """The observed stacked rows (:func:`gpg.gp.gram.observed_rows`)."""
+        return observed_rows(self.observed, self.X.shape[0])
+
+    def targets(self) -> np.ndarray:
+        """``Ȳ`` (R, M) in the layout of :mod:`gpg.gp.kernels`, 0 on unobserved rows."""
+        return mask_targets(stack_targets(self.Y, self.dY), self.rows)
 
 
 @dataclass
@@ -62,6 +73,16 @@ class Kind(abc.ABC):
     # The predictor class a kind defined outside gpg builds: checkpoints name classes, and load
     # only those of gpg and of registered kinds (gpg's own kinds leave it None).
     predictor: ClassVar[type[Predictor] | None] = None
+    # Trains on cases that carry only some gradient dims (Arrays.observed)
+    partial_gradients: ClassVar[bool] = False
+
+    def condition(self, model: Predictor, new: Arrays, cfg: ModelConfig) -> Predictor:
+        """``model`` conditioned on the cases ``new`` with its hyperparameters kept, equal to
+        a rebuild on all the cases (kinds that can; the others refuse)."""
+        raise ValueError(
+            f"a model of kind {self.name!r} cannot be conditioned on new cases: refit it "
+            "(gpg and gpgs_hybrid can)"
+        )
 
     @abc.abstractmethod
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
@@ -103,8 +124,7 @@ def bins_and_near(
     t0 = time.perf_counter()
     part = build_partition(arrays.X, cfg, arrays.Y)
     near = partition.near_sets(arrays.X, part, hyper.lengthscale, **cfg.near.rule())
-    Ybar = stack_targets(arrays.Y, arrays.dY)
-    return part, near, Ybar, {"partition_s": time.perf_counter() - t0}
+    return part, near, arrays.targets(), {"partition_s": time.perf_counter() - t0}
 
 
 def near_set_bytes(cfg: ModelConfig, n_points: int, n_grad: int) -> int:

@@ -19,12 +19,19 @@ class Exact(Kind):
     reads = ()
     partitioned = False
     needs_gram = True
+    partial_gradients = True
 
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
         t0 = time.perf_counter()
         dims = arrays.dims if arrays.dY is not None else None
-        model = ExactGP.fit(arrays.X, arrays.Y, arrays.dY, grad_dims=dims, hyper=hyper)
+        model = ExactGP.fit(
+            arrays.X, arrays.Y, arrays.dY, grad_dims=dims, hyper=hyper, observed=arrays.observed
+        )
         return Product(model, timings={"fit_s": time.perf_counter() - t0})
+
+    def condition(self, model: ExactGP, new: Arrays, cfg: ModelConfig) -> ExactGP:
+        """The bordered Cholesky update (:meth:`gpg.gp.exact.ExactGP.condition`)."""
+        return model.condition(new.X, new.Y, new.dY, observed=new.observed)
 
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
         return gram_bytes(n_points, n_grad)  # one K̄, factorised in place

@@ -10,13 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpg.config import ModelConfig
-from gpg.gp import cg, local, pic
-from gpg.gp.binned import pack
-from gpg.gp.gram import assemble_gram
-from gpg.gp.hybrid import HybridGP
+from gpg.gp import cg, local, partition, pic
+from gpg.gp.binned import BinFactors, near_rows, pack
+from gpg.gp.gram import assemble_gram, mask_gram_inplace
+from gpg.gp.hybrid import HybridGP, Record
 from gpg.gp.hyper import Hyper
 from gpg.gp.matfree import gram_matvec, gram_matvec_devices
 from gpg.gp.mean import GlobalMean, output_scale
+from gpg.gp.update import _grown_rows, layout_index
 from gpg.kinds.base import Arrays, Kind, Product, bins_and_near, gram_bytes, near_set_bytes
 from gpg.linalg import dense, memory
 
@@ -30,23 +31,52 @@ class Hybrid(Kind):
     reads = ("partition", "near", "variance_dtype", "solver")
     partitioned = True
     needs_gram = True  # by default; solver.method cg trains without K̄
+    partial_gradients = True
 
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
         part, near, Ybar, timings = bins_and_near(arrays, hyper, cfg)
-        X, dims, t0 = arrays.X, arrays.dims, time.perf_counter()
-        diagnostics: dict = {}
-        if solver_method(cfg, arrays.X.shape[0], len(dims)) == "cg":
-            alpha, diagnostics = cg_alpha(X, Ybar, hyper, dims, cfg.solver, devices)
-        else:
-            alpha = exact_alpha(X, Ybar, hyper, dims)
-        factors = local.precompute(X, Ybar, hyper, dims, near, devices=devices)
-        scale = output_scale(np.sum(Ybar * alpha, axis=0), Ybar.shape[0])
-        model = HybridGP(
-            mean=GlobalMean.from_alpha(X, alpha, hyper.variance, hyper.lengthscale, dims),
-            local=pack(X, factors, near, part, hyper, dims, dtype=cfg.variance_dtype, scale=scale),
+        t0 = time.perf_counter()
+        rows = arrays.rows
+        alpha, diagnostics = global_alpha(arrays.X, Ybar, rows, hyper, arrays.dims, cfg, devices)
+        factors = local.precompute(
+            arrays.X, Ybar, hyper, arrays.dims, near, devices=devices, rows=rows
         )
+        model = _assemble(arrays.X, Ybar, rows, alpha, factors, near, part, hyper, arrays.dims, cfg)
         timings["fit_s"] = time.perf_counter() - t0
         return Product(model, near, diagnostics, timings)
+
+    def condition(self, model: HybridGP, new: Arrays, cfg: ModelConfig) -> HybridGP:
+        """The hybrid on its cases and ``new``, hyperparameters and bins kept: ``α`` re-formed
+        on all the cases by the model's solver, the near sets recomputed, and only the bins
+        whose near set changed factorised again (the others' factors are reused as stored).
+        Equal to a rebuild with the same hyperparameters and partition."""
+        rec = model.record
+        if rec is None:
+            raise ValueError(
+                "this hybrid holds no training record (a mean view, or saved by gpg < 0.3): "
+                "refit it to condition on new cases"
+            )
+        local_gp, dims, hyper = model.local, model.local.grad_dims, rec.hyper
+        X_old, n_old = np.asarray(rec.X), rec.X.shape[0]
+        X = np.concatenate([X_old, new.X])
+        old_idx, new_idx = layout_index(n_old, new.X.shape[0], len(dims))
+        Ybar = np.empty((X.shape[0] * (1 + len(dims)), rec.Ybar.shape[1]))
+        Ybar[old_idx], Ybar[new_idx] = np.asarray(rec.Ybar), new.targets()
+        rows = _grown_rows(rec.rows, new.rows, old_idx, new_idx, Ybar.shape[0])
+        alpha, _ = global_alpha(X, Ybar, rows, hyper, dims, cfg, None)
+        rule = cfg.near.rule()
+        before = partition.near_sets(X_old, local_gp.partition, hyper.lengthscale, **rule)
+        near = partition.near_sets(X, local_gp.partition, hyper.lengthscale, **rule)
+        changed = [
+            b for b in range(near.n_bins) if not np.array_equal(near.near[b], before.near[b])
+        ]
+        fresh = dict(zip(changed, local.precompute(
+            X, Ybar, hyper, dims, near, rows=rows, bins=changed), strict=True))  # fmt: skip
+        factors = [
+            fresh[b] if b in fresh else _stored_factors(local_gp, b, len(dims))
+            for b in range(near.n_bins)
+        ]
+        return _assemble(X, Ybar, rows, alpha, factors, near, local_gp.partition, hyper, dims, cfg)
 
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
         if solver_method(cfg, n_points, n_grad) == "cg":
@@ -54,6 +84,39 @@ class Hybrid(Kind):
         else:
             mean = gram_bytes(n_points, n_grad)
         return max(mean, near_set_bytes(cfg, n_points, n_grad))
+
+
+def _assemble(X, Ybar, rows, alpha, factors, near, part, hyper, dims, cfg) -> HybridGP:
+    n_obs = Ybar.shape[0] if rows is None else int(rows.sum())
+    scale = output_scale(np.sum(Ybar * alpha, axis=0), n_obs)
+    return HybridGP(
+        mean=GlobalMean.from_alpha(X, alpha, hyper.variance, hyper.lengthscale, dims),
+        local=pack(X, factors, near, part, hyper, dims, dtype=cfg.variance_dtype, scale=scale),
+        record=Record(
+            jnp.asarray(X), jnp.asarray(Ybar), hyper, None if rows is None else jnp.asarray(rows)
+        ),
+    )
+
+
+def _stored_factors(gp, b: int, g: int) -> BinFactors:
+    """Bin ``b``'s factor and coefficients as packed, without the padding (unchanged bins)."""
+    p, P = int(gp.n_near[b]), gp.Xn.shape[1]
+    pos = near_rows(np.arange(p), P, g)
+    dense_f = gp.factor[b].to_dense()[np.ix_(pos, pos)]
+    coef = np.asarray(gp.coef[b])[:, pos].T
+    return BinFactors(coef, dense_f, True)
+
+
+def global_alpha(X, Ybar, rows, hyper, dims, cfg, devices) -> tuple[np.ndarray, dict]:
+    """The global ``α = K̄⁻¹ Ȳ`` by the configured solver, and its diagnostics."""
+    if solver_method(cfg, X.shape[0], len(dims)) == "cg":
+        if rows is not None:
+            raise ValueError(
+                "solver.method=cg needs every gradient at every case; with cases that lack "
+                "some, use solver.method=cholesky"
+            )
+        return cg_alpha(X, Ybar, hyper, dims, cfg.solver, devices)
+    return exact_alpha(X, Ybar, hyper, dims, rows), {}
 
 
 def solver_method(cfg: ModelConfig, n_points: int, n_grad: int) -> str:
@@ -108,12 +171,16 @@ def cg_alpha(
     }
 
 
-def exact_alpha(X: np.ndarray, Ybar: np.ndarray, hyper: Hyper, dims: tuple[int, ...]) -> np.ndarray:
-    """``α = K̄⁻¹ Ȳ`` by one in-place Cholesky factorisation of ``K̄`` (no inverse kept)."""
+def exact_alpha(
+    X: np.ndarray, Ybar: np.ndarray, hyper: Hyper, dims: tuple[int, ...], rows=None
+) -> np.ndarray:
+    """``α = K̄⁻¹ Ȳ`` by one in-place Cholesky factorisation of ``K̄`` (no inverse kept);
+    ``rows`` the observed rows (:func:`gpg.gp.gram.observed_rows`)."""
     r = Ybar.shape[0]
     memory.require(f"the global α over {r} rows", int(r * r * 8 * 1.1))
     buf = memory.square_buffer(r)
-    chol = dense.cholesky_inplace(assemble_gram(jnp.asarray(X), hyper, dims, out=buf.array))
+    gram = assemble_gram(jnp.asarray(X), hyper, dims, out=buf.array)
+    chol = dense.cholesky_inplace(mask_gram_inplace(gram, rows))
     alpha = dense.cho_solve(chol, Ybar)
     del chol, buf
     return alpha

@@ -39,6 +39,7 @@ from gpg.gp.exact import ExactGP
 from gpg.gp.gram import assemble_gram
 from gpg.gp.hyper import Hyper
 from gpg.linalg import dense
+from gpg.runs.bench_design import bench_design, design_table
 from gpg.runs.bench_solver import bench_solver, solver_table
 from gpg.runs.common import (
     conf,
@@ -588,6 +589,7 @@ SUITES = {
     "derivatives": bench_derivatives,
     "envs": bench_envs,
     "solver": bench_solver,
+    "design": bench_design,
 }
 
 
@@ -635,7 +637,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         # The models suite runs on the entry point's data and vehicle (data=..., vehicle=...).
         sub = (
             {**cfg[name], "data": cfg["data"], "vehicle": cfg["vehicle"]}
-            if name in ("models", "devices", "derivatives", "envs", "solver")
+            if name in ("models", "devices", "derivatives", "envs", "solver", "design")
             else cfg[name]
         )
         results[name] = SUITES[name](sub)
@@ -652,4 +654,5 @@ TABLES = {
     "derivatives": _derivatives_table,
     "envs": _envs_table,
     "solver": solver_table,
+    "design": design_table,
 }

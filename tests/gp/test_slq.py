@@ -79,9 +79,11 @@ def test_value_and_gradient_match_the_dense_likelihood():
 
 
 def test_stochastic_fit_reaches_the_dense_optimum():
-    """On 80 points (all of them), the fit that never forms K̄ ends where the dense fit does:
-    the dense likelihood at its hyperparameters within 2 nats of the dense optimum (measured
-    1.6 of 2731 with 30 probes; the start is hundreds of nats away)."""
+    """On 50 points (all of them), the fit that never forms K̄ ends where the dense fit does:
+    from twice the signal variance, 1.5 times the lengthscales and three times the noise
+    ratio of the dense optimum (2000 nats away: the optimum's noise sits at its floor), the
+    dense likelihood at its hyperparameters is within 2 nats of the dense optimum (measured
+    0.27, 57 BFGS steps; started from the defaults it took 120 steps and twice as long)."""
     rng = np.random.default_rng(1)
     X = rng.uniform(-1, 1, (50, 3))
 
@@ -94,10 +96,13 @@ def test_stochastic_fit_reaches_the_dense_optimum():
     e = 1e-5 * np.eye(3)
     dY = np.stack([(f(X + e[i]) - f(X - e[i])) / 2e-5 for i in range(3)], 2)
     dense = fit_hyperparameters(X, Y, dY, subset_size=None)
+    h = dense.hyper
+    start = Hyper(2 * h.variance, 1.5 * h.lengthscale, h.noise, h.grad_noise)
     opts = Stochastic(points=15, probes=20, progress=False)
     stoch = fit_hyperparameters(
-        X, Y, dY, subset_size=None, likelihood="stochastic", stochastic=opts
-    )
+        X, Y, dY, subset_size=None, likelihood="stochastic", stochastic=opts, init=start,
+        noise_init=3 * float(h.noise / h.variance),
+    )  # fmt: skip
     assert dense.converged and stoch.converged
     Ybar = stack_targets(jnp.asarray(Y), jnp.asarray(dY))
 
@@ -105,7 +110,7 @@ def test_stochastic_fit_reaches_the_dense_optimum():
         return -float(log_marginal_likelihood(jnp.asarray(X), Ybar, h, (0, 1, 2)))
 
     assert nll(stoch.hyper) - nll(dense.hyper) <= 2.0
-    assert nll(Hyper(1.0, np.ones(3), 1e-2, dense.hyper.grad_noise)) - nll(dense.hyper) > 100
+    assert nll(start) - nll(dense.hyper) > 100
     np.testing.assert_allclose(stoch.hyper.lengthscale[0], dense.hyper.lengthscale[0], rtol=0.1)
 
 

@@ -160,6 +160,7 @@ def test_cli_errors_are_one_clear_message(tmp_path):
     )
 
 
+@pytest.mark.slow  # a whole comparison in a subprocess; the CLI's errors have fast tests
 def test_cli_run_logs_its_table(smoke_cache, tmp_path):
     """A successful CLI run: results files readable by others, and the table in compare.log."""
     import os

@@ -1,0 +1,182 @@
+"""Conditioning an exact GP-G on more cases without a refit: the bordered Cholesky update.
+
+:meth:`gpg.gp.exact.ExactGP.condition` is the public entry; the algebra is in its docstring.
+The stored factor is ``L⁻¹`` in row bands (:class:`gpg.linalg.tri.BlockTriangular`); the new
+rows are one more band, so an update never copies what is stored. The factor's rows stay in
+the order the cases came (old rows, then each update's), which is a permutation of the layout
+of :mod:`gpg.gp.kernels` recorded in ``ExactGP.order``: the posterior does not depend on the
+order of the rows, only the triangular factor does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from gpg.gp import kernels
+from gpg.gp.gram import Checked, assemble_gram, check_training_data, mask_gram_inplace
+from gpg.gp.mean import GlobalMean, output_scale
+from gpg.linalg import dense, memory
+from gpg.linalg.tri import BlockTriangular
+
+
+def check_new_cases(model, X, Y, dY, observed) -> Checked:
+    """The new cases checked against ``model`` (inputs, outputs, gradient dims): a
+    ``ValueError`` naming what does not match. Values-only cases of a gradient model are
+    cases with no gradient observed."""
+    dims = model.grad_dims
+    if dY is not None and not dims:
+        raise ValueError("dY given, but the model was fitted without gradient observations")
+    data = check_training_data(X, Y, dY, dims if dY is not None else None, observed)
+    n, d = data.X.shape
+    if d != model.n_inputs:
+        raise ValueError(f"X has {d} inputs but the model has {model.n_inputs}")
+    if data.Y.shape[1] != model.n_outputs:
+        raise ValueError(f"Y has {data.Y.shape[1]} outputs but the model has {model.n_outputs}")
+    if dims and data.dY is None:
+        zeros = np.zeros((n, data.Y.shape[1], len(dims)))
+        data = Checked(data.X, data.Y, zeros, dims, np.zeros((n, len(dims)), dtype=bool))
+    return data
+
+
+def layout_index(n_old: int, n_new: int, n_grad: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where the rows of the old points (in their own layout) and of the new points (in
+    theirs) sit in the layout of all ``n_old + n_new`` points (old points first)."""
+    n = n_old + n_new
+    blocks = np.arange(1 + n_grad)[:, None] * n
+    old = (blocks + np.arange(n_old)[None, :]).ravel()
+    new = (blocks + n_old + np.arange(n_new)[None, :]).ravel()
+    return old, new
+
+
+def bordered(model, X, Y, dY, observed):
+    """:meth:`gpg.gp.exact.ExactGP.condition` (see there)."""
+    data = check_new_cases(model, X, Y, dY, observed)
+    h, dims, g = model.hyper, model.grad_dims, len(model.grad_dims)
+    n_old, n_new = model.X.shape[0], data.X.shape[0]
+    R, rows_new = model.alpha.shape[0], data.rows
+    r = n_new * (1 + g)
+    memory.require(f"conditioning on {n_new} cases ({r} rows)", int(8 * r * (3 * R + 2 * r)))
+    old_idx, new_idx = layout_index(n_old, n_new, g)
+    order = np.arange(R) if model.order is None else np.asarray(model.order)
+    Xn = jnp.asarray(data.X)
+    # B in the factor's row order; rows of unobserved new gradients are decoupled.
+    B = _cross_gram(np.asarray(model.X), Xn, h, dims)[order]
+    if rows_new is not None:
+        B[:, ~rows_new] = 0.0
+    bands = [np.asarray(b) for b in model.chol_inv.blocks]  # views of JAX's CPU buffers
+    S = _times_factor(bands, B).T  # (r, R) = (L⁻¹ B)ᵀ
+    L2 = _schur_factor(Xn, h, dims, rows_new, S)
+    E = _factor_times(bands, S)  # (r, R) = S L⁻¹ = Bᵀ K̄⁻¹
+    del S
+    alpha_old = np.asarray(model.alpha)[order]
+    resid = data.targets() - B.T @ alpha_old
+    alpha2 = dense.cho_solve(L2, resid)
+    alpha1 = alpha_old - E.T @ alpha2
+    log_det2 = float(np.sum(np.log(np.diag(L2))))  # unobserved rows: log 1
+    L2inv = dense.triangular_inverse_inplace(L2)
+    if rows_new is not None:
+        L2inv[:, ~rows_new] = 0.0
+    band = np.concatenate([-(L2inv @ E), L2inv], axis=1)
+    del E
+    new_order = np.concatenate([old_idx[order], new_idx])
+    alpha = np.empty((R + r, alpha1.shape[1]))
+    alpha[new_order] = np.concatenate([alpha1, alpha2])
+    observed_all = _grown_rows(model.observed, rows_new, old_idx, new_idx, R + r)
+    dq = np.sum(resid * alpha2, axis=0)
+    lml, scale = _likelihood_and_scale(model, observed_all, R + r, dq, log_det2)
+    X_all = np.concatenate([np.asarray(model.X), data.X])
+    return eqx.tree_at(
+        lambda t: (t.X, t.alpha, t.chol_inv, t.mean, t.output_scale, t.log_marginal_likelihood,
+                   t.order, t.observed),
+        model,
+        (
+            jnp.asarray(X_all),
+            jnp.asarray(alpha),
+            BlockTriangular(model.chol_inv.blocks + (jnp.asarray(band),), R + r, True),
+            GlobalMean.from_alpha(X_all, alpha, h.variance, h.lengthscale, dims),
+            jnp.asarray(scale),
+            jnp.asarray(lml),
+            jnp.asarray(new_order),
+            None if observed_all is None else jnp.asarray(observed_all),
+        ),
+        is_leaf=lambda x: x is None,
+    )  # fmt: skip
+
+
+def _cross_gram(X_old: np.ndarray, Xn, h, dims, chunk: int = 256) -> np.ndarray:
+    """``K̄(X_old, X_new)`` in the old points' layout, built over fixed-size chunks of the
+    old points (the last one padded): one compiled program per batch size, not per model
+    size, since the model grows at every conditioning."""
+    n, g = X_old.shape[0], len(dims)
+    pad = -n % chunk
+    Xp = np.concatenate([X_old, np.zeros((pad, X_old.shape[1]))]) if pad else X_old
+    parts = [
+        np.asarray(kernels.gram(jnp.asarray(Xp[a : a + chunk]), Xn, h.variance, h.lengthscale,
+                                dims, dims)).reshape(1 + g, chunk, -1)
+        for a in range(0, Xp.shape[0], chunk)
+    ]  # fmt: skip
+    return np.concatenate(parts, axis=1)[:, :n].reshape(n * (1 + g), -1)
+
+
+def _times_factor(bands: list[np.ndarray], B: np.ndarray) -> np.ndarray:
+    """``L⁻¹ B`` for the lower factor in row bands (NumPy BLAS: no compilation per shape)."""
+    out, a = np.empty((sum(b.shape[0] for b in bands), B.shape[1])), 0
+    for blk in bands:
+        out[a : a + blk.shape[0]] = blk @ B[: blk.shape[1]]
+        a += blk.shape[0]
+    return out
+
+
+def _factor_times(bands: list[np.ndarray], S: np.ndarray) -> np.ndarray:
+    """``S L⁻¹`` for the lower factor in row bands."""
+    out, a = np.zeros_like(S), 0
+    for blk in bands:
+        out[:, : blk.shape[1]] += S[:, a : a + blk.shape[0]] @ blk
+        a += blk.shape[0]
+    return out
+
+
+def _schur_factor(Xn, h, dims, rows_new, S) -> np.ndarray:
+    """``L₂`` with ``L₂ L₂ᵀ = C − S Sᵀ``, or a ``ValueError`` when the new cases make ``K̄``
+    singular."""
+    C = mask_gram_inplace(assemble_gram(Xn, h, dims), rows_new)
+    C -= dense.gram_t(np.ascontiguousarray(S.T))  # S Sᵀ
+    try:
+        return dense.cholesky_inplace(C, what="the Schur complement of the new cases")
+    except dense.NotPositiveDefiniteError as exc:
+        raise ValueError(
+            f"the {Xn.shape[0]} new cases make K̄ singular ({exc}): a case that duplicates a "
+            "training point (or another new case) adds nothing; drop it"
+        ) from None
+
+
+def _likelihood_and_scale(model, observed_all, size, dq, log_det2):
+    """The grown model's log likelihood and output scales from the old ones and the new
+    rows' terms: ``Δ(Ȳᵀ K̄⁻¹ Ȳ) = dq`` per output, ``Δ log det = 2 log_det2``."""
+    R = model.alpha.shape[0]
+    n_obs_old = R if model.observed is None else int(np.sum(model.observed))
+    n_obs = size if observed_all is None else int(observed_all.sum())
+    m = dq.shape[0]
+    lml = float(model.log_marginal_likelihood) + float(
+        -0.5 * np.sum(dq) - m * log_det2 - 0.5 * m * (n_obs - n_obs_old) * math.log(2 * math.pi)
+    )
+    scale = np.asarray(model.output_scale)
+    if not np.all(scale == 1.0):  # ones: the model keeps one shared scale
+        scale = output_scale(scale * n_obs_old + dq, n_obs)
+    return lml, scale
+
+
+def _grown_rows(old, new, old_idx, new_idx, size) -> np.ndarray | None:
+    """The observed-row mask of the grown model in its layout, None when all are observed."""
+    if old is None and new is None:
+        return None
+    out = np.ones(size, dtype=bool)
+    if old is not None:
+        out[old_idx] = np.asarray(old)
+    if new is not None:
+        out[new_idx] = new
+    return out
