@@ -164,24 +164,25 @@ def test_a_case_already_in_the_data_scores_no_higher():
     assert np.all(np.diff(first.gain / first.cost) <= 1e-12)
 
 
-def test_propose_on_a_surrogate_and_bad_candidates(synthetic_surrogate):
-    ds, _ = synthetic_dataset(50, seed=3)
-    p = design.propose(synthetic_surrogate, ds, 3, candidates=200, reference=64, seed=0)
+def test_propose_on_a_surrogate_and_bad_candidates(data):
+    old, _ = data
+    # hyper.max_steps bounds the weighted outputs' own fit (the surrogate's is fixed)
+    sur = Surrogate.fit(old, "gpg", {"hyper": {**CFG["hyper"], "max_steps": 5}}, bounds=BOX)
+    p = design.propose(sur, old, 3, candidates=200, reference=64, seed=0)
     assert p.x.shape == (3, 8) and p.gradients.shape == (3, 7)
-    lo, hi = np.asarray(synthetic_surrogate.box_lo), np.asarray(synthetic_surrogate.box_hi)
+    lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
     assert np.all((p.x >= lo) & (p.x <= hi))
     outside = np.r_[p.x[:1] + 0.0, p.x[:1] + 0.0]
     outside[0, 7] = hi[7] + 5.0
     with pytest.raises(ValueError, match="outside the surrogate's input box"):
-        design.propose(synthetic_surrogate, ds, 1, candidates=outside, reference=16)
+        design.propose(sur, old, 1, candidates=outside, reference=16)
     with pytest.raises(ValueError, match="gradients must be one of"):
-        design.propose(synthetic_surrogate, ds, 1, candidates=20, gradients="some")
-    w = design.propose(synthetic_surrogate, ds, 2, candidates=100, reference=32,
-                       weights={"L1": 1.0, "L2": 1.0, "L3": 1.0})  # fmt: skip
+        design.propose(sur, old, 1, candidates=20, gradients="some")
+    w = design.propose(sur, old, 2, candidates=100, reference=32, weights={"L1": 1.0, "L2": 1.0})
     assert w.x.shape == (2, 8)
     with pytest.raises(ValueError, match="unknown outputs"):
-        design.propose(synthetic_surrogate, ds, 1, candidates=20, weights={"Q": 1.0})
-    assert jnp.all(jnp.isfinite(synthetic_surrogate.model.mean.coef))
+        design.propose(sur, old, 1, candidates=20, weights={"Q": 1.0})
+    assert jnp.all(jnp.isfinite(sur.model.mean.coef))
 
 
 def test_a_conditioned_surrogate_checkpoints_and_conditions_again(data, tmp_path):
