@@ -256,6 +256,7 @@ def _active(cfg, outdir: Path) -> dict[str, Any]:
 
 def _figure(curves, folder: Path) -> list[Path]:
     from matplotlib.figure import Figure
+    from matplotlib.ticker import NullFormatter
 
     folder.mkdir(parents=True, exist_ok=True)
     outputs = ("Fx", "Mx", "L1")
@@ -278,6 +279,8 @@ def _figure(curves, folder: Path) -> list[Path]:
                         label=labels[arm] if k == 0 else None)  # fmt: skip
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on a log axis
+        ax.yaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("simulator runs")
         ax.set_ylabel(f"test MAE {o}")
     axes[0].legend(fontsize=7)
