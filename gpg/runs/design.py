@@ -280,7 +280,7 @@ def _figure(curves, folder: Path) -> list[Path]:
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels overlap on a log axis
-        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_xticks([200, 500, 1000, 2000, 4000, 8000], ["200", "500", "1k", "2k", "4k", "8k"])
         ax.set_xlabel("simulator runs")
         ax.set_ylabel(f"test MAE {o}")
     axes[0].legend(fontsize=7)
