@@ -10,6 +10,7 @@ from gpg.runs import bench
 from tests.helpers import compose_plain, finite_numbers
 
 
+@pytest.mark.slow  # the whole bench entry point (a whole experiment)
 def test_bench_run(smoke_cache, tmp_path):
     overrides = [
         "data=smoke",

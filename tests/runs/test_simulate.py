@@ -1,9 +1,14 @@
-"""``experiments.simulate`` on smoke data, composed with Hydra."""
+"""``experiments.simulate`` on smoke data, composed with Hydra. A whole experiment: the slow
+set (its pieces have fast tests in tests/quadrotor and tests/envs)."""
 
 import json
 
+import pytest
+
 from gpg.runs import simulate
 from tests.helpers import compose_plain, finite_numbers
+
+pytestmark = pytest.mark.slow
 
 
 def test_simulate_run(smoke_cache, tmp_path):
