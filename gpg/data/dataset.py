@@ -328,7 +328,9 @@ _UNIT_FACTORS = {
 GRADIENT_COLUMNS = tuple(f"d{o}/d{i}" for o in AERO + NOISE for i in GRAD_INPUTS)
 
 
-def _factor(field: str, unit: str | None) -> float:
+def unit_factor(field: str, unit: str | None) -> float:
+    """The factor from ``unit`` to the schema's unit of ``field`` (1 for None); a
+    ``ValueError`` names an unknown unit."""
     base = UNITS[field]
     if unit is None:
         return 1.0
@@ -383,7 +385,7 @@ def from_csv(
     if bad_units:
         raise ValueError(f"units given for unknown fields {bad_units}")
     for f, u in units.items():
-        _factor(f, u)
+        unit_factor(f, u)
     missing = [f for f in INPUTS + AERO if f not in columns]
     if missing:
         raise ValueError(f"columns mapping lacks required fields {missing}")
@@ -424,14 +426,14 @@ def from_csv(
     col = {k: data[:, j] for j, k in enumerate(columns)}
 
     def get(fields):
-        return np.stack([col[k] * _factor(k, units.get(k)) for k in fields], axis=1)
+        return np.stack([col[k] * unit_factor(k, units.get(k)) for k in fields], axis=1)
 
     def grad(outputs):
         out = np.empty((data.shape[0], len(outputs), 7))
         for a, o in enumerate(outputs):
             for b, i in enumerate(GRAD_INPUTS):
                 out[:, a, b] = (
-                    col[f"d{o}/d{i}"] * _factor(o, units.get(o)) / _factor(i, units.get(i))
+                    col[f"d{o}/d{i}"] * unit_factor(o, units.get(o)) / unit_factor(i, units.get(i))
                 )
         return out
 

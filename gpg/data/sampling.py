@@ -25,11 +25,14 @@ from gpg.data.dataset import Dataset
 from gpg.quadrotor.generator import Generator, evaluate_batch
 
 
-def latin_hypercube(n: int, bounds: Bounds, seed: int) -> np.ndarray:
-    """``n`` inputs (n, 8) from a scrambled Latin hypercube (``scipy.stats.qmc``)."""
+def latin_hypercube(
+    n: int, bounds: Bounds | tuple[np.ndarray, np.ndarray], seed: int
+) -> np.ndarray:
+    """``n`` inputs (n, 8) from a scrambled Latin hypercube (``scipy.stats.qmc``) over
+    ``bounds``, or over a box given as its lower and upper corners (8,) each."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
-    lo, hi = bounds.arrays()
+    lo, hi = bounds.arrays() if isinstance(bounds, Bounds) else bounds
     unit = qmc.LatinHypercube(d=8, rng=np.random.default_rng(seed)).random(n)
     return qmc.scale(unit, lo, hi)
 

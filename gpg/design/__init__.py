@@ -18,18 +18,19 @@ at the first of those it can check: growth by half); otherwise condition.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from scipy.stats import qmc
 
 from gpg import models
 from gpg._dtype import float64
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import residuals
+from gpg.data.sampling import latin_hypercube
 from gpg.design.acquisition import GRADIENTS, Batch, subsets
 from gpg.design.acquisition import propose as propose_rows
 from gpg.gp.exact import ExactGP
@@ -48,6 +49,7 @@ __all__ = [
     "new_cases",
     "posterior",
     "propose",
+    "rebuild",
     "subsets",
 ]
 
@@ -195,6 +197,16 @@ def posterior(sur, dataset: Dataset | None = None, *, hyper: Hyper | None = None
                        hyper=hyper, observed=arrays.observed)  # fmt: skip
 
 
+@float64
+def rebuild(sur, dataset: Dataset):
+    """The model ``sur`` would have on all of ``dataset`` with its hyperparameters, normaliser
+    and bins kept: what :func:`condition` must equal (the reference of the tests and of the
+    ``design`` bench suite)."""
+    arrays = dataclasses.replace(training_arrays(sur, dataset), partition=sur.model.partition)
+    cfg = models.resolve_config(sur.model_name, sur.config)
+    return models.SPECS[sur.model_name].kind.build(arrays, model_hyper(sur.model), cfg).model
+
+
 def training_arrays(sur, dataset: Dataset) -> Arrays:
     """``dataset`` normalised as ``sur``'s training data (no box or duplicate checks)."""
     y, J, _ = residuals(dataset, sur.simple, sur.noise_model)
@@ -269,8 +281,7 @@ class Proposal:
 
 def box_samples(sur, n: int, seed: int) -> np.ndarray:
     """``n`` states (n, 8) of the surrogate's input box by a scrambled Latin hypercube."""
-    unit = qmc.LatinHypercube(d=8, rng=np.random.default_rng(seed)).random(n)
-    return qmc.scale(unit, np.asarray(sur.box_lo), np.asarray(sur.box_hi))
+    return latin_hypercube(n, (np.asarray(sur.box_lo), np.asarray(sur.box_hi)), seed)
 
 
 @float64

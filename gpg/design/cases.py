@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.data.dataset import Dataset, _factor, from_csv
+from gpg.data.dataset import Dataset, from_csv, unit_factor
 from gpg.data.sampling import FDSteps
 from gpg.names import AERO, GRAD_DIMS, GRAD_INPUTS, INPUTS, NOISE
 
@@ -64,7 +64,7 @@ def write_ask(
         raise ValueError(f"x must be (B, 8) and gradients (B, 7), got {x.shape}, {gradients.shape}")
     X, case, label = runs(x, gradients, fd)
     heads = [columns.get(f, f) for f in INPUTS]
-    scale = np.array([_factor(f, units.get(f)) for f in INPUTS])
+    scale = np.array([unit_factor(f, units.get(f)) for f in INPUTS])
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow([CASE, RUN, *heads])

@@ -67,10 +67,9 @@ def bordered(model, X, Y, dY, observed):
     B = _cross_gram(np.asarray(model.X), Xn, h, dims)[order]
     if rows_new is not None:
         B[:, ~rows_new] = 0.0
-    bands = [np.asarray(b) for b in model.chol_inv.blocks]  # views of JAX's CPU buffers
-    S = _times_factor(bands, B).T  # (r, R) = (L⁻¹ B)ᵀ
+    S = model.chol_inv.host_matmul(B).T  # (r, R) = (L⁻¹ B)ᵀ
     L2 = _schur_factor(Xn, h, dims, rows_new, S)
-    E = _factor_times(bands, S)  # (r, R) = S L⁻¹ = Bᵀ K̄⁻¹
+    E = model.chol_inv.host_lmatmul(S)  # (r, R) = S L⁻¹ = Bᵀ K̄⁻¹
     del S
     alpha_old = np.asarray(model.alpha)[order]
     resid = data.targets() - B.T @ alpha_old
@@ -120,24 +119,6 @@ def _cross_gram(X_old: np.ndarray, Xn, h, dims, chunk: int = 256) -> np.ndarray:
         for a in range(0, Xp.shape[0], chunk)
     ]  # fmt: skip
     return np.concatenate(parts, axis=1)[:, :n].reshape(n * (1 + g), -1)
-
-
-def _times_factor(bands: list[np.ndarray], B: np.ndarray) -> np.ndarray:
-    """``L⁻¹ B`` for the lower factor in row bands (NumPy BLAS: no compilation per shape)."""
-    out, a = np.empty((sum(b.shape[0] for b in bands), B.shape[1])), 0
-    for blk in bands:
-        out[a : a + blk.shape[0]] = blk @ B[: blk.shape[1]]
-        a += blk.shape[0]
-    return out
-
-
-def _factor_times(bands: list[np.ndarray], S: np.ndarray) -> np.ndarray:
-    """``S L⁻¹`` for the lower factor in row bands."""
-    out, a = np.zeros_like(S), 0
-    for blk in bands:
-        out[:, : blk.shape[1]] += S[:, a : a + blk.shape[0]] @ blk
-        a += blk.shape[0]
-    return out
 
 
 def _schur_factor(Xn, h, dims, rows_new, S) -> np.ndarray:

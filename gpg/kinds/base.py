@@ -36,6 +36,8 @@ class Arrays:
     dims: tuple[int, ...]
     # (N, G): which gradients each case has; None when all (cases without some perturbations)
     observed: np.ndarray | None = None
+    # Bins to keep (a rebuild that must match a conditioned model); None: built from the config
+    partition: partition.Partition | None = None
 
     @property
     def n_grad(self) -> int:
@@ -45,6 +47,12 @@ class Arrays:
     def rows(self) -> np.ndarray | None:
         """The observed stacked rows (:func:`gpg.gp.gram.observed_rows`)."""
         return observed_rows(self.observed, self.X.shape[0])
+
+    def bins(self, cfg: ModelConfig) -> partition.Partition:
+        """The partition to train with: the one given, else the one ``cfg`` asks for."""
+        return (
+            self.partition if self.partition is not None else build_partition(self.X, cfg, self.Y)
+        )
 
     def targets(self) -> np.ndarray:
         """``Ȳ`` (R, M) in the layout of :mod:`gpg.gp.kernels`, 0 on unobserved rows."""
@@ -122,7 +130,7 @@ def bins_and_near(
     """The partition, every bin's near set (``near`` options), the stacked targets ``Ȳ``
     (:func:`gpg.gp.gram.stack_targets`) and the build's timings so far (``partition_s``)."""
     t0 = time.perf_counter()
-    part = build_partition(arrays.X, cfg, arrays.Y)
+    part = arrays.bins(cfg)
     near = partition.near_sets(arrays.X, part, hyper.lengthscale, **cfg.near.rule())
     return part, near, arrays.targets(), {"partition_s": time.perf_counter() - t0}
 

@@ -13,7 +13,7 @@ from gpg.gp import pic
 from gpg.gp.binned import pack_points
 from gpg.gp.gram import stack_targets
 from gpg.gp.hyper import Hyper
-from gpg.kinds.base import Arrays, Kind, Product, build_partition
+from gpg.kinds.base import Arrays, Kind, Product
 
 
 @dataclass(frozen=True)
@@ -27,7 +27,7 @@ class Pic(Kind):
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
         t0 = time.perf_counter()
         X, dims = arrays.X, arrays.dims
-        part = build_partition(X, cfg, arrays.Y)
+        part = arrays.bins(cfg)
         timings = {"partition_s": time.perf_counter() - t0}
         t0 = time.perf_counter()
         ic = cfg.inducing

@@ -111,6 +111,28 @@ class BlockTriangular(eqx.Module):
             out = out + jnp.pad(part, ((0, 0), pad))
         return out
 
+    def host_matmul(self, B: np.ndarray) -> np.ndarray:
+        """``F B`` (lower factors) with NumPy's BLAS on the host: the same product as
+        :meth:`rmatmul` transposed, without a JAX compilation for every new shape (a model
+        conditioned again and again has new shapes each time)."""
+        if not self.lower:
+            raise ValueError("host_matmul handles lower-triangular factors")
+        out = np.empty((self.n, B.shape[1]))
+        for a, blk in zip(self._starts(), self.blocks, strict=True):
+            band = np.asarray(blk)  # a view of JAX's CPU buffer
+            out[a : a + band.shape[0]] = band @ B[: band.shape[1]]
+        return out
+
+    def host_lmatmul(self, V: np.ndarray) -> np.ndarray:
+        """``V F`` (lower factors) on the host: :meth:`lmatmul` without compilation."""
+        if not self.lower:
+            raise ValueError("host_lmatmul handles lower-triangular factors")
+        out = np.zeros((V.shape[0], self.n))
+        for a, blk in zip(self._starts(), self.blocks, strict=True):
+            band = np.asarray(blk)
+            out[:, : band.shape[1]] += V[:, a : a + band.shape[0]] @ band
+        return out
+
     def to_dense(self) -> np.ndarray:
         out = np.zeros((self.n, self.n))
         for a, blk in zip(self._starts(), self.blocks, strict=True):

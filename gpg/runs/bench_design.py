@@ -16,27 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from gpg import design, models
+from gpg import design
 from gpg.data.cache import ensure_datasets
 from gpg.linalg import memory
 from gpg.runs.common import table
 from gpg.surrogate import Surrogate
-
-
-def _rebuild(sur: Surrogate, dataset, name: str):
-    """``name`` on ``dataset`` with ``sur``'s hyperparameters, normaliser and partition."""
-    import gpg.kinds.base as base
-
-    arrays = design.training_arrays(sur, dataset)
-    cfg = models.resolve_config(name, sur.config)
-    saved = base.build_partition
-    if name == "gpgs_hybrid":
-        part = sur.model.local.partition
-        base.build_partition = lambda X, cfg, Y=None: part
-    try:
-        return models.SPECS[name].kind.build(arrays, design.model_hyper(sur.model), cfg).model
-    finally:
-        base.build_partition = saved
 
 
 def bench_design(cfg: dict[str, Any]) -> dict[str, Any]:
@@ -57,7 +41,7 @@ def bench_design(cfg: dict[str, Any]) -> dict[str, Any]:
             cond_s = time.perf_counter() - t0
         with memory.PeakRSS() as mem_r:
             t0 = time.perf_counter()
-            ref = _rebuild(sur, train, name)
+            ref = design.rebuild(sur, train)
             refit_s = time.perf_counter() - t0
         (m1, v1), (m2, v2) = grown.model.predict(Xq), ref.predict(Xq)
         out[name] = {

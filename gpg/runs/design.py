@@ -65,7 +65,7 @@ def answer(gen, ask_path: Path, out_path: Path, columns=None, units=None) -> Pat
     answered file (the ask columns plus the outputs) in the same units."""
     import csv
 
-    from gpg.data.dataset import _factor
+    from gpg.data.dataset import unit_factor
     from gpg.names import AERO, INPUTS, NOISE
 
     columns, units = dict(columns or {}), dict(units or {})
@@ -73,11 +73,11 @@ def answer(gen, ask_path: Path, out_path: Path, columns=None, units=None) -> Pat
         rows = list(csv.reader(f))
     header, body = rows[0], rows[1:]
     idx = [header.index(columns.get(k, k)) for k in INPUTS]
-    scale = np.array([_factor(k, units.get(k)) for k in INPUTS])
+    scale = np.array([unit_factor(k, units.get(k)) for k in INPUTS])
     x = np.array([[float(r[i]) for i in idx] for r in body]) * scale
     y = evaluate_batch(gen, x)
     names = AERO + NOISE
-    out_scale = np.array([_factor(k, units.get(k)) for k in names])
+    out_scale = np.array([unit_factor(k, units.get(k)) for k in names])
     with out_path.open("w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(header + [columns.get(k, k) for k in names])
@@ -194,7 +194,8 @@ def _active_arm(cfg, gen, test, gradients: str, seed: int, outdir: Path, bar, me
 def release_memory() -> None:
     """Between rounds: every round's model has new shapes, so JAX compiles new programs and
     keeps the old ones (about 0.2 GB a round at a few hundred cases, measured); drop them and
-    give the freed heap back (glibc keeps it otherwise). A 36-round arm grew to 13 GB without."""
+    give the freed heap back (glibc keeps it otherwise). Without, a run of the loop grew past
+    10 GB by its 38th round."""
     import ctypes
     import gc
 

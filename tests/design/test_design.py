@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg import design, models
+from gpg import design
 from gpg.data.bounds import Bounds
 from gpg.design.acquisition import propose as propose_rows
 from gpg.design.acquisition import subsets
@@ -29,24 +29,6 @@ def data():
     return full.subset(np.arange(40)), full.subset(np.arange(40, 48))
 
 
-def _refit_same(sur, dataset, name, cfg):
-    """A rebuild on ``dataset`` with ``sur``'s hyperparameters, normaliser and bins."""
-    arrays = design.training_arrays(sur, dataset)
-    c = models.resolve_config(name, cfg)
-    kind = models.SPECS[name].kind
-    if name == "gpgs_hybrid":
-        import gpg.kinds.base as base
-
-        part = sur.model.local.partition
-        saved = base.build_partition
-        base.build_partition = lambda X, cfg, Y=None: part
-        try:
-            return kind.build(arrays, design.model_hyper(sur.model), c).model
-        finally:
-            base.build_partition = saved
-    return kind.build(arrays, design.model_hyper(sur.model), c).model
-
-
 @pytest.mark.parametrize(("name", "cfg"), [("gpg", CFG), ("gpgs_hybrid", HYB)])
 def test_surrogate_condition_equals_a_refit(data, name, cfg):
     """New cases, some lacking some gradients (NaN), conditioned: equal to a rebuild with the
@@ -58,7 +40,7 @@ def test_surrogate_condition_equals_a_refit(data, name, cfg):
     sur = Surrogate.fit(old, name, cfg, bounds=BOX)
     grown = sur.condition(new)
     both = design.merge_datasets(old, new)
-    ref = _refit_same(sur, both, name, cfg)
+    ref = design.rebuild(sur, both)
     Q = np.asarray(sur.normalizer.x(synthetic_dataset(30, seed=7, raw=False)[0].x))
     (m1, v1), (m2, v2) = grown.model.predict(Q), ref.predict(Q)
     np.testing.assert_allclose(m1, m2, atol=1e-8)

@@ -22,6 +22,9 @@ def test_products_match_dense(rng, lower, n, n_blocks):
     np.testing.assert_allclose(jax.vmap(bt.matvec)(jnp.asarray(K)), K @ F.T, rtol=1e-12, atol=1e-12)
     stored = sum(b.size for b in bt.blocks)
     assert stored <= n * n and (n_blocks == 1 or n < 8 or stored < 0.7 * n * n)
+    if lower:  # the host products of the bordered update (gpg.gp.update)
+        np.testing.assert_allclose(bt.host_matmul(K.T), F @ K.T, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(bt.host_lmatmul(K), K @ F, rtol=1e-12, atol=1e-12)
 
 
 def test_rejects_non_square():
