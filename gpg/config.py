@@ -73,7 +73,8 @@ class HyperConfig:
     full: bool = False  # then refit on all points by the stochastic likelihood (gpg.gp.slq)
     full_max_steps: int = 100  # BFGS steps of that refit
     probes: int = 30  # its fixed Gaussian probes of log|K̄|
-    cg_tol: float = 1e-5  # relative residual of its CG solves
+    cg_tol: float = 1e-5  # relative residual of its CG solves of K̄ α = Ȳ
+    cg_probe_tol: float = 1e-3  # relative residual of its probe solves (log|K̄| and its gradient)
     cg_max_iter: int = 500  # iteration budget of each of those solves
 
     def __post_init__(self):
@@ -82,8 +83,10 @@ class HyperConfig:
             _bool(w + k, getattr(self, k))
         for k in ("full_max_steps", "probes", "cg_max_iter"):
             _int(w + k, getattr(self, k), 1)
-        if not (isinstance(self.cg_tol, int | float) and 0 < self.cg_tol < 1):
-            raise ValueError(f"hyper.cg_tol must be in (0, 1), got {self.cg_tol!r}")
+        for k in ("cg_tol", "cg_probe_tol"):
+            value = getattr(self, k)
+            if isinstance(value, bool) or not (isinstance(value, int | float) and 0 < value < 1):
+                raise ValueError(f"hyper.{k} must be in (0, 1), got {value!r}")
         _int(w + "subset", self.subset, 1)
         _int(w + "seed", self.seed)
         _int(w + "max_steps", self.max_steps, 1)

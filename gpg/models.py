@@ -281,7 +281,10 @@ def fit_hyper(
             res = fit_hyperparameters(
                 X, Y, dY, init=res.hyper, noise_init=_noise_ratio(res, h), subset_size=None,
                 max_steps=h.full_max_steps, likelihood="stochastic",
-                stochastic=Stochastic(probes=h.probes, tol=h.cg_tol, max_iter=h.cg_max_iter),
+                stochastic=Stochastic(
+                    probes=h.probes, tol=h.cg_tol, max_iter=h.cg_max_iter,
+                    probe_tol=h.cg_probe_tol,
+                ),
                 **common,
             )  # fmt: skip
         hyper, seconds = res.hyper, time.perf_counter() - t0

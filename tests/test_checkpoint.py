@@ -157,9 +157,10 @@ def resign(meta):
 def test_version_mismatch(surrogate, tmp_path):
     checkpoint.save(tmp_path / "ck", surrogate)
     meta = json.loads((checkpoint.version_dir(tmp_path / "ck") / "metadata.json").read_text())
-    meta["format_version"] = 8
+    meta["format_version"] = checkpoint.FORMAT_VERSION + 1
     (checkpoint.version_dir(tmp_path / "ck") / "metadata.json").write_text(resign(meta))
-    with pytest.raises(CheckpointError, match="format version 8; this gpg .* reads versions"):
+    newer = checkpoint.FORMAT_VERSION + 1
+    with pytest.raises(CheckpointError, match=f"format version {newer}; this gpg .* reads"):
         checkpoint.load(tmp_path / "ck")
 
 

@@ -35,9 +35,8 @@ from gpg.design.acquisition import GRADIENTS, Batch, subsets
 from gpg.design.acquisition import propose as propose_rows
 from gpg.gp.exact import ExactGP
 from gpg.gp.fit import fit_hyperparameters
-from gpg.gp.hybrid import HybridGP
 from gpg.gp.hyper import Hyper
-from gpg.kinds.base import Arrays
+from gpg.kinds.base import Arrays, Cases, Kind
 from gpg.names import GRAD_DIMS, INPUTS
 
 __all__ = [
@@ -51,34 +50,22 @@ __all__ = [
     "propose",
     "rebuild",
     "subsets",
+    "training_cases",
 ]
 
 # Normalised distance (in lengthscales) below which a new case duplicates a training case.
 DUPLICATE_TOL = 1e-6
 
 
-def training_inputs(model) -> np.ndarray:
-    """The normalised training inputs a conditionable model holds."""
-    if isinstance(model, ExactGP):
-        return np.asarray(model.X)
-    if isinstance(model, HybridGP) and model.record is not None:
-        return np.asarray(model.record.X)
-    raise ValueError(
-        f"a {type(model).__name__} cannot be conditioned on new cases: refit it "
-        "(gpg and gpgs_hybrid can)"
-    )
+def training_cases(sur) -> Cases:
+    """The normalised training inputs, hyperparameters and gradient dims of ``sur``'s model,
+    read through its kind (:meth:`gpg.kinds.base.Kind.cases`); a ``ValueError`` for models
+    that cannot condition."""
+    return _kind(sur).cases(sur.model)
 
 
-def grad_dims(model) -> tuple[int, ...]:
-    """The gradient dims a conditionable model was trained with."""
-    return model.grad_dims if isinstance(model, ExactGP) else model.local.grad_dims
-
-
-def model_hyper(model) -> Hyper:
-    if isinstance(model, ExactGP):
-        return model.hyper
-    training_inputs(model)  # the same message for a model without a record
-    return model.record.hyper
+def _kind(sur) -> Kind:
+    return models.SPECS[sur.model_name].kind
 
 
 def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
@@ -98,7 +85,7 @@ def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
             f"the new cases have outputs {list(dataset.output_names)} but the surrogate "
             f"predicts {list(sur.output_names)}"
         )
-    X_old = training_inputs(sur.model)
+    known = training_cases(sur)
     lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
     span = np.maximum(hi - lo, 1e-300)
     out = np.any((dataset.x < lo - tol * span) | (dataset.x > hi + tol * span), axis=1)
@@ -125,10 +112,10 @@ def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
     else:
         x = dataset.x
     X = np.asarray(norm.x(x))
-    ls = np.broadcast_to(np.asarray(model_hyper(sur.model).lengthscale, float), (X.shape[1],))
-    _check_duplicates(X / ls, X_old / ls)
+    ls = np.broadcast_to(np.asarray(known.hyper.lengthscale, float), (X.shape[1],))
+    _check_duplicates(X / ls, known.X / ls)
     Y = np.asarray(norm.y(y))
-    if J is None or not grad_dims(sur.model):
+    if J is None or not known.grad_dims:
         return Arrays(X, Y, None, ())
     return models.gradient_arrays(X, Y, np.asarray(norm.grad(J)))
 
@@ -174,22 +161,12 @@ def condition(sur, dataset: Dataset):
 
 @float64
 def posterior(sur, dataset: Dataset | None = None, *, hyper: Hyper | None = None) -> ExactGP:
-    """The exact GP-G over the surrogate's training cases that the acquisition reads: the
-    model itself for ``gpg``; for the hybrid, built from its training record (one
-    factorisation); with ``hyper`` (other hyperparameters), rebuilt from ``dataset``."""
-    model = sur.model
-    if hyper is None and isinstance(model, ExactGP):
-        return model
-    hyper = model_hyper(model) if hyper is None else hyper
-    if isinstance(model, HybridGP) and model.record is not None and dataset is None:
-        rec = model.record
-        X, Ybar = np.asarray(rec.X), np.asarray(rec.Ybar)
-        n, g = X.shape[0], len(model.local.grad_dims)
-        Y = Ybar[:n]
-        dY = Ybar[n:].reshape(g, n, -1).transpose(1, 2, 0) if g else None
-        obs = None if rec.rows is None else np.asarray(rec.rows)[n:].reshape(g, n).T
-        return ExactGP.fit(X, Y, dY, grad_dims=model.local.grad_dims or None, hyper=hyper,
-                           observed=obs)  # fmt: skip
+    """The exact GP-G over the surrogate's training cases that the acquisition reads
+    (:meth:`gpg.kinds.base.Kind.posterior`: the model itself for ``gpg``, one factorisation of
+    its training record for the hybrid); with ``hyper`` (other hyperparameters), rebuilt from
+    ``dataset``."""
+    if hyper is None:
+        return _kind(sur).posterior(sur.model)
     if dataset is None:
         raise ValueError("rebuilding the posterior with other hyperparameters needs the dataset")
     arrays = training_arrays(sur, dataset)
@@ -204,7 +181,7 @@ def rebuild(sur, dataset: Dataset):
     ``design`` bench suite)."""
     arrays = dataclasses.replace(training_arrays(sur, dataset), partition=sur.model.partition)
     cfg = models.resolve_config(sur.model_name, sur.config)
-    return models.SPECS[sur.model_name].kind.build(arrays, model_hyper(sur.model), cfg).model
+    return _kind(sur).build(arrays, training_cases(sur).hyper, cfg).model
 
 
 def training_arrays(sur, dataset: Dataset) -> Arrays:
@@ -235,7 +212,7 @@ def output_hyper(sur, dataset: Dataset, weights: Mapping[str, float]) -> Hyper:
     cfg = models.resolve_config(sur.model_name, sur.config).hyper
     res = fit_hyperparameters(
         arrays.X, arrays.Y[:, sel] * r, dY, grad_dims=arrays.dims or None,
-        init=model_hyper(sur.model), ard=cfg.ard, fit_noise=cfg.fit_noise,
+        init=training_cases(sur).hyper, ard=cfg.ard, fit_noise=cfg.fit_noise,
         noise_floor=cfg.noise_floor, noise_init=cfg.noise_init, subset_size=cfg.subset,
         seed=cfg.seed, max_steps=cfg.max_steps, observed=arrays.observed,
     )  # fmt: skip

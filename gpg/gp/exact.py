@@ -33,7 +33,7 @@ from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor, plain
 from gpg.linalg import dense, memory
-from gpg.linalg.tri import BlockTriangular
+from gpg.linalg.tri import BlockTriangular, BorderedTriangular
 
 
 class ExactGP(Predictor):
@@ -46,7 +46,9 @@ class ExactGP(Predictor):
             bands (:class:`gpg.linalg.tri.BlockTriangular`), so that the variance is
             ``σ − ‖L⁻¹ k̄_q‖²``. A matrix-vector product with the stored inverse reads the
             triangle once, row-major; a triangular solve in JAX first copies ``L`` to
-            column-major order and is over ten times slower per query at 8000 rows.
+            column-major order and is over ten times slower per query at 8000 rows. A model
+            grown by :meth:`condition` keeps the new rows' part factored around it
+            (:class:`gpg.linalg.tri.BorderedTriangular`).
         hyper: the hyperparameters used.
         mean: ``α`` folded for a fast mean (:class:`gpg.gp.mean.GlobalMean`).
         output_scale: per-output ML signal scale ``Ȳ_mᵀ α_m / R``
@@ -62,7 +64,7 @@ class ExactGP(Predictor):
 
     X: Float[Array, "N D"]
     alpha: Float[Array, "R M"]
-    chol_inv: BlockTriangular
+    chol_inv: BlockTriangular | BorderedTriangular
     hyper: Hyper
     mean: GlobalMean
     output_scale: Float[Array, " M"]
@@ -152,10 +154,11 @@ class ExactGP(Predictor):
         With ``K̄ = L Lᵀ`` over the ``R`` rows already in, ``B = K̄(X_old, X)`` and
         ``C = K̄(X, X)`` plus noise over the ``r`` new rows, the grown factor is
         ``[[L, 0], [S, L₂]]`` with ``S = (L⁻¹ B)ᵀ`` and ``L₂ L₂ᵀ = C − S Sᵀ`` (the Schur
-        complement), and its inverse gains one band of rows, ``[−L₂⁻¹ S L⁻¹, L₂⁻¹]``; the
-        rows already stored are not touched. ``α`` follows from ``E = S L⁻¹ = Bᵀ K̄⁻¹``:
-        ``α₂ = (C − S Sᵀ)⁻¹ (Ȳ₂ − Bᵀ α)`` and ``α₁ = α − Eᵀ α₂``. Cost ``O(r R²)`` (two
-        products with the stored ``L⁻¹``) against ``O(R³)`` for a refit; memory ``O(r R)``.
+        complement). Its inverse gains the rows ``[−L₂⁻¹ S L⁻¹, L₂⁻¹]``, stored as
+        ``M = L₂⁻¹ S`` and ``L₂⁻¹`` (:class:`gpg.linalg.tri.BorderedTriangular`); the rows
+        already stored are not touched. ``α₂ = (C − S Sᵀ)⁻¹ (Ȳ₂ − Bᵀ α)`` and
+        ``α₁ = α − L⁻ᵀ Sᵀ α₂``. Cost ``r R²`` flops (one product of the stored ``L⁻¹`` with
+        ``r`` columns) against ``2R³/3`` for a refit; memory ``O(r R)``.
 
         ``dY`` (n, M, G) over the model's gradient dims, with ``observed`` (n, G) as in
         :meth:`fit`; without ``dY`` the new cases are values only. ``output_scale`` is

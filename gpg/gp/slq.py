@@ -143,24 +143,39 @@ def stochastic_log_marginal_likelihood(
     max_iter: int = 500,
     lanczos: int = 100,
     tile: int = 256,
+    probe_tol: float | None = None,
 ) -> StochasticLML:
     """``log p(Ȳ | X)`` (the sum over the M columns of ``Ȳ``, as
     :func:`gpg.gp.gram.log_marginal_likelihood`) without forming ``K̄``: CG for the data term,
     stochastic Lanczos quadrature for ``log|K̄|`` with the fixed ``probes``, a Nyström
     preconditioner on inducing inputs ``Z``; reverse- and forward-mode differentiable in
-    ``hyper`` through Hutchinson's estimate of the trace term (module docstring). Pure JAX."""
+    ``hyper`` through Hutchinson's estimate of the trace term (module docstring). Pure JAX.
+
+    ``tol`` is the relative residual of the data solves ``K̄ α = Ȳ``; ``probe_tol`` (default
+    ``tol``) that of the probe solves, which run as a second CG of their own when it differs.
+    The probes' sampling error dwarfs a looser solve's, and their Lanczos quadrature converges
+    long before the solve does, so ``probe_tol`` ≫ ``tol`` saves most of the products
+    (docs/scaling.md measures it)."""
     h = jax.lax.stop_gradient(hyper)
     r, m = Ybar.shape
     n_probes = probes.eps_d.shape[1]
     P = cg.Nystrom.create(X, h, grad_dims, Z, chunk=None)
     Zp = P.V @ probes.eps_v + jnp.sqrt(1.0 / P.d_inv)[:, None] * probes.eps_d
-    B = jnp.concatenate([Ybar, Zp], axis=1)
-    res = pcg_lanczos(
-        lambda v: gram_matvec(X, h, grad_dims, v, tile=tile), B, P, tol=tol, max_iter=max_iter
-    )
-    quad = lanczos_log_quadrature(res.alpha[:, m:], res.beta[:, m:], res.steps[m:], lanczos)
-    log_det = P.log_det() + jnp.mean(res.rz0[m:] * quad)
-    alpha, u = res.x[:, :m], res.x[:, m:]
+    ptol = tol if probe_tol is None else probe_tol
+
+    def solve(B, tol):
+        matvec = lambda v: gram_matvec(X, h, grad_dims, v, tile=tile)  # noqa: E731
+        return pcg_lanczos(matvec, B, P, tol=tol, max_iter=max_iter)
+
+    if ptol == tol:
+        res = solve(jnp.concatenate([Ybar, Zp], axis=1), tol)
+        fit, probe = res, jax.tree.map(lambda a: a[..., m:], res)
+    else:
+        # Two loops: one shared loop runs every column as long as its slowest one.
+        fit, probe = solve(Ybar, tol), solve(Zp, ptol)
+    quad = lanczos_log_quadrature(probe.alpha, probe.beta, probe.steps, lanczos)
+    log_det = P.log_det() + jnp.mean(probe.rz0 * quad)
+    alpha, u = fit.x[:, :m], probe.x
     data = jnp.sum(Ybar * alpha)
     value = -0.5 * data - 0.5 * m * log_det - 0.5 * m * r * jnp.log(2 * jnp.pi)
     # The bilinear surrogate carries the gradient of −log p (module docstring); the value is
@@ -170,5 +185,6 @@ def stochastic_log_marginal_likelihood(
     weight = jnp.concatenate([jnp.full(m, -0.5), jnp.full(n_probes, 0.5 * m / n_probes)])
     surrogate = -jnp.sum(left * weight * gram_matvec(X, hyper, grad_dims, right, tile=tile))
     value = jax.lax.stop_gradient(value - surrogate) + surrogate
-    converged = jnp.all(res.residual <= tol)
-    return StochasticLML(value, log_det, jnp.max(res.steps), converged)
+    converged = jnp.all(fit.residual <= tol) & jnp.all(probe.residual <= ptol)
+    steps = jnp.maximum(jnp.max(fit.steps), jnp.max(probe.steps))
+    return StochasticLML(value, log_det, steps, converged)

@@ -2,7 +2,10 @@
 
 :meth:`gpg.gp.exact.ExactGP.condition` is the public entry; the algebra is in its docstring.
 The stored factor is ``L⁻¹`` in row bands (:class:`gpg.linalg.tri.BlockTriangular`); the new
-rows are one more band, so an update never copies what is stored. The factor's rows stay in
+rows' part is kept factored around it (:class:`gpg.linalg.tri.BorderedTriangular`), so an
+update never copies what is stored and reads the old factor twice with thin products: once for
+``S = (L⁻¹B)ᵀ`` (``R²r`` flops, the floor of any update that reads the stored factor) and once
+for ``α`` (``R²M``). The factor's rows stay in
 the order the cases came (old rows, then each update's), which is a permutation of the layout
 of :mod:`gpg.gp.kernels` recorded in ``ExactGP.order``: the posterior does not depend on the
 order of the rows, only the triangular factor does.
@@ -20,7 +23,7 @@ from gpg.gp import kernels
 from gpg.gp.gram import Checked, assemble_gram, check_training_data, mask_gram_inplace
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.linalg import dense, memory
-from gpg.linalg.tri import BlockTriangular
+from gpg.linalg.tri import BorderedTriangular
 
 
 def check_new_cases(model, X, Y, dY, observed) -> Checked:
@@ -59,7 +62,8 @@ def bordered(model, X, Y, dY, observed):
     n_old, n_new = model.X.shape[0], data.X.shape[0]
     R, rows_new = model.alpha.shape[0], data.rows
     r = n_new * (1 + g)
-    memory.require(f"conditioning on {n_new} cases ({r} rows)", int(8 * r * (3 * R + 2 * r)))
+    # Peak: two r×R arrays at a time (B and S, then S and M) and two r×r.
+    memory.require(f"conditioning on {n_new} cases ({r} rows)", int(8 * r * (2 * R + 2 * r)))
     old_idx, new_idx = layout_index(n_old, n_new, g)
     order = np.arange(R) if model.order is None else np.asarray(model.order)
     Xn = jnp.asarray(data.X)
@@ -67,20 +71,20 @@ def bordered(model, X, Y, dY, observed):
     B = _cross_gram(np.asarray(model.X), Xn, h, dims)[order]
     if rows_new is not None:
         B[:, ~rows_new] = 0.0
-    S = model.chol_inv.host_matmul(B).T  # (r, R) = (L⁻¹ B)ᵀ
+    S = model.chol_inv.host_matmul(B).T  # (r, R) = (L⁻¹ B)ᵀ, the update's one O(R²r) product
     L2 = _schur_factor(Xn, h, dims, rows_new, S)
-    E = model.chol_inv.host_lmatmul(S)  # (r, R) = S L⁻¹ = Bᵀ K̄⁻¹
-    del S
     alpha_old = np.asarray(model.alpha)[order]
     resid = data.targets() - B.T @ alpha_old
+    del B
     alpha2 = dense.cho_solve(L2, resid)
-    alpha1 = alpha_old - E.T @ alpha2
+    # K̄⁻¹B α₂ = L⁻ᵀ (S ᵀα₂): the old factor applied to M columns, not to the r new rows.
+    alpha1 = alpha_old - model.chol_inv.host_lmatmul(alpha2.T @ S).T
     log_det2 = float(np.sum(np.log(np.diag(L2))))  # unobserved rows: log 1
     L2inv = dense.triangular_inverse_inplace(L2)
     if rows_new is not None:
         L2inv[:, ~rows_new] = 0.0
-    band = np.concatenate([-(L2inv @ E), L2inv], axis=1)
-    del E
+    coupling = L2inv @ S
+    del S
     new_order = np.concatenate([old_idx[order], new_idx])
     alpha = np.empty((R + r, alpha1.shape[1]))
     alpha[new_order] = np.concatenate([alpha1, alpha2])
@@ -95,7 +99,7 @@ def bordered(model, X, Y, dY, observed):
         (
             jnp.asarray(X_all),
             jnp.asarray(alpha),
-            BlockTriangular(model.chol_inv.blocks + (jnp.asarray(band),), R + r, True),
+            BorderedTriangular(model.chol_inv, jnp.asarray(coupling), jnp.asarray(L2inv), R + r),
             GlobalMean.from_alpha(X_all, alpha, h.variance, h.lengthscale, dims),
             jnp.asarray(scale),
             jnp.asarray(lml),

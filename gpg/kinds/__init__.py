@@ -12,10 +12,10 @@ pic         :class:`gpg.gp.binned.BinnedGP` (inducing rows)   partition, inducin
 """
 
 from gpg.kinds import exact, hybrid, local, pic, schur
-from gpg.kinds.base import Arrays, Kind, Product
+from gpg.kinds.base import Arrays, Cases, Kind, Product
 
 KINDS: dict[str, Kind] = {
     k.name: k for k in (exact.KIND, local.KIND, schur.KIND, hybrid.KIND, pic.KIND)
 }
 
-__all__ = ["KINDS", "Arrays", "Kind", "Product"]
+__all__ = ["KINDS", "Arrays", "Cases", "Kind", "Product"]

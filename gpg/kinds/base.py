@@ -14,7 +14,7 @@ import abc
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -23,6 +23,9 @@ from gpg.gp import partition
 from gpg.gp.gram import mask_targets, observed_rows, stack_targets
 from gpg.gp.hyper import Hyper
 from gpg.gp.predictor import Predictor
+
+if TYPE_CHECKING:
+    from gpg.gp.exact import ExactGP
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,15 @@ class Arrays:
         return mask_targets(stack_targets(self.Y, self.dY), self.rows)
 
 
+class Cases(NamedTuple):
+    """A conditionable model's training inputs ``X`` (normalised, N × D), hyperparameters and
+    gradient dims (:meth:`Kind.cases`)."""
+
+    X: np.ndarray
+    hyper: Hyper
+    grad_dims: tuple[int, ...]
+
+
 @dataclass
 class Product:
     """A kind's build: the predictor, the near sets it conditions on (if any), what was measured
@@ -87,7 +99,20 @@ class Kind(abc.ABC):
     def condition(self, model: Predictor, new: Arrays, cfg: ModelConfig) -> Predictor:
         """``model`` conditioned on the cases ``new`` with its hyperparameters kept, equal to
         a rebuild on all the cases (kinds that can; the others refuse)."""
-        raise ValueError(
+        raise self._cannot_condition()
+
+    def cases(self, model: Predictor) -> Cases:
+        """What :mod:`gpg.design` reads of a model that conditions: its normalised training
+        inputs, hyperparameters and gradient dims (kinds that cannot condition refuse)."""
+        raise self._cannot_condition()
+
+    def posterior(self, model: Predictor) -> ExactGP:
+        """The exact GP-G on ``model``'s training cases with its hyperparameters: what the
+        acquisition's variances are read from (kinds that condition)."""
+        raise self._cannot_condition()
+
+    def _cannot_condition(self) -> ValueError:
+        return ValueError(
             f"a model of kind {self.name!r} cannot be conditioned on new cases: refit it "
             "(gpg and gpgs_hybrid can)"
         )

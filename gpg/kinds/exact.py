@@ -5,10 +5,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import numpy as np
+
 from gpg.config import ModelConfig
 from gpg.gp.exact import ExactGP
 from gpg.gp.hyper import Hyper
-from gpg.kinds.base import Arrays, Kind, Product, gram_bytes
+from gpg.kinds.base import Arrays, Cases, Kind, Product, gram_bytes
 
 
 @dataclass(frozen=True)
@@ -32,6 +34,12 @@ class Exact(Kind):
     def condition(self, model: ExactGP, new: Arrays, cfg: ModelConfig) -> ExactGP:
         """The bordered Cholesky update (:meth:`gpg.gp.exact.ExactGP.condition`)."""
         return model.condition(new.X, new.Y, new.dY, observed=new.observed)
+
+    def cases(self, model: ExactGP) -> Cases:
+        return Cases(np.asarray(model.X), model.hyper, model.grad_dims)
+
+    def posterior(self, model: ExactGP) -> ExactGP:
+        return model
 
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
         return gram_bytes(n_points, n_grad)  # one K̄, factorised in place

@@ -12,13 +12,14 @@ import numpy as np
 from gpg.config import ModelConfig
 from gpg.gp import cg, local, partition, pic
 from gpg.gp.binned import BinFactors, near_rows, pack
+from gpg.gp.exact import ExactGP
 from gpg.gp.gram import assemble_gram, mask_gram_inplace
 from gpg.gp.hybrid import HybridGP, Record
 from gpg.gp.hyper import Hyper
 from gpg.gp.matfree import gram_matvec, gram_matvec_devices
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.update import _grown_rows, layout_index
-from gpg.kinds.base import Arrays, Kind, Product, bins_and_near, gram_bytes, near_set_bytes
+from gpg.kinds.base import Arrays, Cases, Kind, Product, bins_and_near, gram_bytes, near_set_bytes
 from gpg.linalg import dense, memory
 
 
@@ -50,12 +51,7 @@ class Hybrid(Kind):
         on all the cases by the model's solver, the near sets recomputed, and only the bins
         whose near set changed factorised again (the others' factors are reused as stored).
         Equal to a rebuild with the same hyperparameters and partition."""
-        rec = model.record
-        if rec is None:
-            raise ValueError(
-                "this hybrid holds no training record (a mean view, or saved by gpg < 0.3): "
-                "refit it to condition on new cases"
-            )
+        rec = _record(model)
         local_gp, dims, hyper = model.local, model.local.grad_dims, rec.hyper
         X_old, n_old = np.asarray(rec.X), rec.X.shape[0]
         X = np.concatenate([X_old, new.X])
@@ -78,12 +74,35 @@ class Hybrid(Kind):
         ]
         return _assemble(X, Ybar, rows, alpha, factors, near, local_gp.partition, hyper, dims, cfg)
 
+    def cases(self, model: HybridGP) -> Cases:
+        rec = _record(model)
+        return Cases(np.asarray(rec.X), rec.hyper, model.local.grad_dims)
+
+    def posterior(self, model: HybridGP) -> ExactGP:
+        """One factorisation of ``K̄`` over the training record."""
+        rec, dims = _record(model), model.local.grad_dims
+        X, Ybar = np.asarray(rec.X), np.asarray(rec.Ybar)
+        n, g = X.shape[0], len(dims)
+        dY = Ybar[n:].reshape(g, n, -1).transpose(1, 2, 0) if g else None
+        obs = None if rec.rows is None else np.asarray(rec.rows)[n:].reshape(g, n).T
+        return ExactGP.fit(X, Ybar[:n], dY, grad_dims=dims or None, hyper=rec.hyper,
+                           observed=obs)  # fmt: skip
+
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
         if solver_method(cfg, n_points, n_grad) == "cg":
             mean = cg_bytes(cfg, n_points, n_grad, 9)  # the nine outputs of gpg's data
         else:
             mean = gram_bytes(n_points, n_grad)
         return max(mean, near_set_bytes(cfg, n_points, n_grad))
+
+
+def _record(model: HybridGP) -> Record:
+    if model.record is None:
+        raise ValueError(
+            "this hybrid holds no training record (a mean view, or saved by gpg < 0.3): "
+            "refit it to condition on new cases"
+        )
+    return model.record
 
 
 def _assemble(X, Ybar, rows, alpha, factors, near, part, hyper, dims, cfg) -> HybridGP:

@@ -142,3 +142,72 @@ class BlockTriangular(eqx.Module):
             else:
                 out[a:b, a:] = np.asarray(blk)
         return out
+
+
+class BorderedTriangular(eqx.Module):
+    """``L'⁻¹`` of a bordered lower Cholesky factor ``L' = [[L, 0], [S, L₂]]`` kept factored:
+
+        L'⁻¹ = [[L⁻¹, 0], [−L₂⁻¹ S L⁻¹, L₂⁻¹]],   so   L'⁻¹ k = [v; L₂⁻¹ k₂ − M v],  v = L⁻¹ k₁,
+
+    with ``base`` = ``L⁻¹`` (a :class:`BlockTriangular`, or a bordered factor itself after
+    several updates), ``coupling`` = ``M = L₂⁻¹ S`` (r, n − r) and ``corner`` = ``L₂⁻¹``
+    (r, r). Storing ``M`` instead of the explicit band ``−L₂⁻¹ S L⁻¹`` makes the same products
+    and saves forming ``S L⁻¹``, the update's largest product (:mod:`gpg.gp.update`)."""
+
+    base: BlockTriangular | BorderedTriangular
+    coupling: Float[Array, "r m"]
+    corner: Float[Array, "r r"]
+    n: int = eqx.field(static=True)
+
+    lower = True
+
+    @property
+    def dtype(self):
+        return self.corner.dtype
+
+    def _split(self, A, axis: int):
+        m = self.base.n
+        return (A[:m], A[m:]) if axis == 0 else (A[:, :m], A[:, m:])
+
+    def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
+        """``F k`` (the factor's storage dtype)."""
+        k1, k2 = self._split(k.astype(self.dtype), 0)
+        v = self.base.matvec(k1)
+        return jnp.concatenate([v, self.corner @ k2 - self.coupling @ v])
+
+    def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
+        """``K Fᵀ`` (each row's ``F k``)."""
+        K1, K2 = self._split(K.astype(self.dtype), 1)
+        V = self.base.rmatmul(K1)
+        # (A Bᵀ)ᵀ as in BlockTriangular.rmatmul: XLA's CPU dot is fast that way round.
+        return jnp.concatenate([V, (self.corner @ K2.T).T - (self.coupling @ V.T).T], axis=1)
+
+    def rmatvec(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
+        """``Fᵀ v``."""
+        return self.lmatmul(v[None])[0]
+
+    def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
+        """``V F`` (each row's ``Fᵀ v``): ``[(V₁ − V₂ M) L⁻¹, V₂ L₂⁻¹]``."""
+        V1, V2 = self._split(V.astype(self.dtype), 1)
+        return jnp.concatenate([self.base.lmatmul(V1 - V2 @ self.coupling), V2 @ self.corner], 1)
+
+    def host_matmul(self, B: np.ndarray) -> np.ndarray:
+        """``F B`` with NumPy on the host (:meth:`BlockTriangular.host_matmul`)."""
+        B1, B2 = self._split(B, 0)
+        top = self.base.host_matmul(B1)
+        return np.concatenate([top, np.asarray(self.corner) @ B2 - np.asarray(self.coupling) @ top])
+
+    def host_lmatmul(self, V: np.ndarray) -> np.ndarray:
+        """``V F`` on the host."""
+        V1, V2 = self._split(V, 1)
+        left = self.base.host_lmatmul(V1 - V2 @ np.asarray(self.coupling))
+        return np.concatenate([left, V2 @ np.asarray(self.corner)], axis=1)
+
+    def to_dense(self) -> np.ndarray:
+        top = self.base.to_dense()
+        m = self.base.n
+        out = np.zeros((self.n, self.n))
+        out[:m, :m] = top
+        out[m:, :m] = -np.asarray(self.coupling) @ top
+        out[m:, m:] = np.asarray(self.corner)
+        return out

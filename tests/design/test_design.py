@@ -48,6 +48,17 @@ def test_surrogate_condition_equals_a_refit(data, name, cfg):
     assert sur.model is not grown.model  # the surrogate itself is unchanged
 
 
+def test_kinds_that_cannot_condition_refuse_by_their_kind(data):
+    """A kind without conditioning refuses ``condition``, ``cases`` and the acquisition with
+    one message naming the kinds that can; design reads models only through their kind."""
+    old, new = data
+    sur = Surrogate.fit(old, "gpg_pic", {**CFG, "inducing": {"points": 8}}, bounds=BOX)
+    for call in (lambda: sur.condition(new), lambda: design.training_cases(sur),
+                 lambda: design.propose(sur, old, 2, candidates=20, reference=10)):  # fmt: skip
+        with pytest.raises(ValueError, match="kind 'pic' cannot be conditioned.*gpg and gpgs_hy"):
+            call()
+
+
 def test_bad_new_cases_leave_the_surrogate_unchanged(data):
     old, new = data
     sur = Surrogate.fit(old, "gpg", CFG, bounds=BOX)

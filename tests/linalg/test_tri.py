@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg.linalg.tri import BlockTriangular
+from gpg.linalg.tri import BlockTriangular, BorderedTriangular
 
 
 @pytest.mark.parametrize("lower", [True, False])
@@ -56,3 +56,28 @@ def test_float32_storage_halves_bytes(rng):
     v = b32.matvec(jnp.asarray(k))
     assert v.dtype == jnp.float32
     np.testing.assert_allclose(v, F @ k, rtol=1e-5, atol=1e-5 * np.abs(F @ k).max())
+
+
+def test_bordered_factor_is_the_inverse_of_the_bordered_cholesky_factor(rng):
+    """Two borderings of a Cholesky factor: every product of the factored inverse equals the
+    dense inverse of the grown factor ``[[L, 0], [S, L₂]]`` (NumPy)."""
+    n0, sizes = 9, (4, 3)
+    A = rng.normal(size=(16, 16))
+    K = A @ A.T + 16 * np.eye(16)
+    L = np.linalg.cholesky(K)
+    F = BlockTriangular.from_dense(np.linalg.inv(L[:n0, :n0]), lower=True, n_blocks=3)
+    m = n0
+    for r in sizes:
+        S, L2 = L[m : m + r, :m], L[m : m + r, m : m + r]
+        L2inv = np.linalg.inv(L2)
+        F = BorderedTriangular(F, jnp.asarray(L2inv @ S), jnp.asarray(L2inv), m + r)
+        m += r
+    want = np.linalg.inv(L)
+    np.testing.assert_allclose(F.to_dense(), want, rtol=1e-12, atol=1e-12)
+    Q = rng.normal(size=(3, 16))
+    np.testing.assert_allclose(F.matvec(jnp.asarray(Q[0])), want @ Q[0], atol=1e-12)
+    np.testing.assert_allclose(F.rmatvec(jnp.asarray(Q[0])), want.T @ Q[0], atol=1e-12)
+    np.testing.assert_allclose(F.rmatmul(jnp.asarray(Q)), Q @ want.T, atol=1e-12)
+    np.testing.assert_allclose(F.lmatmul(jnp.asarray(Q)), Q @ want, atol=1e-12)
+    np.testing.assert_allclose(F.host_matmul(Q.T), want @ Q.T, atol=1e-12)
+    np.testing.assert_allclose(F.host_lmatmul(Q), Q @ want, atol=1e-12)
