@@ -72,6 +72,7 @@ class HyperConfig:
     output_scales: bool = True  # per-output ML variance scale (closed form, from α)
     full: bool = False  # then refit on all points by the stochastic likelihood (gpg.gp.slq)
     full_max_steps: int = 100  # BFGS steps of that refit
+    full_ftol: float = 2e-5  # it ends after 3 steps each lowering the nll per target by less
     probes: int = 30  # its fixed Gaussian probes of log|K̄|
     cg_tol: float = 1e-5  # relative residual of its CG solves of K̄ α = Ȳ
     cg_probe_tol: float = 1e-3  # relative residual of its probe solves (log|K̄| and its gradient)
@@ -83,6 +84,10 @@ class HyperConfig:
             _bool(w + k, getattr(self, k))
         for k in ("full_max_steps", "probes", "cg_max_iter"):
             _int(w + k, getattr(self, k), 1)
+        if isinstance(self.full_ftol, bool) or not (
+            isinstance(self.full_ftol, int | float) and self.full_ftol >= 0
+        ):
+            raise ValueError(f"hyper.full_ftol must be a number >= 0, got {self.full_ftol!r}")
         for k in ("cg_tol", "cg_probe_tol"):
             value = getattr(self, k)
             if isinstance(value, bool) or not (isinstance(value, int | float) and 0 < value < 1):

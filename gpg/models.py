@@ -283,7 +283,7 @@ def fit_hyper(
                 max_steps=h.full_max_steps, likelihood="stochastic",
                 stochastic=Stochastic(
                     probes=h.probes, tol=h.cg_tol, max_iter=h.cg_max_iter,
-                    probe_tol=h.cg_probe_tol,
+                    probe_tol=h.cg_probe_tol, ftol=h.full_ftol,
                 ),
                 **common,
             )  # fmt: skip

@@ -57,6 +57,7 @@ def test_config_is_frozen_and_resolved_once():
         ({"hyper": {"probes": 0}}, "hyper.probes"),
         ({"hyper": {"cg_tol": 1.0}}, "hyper.cg_tol"),
         ({"hyper": {"cg_probe_tol": 0.0}}, "hyper.cg_probe_tol"),
+        ({"hyper": {"full_ftol": -1e-5}}, "hyper.full_ftol"),
         ({"hyper": {"cg_max_iter": 0}}, "hyper.cg_max_iter"),
         ({"hyper": {"lengthscale": [1.0, -1.0]}}, "hyper.lengthscale"),
         ({"partition": {"scheme": "grid"}}, "partition.scheme"),

@@ -133,6 +133,34 @@ def test_a_stalled_line_search_ends_the_fit_at_the_optimum():
     assert saved["valley"] >= 10 and saved["rosenbrock"] >= 0
 
 
+def test_a_flat_valley_ends_the_fit_once_steps_gain_less_than_ftol():
+    """A steep direction and a nearly flat one (weight 1e-4), as the full-data refit's noise
+    ratio is late in the fit: with ``ftol`` the fit ends, successfully, once three accepted
+    steps each gained less than it, after the steep direction has converged and within a few
+    ``ftol`` of the optimum's value, in fewer steps than optimistix's own test needs."""
+    import optimistix as optx
+
+    from gpg.gp.fit import _minimise_with_progress
+
+    c = jnp.array([0.7, 6.0])
+
+    def loss(y, args):
+        return jnp.log(jnp.cosh(y[0] - c[0])) + 1e-4 * jnp.log(jnp.cosh(y[1] - c[1]))
+
+    solver = optx.BFGS(rtol=1e-10, atol=1e-10)
+    y0 = jnp.array([-1.5, 0.0])
+    y, status, n = _minimise_with_progress(loss, solver, y0, None, 500, False, ftol=1e-6)
+    ref, ref_status, n_ref = _minimise_with_progress(loss, solver, y0, None, 500, False)
+    assert status == ref_status == optx.RESULTS.successful
+    assert abs(float(y[0] - c[0])) <= 1e-2  # the steep direction is done
+    assert float(loss(y, None) - loss(ref, None)) <= 1e-3  # what the flat one has left
+    assert float(jnp.abs(ref - c).max()) <= 1e-4
+    assert n < n_ref
+    # patience: the same rule with one step ends no later
+    _, _, n1 = _minimise_with_progress(loss, solver, y0, None, 500, False, ftol=1e-6, patience=1)
+    assert n1 <= n
+
+
 def test_stochastic_fit_reaches_the_dense_optimum():
     """On 50 points (all of them), the fit that never forms K̄ ends where the dense fit does:
     from twice the signal variance, 1.5 times the lengthscales and three times the noise
@@ -180,3 +208,5 @@ def test_unreachable_tolerance_and_bad_options_are_clear_errors():
         fit_hyperparameters(X, Y, dY, grad_dims=DIMS, likelihood="exact")
     with pytest.raises(ValueError, match="stochastic.probes"):
         Stochastic(probes=0)
+    with pytest.raises(ValueError, match="stochastic.ftol"):
+        Stochastic(ftol=-1e-5)
