@@ -127,20 +127,22 @@ def test_the_walk_sees_function_level_imports(tmp_path):
 
 
 def test_import_changes_no_global_state():
-    """In a fresh interpreter: x64, async dispatch and the matplotlib backend untouched, and
-    neither hydra nor matplotlib imported."""
+    """In a fresh interpreter: x64, async dispatch, the signal handlers and the matplotlib
+    backend untouched, and neither hydra nor matplotlib imported. The handlers are compared
+    with what the interpreter started with: a shell's background job starts with SIGINT
+    ignored, and that is its parent's choice, not gpg's."""
     code = (
-        "import sys, jax\n"
+        "import signal, sys, jax\n"
         "FLAGS = ('jax_enable_x64', 'jax_cpu_enable_async_dispatch')\n"
         "flags = lambda: tuple(jax.config.read(k) for k in FLAGS)\n"
-        "before = flags()\n"
+        "handlers = lambda: tuple(signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM))\n"
+        "before, sig_before = flags(), handlers()\n"
         "import gpg, gpg.data, gpg.quadrotor, gpg.checkpoint\n"
         "after = flags()\n"
         "assert before == after == (False, True), (before, after)\n"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'matplotlib'))\n"
         "assert not bad, bad\n"
-        "import signal\n"
-        "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler\n"
+        "assert handlers() == sig_before, (sig_before, handlers())\n"
     )
     env = {k: v for k, v in __import__("os").environ.items() if not k.startswith("JAX_")}
     p = subprocess.run(

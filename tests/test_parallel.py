@@ -193,6 +193,9 @@ HOST_SCRIPT = textwrap.dedent(
     X, Ybar, h, near = problem()
     got = local.precompute(X, Ybar, h, (0, 1), near, devices=2)
     flat = [f.factor.ravel() for f in got] + [f.coef.ravel() for f in got]
+    from gpg.gp.matfree import gram_matvec_devices
+    V = np.random.default_rng(1).normal(size=(Ybar.shape[0], 3))
+    flat.append(np.asarray(gram_matvec_devices(X, h, (0, 1), V, devices=2, tile=16)).ravel())
     np.save(sys.argv[3], np.concatenate(flat))
     """
 )
@@ -200,7 +203,9 @@ HOST_SCRIPT = textwrap.dedent(
 
 def test_two_processes_share_the_bins_and_both_hold_every_result(tmp_path):
     """Two processes on this machine stand for two hosts (jax.distributed with gloo on CPU):
-    each computes the bins of its own device, and both end with all bins, bit for bit."""
+    each computes the bins of its own device, and the row tiles of its share of a
+    matrix-free product ``K̄ V``; both end with all bins and the whole product, bit for bit
+    the one-device results."""
     import socket
 
     with socket.socket() as s:
@@ -230,6 +235,12 @@ def test_two_processes_share_the_bins_and_both_hold_every_result(tmp_path):
         assert p.returncode == 0, err[-3000:]
     X, Ybar, h, near = problem()
     ref = local.precompute(X, Ybar, h, (0, 1), near, devices=1)
-    want = np.concatenate([f.factor.ravel() for f in ref] + [f.coef.ravel() for f in ref])
+    from gpg.gp.matfree import gram_matvec_devices
+
+    V = np.random.default_rng(1).normal(size=(Ybar.shape[0], 3))
+    product = np.asarray(gram_matvec_devices(X, h, (0, 1), V, devices=1, tile=16)).ravel()
+    want = np.concatenate(
+        [f.factor.ravel() for f in ref] + [f.coef.ravel() for f in ref] + [product]
+    )
     for i in range(2):
         np.testing.assert_array_equal(np.load(tmp_path / f"{i}.npy"), want)
