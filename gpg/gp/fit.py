@@ -124,8 +124,8 @@ def _minimise_with_progress(
     lowered the objective by less than ``ftol`` (scipy's ``ftol``, absolute: the loss is a
     negative log likelihood per target); rejected steps neither count nor reset that run.
     The full-data refit spends its second half crawling along a nearly flat valley that
-    moves the likelihood by a few nats per step and the test errors by less than their
-    spread over probe seeds (docs/scaling.md measures both)."""
+    moves the likelihood by a few nats per step and no test error by more than 1 %
+    (docs/scaling.md measures both)."""
     fn = lambda y, a: (loss(y, a), None)  # noqa: E731
     f_struct = jax.ShapeDtypeStruct((), jnp.result_type(float))
     state = solver.init(fn, params, args, {}, f_struct, None, frozenset())
