@@ -61,7 +61,10 @@ class BlockTriangular(eqx.Module):
         edges = np.linspace(0, n, min(n_blocks, max(n, 1)) + 1).astype(int)
         blocks = []
         for a, b in zip(edges[:-1], edges[1:], strict=True):
-            blocks.append(jnp.array(F[a:b, :b]))  # a copy owned by JAX
+            # A copy owned by JAX, made before the rows are given back: ``jnp.array`` may copy
+            # the host rows asynchronously, and rows released under a pending copy read as
+            # zeros (measured: the last band, zeroed in part in 9 of 40 factors under load).
+            blocks.append(jnp.array(F[a:b, :b]).block_until_ready())
             buf.release_rows(a, b)
         return cls(blocks=tuple(blocks), n=n, lower=True)
 
