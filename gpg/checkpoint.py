@@ -60,13 +60,15 @@ from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 8  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+FORMAT_VERSION = 9  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
 # 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels);
 # 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads;
 # 6: fields renamed (ν² is ``noise``, M_noise ``noise_model``); 4 and 5 load through RENAMED;
 # 7: ExactGP.order/observed and HybridGP.record (conditioning); older files load them as None
 # 8: a conditioned ExactGP keeps its new rows factored (gpg.linalg.tri.BorderedTriangular)
-READABLE_VERSIONS = (4, 5, 6, 7, 8)
+# 9: an ExactGP factorises only the rows it observed (``order`` names them); the decoupled
+#    factors of 7 and 8 still load and condition
+READABLE_VERSIONS = (4, 5, 6, 7, 8, 9)
 # Fields renamed since an older format: (module, class) -> {old field: new field}. Reading one
 # warns (DeprecationWarning): save the surrogate again to write the current format.
 RENAMED = {

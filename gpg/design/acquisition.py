@@ -38,6 +38,7 @@ from jaxtyping import Array, Float
 from gpg._dtype import float64
 from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
+from gpg.gp.gram import rows_gram
 
 GRADIENTS = ("all", "none", "choose")
 
@@ -72,18 +73,18 @@ def subsets(n_grad: int, gradients: str) -> np.ndarray:
 
 
 def _whitened(gp: ExactGP, Xq: np.ndarray, dims: tuple[int, ...], chunk: int = 512) -> np.ndarray:
-    """``(L⁻¹ K̄(A, rows))ᵀ`` for the rows of ``Xq`` with gradient dims ``dims``, point-major:
-    (Q(1+G'), R). ``A`` are the training rows in the factor's order."""
-    h = gp.hyper
+    """``(L⁻¹ K̄(A, rows))ᵀ`` for the rows of ``Xq`` with gradient dims ``dims`` (``()`` or the
+    model's), point-major: (Q(1+G'), R_f). ``A`` are the factor's rows (``gp.order``), formed
+    alone: a values-only case of the model is one column, not ``1 + G``."""
+    X = np.asarray(gp.X)
+    order = np.arange(gp.alpha.shape[0]) if gp.order is None else np.asarray(gp.order)
     out = []
     for a in range(0, Xq.shape[0], chunk):
-        Xc = jnp.asarray(Xq[a : a + chunk])
-        K = kernels.gram(Xc, gp.X, h.variance, h.lengthscale, dims, gp.grad_dims)
-        if gp.order is not None:
-            K = K[:, gp.order]
-        V = gp.chol_inv.rmatmul(K)
-        # dimension-major rows of this chunk -> point-major
+        Xc = np.asarray(Xq[a : a + chunk])
         q = Xc.shape[0]
+        K = rows_gram(Xc, np.arange(q * (1 + len(dims))), X, order, gp.hyper, gp.grad_dims)
+        V = gp.chol_inv.rmatmul(jnp.asarray(K))
+        # dimension-major rows of this chunk -> point-major
         out.append(
             np.asarray(V)
             .reshape(1 + len(dims), q, -1)
@@ -197,12 +198,16 @@ def _greedy(S_tt, S_tz, w, masks, noise, batch):
     best gain per run, then ``Σ ← Σ − Σ_·J (Σ_JJ + N_J)⁻¹ Σ_J·`` (in place)."""
     g = masks.shape[1]
     k = S_tt.shape[0] // g
+    prior_scale = float(np.max(np.abs(np.diag(S_tt)))) + float(np.max(noise))
     nd = np.tile(noise, k)
     picked, sub, gains = [], [], []
     alive = np.ones(k, dtype=bool)
     runs = masks.sum(axis=1)[None]
     for _ in range(batch):
         blocks = S_tt.reshape(k, g, k, g)[np.arange(k), :, np.arange(k), :]
+        if not picked:  # before any downdate: the posterior as the model gives it
+            _check_psd(blocks, prior_scale)
+        blocks = _psd(blocks)
         Qz = S_tz.reshape(k, g, -1)
         Cm = np.einsum("kiz,z,kjz->kij", Qz, w, Qz)
         P = blocks + np.diag(noise)[None]
@@ -214,9 +219,32 @@ def _greedy(S_tt, S_tz, w, masks, noise, batch):
         gains.append(score[c, s])
         alive[c] = False
         J = c * g + np.flatnonzero(masks[s])
-        Lj = np.linalg.cholesky(S_tt[np.ix_(J, J)] + np.diag(nd[J]))
+        Lj = np.linalg.cholesky(_psd(S_tt[np.ix_(J, J)]) + np.diag(nd[J]))
         A_t = np.linalg.solve(Lj, S_tt[J])  # (|J|, rows)
         A_z = np.linalg.solve(Lj, S_tz[J])
         S_tt -= A_t.T @ A_t
         S_tz -= A_t.T @ A_z
     return np.asarray(picked), np.asarray(sub), np.asarray(gains)
+
+
+def _psd(A: np.ndarray) -> np.ndarray:
+    """The symmetric part of ``A`` (…, g, g) with its eigenvalues clipped at 0: a posterior
+    covariance block as it is, not as rounding leaves it (``Σ = K − VVᵀ`` near the data is a
+    difference of nearly equal numbers). Clipping more than rounding would hide a model whose
+    stored factor does not match its ``K̄``: that is an error (:func:`_check_psd`)."""
+    A = 0.5 * (A + np.swapaxes(A, -1, -2))
+    w, U = np.linalg.eigh(A)
+    return (U * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(U, -1, -2)
+
+
+PSD_TOL = 1e-6  # a posterior variance may round below 0 by this much of the prior's, not more
+
+
+def _check_psd(blocks: np.ndarray, prior_scale: float) -> None:
+    """Raise when a candidate's posterior covariance block is indefinite beyond rounding."""
+    low = float(np.min(np.linalg.eigvalsh(0.5 * (blocks + np.swapaxes(blocks, -1, -2)))))
+    if low < -PSD_TOL * prior_scale:
+        raise RuntimeError(
+            f"a candidate's posterior covariance has the eigenvalue {low:.3g} (prior scale "
+            f"{prior_scale:.3g}): the model's stored factor does not match its K̄"
+        )

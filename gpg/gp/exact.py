@@ -28,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg._dtype import float64
 from gpg.gp import kernels, predictor
-from gpg.gp.gram import assemble_gram, check_training_data, mask_gram_inplace
+from gpg.gp.gram import assemble_gram, assemble_rows_gram, check_training_data
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor, plain
@@ -41,8 +41,10 @@ class ExactGP(Predictor):
 
     Attributes:
         X: training inputs ``X_d`` (N, D).
-        alpha: ``K̄⁻¹ Ȳ`` (R, M), ``R = N(1+G)``.
-        chol_inv: ``L⁻¹`` for the lower Cholesky factor ``L`` of ``K̄`` (R, R), stored in row
+        alpha: ``K̄⁻¹ Ȳ`` (R, M) in the layout of :mod:`gpg.gp.kernels`, ``R = N(1+G)``, 0 on
+            the rows of gradients a case does not have.
+        chol_inv: ``L⁻¹`` for the lower Cholesky factor ``L`` of ``K̄`` over the observed rows
+            (``R_f`` of them, ``R_f = R`` when every case has every gradient), stored in row
             bands (:class:`gpg.linalg.tri.BlockTriangular`), so that the variance is
             ``σ − ‖L⁻¹ k̄_q‖²``. A matrix-vector product with the stored inverse reads the
             triangle once, row-major; a triangular solve in JAX first copies ``L`` to
@@ -55,11 +57,14 @@ class ExactGP(Predictor):
             (:func:`gpg.gp.mean.output_scale`).
         grad_dims: input dimensions with gradient observations (static).
         log_marginal_likelihood: ``log p(Ȳ | X)`` summed over the M outputs.
-        order: None, or for a model grown by :meth:`condition`, the row of the layout of
-            :mod:`gpg.gp.kernels` that each row of ``chol_inv`` stands for (R,): the factor
-            of a bordered ``K̄`` keeps its blocks in the order the data came.
+        order: None when the factor's rows are the layout's, else the row of the layout of
+            :mod:`gpg.gp.kernels` that each row of ``chol_inv`` stands for (R_f,): a model
+            with cases that lack some gradients factorises only the rows it observed (a
+            values-only case is one row, not ``1 + G``), and the factor of a model grown by
+            :meth:`condition` keeps its blocks in the order the data came.
         observed: None when every row was observed, else which rows were (R,) in the layout
-            (:func:`gpg.gp.gram.observed_rows`: cases without some gradients).
+            (:func:`gpg.gp.gram.observed_rows`: cases without some gradients). Files of format
+            7 and 8 kept the unobserved rows in the factor, decoupled; they still load.
     """
 
     X: Float[Array, "N D"]
@@ -105,26 +110,33 @@ class ExactGP(Predictor):
         hyper = (Hyper() if hyper is None else hyper).validate(data.X.shape[1], len(data.grad_dims))
         Xj = jnp.asarray(data.X)
         Ybar, rows = data.targets(), data.rows
-        r = Ybar.shape[0]
-        n_obs = r if rows is None else int(rows.sum())
-        # One dense R x R buffer, factorised and inverted in place, then moved into JAX band by
+        # Cases without some gradients: only the rows they observed enter K̄ and its factor,
+        # whose rows ``order`` names in the layout (a values-only case is one row, not 1 + G).
+        index = None if rows is None else np.flatnonzero(rows)
+        r = Ybar.shape[0] if index is None else index.size
+        # One dense r x r buffer, factorised and inverted in place, then moved into JAX band by
         # band while its rows are released: the peak stays near one copy (12.8 GB at 40000 rows).
         memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
         buf = memory.square_buffer(r)
-        gram = mask_gram_inplace(assemble_gram(Xj, hyper, data.grad_dims, out=buf.array), rows)
+        if index is None:
+            gram = assemble_gram(Xj, hyper, data.grad_dims, out=buf.array)
+        else:
+            gram = assemble_rows_gram(data.X, index, hyper, data.grad_dims, out=buf.array)
+            Ybar = Ybar[index]
         chol = dense.cholesky_inplace(gram)
         alpha = dense.cho_solve(chol, Ybar)
         m = Ybar.shape[1]
         lml = (
             -0.5 * float(np.sum(Ybar * alpha))
             - m * float(np.sum(np.log(np.diag(chol))))
-            - 0.5 * m * n_obs * math.log(2 * math.pi)
+            - 0.5 * m * r * math.log(2 * math.pi)
         )
         dense.triangular_inverse_inplace(chol)  # overwrites the factor: one buffer
-        if rows is not None:
-            chol[:, ~rows] = 0.0
         bands = BlockTriangular.from_buffer(buf, lower=True, n_blocks=8)
         del chol, buf
+        scale = output_scale(np.sum(Ybar * alpha, axis=0), r)
+        if index is not None:  # α in the layout, 0 on the rows not observed
+            alpha = _scatter(alpha, index, rows.size)
         return cls(
             X=Xj,
             alpha=jnp.asarray(alpha),
@@ -133,9 +145,10 @@ class ExactGP(Predictor):
             mean=GlobalMean.from_alpha(
                 data.X, alpha, hyper.variance, hyper.lengthscale, data.grad_dims
             ),
-            output_scale=jnp.asarray(output_scale(np.sum(Ybar * alpha, axis=0), n_obs)),
+            output_scale=jnp.asarray(scale),
             log_marginal_likelihood=jnp.asarray(lml),
             grad_dims=data.grad_dims,
+            order=None if index is None else jnp.asarray(index),
             observed=None if rows is None else jnp.asarray(rows),
         )
 
@@ -228,6 +241,13 @@ class ExactGP(Predictor):
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
         """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
         return _predict_gradient(self, jnp.asarray(Xq))
+
+
+def _scatter(a: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
+    """Rows ``a`` placed at ``index`` of ``size`` rows, zeros elsewhere."""
+    out = np.zeros((size,) + a.shape[1:], dtype=a.dtype)
+    out[index] = a
+    return out
 
 
 def _cross(gp: ExactGP, Xq: Array) -> Float[Array, "Q R"]:

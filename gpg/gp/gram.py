@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg import _checks
 from gpg.gp import kernels
@@ -142,6 +142,68 @@ def assemble_gram(
     return out
 
 
+def row_kinds(
+    index: Int[np.ndarray, " r"], n: int, grad_dims: tuple[int, ...]
+) -> tuple[Int[np.ndarray, " r"], Int[np.ndarray, " r"]]:
+    """For rows ``index`` of the layout of ``n`` points: each row's point and what it observes
+    (``-1`` the value, ``d`` the derivative along input ``d``), as :func:`kernels.row_gram`
+    reads them."""
+    index = np.asarray(index, dtype=np.int64)
+    deriv = np.asarray((-1, *grad_dims), dtype=np.int32)[index // n]
+    return index % n, deriv
+
+
+def rows_gram(
+    X1: Float[np.ndarray, "N1 D"],
+    index1: Int[np.ndarray, " r1"],
+    X2: Float[np.ndarray, "N2 D"],
+    index2: Int[np.ndarray, " r2"],
+    hyper: Hyper,
+    grad_dims: tuple[int, ...],
+    *,
+    out: np.ndarray | None = None,
+    chunk: int = 2048,
+) -> np.ndarray:
+    """``K̄(X1, X2)`` (no noise) restricted to the layout rows ``index1`` of ``X1`` and columns
+    ``index2`` of ``X2``, on the host, without forming the rest: how a model whose cases lack
+    some gradients keeps only the rows it observed (a values-only case costs one row, not
+    ``1 + G``). Built ``chunk`` rows at a time, the last chunk padded, so that a model that
+    grows reuses one compiled program per width."""
+    p1, a1 = row_kinds(index1, X1.shape[0], grad_dims)
+    p2, a2 = row_kinds(index2, X2.shape[0], grad_dims)
+    r1 = p1.shape[0]
+    if out is None:
+        out = np.empty((r1, p2.shape[0]))
+    step = min(chunk, max(r1, 1))
+    Xc = jnp.asarray(np.asarray(X2)[p2])
+    ac = jnp.asarray(a2)
+    for start in range(0, r1, step):
+        stop = min(start + step, r1)
+        sel = np.arange(start, start + step).clip(max=r1 - 1)  # padded with the last row
+        block = kernels.row_gram(
+            jnp.asarray(np.asarray(X1)[p1[sel]]), jnp.asarray(a1[sel]), Xc, ac,
+            hyper.variance, hyper.lengthscale,
+        )  # fmt: skip
+        out[start:stop] = np.asarray(block)[: stop - start]
+    return out
+
+
+def assemble_rows_gram(
+    X: Float[np.ndarray, "N D"],
+    index: Int[np.ndarray, " r"],
+    hyper: Hyper,
+    grad_dims: tuple[int, ...],
+    *,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """``K̄`` plus its noise diagonal over the layout rows ``index`` only (the observed rows of
+    cases that lack some gradients, :func:`observed_rows`): :func:`assemble_gram` for them."""
+    out = rows_gram(X, index, X, index, hyper, grad_dims, out=out, chunk=256)
+    n, g = np.asarray(X).shape[0], len(grad_dims)
+    out.flat[:: out.shape[0] + 1] += np.asarray(hyper.noise_diagonal(n, g))[np.asarray(index)]
+    return out
+
+
 def noisy_gram(
     X: Float[Array, "N D"],
     hyper: Hyper,
@@ -165,11 +227,11 @@ def observed_rows(observed: Bool[np.ndarray, "N G"] | None, n: int) -> np.ndarra
     g)`` where ``observed[i, g]``; None when every gradient was (the common case, no mask).
 
     A case whose simulator run skipped some finite-difference perturbations has no rows for
-    those gradient dims. Rather than change the layout per case, gpg keeps every row and
-    decouples the missing ones: their rows and columns of ``K̄`` become those of the identity
-    and their targets 0, so ``α`` is 0 there and the factor ``L⁻¹``'s columns for them are
-    zeroed (:func:`mask_factor_columns`). The posterior is then exactly the one conditioned on
-    the observed rows alone, with no change to the query code.
+    those gradient dims. The layout keeps its fixed shape (targets 0 there); the exact GP forms
+    and factorises only the observed rows (:func:`rows_gram`, ``ExactGP.order``), and the
+    partitioned models' local factors decouple the missing ones (:func:`mask_gram_inplace`:
+    identity rows and columns). Either way the posterior is exactly the one conditioned on the
+    observed rows alone, with no change to the query code.
     """
     if observed is None:
         return None
@@ -209,12 +271,24 @@ def log_marginal_likelihood(
     """``Σ_m log N(Ȳ_m | 0, K̄)``: pure JAX, differentiable in ``hyper`` (small N only).
 
     ``Ybar`` is the stacked target of :func:`stack_targets` (0 on unobserved rows); ``rows``
-    the observed rows (:func:`observed_rows`), which alone count.
+    the observed rows (:func:`observed_rows`, a host array), which alone are formed and count:
+    a values-only case adds one row to the factorisation, not ``1 + G``.
     """
-    c, lower = jsl.cho_factor(noisy_gram(X, hyper, grad_dims, rows), lower=True)
+    if rows is None:
+        K = noisy_gram(X, hyper, grad_dims)
+    else:
+        index = np.flatnonzero(np.asarray(rows))
+        n, g = X.shape[0], len(grad_dims)
+        p, a = row_kinds(index, n, grad_dims)
+        Xr = jnp.asarray(X)[p]
+        K = kernels.row_gram(Xr, jnp.asarray(a), Xr, jnp.asarray(a), hyper.variance,
+                             hyper.lengthscale)  # fmt: skip
+        K = K + jnp.diag(hyper.noise_diagonal(n, g)[index])
+        Ybar = Ybar[index]
+    c, lower = jsl.cho_factor(K, lower=True)
     alpha = jsl.cho_solve((c, lower), Ybar)
     m = Ybar.shape[1]
-    r = Ybar.shape[0] if rows is None else jnp.sum(jnp.asarray(rows))
+    r = Ybar.shape[0]
     return (
         -0.5 * jnp.sum(Ybar * alpha)
         - m * jnp.sum(jnp.log(jnp.diag(c)))

@@ -8,7 +8,8 @@ update never copies what is stored and reads the old factor twice with thin prod
 for ``α`` (``R²M``). The factor's rows stay in
 the order the cases came (old rows, then each update's), which is a permutation of the layout
 of :mod:`gpg.gp.kernels` recorded in ``ExactGP.order``: the posterior does not depend on the
-order of the rows, only the triangular factor does.
+order of the rows, only the triangular factor does. Only observed rows are in the factor: the
+rows of gradients a case lacks are never formed (:func:`gpg.gp.gram.rows_gram`).
 """
 
 from __future__ import annotations
@@ -19,8 +20,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from gpg.gp import kernels
-from gpg.gp.gram import Checked, assemble_gram, check_training_data, mask_gram_inplace
+from gpg.gp.gram import Checked, assemble_rows_gram, check_training_data, rows_gram
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.linalg import dense, memory
 from gpg.linalg.tri import BorderedTriangular
@@ -61,37 +61,38 @@ def bordered(model, X, Y, dY, observed):
     h, dims, g = model.hyper, model.grad_dims, len(model.grad_dims)
     n_old, n_new = model.X.shape[0], data.X.shape[0]
     R, rows_new = model.alpha.shape[0], data.rows
-    r = n_new * (1 + g)
-    # Peak: two r×R arrays at a time (B and S, then S and M) and two r×r.
-    memory.require(f"conditioning on {n_new} cases ({r} rows)", int(8 * r * (2 * R + 2 * r)))
+    Rf = model.chol_inv.n  # the factor's rows: R, or fewer when some gradients are missing
     old_idx, new_idx = layout_index(n_old, n_new, g)
+    # The factor's rows in the old layout, and the new cases' observed rows in theirs.
     order = np.arange(R) if model.order is None else np.asarray(model.order)
-    Xn = jnp.asarray(data.X)
-    # B in the factor's row order; rows of unobserved new gradients are decoupled.
-    B = _cross_gram(np.asarray(model.X), Xn, h, dims)[order]
-    if rows_new is not None:
-        B[:, ~rows_new] = 0.0
-    S = model.chol_inv.host_matmul(B).T  # (r, R) = (L⁻¹ B)ᵀ, the update's one O(R²r) product
-    L2 = _schur_factor(Xn, h, dims, rows_new, S)
+    fresh = np.arange(n_new * (1 + g)) if rows_new is None else np.flatnonzero(rows_new)
+    r = fresh.size
+    # Peak: two r×Rf arrays at a time (B and S, then S and M) and two r×r.
+    memory.require(f"conditioning on {n_new} cases ({r} rows)", int(8 * r * (2 * Rf + 2 * r)))
+    X_old = np.asarray(model.X)
+    B = rows_gram(X_old, order, data.X, fresh, h, dims)  # (Rf, r), the factor's row order
+    if model.observed is not None:  # files of format <= 8 keep unobserved rows, decoupled
+        B[~np.asarray(model.observed)[order]] = 0.0
+    S = model.chol_inv.host_matmul(B).T  # (r, Rf) = (L⁻¹ B)ᵀ, the update's one O(Rf²r) product
+    L2 = _schur_factor(data.X, fresh, h, dims, S)
     alpha_old = np.asarray(model.alpha)[order]
-    resid = data.targets() - B.T @ alpha_old
+    resid = data.targets()[fresh] - B.T @ alpha_old
     del B
     alpha2 = dense.cho_solve(L2, resid)
     # K̄⁻¹B α₂ = L⁻ᵀ (S ᵀα₂): the old factor applied to M columns, not to the r new rows.
     alpha1 = alpha_old - model.chol_inv.host_lmatmul(alpha2.T @ S).T
-    log_det2 = float(np.sum(np.log(np.diag(L2))))  # unobserved rows: log 1
+    log_det2 = float(np.sum(np.log(np.diag(L2))))
     L2inv = dense.triangular_inverse_inplace(L2)
-    if rows_new is not None:
-        L2inv[:, ~rows_new] = 0.0
     coupling = L2inv @ S
     del S
-    new_order = np.concatenate([old_idx[order], new_idx])
-    alpha = np.empty((R + r, alpha1.shape[1]))
+    size = R + n_new * (1 + g)
+    new_order = np.concatenate([old_idx[order], new_idx[fresh]])
+    alpha = np.zeros((size, alpha1.shape[1]))
     alpha[new_order] = np.concatenate([alpha1, alpha2])
-    observed_all = _grown_rows(model.observed, rows_new, old_idx, new_idx, R + r)
+    observed_all = _grown_rows(model.observed, rows_new, old_idx, new_idx, size)
     dq = np.sum(resid * alpha2, axis=0)
-    lml, scale = _likelihood_and_scale(model, observed_all, R + r, dq, log_det2)
-    X_all = np.concatenate([np.asarray(model.X), data.X])
+    lml, scale = _likelihood_and_scale(model, observed_all, size, dq, log_det2)
+    X_all = np.concatenate([X_old, data.X])
     return eqx.tree_at(
         lambda t: (t.X, t.alpha, t.chol_inv, t.mean, t.output_scale, t.log_marginal_likelihood,
                    t.order, t.observed),
@@ -99,7 +100,7 @@ def bordered(model, X, Y, dY, observed):
         (
             jnp.asarray(X_all),
             jnp.asarray(alpha),
-            BorderedTriangular(model.chol_inv, jnp.asarray(coupling), jnp.asarray(L2inv), R + r),
+            BorderedTriangular(model.chol_inv, jnp.asarray(coupling), jnp.asarray(L2inv), Rf + r),
             GlobalMean.from_alpha(X_all, alpha, h.variance, h.lengthscale, dims),
             jnp.asarray(scale),
             jnp.asarray(lml),
@@ -110,31 +111,16 @@ def bordered(model, X, Y, dY, observed):
     )  # fmt: skip
 
 
-def _cross_gram(X_old: np.ndarray, Xn, h, dims, chunk: int = 256) -> np.ndarray:
-    """``K̄(X_old, X_new)`` in the old points' layout, built over fixed-size chunks of the
-    old points (the last one padded): one compiled program per batch size, not per model
-    size, since the model grows at every conditioning."""
-    n, g = X_old.shape[0], len(dims)
-    pad = -n % chunk
-    Xp = np.concatenate([X_old, np.zeros((pad, X_old.shape[1]))]) if pad else X_old
-    parts = [
-        np.asarray(kernels.gram(jnp.asarray(Xp[a : a + chunk]), Xn, h.variance, h.lengthscale,
-                                dims, dims)).reshape(1 + g, chunk, -1)
-        for a in range(0, Xp.shape[0], chunk)
-    ]  # fmt: skip
-    return np.concatenate(parts, axis=1)[:, :n].reshape(n * (1 + g), -1)
-
-
-def _schur_factor(Xn, h, dims, rows_new, S) -> np.ndarray:
-    """``L₂`` with ``L₂ L₂ᵀ = C − S Sᵀ``, or a ``ValueError`` when the new cases make ``K̄``
-    singular."""
-    C = mask_gram_inplace(assemble_gram(Xn, h, dims), rows_new)
+def _schur_factor(Xn, fresh, h, dims, S) -> np.ndarray:
+    """``L₂`` with ``L₂ L₂ᵀ = C − S Sᵀ`` over the new observed rows ``fresh``, or a
+    ``ValueError`` when the new cases make ``K̄`` singular."""
+    C = assemble_rows_gram(Xn, fresh, h, dims)
     C -= dense.gram_t(np.ascontiguousarray(S.T))  # S Sᵀ
     try:
         return dense.cholesky_inplace(C, what="the Schur complement of the new cases")
     except dense.NotPositiveDefiniteError as exc:
         raise ValueError(
-            f"the {Xn.shape[0]} new cases make K̄ singular ({exc}): a case that duplicates a "
+            f"the {len(Xn)} new cases make K̄ singular ({exc}): a case that duplicates a "
             "training point (or another new case) adds nothing; drop it"
         ) from None
 

@@ -157,6 +157,30 @@ def test_a_case_already_in_the_data_scores_no_higher():
     assert np.all(np.diff(first.gain / first.cost) <= 1e-12)
 
 
+def test_a_covariance_block_indefinite_by_rounding_is_clipped_and_beyond_it_refused():
+    """``Σ = K − VVᵀ`` near the data is a difference of nearly equal numbers: a block that
+    rounding leaves indefinite by more than the noise is clipped to the nearest PSD block
+    (same eigenvectors), a PSD block is left as it is, and a block indefinite beyond rounding
+    (a stored factor that does not match ``K̄``) is an error, not a pick."""
+    from gpg.design.acquisition import _greedy, _psd
+
+    rng = np.random.default_rng(4)
+    U = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    A = (U * np.array([2.0, 0.5, -1e-8])) @ U.T  # one eigenvalue below -noise
+    np.testing.assert_allclose(_psd(A), (U * np.array([2.0, 0.5, 0.0])) @ U.T, atol=1e-14)
+    B = (U * np.array([2.0, 0.5, 1e-3])) @ U.T
+    np.testing.assert_allclose(_psd(B), B, atol=1e-14)
+    # One candidate with rows (value, two gradients), its block indefinite: the pick conditions.
+    S_tz = rng.normal(size=(3, 5))
+    noise = np.array([1e-9, 1e-9, 1e-9])
+    masks = subsets(2, "all")
+    picked, sub, gains = _greedy(A.copy(), S_tz, np.full(5, 0.2), masks, noise, 1)
+    assert picked.tolist() == [0] and np.isfinite(gains).all()
+    wrong = (U * np.array([2.0, 0.5, -0.3])) @ U.T
+    with pytest.raises(RuntimeError, match="stored factor does not match"):
+        _greedy(wrong, S_tz, np.full(5, 0.2), masks, noise, 1)
+
+
 def test_propose_on_a_surrogate_and_bad_candidates(data):
     old, _ = data
     # hyper.max_steps bounds the weighted outputs' own fit (the surrogate's is fixed)

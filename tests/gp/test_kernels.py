@@ -112,3 +112,21 @@ def test_query_rows_match_autodiff_gram(rng, dims, lengthscale):
     assert got.shape == want.shape == (6, 9 * (1 + len(dims)))
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
     assert float(got[0, 0]) == pytest.approx(1.3, rel=1e-14)
+
+
+@pytest.mark.parametrize("lengthscale", [0.7, np.array([0.3, 1.1, 0.6, 2.0])])
+def test_row_gram_is_the_autodiff_gram_on_any_rows(rng, lengthscale):
+    """Rows picked from the layout (values and any derivatives, in any order) equal the same
+    rows and columns of the autodiff Gram matrix."""
+    dims = (0, 2, 3)
+    X1, X2 = rng.uniform(-1, 1, (7, 4)), rng.uniform(-1, 1, (5, 4))
+    X2[1] = X1[2]  # a coincident pair: the knm diagonal term 1/l² must be there
+    full = np.asarray(kernels.gram(jnp.asarray(X1), jnp.asarray(X2), 1.3, lengthscale, dims, dims))
+    i1 = rng.permutation(7 * 4)[:13]
+    i2 = rng.permutation(5 * 4)[:9]
+    deriv = np.array([-1, *dims])
+    got = kernels.row_gram(
+        jnp.asarray(X1[i1 % 7]), jnp.asarray(deriv[i1 // 7]),
+        jnp.asarray(X2[i2 % 5]), jnp.asarray(deriv[i2 // 5]), 1.3, lengthscale,
+    )  # fmt: skip
+    np.testing.assert_allclose(got, full[np.ix_(i1, i2)], rtol=1e-12, atol=1e-14)

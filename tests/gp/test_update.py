@@ -87,6 +87,51 @@ def test_unobserved_gradients_are_the_gp_without_those_rows():
     mean, var = m.predict(Q)
     np.testing.assert_allclose(mean, kq @ np.linalg.solve(K, Ybar), atol=1e-9)
     np.testing.assert_allclose(var, 1.3 - np.sum(kq * np.linalg.solve(K, kq.T).T, 1), atol=1e-9)
+    # Only the observed rows are factorised: a values-only case is one row, not 1 + G.
+    assert m.chol_inv.n == rows.sum() < rows.size
+    lml = sum(
+        -0.5 * Ybar[:, j] @ np.linalg.solve(K, Ybar[:, j])
+        - 0.5 * np.linalg.slogdet(K)[1]
+        - 0.5 * rows.sum() * np.log(2 * np.pi)
+        for j in range(2)
+    )
+    assert float(m.log_marginal_likelihood) == pytest.approx(lml, rel=1e-10)
+    from gpg.gp.gram import log_marginal_likelihood
+
+    Ybar_layout = np.r_[Y, np.where(obs[:, None, :], dY, 0.0).transpose(2, 0, 1).reshape(-1, 2)]
+    assert float(log_marginal_likelihood(X, Ybar_layout, H, DIMS, rows)) == pytest.approx(
+        lml, rel=1e-10
+    )
+
+
+def test_a_decoupled_factor_of_format_8_still_conditions():
+    """Files of format 7 and 8 kept the unobserved rows in the factor, decoupled (identity
+    rows in K̄, zero columns in L⁻¹, no ``order``): conditioning one equals the refit."""
+    import equinox as eqx
+
+    from gpg.gp.gram import assemble_gram, mask_gram_inplace, observed_rows
+    from gpg.linalg.tri import BlockTriangular
+
+    X, Y, dY = data(3, 15)
+    Xn, Yn, dYn = data(6, 4)
+    obs = np.random.default_rng(4).random((15, 2)) > 0.5
+    compact = ExactGP.fit(X, Y, dY, grad_dims=DIMS, hyper=H, observed=obs)
+    rows = observed_rows(obs, 15)
+    K = mask_gram_inplace(assemble_gram(X, H, DIMS), rows)
+    Linv = np.linalg.inv(np.linalg.cholesky(K))
+    Linv[:, ~rows] = 0.0
+    legacy = eqx.tree_at(
+        lambda t: (t.chol_inv, t.order),
+        compact,
+        (BlockTriangular.from_dense(Linv, lower=True, n_blocks=2), None),
+        is_leaf=lambda x: x is None,
+    )
+    close(legacy, compact)
+    dY_all = np.r_[dY, dYn]
+    dY_all[~np.r_[obs, np.ones((4, 2), bool)][:, None, :].repeat(2, 1)] = np.nan
+    refit = ExactGP.fit(np.r_[X, Xn], np.r_[Y, Yn], dY_all, grad_dims=DIMS, hyper=H,
+                        observed=np.r_[obs, np.ones((4, 2), bool)])  # fmt: skip
+    close(legacy.condition(Xn, Yn, dYn), refit)
 
 
 def test_bad_new_cases_are_refused():
