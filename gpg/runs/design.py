@@ -10,6 +10,9 @@ dataset and the surrogate's checkpoint.
 generator standing in for the solver and the ask/tell files written and read every round,
 against Latin hypercubes of the same cost, over several seeds; writes the learning curves
 (test MAE per output against simulator runs) and the figure.
+``step: merge``: the curves of several such runs (``merge.runs``: seeds or arms run apart, in
+parallel or longer) joined into one ``curves.json``, its figure and ``summary.md``, the table
+of medians and ranges over the seeds at each budget of ``merge.budgets``.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ OPTIONS = {
     "figures": "bool",
 }  # the run's own keys besides its groups and sections (runs.common.check_options)
 DESIGN_OPTIONS = {"batch": "count", "candidates": "count", "reference": "count", "seed": "index"}
-STEPS = ("ask", "tell", "active")
+STEPS = ("ask", "tell", "active", "merge")
 ARMS = ("lhs_gradients", "lhs_values", "active_gradients", "active_choose")
 
 
@@ -96,7 +99,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     if step not in STEPS:
         raise ValueError(f"step must be one of {STEPS}, got {step!r}")
     outdir.mkdir(parents=True, exist_ok=True)
-    out = {"ask": _ask, "tell": _tell, "active": _active}[step](cfg, outdir)
+    out = {"ask": _ask, "tell": _tell, "active": _active, "merge": _merge}[step](cfg, outdir)
     out.update(machine=machine(), config=cfg)
     write_json(outdir / "results.json", out)
     return out
@@ -253,6 +256,79 @@ def _active(cfg, outdir: Path) -> dict[str, Any]:
                 write_json(outdir / "curves.json", curves)  # nothing lost if a later arm fails
     figures = _figure(curves, outdir / "figures") if cfg.get("figures", True) else []
     return {"curves": curves, "figures": [str(f.relative_to(outdir)) for f in figures]}
+
+
+def merge_curves(paths: list[str | Path]) -> dict[str, dict[str, list]]:
+    """The ``curves.json`` of several runs (a run directory or the file itself) joined: arm by
+    arm and seed by seed, a later run's curve replaces an earlier one's (a seed run again
+    with a larger budget replaces its shorter curve)."""
+    import json
+
+    out: dict[str, dict[str, list]] = {}
+    for path in paths:
+        f = Path(path)
+        f = f / "curves.json" if f.is_dir() else f
+        if not f.is_file():
+            raise ValueError(f"merge.runs: no curves.json at {path}")
+        curves = json.loads(f.read_text())
+        bad = sorted(set(curves) - set(ARMS))
+        if bad:
+            raise ValueError(f"{f} has unknown arms {bad}; valid: {list(ARMS)}")
+        for arm, per_seed in curves.items():
+            out.setdefault(arm, {}).update(per_seed)
+    return {arm: out[arm] for arm in ARMS if arm in out}
+
+
+def summary(curves, budgets, outputs=("Fx", "Mx", "L1")) -> list[dict[str, Any]]:
+    """Per arm and budget ``b``: each seed's error after its last point with at most ``b``
+    runs, among the seeds whose curve went on to ``b`` runs or more; the median over those
+    seeds and the range (a budget that adds no point to the one before is left out)."""
+    rows = []
+    for arm, per_seed in curves.items():
+        last: list = []
+        for b in budgets:
+            spent = [c for c in per_seed.values() if c and c[0]["runs"] <= b <= c[-1]["runs"]]
+            pts = [max((p for p in c if p["runs"] <= b), key=lambda p: p["runs"]) for c in spent]
+            if not pts or pts == last:  # nothing, or the same points as the budget before
+                continue
+            last = pts
+            row: dict[str, Any] = {"design": arm, "budget": int(b), "seeds": len(pts),
+                                   "runs": sorted({int(p["runs"]) for p in pts})}  # fmt: skip
+            for o in outputs:
+                v = np.array([p[o] for p in pts])
+                row[o] = (float(np.median(v)), float(v.min()), float(v.max()))
+            rows.append(row)
+    return rows
+
+
+def summary_markdown(rows, outputs=("Fx", "Mx", "L1")) -> str:
+    units = {"F": "N", "M": "N·m", "L": "dB"}
+    head = ["design", "runs", "seeds"] + [f"MAE {o} {units[o[0]]}" for o in outputs]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        runs = "/".join(str(x) for x in r["runs"])
+        cells = [r["design"], runs, str(r["seeds"])]
+        for o in outputs:
+            med, lo, hi = r[o]
+            cells.append(f"{med:.3g}" if r["seeds"] == 1 else f"{med:.3g} ({lo:.3g}-{hi:.3g})")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _merge(cfg, outdir: Path) -> dict[str, Any]:
+    m = cfg.get("merge") or {}
+    runs, budgets = list(m.get("runs") or []), [int(b) for b in m.get("budgets") or []]
+    if not runs:
+        raise ValueError("step=merge needs merge.runs: the run directories of step=active")
+    if not budgets or min(budgets) < 1:
+        raise ValueError(f"merge.budgets must be simulator runs >= 1, got {m.get('budgets')}")
+    curves = merge_curves(runs)
+    write_json(outdir / "curves.json", curves)
+    rows = summary(curves, sorted(budgets))
+    (outdir / "summary.md").write_text(summary_markdown(rows))
+    figures = _figure(curves, outdir / "figures") if cfg.get("figures", True) else []
+    report(f"{sum(len(v) for v in curves.values())} curves -> {outdir / 'summary.md'}")
+    return {"summary": rows, "figures": [str(f.relative_to(outdir)) for f in figures]}
 
 
 def _figure(curves, folder: Path) -> list[Path]:

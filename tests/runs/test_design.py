@@ -77,7 +77,7 @@ def test_bench_design_suite(smoke_cache):
 
     cfg = {"data": conf("smoke", "data"), "vehicle": conf("sui_endurance", "vehicle"),
            "cache_dir": str(smoke_cache), "added": 6, "models": ["gpg"], "candidates": 200,
-           "reference": 32, "batch": 3}  # fmt: skip
+           "reference": 32, "batch": 3, "isolate": True}  # fmt: skip
     res = bench_design(cfg)
     assert res["gpg"]["max_diff_mean"] < 1e-8 and res["gpg"]["max_diff_var"] < 1e-8
     assert res["propose"]["batch"] == 3
