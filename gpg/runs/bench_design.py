@@ -6,7 +6,9 @@ The training set's last ``added`` points are the new cases. Per model (``gpg``,
 and (b) rebuilt on all points with the same hyperparameters, normaliser and bins; the seconds
 and peak memory of each (the first call, which compiles, and the median of ``repeats − 1``
 more: a loop conditions again and again), and the largest difference of their test
-predictions (mean and latent variance, normalised). Then one :func:`gpg.design.propose`
+predictions (mean and latent variance, normalised). With ``refit``, also (c) the refit a user
+without ``condition`` runs: :meth:`Surrogate.fit` on all points, hyperparameters fitted
+again, timed once. Then one :func:`gpg.design.propose`
 round (``candidates``, ``batch``) on the conditioned ``gpg`` surrogate, timed whole. The
 conditioning and the rebuild each run in a fresh process (``isolate``, see :func:`bench_design`).
 """
@@ -31,7 +33,7 @@ from gpg.surrogate import Surrogate
 def bench_design(cfg: dict[str, Any]) -> dict[str, Any]:
     """See the module docstring; ``cfg``: ``added``, ``models``, ``repeats``, ``propose``
     (also the acquisition round), ``candidates``, ``batch``, ``reference``, ``cache_dir``,
-    ``isolate``.
+    ``isolate``, ``refit`` (also time a refit with the hyperparameters fitted again).
 
     With ``isolate`` (the default) each model's conditioning (with the acquisition round) and
     its rebuild run in two fresh processes, one after the other: at data=paper a process that
@@ -45,6 +47,7 @@ def bench_design(cfg: dict[str, Any]) -> dict[str, Any]:
     for name in cfg["models"]:
         cond, light, m1, v1 = _call(isolate, _condition_part, cfg, name)
         rebuild_s, peak_r, m2, v2 = _call(isolate, _rebuild_part, cfg, light)
+        refit_s = _call(isolate, _refit_part, cfg, name) if cfg.get("refit", False) else None
         del light
         res = {
             "condition_first_s": cond["seconds"][0],
@@ -60,6 +63,9 @@ def bench_design(cfg: dict[str, Any]) -> dict[str, Any]:
             "isolated": isolate,
         }
         res["ratio"] = res["condition_s"] / res["rebuild_s"]
+        if refit_s is not None:
+            res["refit_s"] = refit_s
+            res["ratio_refit"] = res["condition_s"] / refit_s
         out[name] = res
         if "propose" in cond:
             out["propose"] = cond["propose"]
@@ -120,6 +126,16 @@ def _rebuild_part(cfg: dict[str, Any], sur):
     return seconds, mem.peak_delta, m, v
 
 
+def _refit_part(cfg: dict[str, Any], name: str) -> float:
+    """Seconds of one :meth:`Surrogate.fit` of ``name`` on all the points (the likelihood fit
+    and the build: what adding cases costs without ``condition``)."""
+    train, _, _, _ = _split(cfg)
+    release_memory()
+    t0 = time.perf_counter()
+    jax.block_until_ready(Surrogate.fit(train, name).model)
+    return time.perf_counter() - t0
+
+
 def _without_factor(sur):
     """``sur`` with its model's mean view where a rebuild can still be read from that (the
     exact model's inputs and hyperparameters stay; the factor, R²/2 floats, goes)."""
@@ -152,6 +168,8 @@ def design_table(res: dict[str, Any]) -> str:
         ("condition_s", "condition s (again)", ".2f"),
         ("rebuild_s", "rebuild s (again)", ".2f"),
         ("ratio", "ratio", ".3f"),
+        ("refit_s", "refit s", ".2f"),
+        ("ratio_refit", "condition / refit", ".3f"),
         ("max_diff_mean", "max |Δmean|", ".1e"),
         ("max_diff_var", "max |Δvar|", ".1e"),
     ]

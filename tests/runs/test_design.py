@@ -71,14 +71,17 @@ def test_ask_then_tell(smoke_cache, tmp_path):
 
 
 def test_bench_design_suite(smoke_cache):
-    """The ``design`` bench suite on smoke data: conditioning equals the rebuild."""
+    """The ``design`` bench suite on smoke data: conditioning equals the rebuild; the refit
+    with its likelihood fit is timed when asked for."""
     from gpg.runs.bench_design import bench_design, design_table
     from gpg.runs.common import conf
 
     cfg = {"data": conf("smoke", "data"), "vehicle": conf("sui_endurance", "vehicle"),
            "cache_dir": str(smoke_cache), "added": 6, "models": ["gpg"], "candidates": 200,
-           "reference": 32, "batch": 3, "isolate": True}  # fmt: skip
+           "reference": 32, "batch": 3, "isolate": True, "refit": True}  # fmt: skip
     res = bench_design(cfg)
     assert res["gpg"]["max_diff_mean"] < 1e-8 and res["gpg"]["max_diff_var"] < 1e-8
+    g = res["gpg"]
+    assert g["refit_s"] > 0 and g["ratio_refit"] == pytest.approx(g["condition_s"] / g["refit_s"])
     assert res["propose"]["batch"] == 3
     assert "condition s" in design_table(res)
