@@ -158,7 +158,7 @@ def residuals(
         if J is not None:
             J[:, :6] -= JM
         if y_raw is not None:
-            y_raw[:, :6] -= np.asarray(jax.vmap(simple)(jnp.asarray(ds.x_raw[:, :7])))
+            y_raw[:, :6] -= np.asarray(simple.values(ds.x_raw[:, :7]))
     if noise_model is not None and ds.has_noise:
         yN, JN = (np.asarray(a) for a in noise_model.batch(ds.x))
         y[:, 6:9] -= yN
@@ -235,7 +235,7 @@ def restore(
     back."""
     y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
     if training.simple is not None:
-        y[:, :6] += np.asarray(jax.vmap(training.simple)(jnp.asarray(x)[:, :7]))
+        y[:, :6] += np.asarray(training.simple.values(jnp.asarray(x)[:, :7]))
     if training.noise_model is not None and y.shape[1] > 6:
         y[:, 6:9] += np.asarray(training.noise_model.batch(x)[0])
     return y
