@@ -255,8 +255,9 @@ class QuadrotorEnv(ByIdentity):
         if not jnp.issubdtype(dt, jnp.floating):
             raise ValueError(f"dtype must be a floating type, got {dtype!r}")
         if isinstance(aero, Surrogate):
+            aero = aero.astype(dt)  # M with it: a float64 M read in a float32 program warns
             simple = simple if simple is not None else aero.simple
-            aero = SurrogateAero(aero.astype(dt))
+            aero = SurrogateAero(aero)
         elif isinstance(aero, SimpleModel):
             simple = simple if simple is not None else aero
             aero = SimpleAero(aero)

@@ -48,10 +48,16 @@ class SimpleModel(eqx.Module):
     def allocation(self) -> Float[Array, "4 4"]:
         """``A`` with ``(ΣT, τx, τy, τz) = A r²``; thrust ``T_i`` acts along ``−z_B`` at ``p_i``."""
         p = self.positions
-        ones = jnp.ones(4, dtype=self.P_F.dtype)
         # p × (0, 0, −T) = (−p_y T, p_x T, 0); reaction torque −d T_z r² about z_B.
+        # broadcast_to, not ones(dtype=P_F.dtype): a model fitted in float64 and read in a
+        # float32 program must not request float64 (JAX warns and truncates).
         return jnp.stack(
-            [self.P_F * ones, -self.P_F * p[:, 1], self.P_F * p[:, 0], -self.T_z * self.spin]
+            [
+                jnp.broadcast_to(self.P_F, (4,)),
+                -self.P_F * p[:, 1],
+                self.P_F * p[:, 0],
+                -self.T_z * self.spin,
+            ]
         )
 
     def wrench_body(
@@ -78,21 +84,46 @@ class SimpleModel(eqx.Module):
     def batch(
         self, X_M: Float[ArrayLike, "N 7"]
     ) -> tuple[Float[Array, "N 6"], Float[Array, "N 6 7"]]:
-        """``y_M`` and ``J_M`` for many states (one compiled program per ``N``)."""
-        return _batch(self, jnp.asarray(X_M))
+        """``y_M`` and ``J_M`` for many states, in padded chunks (:func:`in_chunks`); traced
+        ``X_M`` (inside a user's ``jit``) is vmapped directly."""
+        if isinstance(X_M, jax.core.Tracer):
+            return _batch(self, X_M)
+        return in_chunks(_batch, self, np.asarray(X_M))
 
     def values(self, X_M: Float[ArrayLike, "N 7"]) -> Float[Array, "N 6"]:
-        """``y_M`` for many states (one compiled program per ``N``)."""
-        return _values(self, jnp.asarray(X_M))
+        """``y_M`` for many states, as :meth:`batch` without the Jacobians."""
+        if isinstance(X_M, jax.core.Tracer):
+            return _values(self, X_M)
+        return in_chunks(_values, self, np.asarray(X_M))
 
     def hover_rpm(self, weight: float) -> Float[Array, ""]:
         """Equal rotor speed at which ``M``'s thrust balances ``weight`` (N)."""
         return jnp.sqrt(weight / (4.0 * self.P_F))
 
 
-# Compiled: run op by op, the vmapped model and its Jacobian compile some 80 small programs
-# for every new N (1.5-2 s each time a surrogate is fitted or conditioned), against 0.3-0.4 s
-# for one program.
+CHUNK = 256  # rows per compiled call of in_chunks
+
+
+def in_chunks(fn, model, X: np.ndarray):
+    """``fn(model, X)`` over ``X``'s rows in blocks of ``CHUNK`` (the last one padded with its
+    last row), the outputs' rows concatenated. One compiled program serves every ``N``: run op
+    by op, the vmapped model and its Jacobian compiled some 80 small programs for every new
+    ``N`` (1.5-2 s at each fit or conditioning), and a program per ``N`` rounds a row's
+    Jacobian differently, by an ulp, from one ``N`` to another, so that a case's targets would
+    depend on the batch it came in (conditioning then differs from a rebuild by far more on
+    ill-conditioned data). Here a row's result is the same in any batch."""
+    if X.shape[0] == 0:
+        return fn(model, jnp.asarray(X))
+    outs = []
+    for start in range(0, X.shape[0], CHUNK):
+        block = X[start : start + CHUNK]
+        n = block.shape[0]
+        if n < CHUNK:
+            block = np.concatenate([block, np.repeat(block[-1:], CHUNK - n, axis=0)])
+        outs.append(jax.tree.map(lambda a, n=n: a[:n], fn(model, jnp.asarray(block))))
+    return jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
+
+
 @eqx.filter_jit
 def _batch(model: SimpleModel, X_M):
     return jax.vmap(model)(X_M), jax.vmap(model.jacobian)(X_M)

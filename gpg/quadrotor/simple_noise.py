@@ -41,12 +41,11 @@ from jaxtyping import Array, ArrayLike, Float
 from gpg.quadrotor import acoustics
 from gpg.quadrotor.bemt import AeroResult, RotorLoads, radial_elements
 from gpg.quadrotor.frames import R_WB
-from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.simple_model import SimpleModel, in_chunks
 from gpg.quadrotor.vehicle import Vehicle
 
 RPM_TO_RAD_S = 2.0 * jnp.pi / 60.0
 _EPS_V = 1e-6  # m/s, keeps speeds and their derivatives finite at rest
-CHUNK = 256  # rows per compiled batch call
 
 
 class SimpleNoise(eqx.Module):
@@ -163,23 +162,12 @@ class SimpleNoise(eqx.Module):
     def batch(
         self, X: Float[ArrayLike, "N 8"]
     ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3 8"]]:
-        """Levels and Jacobians of many inputs, in padded chunks of ``CHUNK`` rows: one compiled
+        """Levels and Jacobians of many inputs, in padded chunks (:func:`in_chunks`): one compiled
         program serves every N (its compilation, not the evaluation, is the cost)."""
         X = np.asarray(X, dtype=float)
         if X.ndim != 2 or X.shape[1] != 8:
             raise ValueError(f"X must have shape (N, 8) (dataset inputs), got {X.shape}")
-        ys, js = [], []
-        for start in range(0, X.shape[0], CHUNK):
-            block = X[start : start + CHUNK]
-            n = block.shape[0]
-            if n < CHUNK:
-                block = np.concatenate([block, np.repeat(block[-1:], CHUNK - n, axis=0)])
-            y, j = _batch(self, jnp.asarray(block))
-            ys.append(y[:n])
-            js.append(j[:n])
-        if not ys:
-            return jnp.zeros((0, 3)), jnp.zeros((0, 3, X.shape[1]))
-        return jnp.concatenate(ys), jnp.concatenate(js)
+        return in_chunks(_batch, self, X)
 
 
 @eqx.filter_jit

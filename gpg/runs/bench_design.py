@@ -79,14 +79,17 @@ def _call(isolate: bool, fn, *args):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    x64 = bool(jax.config.read("jax_enable_x64"))  # a spawned process starts with JAX's default
-    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return pool.submit(_child, x64, fn, *args).result()
+    # A spawned process starts with JAX's default precision. It is set by the initializer,
+    # before the task's arguments are unpickled: set inside the task, it came after, and the
+    # surrogate passed to the rebuild arrived as float32 (the rebuild then differed by 5e-7).
+    x64 = bool(jax.config.read("jax_enable_x64"))
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=ctx, initializer=_x64, initargs=(x64,)) as pool:
+        return pool.submit(fn, *args).result()
 
 
-def _child(x64: bool, fn, *args):
-    jax.config.update("jax_enable_x64", x64)
-    return fn(*args)
+def _x64(on: bool) -> None:
+    jax.config.update("jax_enable_x64", on)
 
 
 def _split(cfg):
