@@ -120,3 +120,27 @@ def test_float64_wrapper_keeps_plain_containers_as_they_are():
         return list(cfg)
 
     assert keys({"b": 1, "a": 2}) == ["b", "a"]
+
+
+def test_a_float64_model_queried_from_a_float32_program_answers_in_float32():
+    """``in_model_dtype``: a float64 model's eager ``predict``/``predict_mean``/
+    ``predict_gradient`` under x64 off compute in float64 (no truncation warning) and hand
+    back the float64 answer rounded once to float32."""
+    import warnings
+
+    from gpg.gp.exact import ExactGP
+
+    data = synthetic_dataset(30, seed=3)[0]
+    model = Surrogate.fit(data, "gpg", {"hyper": FIXED["hyper"]}).model
+    assert isinstance(model, ExactGP)
+    Xq = np.asarray(data.x[:5]) + 0.01
+    mean64, var64 = model.predict(Xq)
+    grad64 = model.predict_gradient(Xq)
+    with jax.enable_x64(False), warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*truncated to dtype")
+        mean, var = model.predict(Xq)
+        only_mean = model.predict_mean(Xq)
+        grad = model.predict_gradient(Xq)
+    for got, ref in ((mean, mean64), (var, var64), (only_mean, mean64), (grad, grad64)):
+        assert got.dtype == jnp.float32
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(ref).astype(np.float32))

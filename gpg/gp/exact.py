@@ -31,7 +31,7 @@ from gpg.gp import kernels, predictor
 from gpg.gp.gram import assemble_gram, assemble_rows_gram, check_training_data
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
-from gpg.gp.predictor import Predictor, plain
+from gpg.gp.predictor import Predictor, in_model_dtype, plain
 from gpg.linalg import dense, memory
 from gpg.linalg.tri import BlockTriangular, BorderedTriangular
 
@@ -240,7 +240,7 @@ class ExactGP(Predictor):
 
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
         """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
-        return _predict_gradient(self, jnp.asarray(Xq))
+        return in_model_dtype(self, lambda: _predict_gradient(self, jnp.asarray(Xq)), Xq)
 
 
 def _scatter(a: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:

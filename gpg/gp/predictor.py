@@ -81,7 +81,7 @@ class Predictor(eqx.Module):
         self, Xq: Float[ArrayLike, "Q D"]
     ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
         """Mean (Q, M) and latent variance (Q,), clipped at 0, at a batch of queries (jitted)."""
-        mean, var = _batch(self, jnp.asarray(Xq), True)
+        mean, var = in_model_dtype(self, lambda: _batch(self, jnp.asarray(Xq), True), Xq)
         return mean, jnp.maximum(var, 0.0)
 
     def predict_unclipped(
@@ -89,11 +89,11 @@ class Predictor(eqx.Module):
     ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
         """As :meth:`predict`, with the variance as computed (negative where a model's
         assumptions fail: count those, do not trust them)."""
-        return _batch(self, jnp.asarray(Xq), True)
+        return in_model_dtype(self, lambda: _batch(self, jnp.asarray(Xq), True), Xq)
 
     def predict_mean(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M"]:
         """Mean only (Q, M): the fast path."""
-        return _batch(self, jnp.asarray(Xq), False)[0]
+        return in_model_dtype(self, lambda: _batch(self, jnp.asarray(Xq), False)[0], Xq)
 
     def nbytes(self) -> int:
         """Bytes of the arrays the model holds (what a deployment has to load).
@@ -102,6 +102,27 @@ class Predictor(eqx.Module):
         ``nbytes`` themselves, so nothing is copied to the host.
         """
         return int(sum(x.nbytes for x in jax.tree.leaves(eqx.filter(self, eqx.is_array))))
+
+
+def in_model_dtype(model: Any, fn, *args: Any) -> Any:
+    """``fn()`` computed in ``model``'s float64 when the program runs in float32, its float
+    outputs given back in float32 (docs/design.md, "Dtype policy": a query is computed in the
+    model's dtype). A fitted model holds float64; without this, every operation of a float32
+    program on it is truncated with a warning. Inside a trace (a user's ``jit``), or when the
+    program is float64 or the model float32, ``fn()`` as it is: cast the model first
+    (``Surrogate.astype``) to trace it in float32."""
+    leaves = jax.tree.leaves((eqx.filter(model, eqx.is_array), args))
+    if (
+        jax.config.read("jax_enable_x64")
+        or any(isinstance(a, jax.core.Tracer) for a in leaves)
+        or not any(getattr(a, "dtype", None) == jnp.float64 for a in leaves)
+    ):
+        return fn()
+    with jax.enable_x64(True):
+        out = fn()
+        return jax.tree.map(
+            lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, out
+        )
 
 
 def plain(x: Any) -> Any:

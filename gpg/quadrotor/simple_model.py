@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg._dtype import float64
+from gpg.gp.predictor import in_model_dtype
 from gpg.quadrotor import bemt
 from gpg.quadrotor.frames import R_WB, matvec
 from gpg.quadrotor.vehicle import Vehicle
@@ -98,7 +99,7 @@ class SimpleModel(eqx.Module):
 
     def hover_rpm(self, weight: float) -> Float[Array, ""]:
         """Equal rotor speed at which ``M``'s thrust balances ``weight`` (N)."""
-        return jnp.sqrt(weight / (4.0 * self.P_F))
+        return in_model_dtype(self, lambda: jnp.sqrt(weight / (4.0 * self.P_F)))
 
 
 CHUNK = 256  # rows per compiled call of in_chunks
