@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import ParamSpec, TypeVar
+from typing import Any, ParamSpec, TypeVar
 
 import equinox as eqx
 import jax
@@ -47,3 +47,24 @@ def float64(fn: Callable[P, R]) -> Callable[P, R]:
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+def in_model_dtype(model: Any, fn: Callable[[], R], *args: Any) -> R:
+    """``fn()`` computed in ``model``'s float64 when the program runs in float32, its float
+    outputs given back in float32 (docs/design.md, "Dtype policy": a query is computed in the
+    model's dtype). A fitted model holds float64; without this, every operation of a float32
+    program on it is truncated with a warning. Inside a trace (a user's ``jit``), or when the
+    program is float64 or the model float32, ``fn()`` as it is: cast the model first
+    (``Surrogate.astype``) to trace it in float32."""
+    leaves = jax.tree.leaves((eqx.filter(model, eqx.is_array), args))
+    if (
+        jax.config.read("jax_enable_x64")
+        or any(isinstance(a, jax.core.Tracer) for a in leaves)
+        or not any(getattr(a, "dtype", None) == jnp.float64 for a in leaves)
+    ):
+        return fn()
+    with jax.enable_x64(True):
+        out = fn()
+        return jax.tree.map(
+            lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, out
+        )

@@ -26,12 +26,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from gpg._dtype import float64
+from gpg._dtype import float64, in_model_dtype
 from gpg.gp import kernels, predictor
 from gpg.gp.gram import assemble_gram, assemble_rows_gram, check_training_data
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
-from gpg.gp.predictor import Predictor, in_model_dtype, plain
+from gpg.gp.predictor import Predictor, plain
 from gpg.linalg import dense, memory
 from gpg.linalg.tri import BlockTriangular, BorderedTriangular
 

@@ -24,6 +24,7 @@ import numpy as np
 from equinox import AbstractVar
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg._dtype import in_model_dtype
 from gpg.gp.partition import Partition
 
 
@@ -102,27 +103,6 @@ class Predictor(eqx.Module):
         ``nbytes`` themselves, so nothing is copied to the host.
         """
         return int(sum(x.nbytes for x in jax.tree.leaves(eqx.filter(self, eqx.is_array))))
-
-
-def in_model_dtype(model: Any, fn, *args: Any) -> Any:
-    """``fn()`` computed in ``model``'s float64 when the program runs in float32, its float
-    outputs given back in float32 (docs/design.md, "Dtype policy": a query is computed in the
-    model's dtype). A fitted model holds float64; without this, every operation of a float32
-    program on it is truncated with a warning. Inside a trace (a user's ``jit``), or when the
-    program is float64 or the model float32, ``fn()`` as it is: cast the model first
-    (``Surrogate.astype``) to trace it in float32."""
-    leaves = jax.tree.leaves((eqx.filter(model, eqx.is_array), args))
-    if (
-        jax.config.read("jax_enable_x64")
-        or any(isinstance(a, jax.core.Tracer) for a in leaves)
-        or not any(getattr(a, "dtype", None) == jnp.float64 for a in leaves)
-    ):
-        return fn()
-    with jax.enable_x64(True):
-        out = fn()
-        return jax.tree.map(
-            lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a, out
-        )
 
 
 def plain(x: Any) -> Any:

@@ -21,8 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from gpg._dtype import float64
-from gpg.gp.predictor import in_model_dtype
+from gpg._dtype import float64, in_model_dtype
 from gpg.quadrotor import bemt
 from gpg.quadrotor.frames import R_WB, matvec
 from gpg.quadrotor.vehicle import Vehicle
