@@ -82,7 +82,7 @@ class Predictor(eqx.Module):
         self, Xq: Float[ArrayLike, "Q D"]
     ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
         """Mean (Q, M) and latent variance (Q,), clipped at 0, at a batch of queries (jitted)."""
-        mean, var = in_model_dtype(self, lambda: _batch(self, jnp.asarray(Xq), True), Xq)
+        mean, var = self.predict_unclipped(Xq)
         return mean, jnp.maximum(var, 0.0)
 
     def predict_unclipped(

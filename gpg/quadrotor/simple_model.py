@@ -86,15 +86,11 @@ class SimpleModel(eqx.Module):
     ) -> tuple[Float[Array, "N 6"], Float[Array, "N 6 7"]]:
         """``y_M`` and ``J_M`` for many states, in padded chunks (:func:`in_chunks`); traced
         ``X_M`` (inside a user's ``jit``) is vmapped directly."""
-        if isinstance(X_M, jax.core.Tracer):
-            return _batch(self, X_M)
-        return in_chunks(_batch, self, np.asarray(X_M))
+        return in_chunks(_batch, self, X_M)
 
     def values(self, X_M: Float[ArrayLike, "N 7"]) -> Float[Array, "N 6"]:
         """``y_M`` for many states, as :meth:`batch` without the Jacobians."""
-        if isinstance(X_M, jax.core.Tracer):
-            return _values(self, X_M)
-        return in_chunks(_values, self, np.asarray(X_M))
+        return in_chunks(_values, self, X_M)
 
     def hover_rpm(self, weight: float) -> Float[Array, ""]:
         """Equal rotor speed at which ``M``'s thrust balances ``weight`` (N)."""
@@ -104,14 +100,18 @@ class SimpleModel(eqx.Module):
 CHUNK = 256  # rows per compiled call of in_chunks
 
 
-def in_chunks(fn, model, X: np.ndarray):
+def in_chunks(fn, model, X: ArrayLike):
     """``fn(model, X)`` over ``X``'s rows in blocks of ``CHUNK`` (the last one padded with its
-    last row), the outputs' rows concatenated. One compiled program serves every ``N``: run op
+    last row), the outputs' rows concatenated; a traced ``X`` (inside a user's ``jit``) is
+    passed to ``fn`` whole. One compiled program serves every ``N``: run op
     by op, the vmapped model and its Jacobian compiled some 80 small programs for every new
     ``N`` (1.5-2 s at each fit or conditioning), and a program per ``N`` rounds a row's
     Jacobian differently, by an ulp, from one ``N`` to another, so that a case's targets would
     depend on the batch it came in (conditioning then differs from a rebuild by far more on
     ill-conditioned data). Here a row's result is the same in any batch."""
+    if isinstance(X, jax.core.Tracer):
+        return fn(model, X)
+    X = np.asarray(X)
     if X.shape[0] == 0:
         return fn(model, jnp.asarray(X))
     outs = []
