@@ -344,6 +344,13 @@ def _current(path: Path) -> str | None:
     try:
         name = (path / CURRENT).read_text(encoding="utf-8").strip()
     except FileNotFoundError:
+        versions = sorted(p.name for p in path.glob("v-*") if p.is_dir())
+        if versions:  # a writer never leaves a version without CURRENT (atomic replace)
+            raise CheckpointError(
+                f"{path / CURRENT} is missing, but the checkpoint holds version(s) {versions}: "
+                "the file naming the current version was deleted; save the surrogate again "
+                "(or write the version's name into CURRENT if you know which one is whole)"
+            ) from None
         return None
     except (OSError, UnicodeDecodeError) as exc:
         raise CheckpointError(f"{path / CURRENT} is damaged: {exc}") from exc
@@ -355,8 +362,19 @@ def _current(path: Path) -> str | None:
 def version_dir(path: str | Path) -> Path:
     """The directory of the checkpoint's current version (``path`` itself for version 4)."""
     path = Path(path).absolute()
-    name = _current(path)
-    return path if name is None else path / name
+    return _version_path(path, _current(path))
+
+
+def _version_path(path: Path, name: str | None) -> Path:
+    if name is None:
+        return path
+    if not (path / name).is_dir():
+        versions = sorted(p.name for p in path.glob("v-*") if p.is_dir())
+        raise CheckpointError(
+            f"{path / CURRENT} names version {name!r}, which the checkpoint does not hold (it "
+            f"holds {versions}): CURRENT is damaged (truncated?) or that version was deleted"
+        )
+    return path / name
 
 
 def read_metadata(path: str | Path) -> dict[str, Any]:
@@ -400,7 +418,7 @@ def load(path: str | Path, *, dtype=None):
     for attempt in range(LOAD_ATTEMPTS):
         name = _current(path)
         try:
-            sur = _load_version(path if name is None else path / name)
+            sur = _load_version(_version_path(path, name))
             break
         except (CheckpointError, OSError) as exc:
             # Replaced by a writer while we read it: read the new version instead.

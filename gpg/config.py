@@ -254,6 +254,11 @@ class ModelConfig:
         as it is (already resolved)."""
         if isinstance(overrides, ModelConfig):
             return overrides
+        if overrides is not None and not isinstance(overrides, Mapping):
+            raise ValueError(
+                "config (the model options) must be a mapping such as {'hyper': {'subset': 60}}, "
+                f"got a {type(overrides).__name__}: {overrides!r:.80}"
+            )
         own = package_defaults(name) if defaults is None else defaults
         base = merge(cls().to_dict(), renamed_keys(own), "")
         over = renamed_keys(overrides or {})

@@ -242,7 +242,16 @@ def gradient_arrays(X: np.ndarray, Y: np.ndarray, dY: np.ndarray) -> Arrays:
 
 def initial_hyper(cfg: ModelConfig, n_inputs: int, dY: np.ndarray | None) -> Hyper:
     h = cfg.hyper
-    ls = np.broadcast_to(np.asarray(h.lengthscale, float), (n_inputs,)) if h.ard else h.lengthscale
+    ls = np.asarray(h.lengthscale, float)
+    if ls.shape not in ((), (n_inputs,)):
+        raise ValueError(
+            f"hyper.lengthscale has {ls.size} values; the model has {n_inputs} inputs: give one "
+            f"value (every input) or {n_inputs} (one per input, with hyper.ard)"
+        )
+    if h.ard:
+        ls = np.broadcast_to(ls, (n_inputs,))
+    elif ls.ndim:
+        raise ValueError("hyper.lengthscale has one value per input but hyper.ard is false")
     lam = gradient_noise(dY, h.grad_noise_scale) if dY is not None else 1e-6
     return Hyper(variance=h.variance, lengthscale=ls, noise=h.noise, grad_noise=lam)
 

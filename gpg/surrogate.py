@@ -11,7 +11,9 @@
    ``M`` evaluated at the world attitude: ``F_W = R_WH μ_F + F_M,W`` (likewise the moment).
 
 ``in_domain`` is False when an rpm is negative or ``x_H`` leaves the training box (e.g. flying
-sideways or backwards puts ``ψ_H`` beyond ±90°): the prediction is still returned, but it is an
+sideways or backwards puts ``ψ_H`` beyond ±90°), or where the airflow frame turns faster than
+:data:`MAX_FRAME_RATE` with the air velocity (next to its singular sets, where 1 mm/s of air
+would move the prediction by a finite step): the prediction is still returned, but it is an
 extrapolation and says so.
 
 NaN and inf: a call from Python (``predict``, ``predict_mean``, the ``realtime`` closures,
@@ -46,7 +48,14 @@ from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Normalizer, Training, simple_model_for
 from gpg.gp.predictor import Predictor
 from gpg.quadrotor.dynamics import AeroModel, Wrench
-from gpg.quadrotor.frames import R_WB, euler_from_R, matmul, matvec, to_airflow_frame
+from gpg.quadrotor.frames import (
+    R_WB,
+    airflow_frame_rate,
+    euler_from_R,
+    matmul,
+    matvec,
+    to_airflow_frame,
+)
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle, load_vehicle
@@ -80,6 +89,10 @@ class Prediction(eqx.Module):
 # hover induced velocity (about 5 m/s) and the 2 m/s airspeed bins, large against the drift a
 # position controller leaves in hover.
 HOVER_SPEED = 0.5
+# rad per m/s: the fastest the airflow-frame coordinates of an in-domain query may turn with
+# the air velocity (frames.airflow_frame_rate), so that 1 mm/s of air turns them by at most
+# 0.6°. Away from the frame's singular sets the rate is about 1/airspeed, 1/HOVER_SPEED in hover.
+MAX_FRAME_RATE = 10.0
 
 
 class Surrogate(eqx.Module):
@@ -510,7 +523,10 @@ def predict_state(
     finite = (
         jnp.all(jnp.isfinite(rpm)) & jnp.all(jnp.isfinite(euler)) & jnp.all(jnp.isfinite(v_air))
     )
-    in_domain = finite & jnp.all(rpm >= 0) & inside
+    # Near the airflow frame's singular sets the data's coordinates of the query swing with
+    # millimetres per second of air, and a prediction with them: not in domain there.
+    steady = airflow_frame_rate(euler, v_air, sur.hover_speed) <= MAX_FRAME_RATE
+    in_domain = finite & jnp.all(rpm >= 0) & inside & steady
 
     xn = sur.normalizer.x(x_h)
     if with_var:

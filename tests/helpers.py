@@ -75,3 +75,55 @@ def finite_numbers(obj: Any) -> bool:
     if isinstance(obj, int | float):
         return math.isfinite(obj)
     return True
+
+
+# The Higham–Mary probabilistic bound: a sum of n terms rounded with unit roundoff u is off by
+# at most λ √n u Σ|terms| with probability ≥ 1 − 2 exp(−λ²/2) (λ = 5: 1 − 7e-6), whatever
+# order the machine sums in. The order is what differs between machines: XLA sends float32
+# products to YNNPACK, which picks its kernels and blocking from the CPU it detects at run time
+# (``--xla_cpu_max_isa`` does not limit it; ``--xla_cpu_experimental_ynn_fusion_type=`` turns
+# it off and moves a float32 variance by ~1e-4 relative).
+LAMBDA = 5.0
+
+
+def variance_rtol(sur, rpm, euler, v_air) -> np.ndarray:
+    """Per query, the relative accuracy of a surrogate's predictive variance, from the dtype
+    its variance factor is stored in (float32 for the default model, ``variance_dtype``) and
+    the conditioning of ``σ − ‖F k‖²``: ``F k`` is summed in that dtype over the ``R`` rows of
+    the factor, so the latent variance is off by at most
+    ``λ √R u (2 ‖F k‖ ‖|F| |k|‖ + ‖F k‖²)``; each component of the predictive variance is
+    ``(latent + ν²)`` times fixed positive weights, so its relative error is that over
+    ``latent + ν²``. Computed in float64 NumPy from the stored factor (an independent
+    reference of the quadratic form); exact ``gpg`` and binned models."""
+    import jax.numpy as jnp
+
+    from gpg.quadrotor.frames import to_airflow_frame
+
+    model = getattr(sur.model, "local", sur.model)  # the hybrid's near-set part
+    out = []
+    for r, e, v in zip(np.asarray(rpm), np.asarray(euler), np.asarray(v_air), strict=True):
+        eh, speed, _ = to_airflow_frame(jnp.asarray(e), jnp.asarray(v), sur.hover_speed)
+        xn = sur.normalizer.x(jnp.concatenate([jnp.asarray(r), eh, speed[None]]))
+        if hasattr(model, "chol_inv"):  # exact GP-G: one factor of every observed row
+            k = np.asarray(_exact_row(model, xn), dtype=float)
+            F, sigma, noise = model.chol_inv, model.hyper.variance, model.hyper.noise
+        else:
+            b = int(model.partition.lookup(xn))
+            k = np.asarray(model.kernel_row(xn, b), dtype=float)
+            F, sigma, noise = model.factor[b], model.variance, model.noise
+        u = float(np.finfo(F.dtype).eps) / 2
+        Fd = F.to_dense()
+        fk, bound = Fd @ k, np.abs(Fd) @ np.abs(k)
+        quad = float(fk @ fk)
+        dq = LAMBDA * np.sqrt(k.size) * u * (2 * np.linalg.norm(fk) * np.linalg.norm(bound) + quad)
+        out.append(dq / (max(float(sigma) - quad, 0.0) + float(noise)))
+    return np.asarray(out)
+
+
+def _exact_row(model, xn):
+    """The exact GP's kernel row at ``xn`` in its factor's row order."""
+    from gpg.gp import kernels
+
+    h = model.hyper
+    k = kernels.query_rows(xn[None], model.X, h.variance, h.lengthscale, model.grad_dims)[0]
+    return k if model.order is None else k[model.order]

@@ -75,6 +75,28 @@ def test_bad_values_name_their_key(over, match):
         models.resolve_config("gpgs", over)
 
 
+@pytest.mark.parametrize("config", [[("hyper", {})], ["hyper"], "hyper", 3])
+def test_a_config_that_is_not_a_mapping_is_named(config):
+    with pytest.raises(ValueError, match=r"config \(the model options\) must be a mapping"):
+        models.resolve_config("gpg", config)
+
+
+@pytest.mark.parametrize(
+    "hyper, match",
+    [
+        ({"lengthscale": [1.0, 2.0, 3.0]}, "hyper.lengthscale has 3 values; the model has 8"),
+        ({"lengthscale": [1.0] * 8, "ard": False}, "one value per input but hyper.ard is false"),
+    ],
+)
+def test_a_lengthscale_of_the_wrong_length_is_named(hyper, match):
+    """Checked against the data's inputs before any fit (it used to fail inside NumPy's
+    broadcasting, with fitted and fixed hyperparameters alike)."""
+    for fit in (True, False):
+        cfg = models.resolve_config("gpg", {"hyper": {**hyper, "fit": fit}})
+        with pytest.raises(ValueError, match=match):
+            models.initial_hyper(cfg, 8, None)
+
+
 def test_old_noise_keys_work_with_a_deprecation_warning():
     """hyper.jitter and friends (the value noise ν², before it was called noise) still
     configure the same model for one release."""

@@ -156,13 +156,27 @@ SURROGATE_SCRIPT = textwrap.dedent(
 )
 
 
-def four_devices(script: str) -> None:
-    env = {
+def subprocess_env(devices: int | None = None) -> dict[str, str]:
+    """This process's environment for a child JAX: the same XLA flags (a bit-for-bit comparison
+    with this process needs the same compiler configuration, `make test-xla`'s too), with
+    ``devices`` virtual CPU devices instead of any device count set here."""
+    flags = [
+        f
+        for f in os.environ.get("XLA_FLAGS", "").split()
+        if not f.startswith("--xla_force_host_platform_device_count")
+    ]
+    if devices is not None:
+        flags.append(f"--xla_force_host_platform_device_count={devices}")
+    return {
         **os.environ,
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=4",
+        "XLA_FLAGS": " ".join(flags),
         "JAX_PLATFORMS": "cpu",
         "PYTHONPATH": str(ROOT),
     }
+
+
+def four_devices(script: str) -> None:
+    env = subprocess_env(4)
     p = subprocess.run(
         [sys.executable, "-c", script], cwd=ROOT, env=env, capture_output=True, text=True
     )
@@ -211,8 +225,7 @@ def test_two_processes_share_the_bins_and_both_hold_every_result(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    env = {**os.environ, "JAX_PLATFORMS": "cpu", "PYTHONPATH": str(ROOT)}
-    env.pop("XLA_FLAGS", None)
+    env = subprocess_env()
     procs = [
         subprocess.Popen(
             [

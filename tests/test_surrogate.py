@@ -348,3 +348,70 @@ def test_old_level_and_noise_model_names_warn(synthetic_surrogate):
         assert sur.noise is sur.noise_model
     with pytest.warns(DeprecationWarning, match="Surrogate.n_noise is deprecated"):
         assert sur.n_noise == sur.n_levels
+
+
+@pytest.mark.parametrize("hover_speed", [0.0, 0.5])
+def test_no_in_domain_query_jumps_with_a_millimetre_per_second_of_air(hover_speed, monkeypatch):
+    """Near vertical airflow (climbs, descents, hover in wind) the airflow frame and the data's
+    coordinates of a query swing with the sideways air: at its singular sets a finite step for
+    any small change. In domain, 1 mm/s of air in any direction moves the GP's inputs (angles
+    in ``H``) and the frame by at most ``MAX_FRAME_RATE`` times it (central differences
+    here, independent of the autodiff that sets the flag); the same sampler finds the
+    states inside the data's box that only the frame-rate test flags, which break that bound
+    (by degrees with pure wind axes): the box alone would let them through."""
+    from gpg import surrogate
+    from gpg.quadrotor.frames import to_airflow_frame
+    from gpg.surrogate import MAX_FRAME_RATE, predict_state
+
+    data, _ = synthetic_dataset(40, seed=3, raw=False)
+    sur = Surrogate.fit(data, "gpg", EXACT, hover_speed=hover_speed)
+    rng = np.random.default_rng(7)
+    n = 4000
+    rpm = rng.uniform(1000, 6000, (n, 4))
+    euler = np.column_stack(
+        [rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.4, 1.4, n), rng.uniform(-1.5, 1.5, n)]
+    )
+    side = 10 ** rng.uniform(-5, 0.3, n) * np.exp(1j * rng.uniform(0, 2 * np.pi, n))
+    v = np.column_stack([side.real, side.imag, rng.choice([-1, 1], n) * rng.uniform(0, 8, n)])
+
+    @jax.jit
+    @jax.vmap
+    def coords(e, v):
+        euler_h, _, rwh = to_airflow_frame(e, v, hover_speed)
+        return jnp.concatenate([euler_h, rwh.ravel() / np.sqrt(2)])
+
+    flag = jax.jit(jax.vmap(lambda r, e, v: predict_state(sur, r, e, v, False).in_domain))
+    ok = np.asarray(flag(rpm, euler, v))
+    monkeypatch.setattr(surrogate, "MAX_FRAME_RATE", np.inf)
+    box_only = jax.jit(jax.vmap(lambda r, e, v: predict_state(sur, r, e, v, False).in_domain))
+    in_box = np.asarray(box_only(rpm, euler, v))
+    step = 1e-3
+    moved = np.zeros(n)
+    for t in np.linspace(0, 2 * np.pi, 6, endpoint=False):
+        for up in (0.0, 1.0):
+            d = step * np.array([np.cos(t) * (1 - up), np.sin(t) * (1 - up), up])
+            # yaw wraps at ±180°: compare angles on the circle
+            diff = np.asarray(coords(euler, v + d / 2)) - np.asarray(coords(euler, v - d / 2))
+            diff[:, :3] = (diff[:, :3] + np.pi) % (2 * np.pi) - np.pi
+            change = np.maximum(
+                np.linalg.norm(diff[:, :3], axis=1), np.linalg.norm(diff[:, 3:], axis=1)
+            )
+            moved = np.maximum(moved, change)
+    assert ok.sum() > 200 and (in_box & ~ok).sum() >= 5 and not (ok & ~in_box).any()
+    assert moved[ok].max() <= 1.1 * MAX_FRAME_RATE * step, moved[ok].max()
+    # without the frame-rate flag the bound fails inside the box: by degrees at the vertical
+    # airflow of pure wind axes
+    assert moved[in_box & ~ok].max() > 1.1 * MAX_FRAME_RATE * step
+    assert hover_speed > 0 or moved[in_box & ~ok].max() > np.radians(10.0)
+
+
+def test_fit_arguments_of_the_wrong_kind_are_named(data):
+    """Each refused before any fit, with the argument named (they used to surface as
+    ``unhashable type``, a dict-update ``ValueError`` and a NumPy broadcasting error)."""
+    with pytest.raises(ValueError, match="bounds must be a mapping of"):
+        Surrogate.fit(data, "gpg", EXACT, bounds=[[0, 7000]])
+    with pytest.raises(ValueError, match=r"config \(the model options\) must be a mapping"):
+        Surrogate.fit(data, "gpg", [("hyper", {"fit": False})])
+    bad = {"hyper": {"fit": False, "lengthscale": [1.0, 2.0, 3.0]}}
+    with pytest.raises(ValueError, match="hyper.lengthscale has 3 values; the model has 8 inputs"):
+        Surrogate.fit(data, "gpg", bad)

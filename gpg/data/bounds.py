@@ -30,18 +30,32 @@ class Bounds:
             raise ValueError("bounds.rpm and bounds.airspeed must start at >= 0")
 
     @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> Bounds:
-        unknown = sorted(set(cfg) - set(cls.__dataclass_fields__))
-        if unknown:
+    def from_config(cls, cfg: Mapping[str, Any], where: str = "bounds") -> Bounds:
+        """From the ``data.bounds`` form (``{"yaw_deg": [-90, 90], ...}``, missing keys at their
+        defaults); ``where`` names the input in every error (e.g. a dataset's metadata)."""
+        fields = list(cls.__dataclass_fields__)
+        if not isinstance(cfg, Mapping):
             raise ValueError(
-                f"unknown bounds keys {unknown}; valid: {list(cls.__dataclass_fields__)}"
+                f"{where} must be a mapping of {fields} to [lower, upper], such as "
+                f"{{'yaw_deg': [-90, 90]}}; got a {type(cfg).__name__}: {cfg!r:.80}"
             )
+        unknown = sorted(str(k) for k in set(cfg) - set(fields))
+        if unknown:
+            raise ValueError(f"unknown {where} keys {unknown}; valid: {fields}")
         kw = {}
         for k, v in cfg.items():
             if not isinstance(v, list | tuple) or len(v) != 2:
-                raise ValueError(f"bounds.{k} must be [lower, upper], got {v!r}")
-            kw[k] = (float(v[0]), float(v[1]))
-        return cls(**kw)
+                raise ValueError(f"{where}.{k} must be [lower, upper], got {v!r}")
+            try:
+                kw[k] = (float(v[0]), float(v[1]))
+            except (TypeError, ValueError):
+                raise ValueError(f"{where}.{k} must be two numbers, got {v!r}") from None
+        try:
+            return cls(**kw)
+        except ValueError as exc:
+            if where == "bounds":
+                raise
+            raise ValueError(str(exc).replace("bounds.", f"{where}.")) from None
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of ``x`` (8,) in file units (rpm, rad, m/s)."""

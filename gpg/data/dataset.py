@@ -150,6 +150,32 @@ class Dataset:
             raise ValueError(
                 f"x has a negative airspeed (a speed, ≥ 0 m/s) in row(s) {rows[:10].tolist()}"
             )
+        if "bounds" in self.meta:
+            self._validate_inside_bounds()
+
+    def _validate_inside_bounds(self) -> None:
+        """The cases lie in the box the metadata declares (``meta["bounds"]``, the sampling
+        box and the surrogate's ``in_domain``): a case outside it is a unit or sign slip
+        (degrees read as radians, yaw 400°), or the box is wrong; either way it is refused,
+        naming the rows, the input and its value in the box's units."""
+        from gpg.data.bounds import Bounds
+
+        lo, hi = Bounds.from_config(self.meta["bounds"], "meta['bounds']").arrays()
+        tol = 1e-9 * np.maximum(hi - lo, 1.0)  # the degree-to-radian conversion's rounding
+        out = (self.x < lo - tol) | (self.x > hi + tol)
+        if not out.any():
+            return
+        rows = np.flatnonzero(out.any(axis=1))
+        r, j = rows[0], int(np.flatnonzero(out[rows[0]])[0])
+        deg = 180.0 / np.pi if 4 <= j <= 6 else 1.0
+        unit = "°" if deg != 1.0 else f" {UNITS[INPUTS[j]]}"
+        more = f" (and {rows.size - 10} more)" if rows.size > 10 else ""
+        raise ValueError(
+            f"x has {rows.size} case(s) outside the box the dataset declares (its 'bounds'), in "
+            f"row(s) {rows[:10].tolist()}{more}: row {r} has {INPUTS[j]} = {self.x[r, j] * deg:g}"
+            f"{unit}, outside [{lo[j] * deg:g}, {hi[j] * deg:g}]{unit}; check the units (angles "
+            "in degrees need units={'yaw': 'deg', ...}) or widen the bounds"
+        )
 
     def _validate_gradients(self) -> None:
         """Gradients are finite, or NaN for every output of a (case, input): a perturbation
@@ -171,6 +197,23 @@ class Dataset:
             aero_nan, noise_nan = np.isnan(self.jac_aero), np.isnan(self.jac_noise)
             if np.any(aero_nan.all(axis=1) != noise_nan.all(axis=1)):
                 raise ValueError("jac_aero and jac_noise must lack the same perturbations")
+
+    def repeated_inputs(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Cases that share an input ``x`` exactly: ``(conflicting, identical)``, each a list of
+        row-index groups; a group is conflicting when its outputs or gradients differ (NaN
+        gradients, not run, compare equal). Repeated runs of a noisy experiment are such
+        groups; so are rows pasted twice with a typo."""
+        _, inverse, counts = np.unique(self.x, axis=0, return_inverse=True, return_counts=True)
+        conflicting, identical = [], []
+        for g in np.flatnonzero(counts > 1):
+            rows = np.flatnonzero(inverse.ravel() == g)
+            same = all(
+                np.array_equal(a[rows], np.broadcast_to(a[rows[:1]], a[rows].shape), equal_nan=True)
+                for a in (self.y, self.jac)
+                if a is not None
+            )
+            (identical if same else conflicting).append(rows)
+        return sorted(conflicting, key=lambda g: g[0]), sorted(identical, key=lambda g: g[0])
 
     @property
     def gradient_mask(self) -> np.ndarray | None:
@@ -261,9 +304,13 @@ class Dataset:
                 arrays = {k: z[k] for k in z.files}
         except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError, zlib.error) as exc:
             raise ValueError(f"{npz} is not a readable .npz file: {exc}") from exc
-        bad = sorted(k for k, a in arrays.items() if not np.issubdtype(a.dtype, np.number))
+        bad = sorted(
+            k
+            for k, a in arrays.items()
+            if not isinstance(a, np.ndarray) or not np.issubdtype(a.dtype, np.number)
+        )
         if bad:
-            raise ValueError(f"{npz} holds non-numeric arrays {bad}")
+            raise ValueError(f"{npz} holds members that are not numeric arrays: {bad}")
         unknown = sorted(set(arrays) - set(_ARRAYS))
         if unknown:
             raise ValueError(f"{npz} holds unknown arrays {unknown}")
@@ -372,6 +419,18 @@ def from_csv(
     sampled in, recorded for the surrogate's ``in_domain`` flag. A NaN, inf or non-number in
     the file is reported by CSV line and column.
     """
+    for name, arg in (("columns", columns), ("units", units), ("meta", meta)):
+        if arg is not None and not isinstance(arg, Mapping):
+            raise ValueError(
+                f"from_csv: {name} must be a mapping (schema field -> "
+                f"{'CSV header' if name == 'columns' else 'value'}), got a "
+                f"{type(arg).__name__}"
+            )
+    if columns is None:
+        raise ValueError(
+            "from_csv: columns is required: a mapping of schema fields (r1..r4, yaw, pitch, roll, "
+            "airspeed, Fx..Mz, optionally L1..L3) to the CSV's header names"
+        )
     units = dict(units or {})
     columns = dict(columns)
     known = set(UNITS) | set(GRADIENT_COLUMNS)

@@ -177,6 +177,7 @@ def prepare(
     """Residuals (against ``M`` and, if given, ``M_noise``) and normalisation for ``ds``; the
     statistics come from its base points (the gradient noise ``λ²`` is the model's:
     :func:`gpg.models.initial_hyper`)."""
+    warn_repeated_inputs(ds)
     y, J, y_raw = residuals(ds, simple, noise_model)
     norm = Normalizer.fit(ds.x, y)
     X = np.asarray(norm.x(ds.x))
@@ -198,6 +199,35 @@ def prepare(
         output_names=ds.output_names,
         noise_model=noise_model if ds.has_noise else None,
     )
+
+
+def warn_repeated_inputs(ds: Dataset) -> None:
+    """A ``UserWarning`` for cases that share an input (:meth:`Dataset.repeated_inputs`):
+    how many, which rows, and what the fit does with them. Repeats may be intended (repeated
+    runs of a noisy experiment), so this warns rather than refuses."""
+    conflicting, identical = ds.repeated_inputs()
+    if conflicting:
+        spread = max(float(np.max(np.ptp(ds.y[g], axis=0))) for g in conflicting)
+        shown = [g.tolist() for g in conflicting[:5]]
+        more = f" (and {len(conflicting) - 5} more)" if len(conflicting) > 5 else ""
+        warnings.warn(
+            f"{len(conflicting)} group(s) of cases share an identical input but have different "
+            f"outputs or gradients: rows {shown}{more}, output spread up to {spread:.3g}. No "
+            "function passes through both: a fitted value noise ν² grows to explain the spread "
+            "(every prediction's variance with it), a fixed small ν² leaves the solve "
+            "ill-conditioned and the mean at their average. Drop or average repeats that are "
+            "mistakes; keep them if they are repeated noisy runs.",
+            UserWarning,
+            stacklevel=3,
+        )
+    if identical:
+        shown = [g.tolist() for g in identical[:5]]
+        warnings.warn(
+            f"{len(identical)} group(s) of cases are exact copies (same input and outputs): "
+            f"rows {shown}; they add nothing but cost and are kept.",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def _check_standardised(names, y, norm, X, Y, dY, X_raw, Y_raw) -> None:

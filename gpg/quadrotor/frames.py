@@ -21,6 +21,7 @@ gradients stay finite there (guarded ``atan2`` and ``sqrt``).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -165,7 +166,10 @@ def airflow_frame(
     theorem): ``y_H`` vanishes for airflow from the rear half of the body (``|χ − ψ| > 90°``)
     at the one horizontal speed where the two terms cancel (about ``0.55 h`` directly from
     behind, at any climb angle; horizontal airflow only, elsewhere in the rear half). With the
-    paper's yaw range (±90°) those states are out of the training domain.
+    paper's yaw range (±90°) most of those states are out of the training domain, but not
+    all: in a steep climb or descent from behind the roll relative to ``H`` can bring them
+    back inside, so a surrogate also asks :func:`airflow_frame_rate` before it calls a
+    query in domain.
     """
     v = jnp.asarray(v_air_W)
     if hover_speed <= 0.0:
@@ -200,3 +204,32 @@ def to_airflow_frame(
     rwh = airflow_frame(v_air_W, euler_W[0], hover_speed)
     r_hb = matmul(rwh.T, R_WB(euler_W))
     return euler_from_R(r_hb), safe_norm(v_air_W), rwh
+
+
+def airflow_frame_rate(
+    euler_W: Float[ArrayLike, "3"], v_air_W: Float[ArrayLike, "3"], hover_speed: float = 0.0
+) -> Float[Array, ""]:
+    """How fast the query's airflow-frame coordinates turn with the air velocity, in rad per
+    m/s: the larger of ``‖∂euler_H/∂v_air‖_F`` and ``‖∂R_WH/∂v_air‖_F / √2`` (forward-mode
+    autodiff of :func:`to_airflow_frame`; no gradient flows back through it).
+
+    Away from the frame's singular sets it is about ``1/‖v_air‖`` (``1/hover_speed`` in the
+    hover blend); it grows without bound near them (vertical airflow with pure wind axes, the
+    rear-airflow ring of :func:`airflow_frame`, the Euler angles' gimbal lock). There a
+    millimetre per second of air turns ``H``, and with it the prediction, by a finite amount:
+    a surrogate is out of domain where this exceeds :data:`gpg.surrogate.MAX_FRAME_RATE`.
+    The one point where the construction's guards hide the singularity from autodiff (pure
+    wind axes, ``hover_speed = 0``, with no horizontal airspeed) gives ``inf``.
+    """
+    euler_W = jax.lax.stop_gradient(jnp.asarray(euler_W))
+    v = jax.lax.stop_gradient(jnp.asarray(v_air_W))
+
+    def coords(v):
+        euler_h, _, rwh = to_airflow_frame(euler_W, v, hover_speed)
+        return euler_h, rwh
+
+    d_euler, d_frame = jax.jacfwd(coords)(v)
+    rate = jnp.maximum(jnp.sqrt(jnp.sum(d_euler**2)), jnp.sqrt(jnp.sum(d_frame**2) / 2.0))
+    if hover_speed <= 0.0:
+        rate = jnp.where(v[0] ** 2 + v[1] ** 2 <= _TINY_SPEED**2, jnp.inf, rate)
+    return rate

@@ -270,7 +270,9 @@ def test_csv_gradients_by_pattern_with_units(rng, tmp_path):
 
 
 def test_csv_records_vehicle_and_bounds(rng, tmp_path):
-    write_csv(tmp_path / "v.csv", rng.uniform(1, 2, (3, 14)), list(COLUMNS.values()))
+    rows = rng.uniform(1, 2, (3, 14))
+    rows[:, 4:7] = 0.5  # radians, inside the default box of the bounds not given
+    write_csv(tmp_path / "v.csv", rows, list(COLUMNS.values()))
     bounds = {"rpm": [0.0, 9000.0], "airspeed": [0.0, 15.0]}
     ds = from_csv(tmp_path / "v.csv", COLUMNS, vehicle="minimal_example", bounds=bounds)
     assert ds.meta["vehicle"]["name"] == "minimal_example" and ds.meta["bounds"] == bounds
@@ -359,3 +361,76 @@ def test_dataset_values_checked_where_they_enter():
         Dataset(x=ds.x, y_aero=ds.y_aero > 0)
     with pytest.raises(ValueError, match="x_raw has 47 rows; .* 8 per point \\(48 rows"):
         Dataset(x=ds.x, y_aero=ds.y_aero, x_raw=ds.x_raw[:47], y_raw=ds.y_raw[:47, :6])
+
+
+def test_cases_outside_the_declared_bounds_are_refused(rng, tmp_path):
+    """A CSV whose angles lie far outside the box the same call declares (degrees read as
+    radians, yaw 400°), and metadata whose bounds are inverted: refused, naming rows, input
+    and value. Cases on the box's edge are inside."""
+    rows = rng.uniform(1, 2, (4, 14))
+    rows[:, 4:7] = [[10, 5, 0]] * 4
+    rows[1, 4], rows[3, 5] = 400.0, 1e6
+    write_csv(tmp_path / "a.csv", rows, list(COLUMNS.values()))
+    units = {"yaw": "deg", "pitch": "deg", "roll": "deg"}
+    bounds = {"yaw_deg": [-90, 90], "pitch_deg": [-60, 60]}
+    with pytest.raises(ValueError, match=r"2 case\(s\) outside .* row\(s\) \[1, 3\]: row 1 has "
+                       r"yaw = 400°, outside \[-90, 90\]°"):  # fmt: skip
+        from_csv(tmp_path / "a.csv", COLUMNS, units=units, bounds=bounds)
+    rows[1, 4], rows[3, 5] = 90.0, -60.0
+    write_csv(tmp_path / "b.csv", rows, list(COLUMNS.values()))
+    from_csv(tmp_path / "b.csv", COLUMNS, units=units, bounds=bounds)
+    ds = make(rng)
+    with pytest.raises(ValueError, match=r"meta\['bounds'\].yaw_deg is inverted"):
+        Dataset(x=ds.x, y_aero=ds.y_aero, meta={"bounds": {"yaw_deg": [90, -90]}})
+    with pytest.raises(ValueError, match=r"meta\['bounds'\] must be a mapping"):
+        Dataset(x=ds.x, y_aero=ds.y_aero, meta={"bounds": [[0, 7000]]})
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"columns": None}, "from_csv: columns is required"),
+        ({"columns": list(COLUMNS)}, "from_csv: columns must be a mapping"),
+        ({"units": ["deg"]}, "from_csv: units must be a mapping"),
+        ({"bounds": [[-90, 90]]}, "bounds must be a mapping of"),
+        ({"bounds": {"yaw_deg": ["a", "b"]}}, r"bounds.yaw_deg must be two numbers"),
+    ],
+)
+def test_csv_arguments_of_the_wrong_kind_are_named(rng, tmp_path, kwargs, match):
+    write_csv(tmp_path / "a.csv", rng.uniform(1, 2, (3, 14)), list(COLUMNS.values()))
+    with pytest.raises(ValueError, match=match):
+        from_csv(tmp_path / "a.csv", **{"columns": COLUMNS, **kwargs})
+
+
+def test_an_npz_member_that_is_not_an_array_is_named(rng, tmp_path):
+    import zipfile
+
+    make(rng).save(tmp_path / "d")
+    with zipfile.ZipFile(tmp_path / "d.npz", "a") as z:
+        z.writestr("notes.txt", "hello")
+    with pytest.raises(ValueError, match=r"members that are not numeric arrays: \['notes.txt'\]"):
+        Dataset.load(tmp_path / "d")
+
+
+def test_repeated_inputs_are_found_and_warned_about(rng):
+    """Identical inputs with different outputs (or gradients) and exact copies: grouped by
+    row; ``prepare`` warns with how many, where, and what the fitted noise does."""
+    from gpg.data import prepare
+
+    ds = make(rng, raw=False)
+    x, y, jac = ds.x.copy(), ds.y_aero.copy(), ds.jac_aero.copy()
+    x[[5, 9]], y[[5, 9]], jac[[5, 9]] = x[2], y[2], jac[2]  # row 2 three times, equal
+    x[7], y[7], jac[7] = x[1], y[1], jac[1] + 1.0  # row 1 twice, other gradients
+    noise, jac_noise = ds.y_noise.copy(), ds.jac_noise.copy()
+    noise[[5, 9]], noise[7] = noise[2], noise[1]
+    jac_noise[[5, 9]], jac_noise[7] = jac_noise[2], jac_noise[1]
+    rep = Dataset(x=x, y_aero=y, jac_aero=jac, y_noise=noise, jac_noise=jac_noise)
+    conflicting, identical = rep.repeated_inputs()
+    assert [g.tolist() for g in conflicting] == [[1, 7]]
+    assert [g.tolist() for g in identical] == [[2, 5, 9]]
+    assert make(rng).repeated_inputs() == ([], [])
+    with pytest.warns(UserWarning, match=r"1 group\(s\) of cases share an identical input but "
+                      r"have different outputs or gradients: rows \[\[1, 7\]\].*value noise ν² "
+                      r"grows"):  # fmt: skip
+        with pytest.warns(UserWarning, match=r"exact copies .* rows \[\[2, 5, 9\]\]"):
+            prepare(rep, None)
