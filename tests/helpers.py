@@ -95,22 +95,31 @@ def variance_rtol(sur, rpm, euler, v_air) -> np.ndarray:
     ``(latent + ν²)`` times fixed positive weights, so its relative error is that over
     ``latent + ν²``. Computed in float64 NumPy from the stored factor (an independent
     reference of the quadratic form); exact ``gpg`` and binned models."""
+    import jax
     import jax.numpy as jnp
 
     from gpg.quadrotor.frames import to_airflow_frame
 
     model = getattr(sur.model, "local", sur.model)  # the hybrid's near-set part
+    exact = hasattr(model, "chol_inv")  # exact GP-G: one factor of every observed row
+
+    @jax.jit
+    @jax.vmap
+    def rows(r, e, v):
+        eh, speed, _ = to_airflow_frame(e, v, sur.hover_speed)
+        xn = sur.normalizer.x(jnp.concatenate([r, eh, speed[None]]))
+        if exact:
+            return _exact_row(model, xn), 0
+        b = model.partition.lookup(xn)
+        return model.kernel_row(xn, b), b
+
+    K, B = (np.asarray(a) for a in rows(*(jnp.asarray(a, float) for a in (rpm, euler, v_air))))
     out = []
-    for r, e, v in zip(np.asarray(rpm), np.asarray(euler), np.asarray(v_air), strict=True):
-        eh, speed, _ = to_airflow_frame(jnp.asarray(e), jnp.asarray(v), sur.hover_speed)
-        xn = sur.normalizer.x(jnp.concatenate([jnp.asarray(r), eh, speed[None]]))
-        if hasattr(model, "chol_inv"):  # exact GP-G: one factor of every observed row
-            k = np.asarray(_exact_row(model, xn), dtype=float)
+    for k, b in zip(K.astype(float), B, strict=True):
+        if exact:
             F, sigma, noise = model.chol_inv, model.hyper.variance, model.hyper.noise
         else:
-            b = int(model.partition.lookup(xn))
-            k = np.asarray(model.kernel_row(xn, b), dtype=float)
-            F, sigma, noise = model.factor[b], model.variance, model.noise
+            F, sigma, noise = model.factor[int(b)], model.variance, model.noise
         u = float(np.finfo(F.dtype).eps) / 2
         Fd = F.to_dense()
         fk, bound = Fd @ k, np.abs(Fd) @ np.abs(k)

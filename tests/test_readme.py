@@ -33,15 +33,29 @@ CHAINS = page_chains(README)
 DOC_CHAINS = [(p.name, i, c) for p in PAGES[1:] for i, c in enumerate(page_chains(p))]
 
 
-@pytest.mark.parametrize("index", range(len(CHAINS)))
-def test_readme_block_runs(index, capsys):
+def in_process(chains, ids):
+    """Chains that fit a quadrotor surrogate (generate data, then a likelihood fit: 10-25 s
+    each) run in the slow set only, where every chain also runs in fresh float32 and float64
+    interpreters; each step they take has a fast test of its own. The rest run here."""
+    heavy = [any("Surrogate.fit(" in b for b in c[-1]) for c in chains]
+    return [
+        pytest.param(*c, id=i, marks=[pytest.mark.slow] if h else [])
+        for c, i, h in zip(chains, ids, heavy, strict=True)
+    ]
+
+
+@pytest.mark.parametrize(
+    "index, chain",
+    in_process([(i, c) for i, c in enumerate(CHAINS)], [str(i) for i in range(len(CHAINS))]),
+)
+def test_readme_block_runs(index, chain, capsys):
     namespace = {"__name__": "__readme__"}
-    for i, block in enumerate(CHAINS[index]):
+    for i, block in enumerate(chain):
         exec(compile(block, f"README.md chain {index}, block {i}", "exec"), namespace)
 
 
 @pytest.mark.parametrize(
-    "page, index, chain", DOC_CHAINS, ids=[f"{p}-{i}" for p, i, _ in DOC_CHAINS]
+    "page, index, chain", in_process(DOC_CHAINS, [f"{p}-{i}" for p, i, _ in DOC_CHAINS])
 )
 def test_docs_block_runs(page, index, chain, capsys):
     namespace = {"__name__": "__readme__"}

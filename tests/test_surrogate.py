@@ -1,6 +1,7 @@
 """Surrogate: frames, training labels, equivariance under world yaw, batching, scan, bad input."""
 
 import dataclasses
+import functools
 import logging
 
 import equinox as eqx
@@ -177,16 +178,21 @@ def test_batch_shape_errors(binned):
         binned.predict_batch(np.zeros((2, 4)), np.zeros((3, 3)), np.zeros((2, 3)))
 
 
+@functools.cache
+def _batch_surrogate(noise: bool):
+    full, _ = synthetic_dataset(30, seed=4, raw=False)
+    ds = full if noise else full.without("noise", "gradients")
+    cfg = {"hyper": {"fit": False}, "partition": {"bins": 2}}
+    return ds, Surrogate.fit(ds, "gps_1x", cfg, residual=False)
+
+
 @pytest.mark.parametrize("noise", [True, False])
 @pytest.mark.parametrize("mean_only", [True, False])
 @pytest.mark.parametrize("chunk", [7, 1024])
 def test_predict_batch_for_every_output_set(noise, mean_only, chunk):
     """The issue's repro (30 rows, no noise columns, 2 bins, no residual) and every other
     combination: batches in several chunks and in one, equal to single predictions."""
-    full, _ = synthetic_dataset(30, seed=4, raw=False)
-    ds = full if noise else full.without("noise", "gradients")
-    cfg = {"hyper": {"fit": False}, "partition": {"bins": 2}}
-    sur = Surrogate.fit(ds, "gps_1x", cfg, residual=False)
+    ds, sur = _batch_surrogate(noise)
     rpm, euler, v = ds.x[:, :4], ds.x[:, 4:7], np.column_stack([ds.x[:, 7], 0 * ds.x[:, :2]])
     out = sur.predict_batch(rpm, euler, v, mean_only=mean_only, chunk=chunk)
     assert out.force.shape == (30, 3) and out.levels.shape == (30, 3 if noise else 0)

@@ -166,6 +166,7 @@ def test_a_flat_valley_ends_the_fit_once_steps_gain_less_than_ftol():
     assert n1 <= n
 
 
+@pytest.mark.slow  # a whole fit (35 s); test_models' hyper.full test runs the same fit fast
 def test_stochastic_fit_reaches_the_dense_optimum():
     """On 50 points (all of them), the fit that never forms K̄ ends where the dense fit does:
     from twice the signal variance, 1.5 times the lengthscales and three times the noise
