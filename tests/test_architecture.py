@@ -36,6 +36,7 @@ RANKS = {
     "gpg.envs": 7,
     "gpg.mpc": 7,
     "gpg.adapters": 7,
+    "gpg.export": 7,
     "gpg": 8,
     "gpg.runs": 9,
 }

@@ -40,6 +40,7 @@ from gpg.gp.gram import assemble_gram
 from gpg.gp.hyper import Hyper
 from gpg.linalg import dense
 from gpg.runs.bench_design import bench_design, design_table
+from gpg.runs.bench_export import bench_export, export_table
 from gpg.runs.bench_solver import bench_solver, solver_table
 from gpg.runs.common import (
     conf,
@@ -590,6 +591,7 @@ SUITES = {
     "envs": bench_envs,
     "solver": bench_solver,
     "design": bench_design,
+    "export": bench_export,
 }
 
 
@@ -655,4 +657,5 @@ TABLES = {
     "envs": _envs_table,
     "solver": solver_table,
     "design": design_table,
+    "export": export_table,
 }

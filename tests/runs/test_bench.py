@@ -99,3 +99,16 @@ def test_bench_devices_suite(smoke_cache, tmp_path):
     assert set(saved["predict"]) == {"40/mean/1", "40/mean_var/1"}
     assert saved["predict"]["40/mean/1"]["per_s"] > 0
     assert saved["generate"]["rows"] == 32 and set(saved["generate"]["seconds"]) == {"1"}
+
+
+@pytest.mark.slow  # compiles the export and its timing driver twice
+def test_bench_export_suite(tmp_path):
+    overrides = ["suites=[export]", "export.n_points=[60]", "export.c_calls=200",
+                 "export.jax_calls=20"]  # fmt: skip
+    bench.run(compose_plain("bench", overrides), tmp_path)
+    row = json.loads((tmp_path / "bench.json").read_text())["export"]["sizes"]["60"]
+    for dtype, size in (("double", 8), ("float", 4)):
+        assert row[dtype]["constant_bytes"] == 60 * (8 + 72) * size
+        assert 0 < row[dtype]["median_us"] <= row[dtype]["p95_us"]
+        assert row[dtype]["in_domain"] == 200
+    assert row["realtime_over_c_double"] > 0
