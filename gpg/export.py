@@ -1,5 +1,5 @@
-"""A fitted surrogate outside JAX: self-contained C source for its mean (first of the export
-formats; CasADi and ONNX are open work).
+"""A fitted surrogate outside JAX: its mean as self-contained C source (:func:`to_c`) and as a
+CasADi function with exact derivatives (:func:`to_casadi`); the variance and ONNX are open work.
 
 ``to_c(sur, directory)`` writes ``<name>.c`` and ``<name>.h``: the world-frame prediction
 ``(rpm, euler, v_air) -> (force, torque, levels, in_domain)`` of :meth:`Surrogate.predict_mean`,
@@ -48,25 +48,11 @@ def to_c(
     m/s, N, N·m, dB; world frame x forward, y right, z down. A non-finite input gives 0 and
     zeros, never NaN. ``ValueError`` (nothing written) for a model without the global mean, a
     noise model, a non-finite array, a bad ``name`` or ``dtype``."""
-    if not isinstance(sur, Surrogate):
-        raise ValueError(f"to_c exports a gpg.Surrogate, got {type(sur).__name__}")
     if dtype not in DTYPES:
         raise ValueError(f"dtype must be one of {list(DTYPES)}, got {dtype!r}")
     if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
         raise ValueError(f"name must be a C identifier, got {name!r}")
-    mean = getattr(sur.model, "mean", None)
-    if not isinstance(mean, GlobalMean):
-        raise ValueError(
-            f"model {sur.model_name!r} ({type(sur.model).__name__}) has no global mean to "
-            "export; C export covers gpg, gp and gpgs_hybrid (the local kinds' per-bin means "
-            "are not exported yet)"
-        )
-    if sur.noise_model is not None:
-        raise ValueError("a surrogate with M_noise cannot be exported to C yet (fit without it)")
-    arrays = _arrays(sur, mean)
-    bad = sorted(k for k, a in arrays.items() if not np.all(np.isfinite(a)))
-    if bad:
-        raise ValueError(f"the surrogate holds non-finite arrays {bad}: nothing exported")
+    arrays, mean = _checked(sur)
     record = {
         "gpg_version": __version__,
         "model": sur.model_name,
@@ -358,3 +344,148 @@ int {name}_mean(const double rpm[4], const double euler[3], const double v_air[3
         f'#include <math.h>\n#include "{name}.h"\n\n'
     )
     return head + "\n".join(consts) + "\n" + _FRAMES + body, gp_bytes
+
+
+def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg_mean"):
+    """``sur``'s mean as a ``casadi.Function`` of ``(rpm[4], euler[3], v_air[3])`` returning
+    ``force[3], torque[3], levels[K], in_domain`` (1.0 or 0.0): the computation of
+    :meth:`Surrogate.predict_mean` in CasADi MX symbolics with the trained arrays as constants,
+    so that CasADi's own AD gives exact Jacobians and Hessians to a gradient-based MPC
+    (IPOPT, acados, do-mpc) and its code generator gives C. ``frame="body"`` returns force and
+    torque in the body frame (FRD) for the same inputs (``v_air`` in the world frame).
+    ``in_domain`` uses CasADi's own Jacobian of the airflow frame for the frame-rate test, as
+    the library uses autodiff. Needs the ``casadi`` extra; the same kinds as :func:`to_c`."""
+    import casadi as ca
+
+    if frame not in ("world", "body"):
+        raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
+    arrays, mean = _checked(sur)
+    rpm, euler, v = ca.MX.sym("rpm", 4), ca.MX.sym("euler", 3), ca.MX.sym("v_air", 3)
+    euler_h, rwh = _ca_airflow(ca, euler, v, sur.hover_speed)
+    d_euler = ca.jacobian(euler_h, v)
+    d_frame = ca.jacobian(ca.vec(rwh), v)
+    rate = ca.fmax(ca.norm_fro(d_euler), ca.norm_fro(d_frame) / np.sqrt(2.0))
+    if sur.hover_speed <= 0.0:
+        rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= _TINY_SPEED**2, ca.inf, rate)
+    speed = _ca_norm(ca, v)
+    x = ca.vertcat(rpm, euler_h, speed)
+    lo, hi = arrays["box_lo"], arrays["box_hi"]
+    tol = 1e-9 * np.maximum(hi - lo, 1.0)
+    inside = ca.MX(1)
+    for i in range(8):
+        inside = ca.logic_and(inside, ca.logic_and(x[i] >= lo[i] - tol[i], x[i] <= hi[i] + tol[i]))
+    for i in range(4):
+        inside = ca.logic_and(inside, rpm[i] >= 0)
+    in_domain = ca.logic_and(inside, rate <= MAX_FRAME_RATE)
+    y = _ca_mean(ca, x, arrays, mean)
+    R_out = ca.mtimes(_ca_rot(ca, euler[0], euler[1], euler[2]).T, rwh) if frame == "body" else rwh
+    force, torque = ca.mtimes(R_out, y[0:3]), ca.mtimes(R_out, y[3:6])
+    if "allocation" in arrays:
+        u = ca.mtimes(ca.DM(arrays["allocation"]), rpm**2)
+        f_b, t_b = ca.vertcat(0, 0, -u[0]), u[1:4]
+        if frame == "body":
+            force, torque = force + f_b, torque + t_b
+        else:
+            rwb = _ca_rot(ca, euler[0], euler[1], euler[2])
+            force, torque = force + ca.mtimes(rwb, f_b), torque + ca.mtimes(rwb, t_b)
+    levels = y[6:]
+    return ca.Function(
+        name,
+        [rpm, euler, v],
+        [force, torque, levels, in_domain],
+        ["rpm", "euler", "v_air"],
+        ["force", "torque", "levels", "in_domain"],
+    )
+
+
+def _checked(sur: Surrogate) -> tuple[dict[str, np.ndarray], GlobalMean]:
+    """The arrays of an exportable surrogate, or ``ValueError`` saying why it is not."""
+    if not isinstance(sur, Surrogate):
+        raise ValueError(f"export takes a gpg.Surrogate, got {type(sur).__name__}")
+    mean = getattr(sur.model, "mean", None)
+    if not isinstance(mean, GlobalMean):
+        raise ValueError(
+            f"model {sur.model_name!r} ({type(sur.model).__name__}) has no global mean to "
+            "export; export covers gpg, gp and gpgs_hybrid (the local kinds' per-bin means "
+            "are not exported yet)"
+        )
+    if sur.noise_model is not None:
+        raise ValueError("a surrogate with M_noise cannot be exported yet (fit without it)")
+    arrays = _arrays(sur, mean)
+    bad = sorted(k for k, a in arrays.items() if not np.all(np.isfinite(a)))
+    if bad:
+        raise ValueError(f"the surrogate holds non-finite arrays {bad}: nothing exported")
+    return arrays, mean
+
+
+def _ca_safe_atan2(ca, y, x, tiny):
+    at_origin = ca.logic_and(ca.fabs(x) <= tiny, ca.fabs(y) <= tiny)
+    return ca.if_else(
+        at_origin, 0, ca.atan2(ca.if_else(at_origin, 0, y), ca.if_else(at_origin, 1, x))
+    )
+
+
+def _ca_norm(ca, v):
+    s = ca.sumsqr(v)
+    return ca.if_else(s <= 0, 0, ca.sqrt(ca.if_else(s <= 0, 1, s)))
+
+
+def _ca_rot(ca, yaw, pitch, roll):
+    cy, sy, cp, sp, cr, sr = (f(a) for a in (yaw, pitch, roll) for f in (ca.cos, ca.sin))
+    return ca.vertcat(
+        ca.horzcat(cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+        ca.horzcat(sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+        ca.horzcat(-sp, cp * sr, cp * cr),
+    )
+
+
+def _ca_wind_axes(ca, d):
+    heading = _ca_safe_atan2(ca, d[1], d[0], _TINY_SPEED)
+    climb = _ca_safe_atan2(ca, -d[2], _ca_norm(ca, d[0:2]), _TINY_SPEED)
+    return _ca_rot(ca, heading, climb, 0)
+
+
+def _ca_airflow(ca, euler, v, h):
+    """``(euler_H, R_WH)``: :func:`gpg.quadrotor.frames.to_airflow_frame` in CasADi."""
+    yaw = euler[0]
+    if h <= 0.0:
+        rwh = _ca_wind_axes(ca, v)
+    else:
+        c = h * ca.fmax(1 - ca.sumsqr(v) / h**2, 0) ** 2
+        d = v + c * ca.vertcat(ca.cos(yaw), ca.sin(yaw), 0)
+        dxy2 = d[0] ** 2 + d[1] ** 2
+        x = d / ca.if_else(ca.sumsqr(d) > 0, _ca_norm(ca, d), 1)
+        c2 = h * ca.fmax(1 - dxy2 / h**2, 0) ** 2
+        y_ref = ca.vertcat(-d[1], d[0], 0) + c2 * ca.vertcat(-ca.sin(yaw), ca.cos(yaw), 0)
+        y = y_ref - ca.dot(y_ref, x) * x
+        y = y / ca.if_else(ca.sumsqr(y) > 0, _ca_norm(ca, y), 1)
+        blended = ca.horzcat(x, y, ca.cross(x, y))
+        rwh = ca.if_else(dxy2 >= h**2, _ca_wind_axes(ca, d), blended)
+    R = ca.mtimes(rwh.T, _ca_rot(ca, euler[0], euler[1], euler[2]))
+    cp = ca.sqrt(R[0, 0] ** 2 + R[1, 0] ** 2)
+    pitch = _ca_safe_atan2(ca, -R[2, 0], cp, 0.0)
+    locked = cp < 1e-12
+    yaw_h = ca.if_else(
+        locked,
+        _ca_safe_atan2(ca, -R[0, 1], R[1, 1], 0.0),
+        _ca_safe_atan2(ca, R[1, 0], R[0, 0], 0.0),
+    )
+    roll = ca.if_else(locked, 0, _ca_safe_atan2(ca, R[2, 1], R[2, 2], 0.0))
+    return ca.vertcat(yaw_h, pitch, roll), rwh
+
+
+def _ca_mean(ca, x, arrays, mean: GlobalMean):
+    """The de-normalised folded exact mean (M,) at ``x_H`` (8,), in MX with DM constants."""
+    xn = (x - ca.DM(arrays["x_lo"])) / ca.DM(arrays["half"]) - 1
+    inv_ls = arrays["inv_ls"]
+    xl = xn * ca.DM(inv_ls)
+    XS = ca.DM(arrays["xs"])
+    n = arrays["xs"].shape[0]
+    r2 = ca.sum2((ca.repmat(xl.T, n, 1) - XS) ** 2)
+    acc = ca.mtimes(ca.DM(arrays["coef"]).T, ca.exp(-0.5 * r2))
+    g = len(mean.grad_dims)
+    m = arrays["coef"].shape[1] // (1 + g)
+    mu = acc[0:m]
+    for i, a in enumerate(mean.grad_dims):
+        mu = mu + xn[a] * inv_ls[a] ** 2 * acc[(1 + i) * m : (2 + i) * m]
+    return float(arrays["sigma"][0]) * mu * ca.DM(arrays["y_std"]) + ca.DM(arrays["y_mean"])

@@ -115,6 +115,45 @@ def test_what_cannot_be_exported_is_refused_before_writing(data, tmp_path):
         export.to_c(sur, tmp_path / "c", name="my-model")
     with pytest.raises(ValueError, match="dtype must be one of"):
         export.to_c(sur, tmp_path / "d", dtype="half")
-    with pytest.raises(ValueError, match="exports a gpg.Surrogate"):
+    with pytest.raises(ValueError, match="export takes a gpg.Surrogate"):
         export.to_c(sur.model, tmp_path / "e")
     assert not any((tmp_path / s).exists() for s in "abcde")
+
+
+@pytest.mark.parametrize("frame", ["world", "body"])
+def test_casadi_function_equals_predict_mean_and_its_jacobians(data, frame):
+    """Values to rounding (1e-10 of each output's scale); CasADi's own Jacobian of force and
+    torque in (rpm, euler, v_air) equals ``jax.jacrev`` of the library's prediction to 1e-8
+    of its largest entry; ``in_domain`` as the library's (both autodiff the frame)."""
+    import casadi as ca
+
+    from gpg.surrogate import predict_state
+
+    sur = Surrogate.fit(data, "gpgs_hybrid", CFG)
+    f = export.to_casadi(sur, frame=frame)
+    body = frame == "body"
+
+    def wrench(r, e, v):
+        p = predict_state(sur, r, e, v, False, body=body)
+        return jnp.concatenate([p.force, p.torque, p.levels]), p.in_domain
+
+    ref = jax.jit(wrench)
+    jac = jax.jit(jax.jacrev(lambda r, e, v: wrench(r, e, v)[0][:6], argnums=(0, 1, 2)))
+    syms = [ca.MX.sym(n, k) for n, k in (("rpm", 4), ("euler", 3), ("v", 3))]
+    out = f(*syms)
+    jf = ca.Function("j", syms, [ca.jacobian(ca.vertcat(out[0], out[1]), ca.vertcat(*syms))])
+    rpm, euler, v = states(40, 2)
+    seen = set()
+    for i in range(len(rpm)):
+        want, ok = (np.asarray(a) for a in ref(rpm[i], euler[i], v[i]))
+        got = np.concatenate([np.asarray(a).ravel() for a in f(rpm[i], euler[i], v[i])[:3]])
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-10 * max(1.0, np.abs(want).max()))
+        flag = float(f(rpm[i], euler[i], v[i])[3])
+        assert flag == float(ok)
+        seen.add(flag)
+        Jj = np.concatenate([np.asarray(a) for a in jac(rpm[i], euler[i], v[i])], axis=1)
+        Jc = np.asarray(jf(rpm[i], euler[i], v[i]))
+        np.testing.assert_allclose(Jc, Jj, rtol=0, atol=1e-8 * np.abs(Jj).max())
+    assert seen == {0.0, 1.0}
+    with pytest.raises(ValueError, match="frame must be"):
+        export.to_casadi(sur, frame="H")

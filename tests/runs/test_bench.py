@@ -112,3 +112,5 @@ def test_bench_export_suite(tmp_path):
         assert 0 < row[dtype]["median_us"] <= row[dtype]["p95_us"]
         assert row[dtype]["in_domain"] == 200
     assert row["realtime_over_c_double"] > 0
+    assert row["casadi"]["generated_c"]["in_domain"] == 200
+    assert row["casadi"]["python_call"]["median_s"] > 0
