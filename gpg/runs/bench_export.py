@@ -23,68 +23,72 @@ import numpy as np
 
 from gpg.runs.common import latency, report, stats, table
 
-DRIVER = r"""
+# The drivers' common part: headers, a sort for the percentiles, and query states inside the
+# data's box from a fixed linear congruential sequence.
+PRELUDE = r"""
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
 #include <stdlib.h>
 #include <time.h>
-#include "quad.h"
 
 static int cmp(const void *a, const void *b) {
   double x = *(const double *)a, y = *(const double *)b;
   return (x > y) - (x < y);
 }
 
-/* states inside the data's box, from a fixed linear congruential sequence */
 static double uniform(unsigned long long *s, double lo, double hi) {
   *s = *s * 6364136223846793005ULL + 1442695040888963407ULL;
   return lo + (hi - lo) * (double)(*s >> 11) / 9007199254740992.0;
 }
 
+static void state(unsigned long long *s, double rpm[4], double e[3], double v[3]) {
+  int j;
+  for (j = 0; j < 4; j++) rpm[j] = uniform(s, 3000.0, 4000.0);
+  for (j = 0; j < 3; j++) e[j] = uniform(s, -0.3, 0.3);
+  v[0] = uniform(s, 3.0, 12.0); v[1] = uniform(s, -1.0, 1.0); v[2] = uniform(s, -1.0, 1.0);
+}
+
+static void summary(double *t, int n, int inside, double sink) {
+  qsort(t, n, sizeof(double), cmp);
+  printf("{\"median_us\": %.4f, \"p05_us\": %.4f, \"p95_us\": %.4f, \"n\": %d, "
+         "\"in_domain\": %d, \"sink\": %.3g}\n", t[n / 2], t[n / 20], t[(19 * n) / 20], n,
+         inside, sink);
+}
+"""
+
+DRIVER = (
+    PRELUDE
+    + r"""
+#include "quad.h"
+
 int main(int argc, char **argv) {
-  int n = atoi(argv[1]), i, j, inside = 0;
+  int n = atoi(argv[1]), i, inside = 0;
   unsigned long long s = 12345;
   double *t = malloc(n * sizeof(double)), rpm[4], euler[3], v[3], f[3], tq[3], lv[8], sink = 0;
   struct timespec a, b;
   for (i = 0; i < n; i++) {
-    for (j = 0; j < 4; j++) rpm[j] = uniform(&s, 3000.0, 4000.0);
-    for (j = 0; j < 3; j++) euler[j] = uniform(&s, -0.3, 0.3);
-    v[0] = uniform(&s, 3.0, 12.0); v[1] = uniform(&s, -1.0, 1.0); v[2] = uniform(&s, -1.0, 1.0);
+    state(&s, rpm, euler, v);
     clock_gettime(CLOCK_MONOTONIC, &a);
     inside += quad_mean(rpm, euler, v, f, tq, lv);
     clock_gettime(CLOCK_MONOTONIC, &b);
     sink += f[0] + tq[2];
     t[i] = (b.tv_sec - a.tv_sec) * 1e6 + (b.tv_nsec - a.tv_nsec) * 1e-3;
   }
-  qsort(t, n, sizeof(double), cmp);
-  printf("{\"median_us\": %.4f, \"p05_us\": %.4f, \"p95_us\": %.4f, \"n\": %d, "
-         "\"in_domain\": %d, \"sink\": %.3g}\n", t[n / 2], t[n / 20], t[(19 * n) / 20], n,
-         inside, sink);
+  summary(t, n, inside, sink);
   free(t);
   return 0;
 }
 """
+)
 
 
-CASADI_DRIVER = r"""
-#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <time.h>
+CASADI_DRIVER = (
+    PRELUDE
+    + r"""
 #include "quad_ca.h"
 
-static int cmp(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return (x > y) - (x < y);
-}
-
-static double uniform(unsigned long long *s, double lo, double hi) {
-  *s = *s * 6364136223846793005ULL + 1442695040888963407ULL;
-  return lo + (hi - lo) * (double)(*s >> 11) / 9007199254740992.0;
-}
-
 int main(int argc, char **argv) {
-  int n = atoi(argv[1]), i, j, inside = 0;
+  int n = atoi(argv[1]), i, inside = 0;
   unsigned long long s = 12345;
   casadi_int na, nr, niw, nw;
   quad_ca_work(&na, &nr, &niw, &nw);
@@ -95,9 +99,7 @@ int main(int argc, char **argv) {
   double *res[8] = {f, tq, lv, &dom};
   struct timespec a, b;
   for (i = 0; i < n; i++) {
-    for (j = 0; j < 4; j++) rpm[j] = uniform(&s, 3000.0, 4000.0);
-    for (j = 0; j < 3; j++) e[j] = uniform(&s, -0.3, 0.3);
-    v[0] = uniform(&s, 3.0, 12.0); v[1] = uniform(&s, -1.0, 1.0); v[2] = uniform(&s, -1.0, 1.0);
+    state(&s, rpm, e, v);
     clock_gettime(CLOCK_MONOTONIC, &a);
     quad_ca(arg, res, iw, w, 0);
     clock_gettime(CLOCK_MONOTONIC, &b);
@@ -105,13 +107,11 @@ int main(int argc, char **argv) {
     inside += dom > 0.5;
     t[i] = (b.tv_sec - a.tv_sec) * 1e6 + (b.tv_nsec - a.tv_nsec) * 1e-3;
   }
-  qsort(t, n, sizeof(double), cmp);
-  printf("{\"median_us\": %.4f, \"p05_us\": %.4f, \"p95_us\": %.4f, \"n\": %d, "
-         "\"in_domain\": %d, \"sink\": %.3g}\n", t[n / 2], t[n / 20], t[(19 * n) / 20], n,
-         inside, sink);
+  summary(t, n, inside, sink);
   return 0;
 }
 """
+)
 
 
 def _compile_and_time(cc: str, flags, where: Path, sources, calls: int) -> dict[str, Any]:

@@ -36,6 +36,10 @@ def test_require_and_peak():
     memory.require("a test", 1 << 10)
     with memory.PeakRSS(interval=0.005) as p:
         x = np.ones(50_000_000 // 8)  # 50 MB touched
-        time.sleep(0.05)  # long enough to be sampled
+        # held until the sampler has seen it (a loaded machine can delay its thread by more
+        # than any fixed sleep), for at most 5 s
+        deadline = time.monotonic() + 5.0
+        while p.peak - p.start <= 30_000_000 and time.monotonic() < deadline:
+            time.sleep(0.005)
         del x
     assert p.peak_delta > 30_000_000
