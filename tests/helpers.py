@@ -86,7 +86,7 @@ def finite_numbers(obj: Any) -> bool:
 LAMBDA = 5.0
 
 
-def variance_rtol(sur, rpm, euler, v_air) -> np.ndarray:
+def variance_rtol(sur, rpm, euler, v_air, unit_roundoff: float | None = None) -> np.ndarray:
     """Per query, the relative accuracy of a surrogate's predictive variance, from the dtype
     its variance factor is stored in (float32 for the default model, ``variance_dtype``) and
     the conditioning of ``σ − ‖F k‖²``: ``F k`` is summed in that dtype over the ``R`` rows of
@@ -94,7 +94,11 @@ def variance_rtol(sur, rpm, euler, v_air) -> np.ndarray:
     ``λ √R u (2 ‖F k‖ ‖|F| |k|‖ + ‖F k‖²)``; each component of the predictive variance is
     ``(latent + ν²)`` times fixed positive weights, so its relative error is that over
     ``latent + ν²``. Computed in float64 NumPy from the stored factor (an independent
-    reference of the quadratic form); exact ``gpg`` and binned models."""
+    reference of the quadratic form); exact ``gpg`` and binned models. The kernel row ``k`` itself
+    is off by ``u (|x/l|² + |x_p/l|²)`` relative per entry (the library expands the squared
+    distance), which moves the latent variance by ``2 ‖F k‖ ‖|F| δk‖``. ``unit_roundoff``: a
+    coarser ``u`` than the stored factor's, for a computation done in a narrower type (an
+    export in float)."""
     import jax
     import jax.numpy as jnp
 
@@ -114,18 +118,26 @@ def variance_rtol(sur, rpm, euler, v_air) -> np.ndarray:
         return model.kernel_row(xn, b), b
 
     K, B = (np.asarray(a) for a in rows(*(jnp.asarray(a, float) for a in (rpm, euler, v_air))))
+    # |x/l|² + |x_p/l|² at most, over the box [-1, 1]^D and the stored points (padding aside)
+    ls = np.broadcast_to(np.asarray(model.hyper.lengthscale if exact else model.lengthscale), (8,))
+    pts = np.asarray(model.X if exact else model.Xn).reshape(-1, 8)
+    pts = pts[np.abs(pts).max(axis=1) < 10]
+    reach = float(np.sum(1 / ls**2) + np.max(np.sum((pts / ls) ** 2, axis=1)))
     out = []
     for k, b in zip(K.astype(float), B, strict=True):
         if exact:
             F, sigma, noise = model.chol_inv, model.hyper.variance, model.hyper.noise
         else:
             F, sigma, noise = model.factor[int(b)], model.variance, model.noise
-        u = float(np.finfo(F.dtype).eps) / 2
+        u = max(float(np.finfo(F.dtype).eps) / 2, unit_roundoff or 0.0)
         Fd = F.to_dense()
         fk, bound = Fd @ k, np.abs(Fd) @ np.abs(k)
         quad = float(fk @ fk)
         dq = LAMBDA * np.sqrt(k.size) * u * (2 * np.linalg.norm(fk) * np.linalg.norm(bound) + quad)
-        out.append(dq / (max(float(sigma) - quad, 0.0) + float(noise)))
+        dk = LAMBDA * max(float(np.finfo(float).eps) / 2, unit_roundoff or 0.0) * reach * np.abs(k)
+        dq += 2 * np.linalg.norm(fk) * np.linalg.norm(np.abs(Fd) @ dk)
+        # + the weights' products and the rotation to the world frame: a few u of float64
+        out.append(dq / (max(float(sigma) - quad, 0.0) + float(noise)) + 8 * np.finfo(float).eps)
     return np.asarray(out)
 
 

@@ -1,8 +1,8 @@
-"""Bench suite ``export``: the C export of the mean (gpg/export.py) compiled with the system
-``cc -O2`` and timed per query on one core by a small C driver (median of many calls), beside
-``Surrogate.realtime`` in the same run, and the CasADi function: its own evaluation from Python
-and the C its code generator writes, timed by the same kind of driver; the constants' bytes
-and the sources' sizes.
+"""Bench suite ``export``: the C export (gpg/export), mean and mean plus variance, compiled
+with the system ``cc -O2`` and timed per query on one core by a small C driver (median of
+many calls), beside ``Surrogate.realtime`` in the same run, and the CasADi function's mean:
+its own evaluation from Python and the C its code generator writes, timed by the same kind
+of driver; the constants' bytes and the sources' sizes.
 
 The C code's cost depends only on the model's sizes (training points N, gradient dims G,
 outputs M), not on the values, so the suite builds a ``gpgs_hybrid`` surrogate of the sizes
@@ -12,9 +12,7 @@ N = 1000, G = 7, M = 9 is data=default's model, N = 5000 data=paper's.
 
 from __future__ import annotations
 
-import json
 import shutil
-import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -22,114 +20,12 @@ from typing import Any
 import numpy as np
 
 from gpg.runs.common import latency, report, stats, table
+from gpg.runs.export import CASADI_DRIVER, c_driver, compile_and_time
 
-# The drivers' common part: headers, a sort for the percentiles, and query states inside the
-# data's box from a fixed linear congruential sequence.
-PRELUDE = r"""
-#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <time.h>
-
-static int cmp(const void *a, const void *b) {
-  double x = *(const double *)a, y = *(const double *)b;
-  return (x > y) - (x < y);
-}
-
-static double uniform(unsigned long long *s, double lo, double hi) {
-  *s = *s * 6364136223846793005ULL + 1442695040888963407ULL;
-  return lo + (hi - lo) * (double)(*s >> 11) / 9007199254740992.0;
-}
-
-static void state(unsigned long long *s, double rpm[4], double e[3], double v[3]) {
-  int j;
-  for (j = 0; j < 4; j++) rpm[j] = uniform(s, 3000.0, 4000.0);
-  for (j = 0; j < 3; j++) e[j] = uniform(s, -0.3, 0.3);
-  v[0] = uniform(s, 3.0, 12.0); v[1] = uniform(s, -1.0, 1.0); v[2] = uniform(s, -1.0, 1.0);
-}
-
-static void summary(double *t, int n, int inside, double sink) {
-  qsort(t, n, sizeof(double), cmp);
-  printf("{\"median_us\": %.4f, \"p05_us\": %.4f, \"p95_us\": %.4f, \"n\": %d, "
-         "\"in_domain\": %d, \"sink\": %.3g}\n", t[n / 2], t[n / 20], t[(19 * n) / 20], n,
-         inside, sink);
-}
-"""
-
-DRIVER = (
-    PRELUDE
-    + r"""
-#include "quad.h"
-
-int main(int argc, char **argv) {
-  int n = atoi(argv[1]), i, inside = 0;
-  unsigned long long s = 12345;
-  double *t = malloc(n * sizeof(double)), rpm[4], euler[3], v[3], f[3], tq[3], lv[8], sink = 0;
-  struct timespec a, b;
-  for (i = 0; i < n; i++) {
-    state(&s, rpm, euler, v);
-    clock_gettime(CLOCK_MONOTONIC, &a);
-    inside += quad_mean(rpm, euler, v, f, tq, lv);
-    clock_gettime(CLOCK_MONOTONIC, &b);
-    sink += f[0] + tq[2];
-    t[i] = (b.tv_sec - a.tv_sec) * 1e6 + (b.tv_nsec - a.tv_nsec) * 1e-3;
-  }
-  summary(t, n, inside, sink);
-  free(t);
-  return 0;
-}
-"""
-)
-
-
-CASADI_DRIVER = (
-    PRELUDE
-    + r"""
-#include "quad_ca.h"
-
-int main(int argc, char **argv) {
-  int n = atoi(argv[1]), i, inside = 0;
-  unsigned long long s = 12345;
-  casadi_int na, nr, niw, nw;
-  quad_ca_work(&na, &nr, &niw, &nw);
-  casadi_int *iw = malloc((niw + 1) * sizeof(casadi_int));
-  double *w = malloc((nw + 1) * sizeof(double)), *t = malloc(n * sizeof(double));
-  double rpm[4], e[3], v[3], f[3], tq[3], lv[8], dom, sink = 0;
-  const double *arg[8] = {rpm, e, v};
-  double *res[8] = {f, tq, lv, &dom};
-  struct timespec a, b;
-  for (i = 0; i < n; i++) {
-    state(&s, rpm, e, v);
-    clock_gettime(CLOCK_MONOTONIC, &a);
-    quad_ca(arg, res, iw, w, 0);
-    clock_gettime(CLOCK_MONOTONIC, &b);
-    sink += f[0] + tq[2];
-    inside += dom > 0.5;
-    t[i] = (b.tv_sec - a.tv_sec) * 1e6 + (b.tv_nsec - a.tv_nsec) * 1e-3;
-  }
-  summary(t, n, inside, sink);
-  return 0;
-}
-"""
-)
-
-
-def _compile_and_time(cc: str, flags, where: Path, sources, calls: int) -> dict[str, Any]:
-    """Build ``driver`` from ``sources`` in ``where``, run it for ``calls`` queries."""
-    import time
-
-    t0 = time.perf_counter()
-    built = subprocess.run(
-        [cc, *flags, "-I", str(where), "-o", str(where / "driver"), *map(str, sources), "-lm"],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    if built.returncode != 0:
-        raise RuntimeError(f"{cc} failed: {built.stderr[-2000:]}")
-    compile_s = time.perf_counter() - t0
-    res = subprocess.run(
-        [str(where / "driver"), str(calls)], check=True, capture_output=True, text=True
-    )
-    return {**json.loads(res.stdout), "compile_s": compile_s}
+CALLS = (
+    ("mean", "quad_mean(rpm, e, v, f, tq, lv)"),
+    ("predict", "quad_predict(rpm, e, v, f, tq, lv, var)"),
+)  # what the C driver times, one query per call
 
 
 def _casadi(sur, cc: str, flags, where: Path, states, cfg) -> dict[str, Any]:
@@ -137,7 +33,7 @@ def _casadi(sur, cc: str, flags, where: Path, states, cfg) -> dict[str, Any]:
     from gpg import export
     from gpg.runs.common import time_calls
 
-    f = export.to_casadi(sur, name="quad_ca")
+    f = export.to_casadi(sur, name="quad_ca", variance=False)
     calls = iter(states * (cfg["jax_calls"] // len(states) + 2))
     python = stats(time_calls(lambda: f(*next(calls)), cfg["jax_calls"], warmup=3))
     where.mkdir(parents=True, exist_ok=True)
@@ -147,7 +43,7 @@ def _casadi(sur, cc: str, flags, where: Path, states, cfg) -> dict[str, Any]:
     gen.add(f)
     gen.generate(f"{where}/")
     (where / "driver.c").write_text(CASADI_DRIVER)
-    timing = _compile_and_time(
+    timing = compile_and_time(
         cc, flags, where, [where / "driver.c", where / "quad_ca.c"], cfg["c_calls"]
     )
     return {
@@ -188,13 +84,19 @@ def bench_export(cfg: dict[str, Any]) -> dict[str, Any]:
         with tempfile.TemporaryDirectory() as tmp:
             for dtype in ("double", "float"):
                 where = Path(tmp) / dtype
-                info = export.to_c(sur, where, name="quad", dtype=dtype)
-                (where / "driver.c").write_text(DRIVER)
-                timing = _compile_and_time(
-                    cc, cfg["flags"], where, [where / "driver.c", info["c"]], cfg["c_calls"]
-                )
+                try:
+                    info = export.to_c(sur, where, name="quad", dtype=dtype)
+                except ValueError:  # the variance over max_bytes (data=paper's size): the mean
+                    info = export.to_c(sur, where, name="quad", dtype=dtype, variance=False)
+                timing = {}
+                for label, call in CALLS[: 1 + info["variance"]]:
+                    (where / "driver.c").write_text(c_driver("quad.h", call))
+                    timing[label] = compile_and_time(
+                        cc, cfg["flags"], where, [where / "driver.c", info["c"]], cfg["c_calls"]
+                    )
                 row[dtype] = {
-                    **timing,
+                    **timing["mean"],
+                    "predict": timing.get("predict"),
                     "constant_bytes": info["constant_bytes"],
                     "source_bytes": info["c"].stat().st_size,
                 }
@@ -216,6 +118,7 @@ def export_table(res: dict[str, Any]) -> str:
                     "dtype": dtype,
                     "us": r[dtype]["median_us"],
                     "p95": r[dtype]["p95_us"],
+                    "pred": (r[dtype]["predict"] or {}).get("median_us"),
                     "kb": r[dtype]["constant_bytes"] / 1e3,
                     "rt": r["realtime_mean"]["median_s"] * 1e6,
                 }
@@ -237,6 +140,7 @@ def export_table(res: dict[str, Any]) -> str:
         ("dtype", "C type", ""),
         ("us", "C mean µs (median)", ".2f"),
         ("p95", "p95 µs", ".2f"),
+        ("pred", "C mean + variance µs", ".1f"),
         ("kb", "constants kB", ".0f"),
         ("rt", "realtime µs (CasADi: its Python call)", ".1f"),
     ]

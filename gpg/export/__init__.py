@@ -1,0 +1,19 @@
+"""A fitted surrogate outside JAX: self-contained C source (:func:`to_c`), a CasADi function
+with exact derivatives (:func:`to_casadi`) and an ONNX model (:func:`to_onnx`), each of the
+world-frame prediction ``(rpm, euler, v_air) -> (force, torque, levels[, variance],
+in_domain)`` with the trained arrays as constants, and each carrying a record of the gpg
+version, the model, the SHA-256 of its arrays and the units (:func:`gpg.export.layout.spec`).
+
+Kinds: every real-time kind (``gpg``, ``gpgs_hybrid``, ``gpg_pic``, ``gpgs``, ``gpgs_schur``,
+``gps_*``; ``gp`` like ``gpg``) exports its mean and its variance. The exact kinds' variance
+factor is the dense ``(N(1+G))²`` triangle (256 MB at data=default), so it passes only under
+``max_bytes`` (small models); a surrogate with ``M_noise`` is refused (its network is not
+exported), as is an exact model grown by ``condition`` when its variance is asked for.
+"""
+
+from gpg.export.c_source import to_c
+from gpg.export.casadi_function import to_casadi
+from gpg.export.layout import Spec, spec
+from gpg.export.onnx_model import to_onnx
+
+__all__ = ["Spec", "spec", "to_c", "to_casadi", "to_onnx"]

@@ -1,0 +1,612 @@
+"""A fitted surrogate as self-contained C source: :func:`to_c` writes ``<name>.c`` and
+``<name>.h`` with the trained arrays as constants and no dependency but libm.
+
+The generated functions compute what :meth:`Surrogate.predict` does for one world-frame state:
+the airflow frame (with its hover blend), the attitude in it, the normalisation, the GP (the
+global folded mean of :mod:`gpg.gp.mean` or the query's bin's mean, and the variance
+``σ − ‖F_b k̄‖²`` of the query's bin, found by the partition's tree), the rotation back to the
+world frame and the simplified model ``M``. ``in_domain`` is the data's box, finite inputs
+and outputs, rotor speeds ≥ 0 and the airflow frame's turn rate
+(:func:`gpg.quadrotor.frames.airflow_frame_rate`, here by central differences, so a query
+within rounding of the threshold may be flagged differently).
+
+``dtype="float"`` stores the GP's arrays in float (half the bytes, for a flight controller's
+flash) and evaluates the kernel and the variance's product in float; the frame, the
+normalisation and the mean's sums stay in double. A variance factor stored in float32 (the
+default model's ``variance_dtype``) is written as float in either dtype: its values are
+exactly those floats, and the product is then accumulated in the dtype asked for.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpg._io import atomic_write
+from gpg.export.layout import MAX_BYTES, Spec, column_spans, spec
+from gpg.names import INPUTS
+from gpg.quadrotor.frames import _TINY_SPEED
+from gpg.surrogate import MAX_FRAME_RATE, Surrogate
+
+DTYPES = {"double": (np.float64, "double"), "float": (np.float32, "float")}
+
+
+def to_c(
+    sur: Surrogate,
+    directory: str | Path,
+    *,
+    name: str = "gpg_model",
+    dtype: str = "double",
+    variance: bool = True,
+    max_bytes: int = MAX_BYTES,
+) -> dict[str, Any]:
+    """Write ``<directory>/<name>.c`` and ``.h`` for ``sur``; returns what was written (paths,
+    bytes of the GP's constants, the record of gpg version, model, arrays' SHA-256, units).
+
+    The header documents the calls, which return ``in_domain`` (1 or 0):
+
+    * ``int <name>_mean(const double rpm[4], const double euler[3], const double v_air[3],
+      double force[3], double torque[3], double *levels)``;
+    * with ``variance`` (and a model that has one): ``int <name>_predict(..., double *levels,
+      double *variance)``, ``variance[6 + K]`` the predictive variance of force, torque (world
+      frame) and levels as :meth:`Surrogate.predict` gives it.
+
+    Units rpm, rad (yaw, pitch, roll: ``R_WB = Rz Ry Rx``), m/s, N, N·m, dB; world frame x
+    forward, y right, z down. A non-finite input gives 0 and zeros, never NaN.
+    ``ValueError`` (nothing written) for a model :func:`gpg.export.layout.spec` refuses, a bad
+    ``name`` or ``dtype``, or constants over ``max_bytes``."""
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {list(DTYPES)}, got {dtype!r}")
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+        raise ValueError(f"name must be a C identifier, got {name!r}")
+    s = spec(sur, variance=variance)
+    itemsize = np.dtype(DTYPES[dtype][0]).itemsize
+    n_const = s.constant_bytes(itemsize, variance=s.has_variance)
+    if n_const > max_bytes:
+        raise ValueError(
+            f"the export of {s.model!r} holds {n_const / 2**20:.1f} MiB of constants, over "
+            f"max_bytes={max_bytes / 2**20:.1f} MiB (variance=False keeps the mean only; "
+            "gpgs_hybrid's near-set variance is the real-time one)"
+        )
+    record = {**s.record, "dtype": dtype}
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    source = _source(name, dtype, s, record)
+    header = _header(name, s, record)
+    c_path, h_path = directory / f"{name}.c", directory / f"{name}.h"
+    atomic_write(h_path, header.encode())
+    atomic_write(c_path, source.encode())
+    return {
+        "c": c_path,
+        "h": h_path,
+        "constant_bytes": n_const,
+        "variance": s.has_variance,
+        "record": record,
+    }
+
+
+def _literal(a: np.ndarray, np_type) -> str:
+    """A C initializer (flat) whose values read back exactly in the C type (17 or 9
+    significant digits)."""
+    a = np.asarray(a, np_type).ravel()
+    digits = 17 if np_type is np.float64 else 9
+    suffix = "" if np_type is np.float64 else "f"
+    vals = [f"{v:.{digits}g}" for v in a.tolist()] or ["0"]
+    # "1" and "1e+20" are integer constants or need a point for an "f" suffix to be valid C
+    vals = [t if "." in t else t.replace("e", ".e") if "e" in t else t + "." for t in vals]
+    vals = [t + suffix for t in vals]
+    lines = [", ".join(vals[i : i + 8]) for i in range(0, len(vals), 8)]
+    return "{" + ",\n  ".join(lines) + "}"
+
+
+def _ints(a) -> str:
+    return "{" + ", ".join(str(int(v)) for v in np.asarray(a).ravel()) + "}" if len(a) else "{0}"
+
+
+def _header(name: str, s: Spec, record: dict[str, Any]) -> str:
+    guard = name.upper() + "_H"
+    n_levels = len(s.level_names)
+    meta = json.dumps(record, indent=1, sort_keys=True).replace("*/", "* /")
+    box = "\n".join(
+        f" *   {INPUTS[i]:9s} [{s.box_lo[i]:.17g}, {s.box_hi[i]:.17g}]" for i in range(len(INPUTS))
+    )
+    predict = (
+        f"""
+/* as {name}_mean, and variance[{6 + n_levels}]: the predictive variance of force[3] (N^2),
+ * torque[3] ((N*m)^2), world frame, and of levels (dB^2), as gpg's Surrogate.predict */
+int {name}_predict(const double rpm[4], const double euler[3], const double v_air[3],
+                   double force[3], double torque[3], double *levels, double *variance);
+"""
+        if s.has_variance
+        else ""
+    )
+    return f"""/* {name}: a gpg surrogate's prediction, generated by gpg.export.to_c.
+ *
+ * {meta}
+ *
+ * int {name}_mean(rpm, euler, v_air, force, torque, levels)
+ *   rpm[4]    rotor speeds, rpm (r1 rear-right, r2 rear-left, r3 front-left, r4 front-right)
+ *   euler[3]  yaw, pitch, roll in rad: R_WB = Rz(yaw) Ry(pitch) Rx(roll), body FRD
+ *   v_air[3]  air velocity of the vehicle, m/s, world frame (x forward, y right, z down):
+ *             vehicle velocity minus wind
+ *   force[3], torque[3]  out: aerodynamic force (N) and torque (N*m), world frame
+ *   levels[{n_levels}]  out: tonal noise levels, dB ({", ".join(s.level_names) or "none"})
+ * returns in_domain: 1 inside the training data's box (x_H = rpm, attitude in the airflow
+ * frame, airspeed), rotor speeds >= 0, finite inputs and outputs and a well-conditioned
+ * airflow frame; 0 otherwise (an extrapolation: the values are returned all the same, zeros
+ * for non-finite input). The box of x_H (rpm, rad, m/s):
+{box}
+ * Not thread-hostile: no state is kept between calls.
+ */
+#ifndef {guard}
+#define {guard}
+
+#define {name.upper()}_N_LEVELS {n_levels}
+#define {name.upper()}_HAS_VARIANCE {int(s.has_variance)}
+
+extern const double {name}_box_lo[8];
+extern const double {name}_box_hi[8];
+
+int {name}_mean(const double rpm[4], const double euler[3], const double v_air[3],
+                double force[3], double torque[3], double *levels);
+{predict}
+#endif
+"""
+
+
+_FRAMES = r"""
+static double safe_atan2(double y, double x, double tiny) {
+  if (fabs(x) <= tiny && fabs(y) <= tiny) return 0.0;
+  return atan2(y, x);
+}
+
+static double norm3(const double v[3]) {
+  double s = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+  return s <= 0.0 ? 0.0 : sqrt(s);
+}
+
+/* R = Rz(yaw) Ry(pitch) Rx(roll) */
+static void rot_wb(double yaw, double pitch, double roll, double R[3][3]) {
+  double cy = cos(yaw), sy = sin(yaw), cp = cos(pitch), sp = sin(pitch);
+  double cr = cos(roll), sr = sin(roll);
+  R[0][0] = cy * cp; R[0][1] = cy * sp * sr - sy * cr; R[0][2] = cy * sp * cr + sy * sr;
+  R[1][0] = sy * cp; R[1][1] = sy * sp * sr + cy * cr; R[1][2] = sy * sp * cr - cy * sr;
+  R[2][0] = -sp;     R[2][1] = cp * sr;                R[2][2] = cp * cr;
+}
+
+/* wind axes Rz(heading) Ry(climb) of the direction d */
+static void wind_axes(const double d[3], double R[3][3]) {
+  double dxy[3] = {d[0], d[1], 0.0};
+  double heading = safe_atan2(d[1], d[0], TINY_SPEED);
+  double climb = safe_atan2(-d[2], norm3(dxy), TINY_SPEED);
+  rot_wb(heading, climb, 0.0, R);
+}
+
+/* R_WH of the airflow frame, blended toward the body heading (gpg.quadrotor.frames) */
+static void airflow_frame(const double v[3], double yaw, double R[3][3]) {
+  double h = HOVER_SPEED, d[3], x[3], y[3], z[3], c, dxy2, n, yx;
+  int i;
+  if (h <= 0.0) { wind_axes(v, R); return; }
+  c = 1.0 - (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) / (h * h);
+  c = h * (c > 0.0 ? c * c : 0.0);
+  d[0] = v[0] + c * cos(yaw); d[1] = v[1] + c * sin(yaw); d[2] = v[2];
+  dxy2 = d[0] * d[0] + d[1] * d[1];
+  if (dxy2 >= h * h) { wind_axes(d, R); return; }
+  n = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] > 0.0 ? norm3(d) : 1.0;
+  for (i = 0; i < 3; i++) x[i] = d[i] / n;
+  c = 1.0 - dxy2 / (h * h);
+  c = h * (c > 0.0 ? c * c : 0.0);
+  y[0] = -d[1] - c * sin(yaw); y[1] = d[0] + c * cos(yaw); y[2] = 0.0;
+  yx = y[0] * x[0] + y[1] * x[1] + y[2] * x[2];
+  for (i = 0; i < 3; i++) y[i] -= yx * x[i];
+  n = y[0] * y[0] + y[1] * y[1] + y[2] * y[2] > 0.0 ? norm3(y) : 1.0;
+  for (i = 0; i < 3; i++) y[i] /= n;
+  z[0] = x[1] * y[2] - x[2] * y[1];
+  z[1] = x[2] * y[0] - x[0] * y[2];
+  z[2] = x[0] * y[1] - x[1] * y[0];
+  for (i = 0; i < 3; i++) { R[i][0] = x[i]; R[i][1] = y[i]; R[i][2] = z[i]; }
+}
+
+static void euler_from_r(double R[3][3], double e[3]) {
+  double cp = hypot(R[0][0], R[1][0]);
+  e[1] = safe_atan2(-R[2][0], cp, 0.0);
+  if (cp < 1e-12) { e[0] = safe_atan2(-R[0][1], R[1][1], 0.0); e[2] = 0.0; }
+  else { e[0] = safe_atan2(R[1][0], R[0][0], 0.0); e[2] = safe_atan2(R[2][1], R[2][2], 0.0); }
+}
+
+/* the attitude in the airflow frame, and R_WH */
+static void to_airflow(const double euler[3], const double v[3], double eh[3], double rwh[3][3]) {
+  double rwb[3][3], rhb[3][3];
+  int i, j, k;
+  airflow_frame(v, euler[0], rwh);
+  rot_wb(euler[0], euler[1], euler[2], rwb);
+  for (i = 0; i < 3; i++)
+    for (j = 0; j < 3; j++) {
+      rhb[i][j] = 0.0;
+      for (k = 0; k < 3; k++) rhb[i][j] += rwh[k][i] * rwb[k][j];
+    }
+  euler_from_r(rhb, eh);
+}
+
+/* frames.airflow_frame_rate by central differences (rad per m/s) */
+static double frame_rate(const double euler[3], const double v[3]) {
+  double se = 0.0, sr = 0.0, step = 1e-6, vp[3], vm[3], ep[3], em[3], rp[3][3], rm[3][3], t;
+  int j, a, b;
+  if (HOVER_SPEED <= 0.0 && v[0] * v[0] + v[1] * v[1] <= TINY_SPEED * TINY_SPEED) return INFINITY;
+  for (j = 0; j < 3; j++) {
+    for (a = 0; a < 3; a++) { vp[a] = v[a]; vm[a] = v[a]; }
+    vp[j] += step; vm[j] -= step;
+    to_airflow(euler, vp, ep, rp);
+    to_airflow(euler, vm, em, rm);
+    for (a = 0; a < 3; a++) {
+      t = ep[a] - em[a];
+      t -= 6.283185307179586 * floor((t + 3.141592653589793) / 6.283185307179586);
+      se += t * t;
+      for (b = 0; b < 3; b++) { t = rp[a][b] - rm[a][b]; sr += t * t; }
+    }
+  }
+  se = sqrt(se) / (2.0 * step);
+  sr = sqrt(sr / 2.0) / (2.0 * step);
+  return se > sr ? se : sr;
+}
+"""
+
+
+# Long by design: one declaration per array the C code reads, in the order it reads them;
+# split, the dtype choices would be made in several places.
+def _constants(name: str, dtype: str, s: Spec) -> list[str]:
+    """The arrays as C constants: the GP's in ``real`` (the dtype asked for), the variance
+    factor in ``freal`` (never wider than it is stored), the rest in double."""
+    np_type = DTYPES[dtype][0]
+    m = s.n_outputs
+    f_type = (
+        np.float32
+        if dtype == "float" or (s.bins is not None and s.bins.factor_dtype == np.float32)
+        else np.float64
+    )
+    out = [
+        f"#define TINY_SPEED {_TINY_SPEED!r}",
+        f"#define HOVER_SPEED {s.hover_speed!r}",
+        f"#define MAX_FRAME_RATE {MAX_FRAME_RATE!r}",
+        f"#define N_OUT {m}",
+        f"#define N_GRAD {len(s.grad_dims)}",
+        f"typedef {DTYPES[dtype][1]} real;",
+        f"typedef {'float' if f_type is np.float32 else 'double'} freal;",
+    ]
+
+    def dbl(key, a):
+        out.append(f"static const double {key}[{max(a.size, 1)}] = {_literal(a, np.float64)};")
+
+    def rl(key, a, c_type="real", t=np_type):
+        out.append(f"static const {c_type} {key}[{max(a.size, 1)}] = {_literal(a, t)};")
+
+    for key in ("x_lo", "half", "y_mean", "y_std", "output_scale"):
+        dbl(key.upper(), getattr(s, key))
+    if s.bins is not None:  # the bins' kernel rows
+        dbl("LENGTHSCALE", s.lengthscale)
+    dbl("SIGMA_NOISE", np.array([s.sigma, s.noise]))
+    out.append(f"static const int GRAD_DIMS[{max(len(s.grad_dims), 1)}] = {_ints(s.grad_dims)};")
+    for key in ("box_lo", "box_hi"):
+        out.append(f"const double {name}_{key}[8] = {_literal(getattr(s, key), np.float64)};")
+    if s.allocation is not None:
+        dbl("ALLOCATION", s.allocation)
+    if s.global_mean is not None:
+        gm = s.global_mean
+        out.append(f"#define N_MEAN {gm['xs'].shape[0]}")
+        dbl("INV_LS_M", gm["inv_ls"])
+        dbl("SIGMA_M", gm["sigma"])
+        # double whatever the dtype: a float position moves every kernel value by ~1e-7
+        # relative, which the mean's cancelling sum amplifies (measured 5e-5 at data=default)
+        dbl("XS_T", gm["xs"].T)
+        rl("COEF", gm["coef"])
+    b = s.bins
+    if b is None:
+        return out
+    n_pts = [p.shape[0] for p in b.points]
+    out.append(f"#define N_BINS {b.n_bins}")
+    out.append(f"#define N_SHARED {0 if b.shared is None else b.shared.shape[0]}")
+    out.append(f"#define MAX_ROWS {max(b.rows(i, len(s.grad_dims)) for i in range(b.n_bins))}")
+    out.append(f"#define SLAB {int(b.scheme == 'slab')}")
+    out.append(f"static const int SPLIT_DIM[{max(b.split_dim.size, 1)}] = {_ints(b.split_dim)};")
+    dbl("SPLIT_VALUE", b.split_value)
+    out.append(f"#define N_CUTS {b.split_value.size}")
+    if b.scheme != "slab":
+        out.append(f"static const int LEFT[{max(b.left.size, 1)}] = {_ints(b.left)};")
+        out.append(f"static const int RIGHT[{max(b.right.size, 1)}] = {_ints(b.right)};")
+    out.append(f"static const int BIN_NPTS[{b.n_bins}] = {_ints(n_pts)};")
+    out.append(f"static const long BIN_PT_OFF[{b.n_bins}] = {_ints(np.cumsum([0] + n_pts[:-1]))};")
+    rl("PTS", np.concatenate(b.points))
+    rl("SHARED", b.shared if b.shared is not None else np.zeros(0))
+    if b.coef is not None:
+        sizes = [c.size for c in b.coef]
+        out.append(
+            f"static const long BCOEF_OFF[{b.n_bins}] = {_ints(np.cumsum([0] + sizes[:-1]))};"
+        )
+        rl("BCOEF", np.concatenate([c.ravel() for c in b.coef]))
+    if b.factor is not None:
+        firsts, lens, data, col_base, offs, pos = [], [], [], [], [], 0
+        for F in b.factor:
+            first, last = column_spans(F)
+            col_base.append(sum(len(f) for f in firsts))
+            firsts.append(first)
+            lens.append(last - first)
+            for j in range(F.shape[1]):
+                offs.append(pos)
+                data.append(F[first[j] : last[j], j])
+                pos += last[j] - first[j]
+        out.append(f"static const long COL_BASE[{b.n_bins}] = {_ints(col_base)};")
+        out.append(f"static const int COL_FIRST[{len(offs)}] = {_ints(np.concatenate(firsts))};")
+        out.append(f"static const int COL_LEN[{len(offs)}] = {_ints(np.concatenate(lens))};")
+        out.append(f"static const long COL_OFF[{len(offs)}] = {_ints(offs)};")
+        rl("FACT", np.concatenate(data), "freal", f_type)
+    return out
+
+
+_BODY = r"""
+#define N_LEVELS (N_OUT - 6)
+
+#if HAS_BINS
+/* the query's bin (gpg.gp.partition.Partition.lookup): a value on a split goes left */
+static int lookup(const double xn[8]) {
+#if SLAB
+  int b = 0, i;
+  for (i = 0; i < N_CUTS; i++) b += xn[SPLIT_DIM[0]] > SPLIT_VALUE[i];
+  return b;
+#else
+  int node = 0;
+  if (N_BINS == 1) return 0;
+  while (node >= 0) node = xn[SPLIT_DIM[node]] <= SPLIT_VALUE[node] ? LEFT[node] : RIGHT[node];
+  return -node - 1;
+#endif
+}
+
+/* k(x, X_p) for n points, then one block of gradient rows k (x_a - X_pa) / l_a^2 per
+ * gradient dimension a (gpg.gp.kernels.query_rows) */
+static void krows(const double xn[8], const real *X, int n, real *out) {
+  int p, i, g, a;
+  double r2, t, k;
+  for (p = 0; p < n; p++) {
+    r2 = 0.0;
+    for (i = 0; i < 8; i++) { t = (xn[i] - (double)X[p * 8 + i]) / LENGTHSCALE[i]; r2 += t * t; }
+    k = SIGMA_NOISE[0] * exp(-0.5 * r2);
+    out[p] = (real)k;
+    for (g = 0; g < N_GRAD; g++) {
+      a = GRAD_DIMS[g];
+      out[(1 + g) * n + p] = (real)(k * (xn[a] - (double)X[p * 8 + a]) /
+                                    (LENGTHSCALE[a] * LENGTHSCALE[a]));
+    }
+  }
+}
+
+/* the kernel row of bin b's near set (shared rows first); returns its length R_b */
+static int kernel_row(const double xn[8], int b, real *k) {
+  int u = N_SHARED * (1 + N_GRAD);
+  if (N_SHARED) krows(xn, SHARED, N_SHARED, k);
+  krows(xn, PTS + BIN_PT_OFF[b] * 8, BIN_NPTS[b], k + u);
+  return u + BIN_NPTS[b] * (1 + N_GRAD);
+}
+#endif
+
+#if HAS_VAR
+/* sigma - |F_b k|^2: F_b column by column (each column's non-zero span, contiguous), so the
+ * inner loop is an axpy the compiler vectorises without reordering a sum */
+static double latent_variance(const real *k, int b, int nr) {
+  real v[MAX_ROWS];
+  double q0 = 0.0, q1 = 0.0, q2 = 0.0, q3 = 0.0;
+  long base = COL_BASE[b];
+  int c, i;
+  for (i = 0; i < nr; i++) v[i] = 0;
+  for (c = 0; c < nr; c++) {
+    const real kc = k[c];
+    const freal *f = FACT + COL_OFF[base + c];
+    real *vv = v + COL_FIRST[base + c];
+    int len = COL_LEN[base + c];
+    if (kc == 0) continue;
+    /* by fours: gcc -O2 vectorises straight-line groups (SLP), not a loop of unknown length */
+    for (i = 0; i + 3 < len; i += 4) {
+      vv[i] += (real)f[i] * kc; vv[i + 1] += (real)f[i + 1] * kc;
+      vv[i + 2] += (real)f[i + 2] * kc; vv[i + 3] += (real)f[i + 3] * kc;
+    }
+    for (; i < len; i++) vv[i] += (real)f[i] * kc;
+  }
+  for (i = 0; i + 3 < nr; i += 4) {
+    q0 += (double)v[i] * v[i]; q1 += (double)v[i + 1] * v[i + 1];
+    q2 += (double)v[i + 2] * v[i + 2]; q3 += (double)v[i + 3] * v[i + 3];
+  }
+  for (; i < nr; i++) q0 += (double)v[i] * v[i];
+  return SIGMA_NOISE[0] - ((q0 + q1) + (q2 + q3));
+}
+#endif
+
+#if HAS_GLOBAL_MEAN
+/* exp(x) for x <= 0 without a branch or a call, so that the loop over the training points
+ * vectorises: x = n ln2 + r with |r| <= ln2/2 (n rounded to nearest by adding 1.5 * 2^52),
+ * exp(r) by its Taylor polynomial of degree 13 (truncation below 1e-17 relative), 2^n written
+ * into the exponent's bits; 0 below -708, where exp leaves the normal doubles (a select by
+ * bit masks from the sign of x + 708: a comparison would be a branch at -O2) */
+static inline double vexp(double x) {
+  const double shift = 6755399441055744.0, lowest = -708.0;
+  double y = x + 708.0, t, n, r, p, s;
+  unsigned long long bits, keep, xb, lb;
+  memcpy(&keep, &y, sizeof keep);
+  keep = ~(unsigned long long)((long long)keep >> 63);
+  memcpy(&xb, &x, sizeof xb);
+  memcpy(&lb, &lowest, sizeof lb);
+  xb = (xb & keep) | (lb & ~keep);
+  memcpy(&y, &xb, sizeof y);
+  t = y * 1.4426950408889634 + shift;
+  n = t - shift;
+  r = (y - n * 0.693147180369123816490) - n * 1.90821492927058770002e-10;
+  p = 1.6059043836821613e-10;
+  p = p * r + 2.08767569878680989792e-09;
+  p = p * r + 2.50521083854417187751e-08;
+  p = p * r + 2.75573192239858906526e-07;
+  p = p * r + 2.75573192239858906526e-06;
+  p = p * r + 2.48015873015873015873e-05;
+  p = p * r + 1.98412698412698412698e-04;
+  p = p * r + 1.38888888888888888889e-03;
+  p = p * r + 8.33333333333333333333e-03;
+  p = p * r + 4.16666666666666666667e-02;
+  p = p * r + 1.66666666666666666667e-01;
+  p = p * r + 0.5;
+  p = p * r + 1.0;
+  p = p * r + 1.0;
+  memcpy(&bits, &t, sizeof bits);
+  bits = (bits - 0x4338000000000000ULL + 1023ULL) << 52;
+  memcpy(&s, &bits, sizeof s);
+  p = p * s;
+  memcpy(&bits, &p, sizeof bits);
+  bits &= keep;
+  memcpy(&p, &bits, sizeof p);
+  return p;
+}
+
+/* the folded exact mean of gpg.gp.mean (normalised units): sum_p k(x, x_p) c_p, in three
+ * passes over the points (squared distances, kernel values, the coefficients' sum) that each
+ * vectorise. (The unfolded sum of gpg.export.layout's alpha was tried: no more accurate in
+ * float here, where the coefficients' own rounding dominates, and half again slower.) */
+static void global_mean(const double xn[8], double yn[N_OUT]) {
+  double k[N_MEAN], acc[N_OUT * (1 + N_GRAD)], xl;
+  int i, j, p;
+  for (p = 0; p < N_MEAN; p++) k[p] = 0.0;
+  for (i = 0; i < 8; i++) {
+    const double *col = XS_T + (long)i * N_MEAN;
+    xl = xn[i] * INV_LS_M[i];
+    for (p = 0; p < N_MEAN; p++) { double t = xl - col[p]; k[p] += t * t; }
+  }
+  for (p = 0; p < N_MEAN; p++) k[p] = vexp(-0.5 * k[p]);
+  for (j = 0; j < N_OUT * (1 + N_GRAD); j++) acc[j] = 0.0;
+  for (p = 0; p < N_MEAN; p++) {
+    const real *c = COEF + (long)p * N_OUT * (1 + N_GRAD);
+    for (j = 0; j < N_OUT * (1 + N_GRAD); j++) acc[j] += k[p] * (double)c[j];
+  }
+  for (j = 0; j < N_OUT; j++) {
+    double mu = acc[j];
+    for (i = 0; i < N_GRAD; i++) {
+      int a = GRAD_DIMS[i];
+      mu += xn[a] * INV_LS_M[a] * INV_LS_M[a] * acc[(1 + i) * N_OUT + j];
+    }
+    yn[j] = SIGMA_M[0] * mu;
+  }
+}
+#endif
+
+static int evaluate(const double rpm[4], const double euler[3], const double v_air[3],
+                    double force[3], double torque[3], double *levels, double *variance) {
+  double eh[3], rwh[3][3], x[8], xn[8], yn[N_OUT], y[N_OUT], speed, span, tol, latent = 0.0;
+  int i, j, b = 0, nr = 0, in_domain = 1;
+#if HAS_BINS
+  real k[MAX_ROWS];
+#endif
+  for (i = 0; i < 3; i++) { force[i] = 0.0; torque[i] = 0.0; }
+  for (i = 0; i < N_LEVELS; i++) levels[i] = 0.0;
+  if (variance) for (i = 0; i < N_OUT; i++) variance[i] = 0.0;
+  for (i = 0; i < 4; i++) if (!isfinite(rpm[i])) return 0;
+  for (i = 0; i < 3; i++) if (!isfinite(euler[i]) || !isfinite(v_air[i])) return 0;
+  to_airflow(euler, v_air, eh, rwh);
+  speed = norm3(v_air);
+  for (i = 0; i < 4; i++) x[i] = rpm[i];
+  for (i = 0; i < 3; i++) x[4 + i] = eh[i];
+  x[7] = speed;
+  for (i = 0; i < 8; i++) {
+    span = BOX_HI[i] - BOX_LO[i];
+    tol = 1e-9 * (span > 1.0 ? span : 1.0);
+    if (x[i] < BOX_LO[i] - tol || x[i] > BOX_HI[i] + tol) in_domain = 0;
+  }
+  for (i = 0; i < 4; i++) if (rpm[i] < 0.0) in_domain = 0;
+  if (in_domain && !(frame_rate(euler, v_air) <= MAX_FRAME_RATE)) in_domain = 0;
+  for (i = 0; i < 8; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
+#if HAS_BINS
+  b = lookup(xn);
+#endif
+#if HAS_GLOBAL_MEAN
+  global_mean(xn, yn);
+#else
+  nr = kernel_row(xn, b, k);
+  for (j = 0; j < N_OUT; j++) {
+    const real *c = BCOEF + BCOEF_OFF[b] + (long)j * nr;
+    double s = 0.0;
+    for (i = 0; i < nr; i++) s += (double)c[i] * (double)k[i];
+    yn[j] = s;
+  }
+#endif
+#if HAS_VAR
+  if (variance) {
+    if (!nr) nr = kernel_row(xn, b, k);
+    latent = latent_variance(k, b, nr);
+  }
+#endif
+  (void)b; (void)nr; (void)latent;
+  for (j = 0; j < N_OUT; j++) y[j] = yn[j] * Y_STD[j] + Y_MEAN[j];
+  for (i = 0; i < 3; i++)
+    for (j = 0; j < 3; j++) { force[i] += rwh[i][j] * y[j]; torque[i] += rwh[i][j] * y[3 + j]; }
+  for (i = 0; i < N_LEVELS; i++) levels[i] = y[6 + i];
+#if HAS_ALLOCATION
+  /* M at the world attitude: A r^2 = (sum T, tau_x, tau_y, tau_z), thrust along -z_B */
+  {
+    double u[4] = {0.0, 0.0, 0.0, 0.0}, fb[3], rwb[3][3];
+    for (i = 0; i < 4; i++)
+      for (j = 0; j < 4; j++) u[i] += ALLOCATION[i * 4 + j] * rpm[j] * rpm[j];
+    fb[0] = 0.0; fb[1] = 0.0; fb[2] = -u[0];
+    rot_wb(euler[0], euler[1], euler[2], rwb);
+    for (i = 0; i < 3; i++)
+      for (j = 0; j < 3; j++) { force[i] += rwb[i][j] * fb[j]; torque[i] += rwb[i][j] * u[1 + j]; }
+  }
+#endif
+  if (variance) {
+    /* c_m (latent + nu^2) std_m^2 per output in H, then diag(R diag(d) R^T) for the vectors */
+    double pv[N_OUT];
+    for (j = 0; j < N_OUT; j++)
+      pv[j] = OUTPUT_SCALE[j] * ((latent > 0.0 ? latent : 0.0) + SIGMA_NOISE[1]) * Y_STD[j] *
+              Y_STD[j];
+    for (i = 0; i < 3; i++) {
+      variance[i] = 0.0; variance[3 + i] = 0.0;
+      for (j = 0; j < 3; j++) {
+        variance[i] += rwh[i][j] * rwh[i][j] * pv[j];
+        variance[3 + i] += rwh[i][j] * rwh[i][j] * pv[3 + j];
+      }
+    }
+    for (i = 6; i < N_OUT; i++) variance[i] = pv[i];
+    for (i = 0; i < N_OUT; i++) if (!isfinite(variance[i])) in_domain = 0;
+  }
+  for (i = 0; i < 3; i++) if (!isfinite(force[i]) || !isfinite(torque[i])) in_domain = 0;
+  for (i = 0; i < N_LEVELS; i++) if (!isfinite(levels[i])) in_domain = 0;
+  return in_domain;
+}
+"""
+
+
+def _source(name: str, dtype: str, s: Spec, record: dict[str, Any]) -> str:
+    flags = {
+        "HAS_BINS": s.bins is not None,
+        "HAS_VAR": s.has_variance,
+        "HAS_GLOBAL_MEAN": s.global_mean is not None,
+        "HAS_ALLOCATION": s.allocation is not None,
+    }
+    defs = [f"#define {k} {int(v)}" for k, v in flags.items()]
+    defs += [f"#define BOX_LO {name}_box_lo"]
+    defs.append(f"#define BOX_HI {name}_box_hi")
+    head = (
+        f"/* {name}.c: generated by gpg.export.to_c (gpg {record['gpg_version']}, model "
+        f"{record['model']}, arrays sha256 {record['arrays_sha256']}). See {name}.h. */\n"
+        f'#include <math.h>\n#include <string.h>\n#include "{name}.h"\n\n'
+    )
+    public = f"""
+int {name}_mean(const double rpm[4], const double euler[3], const double v_air[3],
+                double force[3], double torque[3], double *levels) {{
+  return evaluate(rpm, euler, v_air, force, torque, levels, 0);
+}}
+"""
+    if s.has_variance:
+        public += f"""
+int {name}_predict(const double rpm[4], const double euler[3], const double v_air[3],
+                   double force[3], double torque[3], double *levels, double *variance) {{
+  return evaluate(rpm, euler, v_air, force, torque, levels, variance);
+}}
+"""
+    consts = "\n".join(defs + _constants(name, dtype, s))
+    return head + consts + "\n" + _FRAMES + _BODY + public

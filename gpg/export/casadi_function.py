@@ -1,0 +1,206 @@
+"""A fitted surrogate as a CasADi function (:func:`to_casadi`): the prediction in CasADi MX
+symbolics with the trained arrays as constants, so that CasADi's own AD gives exact Jacobians
+and Hessians to a gradient-based MPC (IPOPT, acados, do-mpc) and its code generator gives C.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gpg.export.layout import Spec, spec
+from gpg.quadrotor.frames import _TINY_SPEED
+from gpg.surrogate import MAX_FRAME_RATE, Surrogate
+
+
+def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", variance: bool = True):
+    """``sur`` as a ``casadi.Function`` of ``(rpm[4], euler[3], v_air[3])`` returning
+    ``force[3], torque[3], levels[K]``, with ``variance`` (and a model that has one)
+    ``variance[6+K]``, then ``in_domain`` (1.0 or 0.0): :meth:`Surrogate.predict` in CasADi.
+
+    ``frame="body"`` returns force and torque (and their variances) in the body frame (FRD)
+    for the same inputs (``v_air`` in the world frame). The query's bin is a
+    ``casadi.conditional`` over the bins' closed forms (its derivative is the bin's own, as in
+    JAX); ``in_domain`` uses CasADi's own Jacobian of the airflow frame for the frame-rate
+    test, as the library uses autodiff, and does not test the outputs for being finite.
+    ``casadi.Function.save`` stores the function, ``generate`` writes its C. Needs the
+    ``casadi`` extra; the kinds of :func:`gpg.export.layout.spec`."""
+    import casadi as ca
+
+    if frame not in ("world", "body"):
+        raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
+    s = spec(sur, variance=variance)
+    rpm, euler, v = ca.MX.sym("rpm", 4), ca.MX.sym("euler", 3), ca.MX.sym("v_air", 3)
+    euler_h, rwh = _ca_airflow(ca, euler, v, s.hover_speed)
+    d_euler = ca.jacobian(euler_h, v)
+    d_frame = ca.jacobian(ca.vec(rwh), v)
+    rate = ca.fmax(ca.norm_fro(d_euler), ca.norm_fro(d_frame) / np.sqrt(2.0))
+    if s.hover_speed <= 0.0:
+        rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= _TINY_SPEED**2, ca.inf, rate)
+    speed = _ca_norm(ca, v)
+    x = ca.vertcat(rpm, euler_h, speed)
+    lo, hi = s.box_lo, s.box_hi
+    tol = 1e-9 * np.maximum(hi - lo, 1.0)
+    inside = ca.MX(1)
+    for i in range(8):
+        inside = ca.logic_and(inside, ca.logic_and(x[i] >= lo[i] - tol[i], x[i] <= hi[i] + tol[i]))
+    for i in range(4):
+        inside = ca.logic_and(inside, rpm[i] >= 0)
+    in_domain = ca.logic_and(inside, rate <= MAX_FRAME_RATE)
+    xn = (x - ca.DM(s.x_lo)) / ca.DM(s.half) - 1
+    yn, latent = _ca_gp(ca, s, xn)
+    y = yn * ca.DM(s.y_std) + ca.DM(s.y_mean)
+    R_out = ca.mtimes(_ca_rot(ca, euler[0], euler[1], euler[2]).T, rwh) if frame == "body" else rwh
+    force, torque = ca.mtimes(R_out, y[0:3]), ca.mtimes(R_out, y[3:6])
+    if s.allocation is not None:
+        u = ca.mtimes(ca.DM(s.allocation), rpm**2)
+        f_b, t_b = ca.vertcat(0, 0, -u[0]), u[1:4]
+        if frame == "body":
+            force, torque = force + f_b, torque + t_b
+        else:
+            rwb = _ca_rot(ca, euler[0], euler[1], euler[2])
+            force, torque = force + ca.mtimes(rwb, f_b), torque + ca.mtimes(rwb, t_b)
+    outs, names = [force, torque, y[6:]], ["force", "torque", "levels"]
+    if latent is not None:
+        w = ca.DM(s.output_scale * s.y_std**2)
+        pv = w * (ca.fmax(latent, 0) + s.noise)
+        R2 = R_out**2
+        outs.append(ca.vertcat(ca.mtimes(R2, pv[0:3]), ca.mtimes(R2, pv[3:6]), pv[6:]))
+        names.append("variance")
+    return ca.Function(
+        name, [rpm, euler, v], outs + [in_domain], ["rpm", "euler", "v_air"], names + ["in_domain"]
+    )
+
+
+def _ca_gp(ca, s: Spec, xn):
+    """Normalised mean (M,) and latent variance (or None) at ``xn`` (8,), MX."""
+    bins = s.bins
+    b = None if bins is None else _ca_lookup(ca, bins, xn)
+    rows = None if bins is None else [_ca_kernel_row(ca, s, xn, i) for i in range(bins.n_bins)]
+    if s.global_mean is not None:
+        mean = _ca_global_mean(ca, s, xn)
+    else:
+        branches = [ca.mtimes(ca.DM(c), k) for c, k in zip(bins.coef, rows, strict=True)]
+        mean = _ca_select(ca, b, branches)
+    if not s.has_variance:
+        return mean, None
+    quads = [
+        ca.sumsqr(ca.mtimes(ca.sparsify(ca.DM(F)), k))
+        for F, k in zip(bins.factor, rows, strict=True)
+    ]
+    return mean, s.sigma - _ca_select(ca, b, quads)
+
+
+def _ca_select(ca, b, branches):
+    if len(branches) == 1:
+        return branches[0]
+    return ca.conditional(b, branches, branches[0], True)
+
+
+def _ca_lookup(ca, bins, xn):
+    """The bin index as MX: a sum of comparisons (slab) or of the leaves' boxes (tree)."""
+    from gpg.gp.partition import Partition
+
+    if bins.n_bins == 1:
+        return ca.MX(0)
+    if bins.scheme == "slab":
+        d = int(bins.split_dim[0])
+        return sum(ca.if_else(xn[d] > float(c), 1, 0) for c in bins.split_value)
+    part = Partition(bins.split_dim, bins.split_value, bins.left, bins.right, bins.n_bins,
+                     bins.depth, bins.scheme)  # fmt: skip
+    lo, hi = part.boxes(8)
+    out = 0
+    for i in range(bins.n_bins):
+        inside = ca.MX(1)
+        for d in range(8):
+            if np.isfinite(lo[i, d]):
+                inside = ca.logic_and(inside, xn[d] > lo[i, d])
+            if np.isfinite(hi[i, d]):
+                inside = ca.logic_and(inside, xn[d] <= hi[i, d])
+        out = out + i * inside
+    return out
+
+
+def _ca_rows(ca, s: Spec, xn, X: np.ndarray):
+    p = X.shape[0]
+    diff = ca.repmat(xn.T, p, 1) - ca.DM(X)  # (p, 8)
+    k = s.sigma * ca.exp(-0.5 * ca.sum2((diff / ca.repmat(ca.DM(s.lengthscale).T, p, 1)) ** 2))
+    grads = [k * diff[:, a] / s.lengthscale[a] ** 2 for a in s.grad_dims]
+    return ca.vertcat(k, *grads)
+
+
+def _ca_kernel_row(ca, s: Spec, xn, b: int):
+    """``k̄(x̂, X_b)``: shared rows, then bin ``b``'s own (:func:`gpg.export.layout.kernel_row`)."""
+    own = _ca_rows(ca, s, xn, s.bins.points[b])
+    return own if s.bins.shared is None else ca.vertcat(_ca_rows(ca, s, xn, s.bins.shared), own)
+
+
+def _ca_global_mean(ca, s: Spec, xn):
+    """The folded global mean of :mod:`gpg.gp.mean` (normalised), in MX with DM constants."""
+    gm = s.global_mean
+    inv_ls = gm["inv_ls"]
+    xl = xn * ca.DM(inv_ls)
+    XS = ca.DM(gm["xs"])
+    n = gm["xs"].shape[0]
+    r2 = ca.sum2((ca.repmat(xl.T, n, 1) - XS) ** 2)
+    acc = ca.mtimes(ca.DM(gm["coef"]).T, ca.exp(-0.5 * r2))
+    m = s.n_outputs
+    mu = acc[0:m]
+    for i, a in enumerate(s.grad_dims):
+        mu = mu + xn[a] * inv_ls[a] ** 2 * acc[(1 + i) * m : (2 + i) * m]
+    return float(gm["sigma"][0]) * mu
+
+
+def _ca_safe_atan2(ca, y, x, tiny):
+    at_origin = ca.logic_and(ca.fabs(x) <= tiny, ca.fabs(y) <= tiny)
+    return ca.if_else(
+        at_origin, 0, ca.atan2(ca.if_else(at_origin, 0, y), ca.if_else(at_origin, 1, x))
+    )
+
+
+def _ca_norm(ca, v):
+    s = ca.sumsqr(v)
+    return ca.if_else(s <= 0, 0, ca.sqrt(ca.if_else(s <= 0, 1, s)))
+
+
+def _ca_rot(ca, yaw, pitch, roll):
+    cy, sy, cp, sp, cr, sr = (f(a) for a in (yaw, pitch, roll) for f in (ca.cos, ca.sin))
+    return ca.vertcat(
+        ca.horzcat(cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+        ca.horzcat(sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+        ca.horzcat(-sp, cp * sr, cp * cr),
+    )
+
+
+def _ca_wind_axes(ca, d):
+    heading = _ca_safe_atan2(ca, d[1], d[0], _TINY_SPEED)
+    climb = _ca_safe_atan2(ca, -d[2], _ca_norm(ca, d[0:2]), _TINY_SPEED)
+    return _ca_rot(ca, heading, climb, 0)
+
+
+def _ca_airflow(ca, euler, v, h):
+    """``(euler_H, R_WH)``: :func:`gpg.quadrotor.frames.to_airflow_frame` in CasADi."""
+    yaw = euler[0]
+    if h <= 0.0:
+        rwh = _ca_wind_axes(ca, v)
+    else:
+        c = h * ca.fmax(1 - ca.sumsqr(v) / h**2, 0) ** 2
+        d = v + c * ca.vertcat(ca.cos(yaw), ca.sin(yaw), 0)
+        dxy2 = d[0] ** 2 + d[1] ** 2
+        x = d / ca.if_else(ca.sumsqr(d) > 0, _ca_norm(ca, d), 1)
+        c2 = h * ca.fmax(1 - dxy2 / h**2, 0) ** 2
+        y_ref = ca.vertcat(-d[1], d[0], 0) + c2 * ca.vertcat(-ca.sin(yaw), ca.cos(yaw), 0)
+        y = y_ref - ca.dot(y_ref, x) * x
+        y = y / ca.if_else(ca.sumsqr(y) > 0, _ca_norm(ca, y), 1)
+        blended = ca.horzcat(x, y, ca.cross(x, y))
+        rwh = ca.if_else(dxy2 >= h**2, _ca_wind_axes(ca, d), blended)
+    R = ca.mtimes(rwh.T, _ca_rot(ca, euler[0], euler[1], euler[2]))
+    cp = ca.sqrt(R[0, 0] ** 2 + R[1, 0] ** 2)
+    pitch = _ca_safe_atan2(ca, -R[2, 0], cp, 0.0)
+    locked = cp < 1e-12
+    yaw_h = ca.if_else(
+        locked,
+        _ca_safe_atan2(ca, -R[0, 1], R[1, 1], 0.0),
+        _ca_safe_atan2(ca, R[1, 0], R[0, 0], 0.0),
+    )
+    roll = ca.if_else(locked, 0, _ca_safe_atan2(ca, R[2, 1], R[2, 2], 0.0))
+    return ca.vertcat(yaw_h, pitch, roll), rwh

@@ -1,0 +1,368 @@
+"""What an export reads from a fitted :class:`gpg.Surrogate`: plain NumPy arrays in one layout
+that the C, CasADi and ONNX writers share, checked once, with the record every export carries.
+
+A real-time model is a mean and, optionally, a variance, each a closed form over stored
+arrays (normalised inputs ``x̂``, paper Eq. normalize_x):
+
+* the **global mean** (``gpg``, ``gp``, ``gpgs_hybrid``): ``σ Σ_p k(x̂, x_p) c_p`` folded as in
+  :mod:`gpg.gp.mean`;
+* the **binned mean** (``gps_*``, ``gpgs``, ``gpgs_schur``, ``gpg_pic``): bin ``b``'s
+  coefficients ``C_b`` (M, R_b) times the kernel row ``k̄(x̂, X_b)`` of its near set;
+* the **variance**: ``σ − ‖F_b k̄(x̂, X_b)‖²`` with bin ``b``'s triangular factor (the hybrid's
+  and the local kinds' near sets, PIC's inducing rows then the bin's own), or, for the exact
+  kinds, one "bin" of every training point with ``F = L⁻¹``.
+
+A bin's near set is kept without the padding the JAX model stores (its real points only,
+``R_b = (U + p_b)(1 + G)`` rows: the shared inducing rows first, then the bin's own, each
+block value rows then one block per gradient dimension), so every writer loops over real rows.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gpg._version import __version__
+from gpg.gp.binned import BinnedGP, near_rows
+from gpg.gp.exact import ExactGP
+from gpg.gp.hybrid import HybridGP
+from gpg.gp.mean import GlobalMean
+from gpg.names import AERO
+from gpg.surrogate import MAX_FRAME_RATE, Surrogate
+
+# A C source holds each constant as text (about 3.5 bytes per stored byte): past this many
+# bytes of constants an export is refused unless asked for (the exact GP-G variance at
+# data=default is 256 MB; its mean, or gpgs_hybrid, is what a real-time target can hold).
+MAX_BYTES = 64 * 2**20
+
+
+@dataclass(frozen=True)
+class Bins:
+    """Near sets of a partitioned model (or one bin for an exact model's variance).
+
+    ``points[b]`` (p_b, D) normalised inputs of bin ``b``'s own near points; ``shared`` (U, D)
+    rows every bin conditions on first (PIC's inducing inputs) or None; ``coef[b]`` (M, R_b)
+    binned mean coefficients or None; ``factor[b]`` (R_b, R_b) the variance factor over the
+    same rows (triangular, or dense in PIC's first rows) or None; ``factor_dtype`` its stored
+    type. The partition in the arrays of :class:`gpg.gp.partition.Partition`."""
+
+    points: list[np.ndarray]
+    shared: np.ndarray | None
+    coef: list[np.ndarray] | None
+    factor: list[np.ndarray] | None
+    factor_dtype: np.dtype
+    scheme: str
+    split_dim: np.ndarray
+    split_value: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    depth: int
+
+    @property
+    def n_bins(self) -> int:
+        return len(self.points)
+
+    def rows(self, b: int, n_grad: int) -> int:
+        """``R_b``: rows of bin ``b``'s kernel row."""
+        u = 0 if self.shared is None else self.shared.shape[0]
+        return (u + self.points[b].shape[0]) * (1 + n_grad)
+
+    def lookup(self, xn: np.ndarray) -> int:
+        """Bin of one normalised query, as :meth:`gpg.gp.partition.Partition.lookup`."""
+        if self.n_bins == 1:
+            return 0
+        if self.scheme == "slab":
+            return int(np.sum(xn[self.split_dim[0]] > self.split_value))
+        node = 0
+        while node >= 0:
+            go_left = xn[self.split_dim[node]] <= self.split_value[node]
+            node = int(self.left[node] if go_left else self.right[node])
+        return -node - 1
+
+
+@dataclass(frozen=True)
+class Spec:
+    """Everything an export writes, as float64 NumPy (the factor also in its stored dtype)."""
+
+    model: str
+    hover_speed: float
+    x_lo: np.ndarray
+    half: np.ndarray
+    y_mean: np.ndarray
+    y_std: np.ndarray
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    allocation: np.ndarray | None
+    level_names: tuple[str, ...]
+    sigma: float
+    lengthscale: np.ndarray  # (D,)
+    grad_dims: tuple[int, ...]
+    noise: float  # ν², normalised units
+    output_scale: np.ndarray  # (M,)
+    global_mean: dict[str, np.ndarray] | None  # xs, coef (GlobalMean's arrays)
+    bins: Bins | None
+    record: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_outputs(self) -> int:
+        return self.y_mean.size
+
+    @property
+    def has_variance(self) -> bool:
+        return self.bins is not None and self.bins.factor is not None
+
+    def constant_bytes(self, itemsize: int, variance: bool) -> int:
+        """Bytes of the GP's arrays at ``itemsize`` (the factor at most at its stored size)."""
+        n = 0
+        if self.global_mean is not None:  # positions in double (gpg.export.c_source)
+            gm = self.global_mean  # C: coef; ONNX: alpha, of the same size
+            n += gm["xs"].size * 8 + (gm["coef"].size + gm["inv_ls"].size + 1) * itemsize
+        if self.bins is not None:
+            b = self.bins
+            pts = sum(p.size for p in b.points) + (0 if b.shared is None else b.shared.size)
+            if b.coef is not None:
+                n += sum(c.size for c in b.coef) * itemsize
+            if variance and b.factor is not None:
+                n += pts * itemsize
+                fsize = min(itemsize, b.factor_dtype.itemsize)
+                n += sum(_triangle_size(f) for f in b.factor) * fsize
+            elif b.coef is not None:
+                n += pts * itemsize
+        return n
+
+
+def _triangle_size(F: np.ndarray) -> int:
+    """Entries of ``F`` inside each column's first-to-last non-zero span (what a writer keeps)."""
+    first, last = column_spans(F)
+    return int(np.sum(np.maximum(last - first, 0)))
+
+
+def column_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column of ``F``: its first non-zero row and one past its last (equal when none)."""
+    nz = F != 0
+    any_ = nz.any(axis=0)
+    first = np.where(any_, nz.argmax(axis=0), 0)
+    last = np.where(any_, F.shape[0] - nz[::-1].argmax(axis=0), 0)
+    return first, last
+
+
+def spec(sur: Surrogate, *, variance: bool = True) -> Spec:
+    """The export layout of ``sur`` (``variance``: keep the variance factors), or ``ValueError``
+    saying why it cannot be exported: not a Surrogate, a noise model ``M_noise`` (its own
+    network is not exported), a model kind without a closed form here, an exact model whose
+    factor has rows in a non-layout order (a model grown by ``condition``), non-finite arrays.
+    """
+    if not isinstance(sur, Surrogate):
+        raise ValueError(f"export takes a gpg.Surrogate, got {type(sur).__name__}")
+    if sur.noise_model is not None:
+        raise ValueError(
+            "a surrogate with M_noise cannot be exported (its network is not exported): fit "
+            "without the noise model"
+        )
+    m = sur.model
+    d = int(np.asarray(sur.box_lo).size)
+    global_mean, bins = None, None
+    if isinstance(m, HybridGP):
+        global_mean = _global(m.mean)
+        bins = _binned(m.local, coef=False, variance=variance)
+        grad_dims, ls, sigma = m.local.grad_dims, m.local.lengthscale, m.local.variance
+    elif isinstance(m, ExactGP):
+        global_mean = _global(m.mean)
+        if variance:
+            bins = _exact_bins(m)
+        grad_dims, ls, sigma = m.grad_dims, m.hyper.lengthscale, m.hyper.variance
+    elif isinstance(m, BinnedGP):
+        bins = _binned(m, coef=True, variance=variance)
+        grad_dims, ls, sigma = m.grad_dims, m.lengthscale, m.variance
+    else:
+        raise ValueError(
+            f"model {sur.model_name!r} ({type(m).__name__}) has no exportable closed form"
+        )
+    norm = sur.normalizer
+    out = Spec(
+        model=sur.model_name,
+        hover_speed=float(sur.hover_speed),
+        x_lo=_f64(norm.x_lo),
+        half=_f64(norm.half_range),
+        y_mean=_f64(norm.y_mean),
+        y_std=_f64(norm.y_std),
+        box_lo=_f64(sur.box_lo),
+        box_hi=_f64(sur.box_hi),
+        allocation=None if sur.simple is None else _f64(sur.simple.allocation),
+        level_names=tuple(sur.output_names[len(AERO) :]),
+        sigma=float(np.asarray(sigma)),
+        lengthscale=np.broadcast_to(_f64(ls), (d,)).copy(),
+        grad_dims=tuple(int(g) for g in grad_dims),
+        noise=float(np.asarray(m.noise)),
+        output_scale=_f64(m.output_scale),
+        global_mean=global_mean,
+        bins=bins,
+    )
+    _require_finite(out)
+    return _with_record(out)
+
+
+def _f64(a) -> np.ndarray:
+    return np.array(a, dtype=np.float64)
+
+
+def _global(mean: GlobalMean) -> dict[str, np.ndarray]:
+    """The folded mean's arrays, and ``alpha``: its coefficients unfolded back to
+    ``[α⁰, α^{g_0}, …]`` (N, (1+G)M), for a writer that sums in float: the folded value block
+    ``α⁰ − Σ_g (x_g/l_g²) αᵍ`` cancels against ``x_q,g/l_g² Σ k αᵍ``, the unfolded sum
+    ``Σ_p k_p [α⁰_p + Σ_g (x_q,g − x_p,g)/l_g² αᵍ_p]`` has no such cancellation."""
+    xs, coef, inv_ls = _f64(mean.Xs), _f64(mean.coef), _f64(mean.inv_ls)
+    m = coef.shape[1] // (1 + len(mean.grad_dims))
+    alpha = coef.copy()
+    for i, g in enumerate(mean.grad_dims):
+        alpha[:, :m] += (xs[:, g] * inv_ls[g])[:, None] * coef[:, (1 + i) * m : (2 + i) * m]
+    return {"xs": xs, "coef": coef, "alpha": alpha, "inv_ls": inv_ls,
+            "sigma": _f64(mean.variance).reshape(1)}  # fmt: skip
+
+
+def _exact_bins(m: ExactGP) -> Bins:
+    if m.order is not None or m.observed is not None:
+        raise ValueError(
+            "this exact model's variance factor covers rows in another order than its layout "
+            "(a model grown by condition, or cases without some gradients): export it with "
+            "variance=False, or refit it"
+        )
+    return Bins(
+        points=[_f64(m.X)],
+        shared=None,
+        coef=None,
+        factor=[m.chol_inv.to_dense()],
+        factor_dtype=np.dtype(m.chol_inv.dtype),
+        **_one_bin(),
+    )
+
+
+def _one_bin() -> dict[str, Any]:
+    z = np.zeros(1)
+    return dict(scheme="slab", split_dim=z.astype(int), split_value=z[:0], left=z, right=z, depth=1)
+
+
+def _binned(m: BinnedGP, *, coef: bool, variance: bool) -> Bins | None:
+    """The real rows of every bin of ``m`` (its padding dropped)."""
+    if not coef and not (variance and m.factor):
+        return None
+    g = len(m.grad_dims)
+    P = m.Xn.shape[1]
+    up = 0 if m.shared is None else m.shared.shape[0] * (1 + g)
+    Xn, n_near = np.asarray(m.Xn, float), np.asarray(m.n_near)
+    points, coefs, factors = [], [], []
+    for b in range(Xn.shape[0]):
+        p = int(n_near[b])
+        pos = np.concatenate([np.arange(up), up + near_rows(np.arange(p), P, g)])
+        points.append(Xn[b, :p].copy())
+        if coef:
+            coefs.append(np.asarray(m.coef[b], float)[:, pos])
+        if variance and m.factor:
+            factors.append(m.factor[b].to_dense()[np.ix_(pos, pos)])
+    part = m.partition
+    return Bins(
+        points=points,
+        shared=None if m.shared is None else _f64(m.shared),
+        coef=coefs if coef else None,
+        factor=factors if factors else None,
+        factor_dtype=np.dtype(m.factor[0].dtype) if m.factor else np.dtype(np.float64),
+        scheme=part.scheme,
+        split_dim=np.asarray(part.split_dim, int),
+        split_value=_f64(part.split_value),
+        left=np.asarray(part.left, int),
+        right=np.asarray(part.right, int),
+        depth=int(part.depth),
+    )
+
+
+def _arrays(s: Spec):
+    yield from ((k, getattr(s, k)) for k in ("x_lo", "half", "y_mean", "y_std", "box_lo", "box_hi"))
+    yield "lengthscale", s.lengthscale
+    yield "output_scale", s.output_scale
+    yield "sigma_noise", np.array([s.sigma, s.noise])
+    if s.allocation is not None:
+        yield "allocation", s.allocation
+    if s.global_mean is not None:
+        yield from s.global_mean.items()
+    if s.bins is not None:
+        b = s.bins
+        for i, p in enumerate(b.points):
+            yield f"points{i}", p
+            if b.coef is not None:
+                yield f"bin_coef{i}", b.coef[i]
+            if b.factor is not None:
+                yield f"factor{i}", b.factor[i]
+        if b.shared is not None:
+            yield "shared", b.shared
+        yield "split_value", b.split_value
+
+
+def _require_finite(s: Spec) -> None:
+    bad = sorted(k for k, a in _arrays(s) if not np.all(np.isfinite(a)))
+    if bad:
+        raise ValueError(f"the surrogate holds non-finite arrays {bad}: nothing exported")
+
+
+def _with_record(s: Spec) -> Spec:
+    h = hashlib.sha256()
+    for k, a in _arrays(s):
+        h.update(k.encode())
+        h.update(np.ascontiguousarray(a, dtype=np.float64).tobytes())
+    record = {
+        "gpg_version": __version__,
+        "model": s.model,
+        "arrays_sha256": h.hexdigest(),
+        "variance": s.has_variance,
+        "inputs": "rpm[4] (rpm), euler[3] (rad, yaw pitch roll, R_WB = Rz Ry Rx), "
+        "v_air[3] (m/s, vehicle velocity minus wind, world frame x forward y right z down)",
+        "outputs": "force[3] (N), torque[3] (N*m), world frame; levels[K] (dB); variance[6+K] "
+        "of each (N^2, (N*m)^2, dB^2) in the same frame",
+        "levels": list(s.level_names),
+        "hover_speed": s.hover_speed,
+        "max_frame_rate": MAX_FRAME_RATE,
+    }
+    object.__setattr__(s, "record", record)
+    return s
+
+
+def reference(s: Spec, xn: np.ndarray, b: int | None = None) -> tuple[np.ndarray, float | None]:
+    """Normalised mean (M,) and latent variance at one normalised query ``xn`` (D,) in float64
+    NumPy from the spec's arrays: the computation every writer emits, for their tests."""
+    bins = s.bins
+    if b is None:
+        b = 0 if bins is None else bins.lookup(xn)
+    if s.global_mean is not None:
+        mean = global_mean(s, xn)
+    else:
+        mean = bins.coef[b] @ kernel_row(s, xn, b)
+    if not s.has_variance:
+        return mean, None
+    fk = bins.factor[b] @ kernel_row(s, xn, b)
+    return mean, s.sigma - float(fk @ fk)
+
+
+def global_mean(s: Spec, xn: np.ndarray) -> np.ndarray:
+    """The folded global mean of :mod:`gpg.gp.mean` at ``xn``, normalised units."""
+    gm = s.global_mean
+    inv_ls = gm["inv_ls"]
+    k = gm["sigma"][0] * np.exp(-0.5 * np.sum((xn * inv_ls - gm["xs"]) ** 2, axis=1))
+    out = (k @ gm["coef"]).reshape(1 + len(s.grad_dims), s.n_outputs)
+    g = list(s.grad_dims)
+    return out[0] + (xn[g] * inv_ls[g] ** 2) @ out[1:] if g else out[0]
+
+
+def kernel_row(s: Spec, xn: np.ndarray, b: int) -> np.ndarray:
+    """``k̄(x̂, X_b)`` (R_b,): the shared rows, then bin ``b``'s own."""
+    bins = s.bins
+    blocks = [] if bins.shared is None else [_rows(s, xn, bins.shared)]
+    return np.concatenate(blocks + [_rows(s, xn, bins.points[b])])
+
+
+def _rows(s: Spec, xn: np.ndarray, X: np.ndarray) -> np.ndarray:
+    k = s.sigma * np.exp(-0.5 * np.sum(((xn - X) / s.lengthscale) ** 2, axis=1))
+    g = list(s.grad_dims)
+    diff = (xn[g] - X[:, g]).T / (s.lengthscale[g] ** 2)[:, None]  # (G, p)
+    return np.concatenate([k, (k[None] * diff).ravel()])

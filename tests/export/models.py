@@ -1,0 +1,51 @@
+"""Small fitted surrogates of every exportable kind (40 cases, fixed hyperparameters), fitted
+once per test session, and the query states the export tests share."""
+
+import functools
+
+import numpy as np
+
+from gpg.surrogate import Surrogate
+from tests.helpers import synthetic_dataset
+
+BASE = {"hyper": {"fit": False, "lengthscale": 0.8}}
+# Three bins for the hybrid and the local kinds (40 cases would give the hybrid one), a slab
+# partition for gpgs_schur, 10 inducing points for PIC: every lookup and row layout is met.
+CONFIGS = {
+    "gpg": {},
+    "gpgs_hybrid": {"partition": {"bins": 3, "points_per_bin": None}},
+    "gpgs": {"partition": {"bins": 3}},
+    "gpg_pic": {"partition": {"bins": 3}, "inducing": {"points": 10}},
+    "gpgs_schur": {"partition": {"bins": 2, "scheme": "slab"}},
+}
+
+
+@functools.cache
+def dataset():
+    return synthetic_dataset(40, seed=3, raw=False)[0]
+
+
+@functools.cache
+def fitted(kind: str) -> Surrogate:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # gpgs_schur warns that its far set is correlated
+        return Surrogate.fit(dataset(), kind, {**BASE, **CONFIGS[kind]})
+
+
+def states(n, seed):
+    """Inside the box mostly, some outside (fast, sideways, backwards), some near vertical."""
+    rng = np.random.default_rng(seed)
+    rpm = rng.uniform(500, 6500, (n, 4))
+    euler = rng.uniform([-np.pi, -0.9, -1.2], [np.pi, 0.9, 1.2], (n, 3))
+    v = rng.uniform(-12, 12, (n, 3))
+    v[: n // 4, :2] *= 1e-3  # near vertical airflow: the frame-rate flag's region
+    return rpm, euler, v
+
+
+def rel_err(got, want):
+    """Per state, the largest error over the outputs of one vector, relative to the vector's
+    scale (at least 1: a force of 1e-9 N is not held to 1e-10 of itself)."""
+    got, want = np.asarray(got), np.asarray(want)
+    return np.abs(got - want).max(axis=-1) / np.maximum(1.0, np.abs(want).max(axis=-1))

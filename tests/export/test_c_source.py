@@ -1,0 +1,142 @@
+"""C export (gpg/export/c_source.py): the generated source compiled with the system ``cc``
+and called through ctypes equals ``Surrogate.predict`` (force, torque, levels, variance,
+``in_domain``) for every exportable kind, in double to rounding and in float to float
+accuracy; bad exports are refused before anything is written."""
+
+import ctypes
+import subprocess
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg import export
+from gpg.quadrotor.frames import airflow_frame_rate
+from gpg.surrogate import MAX_FRAME_RATE
+from tests.export.models import fitted, rel_err, states
+from tests.helpers import variance_rtol
+
+D = ctypes.POINTER(ctypes.c_double)
+
+
+def compiled(sur, tmp_path, dtype, **kw):
+    out = export.to_c(sur, tmp_path, name="quad", dtype=dtype, **kw)
+    so = tmp_path / "quad.so"
+    res = subprocess.run(
+        ["cc", "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", "-o",
+         str(so), str(out["c"]), "-lm"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    lib = ctypes.CDLL(str(so))
+    n_levels = len(sur.output_names) - 6
+
+    def call(rpm, euler, v, with_var=True):
+        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(max(n_levels, 1)), np.zeros(6 + n_levels)
+        args = [np.ascontiguousarray(a, dtype=float).ctypes.data_as(D) for a in (rpm, euler, v)]
+        outs = [a.ctypes.data_as(D) for a in (f, t, lv)]
+        if with_var:
+            ok = lib.quad_predict(*args, *outs, var.ctypes.data_as(D))
+        else:
+            ok = lib.quad_mean(*args, *outs)
+        return ok, f, t, lv[:n_levels], var
+
+    return out, call
+
+
+@pytest.mark.parametrize(
+    "kind, dtype",
+    [("gpg", "double"), ("gpgs_hybrid", "double"), ("gpgs_hybrid", "float"),
+     ("gpgs", "float"), ("gpg_pic", "double"), ("gpgs_schur", "double")],
+)  # fmt: skip
+def test_exported_c_equals_predict(tmp_path, kind, dtype):
+    """Mean: double to rounding (1e-10 of each output's scale); float: the GP's arrays and
+    kernel in float, sums in double, so to a few float roundings of each term (1e-5).
+    Variance: within the bound of ``variance_rtol`` (the stored factor's dtype, or float for
+    a float export, and the conditioning of ``σ − ‖F k‖²``). ``in_domain`` equal wherever the
+    frame rate is not within 1e-6 of its threshold (the C code takes central differences, the
+    library autodiff)."""
+    sur = fitted(kind)
+    out, call = compiled(sur, tmp_path, dtype)
+    rpm, euler, v = states(80, 1)
+    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    rate = np.asarray(jax.vmap(lambda e, w: airflow_frame_rate(e, w, sur.hover_speed))(
+        jnp.asarray(euler), jnp.asarray(v)))  # fmt: skip
+    rtol = 1e-10 if dtype == "double" else 1e-5
+    vtol = variance_rtol(sur, rpm, euler, v, None if dtype == "double" else 2.0**-24)
+    flags = []
+    for i in range(len(rpm)):
+        ok, f, t, lv, var = call(rpm[i], euler[i], v[i])
+        for got, want in ((f, ref.force[i]), (t, ref.torque[i]), (lv, ref.levels[i])):
+            assert rel_err(got, want) <= rtol, (i, got, want)
+        want_var = np.asarray(ref.variance[i])
+        assert np.all(np.abs(var - want_var) <= vtol[i] * want_var), (i, var, want_var)
+        if abs(rate[i] / MAX_FRAME_RATE - 1) > 1e-6:
+            assert ok == bool(ref.in_domain[i]), (i, rate[i])
+        ok2, *mean = call(rpm[i], euler[i], v[i], with_var=False)[:4]
+        assert ok2 == ok and all(
+            np.array_equal(a, b) for a, b in zip(mean, (f, t, lv), strict=True)
+        )
+        flags.append(ok)
+    assert 0 < sum(flags) < len(flags)  # both kinds of state were met
+    text = out["h"].read_text()
+    assert out["record"]["arrays_sha256"] in text and "int quad_predict(" in text
+    assert out["variance"] and out["record"]["model"] == kind
+
+
+def test_mean_only_export_and_its_constants(tmp_path):
+    """``variance=False``: only ``<name>_mean``, and the constants are the global mean's
+    arrays alone, in the bytes of the dtype asked for."""
+    sur = fitted("gpg")
+    for dtype, size in (("double", 8), ("float", 4)):
+        (tmp_path / dtype).mkdir()
+        out, call = compiled(sur, tmp_path / dtype, dtype, variance=False)
+        assert call(np.full(4, 3600.0), np.zeros(3), np.array([3.0, 0, 0]), with_var=False)[0]
+        n, c = np.asarray(sur.model.mean.coef).shape
+        assert out["constant_bytes"] == n * 8 * 8 + (n * c + 8 + 1) * size  # positions double
+        assert not out["variance"] and "quad_predict" not in out["h"].read_text()
+
+
+def test_non_finite_input_gives_zero_and_finite_values(tmp_path):
+    _, call = compiled(fitted("gpgs_hybrid"), tmp_path, "double")
+    good = (np.full(4, 3600.0), np.zeros(3), np.array([3.0, 0.0, 0.0]))
+    assert call(*good)[0] == 1
+    for k in range(3):
+        bad = [a.copy() for a in good]
+        bad[k][0] = np.nan if k != 1 else np.inf
+        ok, f, t, lv, var = call(*bad)
+        assert ok == 0 and np.all(np.r_[f, t, lv, var] == 0)
+    ok, f, t, _, var = call(np.full(4, -10.0), np.zeros(3), np.array([3.0, 0.0, 0.0]))
+    assert ok == 0 and np.all(np.isfinite(np.r_[f, t, var]))
+
+
+def test_what_cannot_be_exported_is_refused_before_writing(tmp_path):
+    import equinox as eqx
+
+    from gpg.surrogate import Surrogate
+    from tests.export.models import BASE, dataset
+    from tests.helpers import synthetic_dataset
+
+    sur = fitted("gpg")
+    broken = eqx.tree_at(lambda s: s.model.mean.coef, sur, sur.model.mean.coef.at[0, 0].set(np.nan))
+    with pytest.raises(ValueError, match=r"non-finite arrays \['alpha', 'coef'\]"):
+        export.to_c(broken, tmp_path / "a")
+    with pytest.raises(ValueError, match="name must be a C identifier"):
+        export.to_c(sur, tmp_path / "b", name="my-model")
+    with pytest.raises(ValueError, match="dtype must be one of"):
+        export.to_c(sur, tmp_path / "c", dtype="half")
+    with pytest.raises(ValueError, match="export takes a gpg.Surrogate"):
+        export.to_c(sur.model, tmp_path / "d")
+    with pytest.raises(ValueError, match=r"MiB of constants, over max_bytes=0\.1 MiB"):
+        export.to_c(sur, tmp_path / "e", max_bytes=100_000)
+    noisy = Surrogate.fit(dataset(), "gpg", BASE, noise_model=True)
+    with pytest.raises(ValueError, match="M_noise cannot be exported"):
+        export.to_c(noisy, tmp_path / "f")
+    new = synthetic_dataset(8, seed=9, raw=False)[0]
+    inside = np.all((new.x >= np.asarray(sur.box_lo)) & (new.x <= np.asarray(sur.box_hi)), axis=1)
+    grown = sur.condition(new.subset(np.flatnonzero(inside)))
+    with pytest.raises(ValueError, match="variance=False"):
+        export.to_c(grown, tmp_path / "g")
+    assert not any((tmp_path / s).exists() for s in "abcdefg")
+    export.to_c(grown, tmp_path / "h", variance=False)  # its mean exports

@@ -1,0 +1,38 @@
+"""The export layout (gpg/export/layout.py): from every exportable kind's arrays, without
+padding, a float64 NumPy evaluation (the computation every writer emits) equals the JAX
+model's mean and latent variance at normalised queries."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg.export import layout
+from tests.export.models import CONFIGS, fitted
+
+
+@pytest.mark.parametrize("kind", sorted(CONFIGS))
+def test_layout_reproduces_the_model(kind):
+    """Mean to 1e-12 (float64 arithmetic, both). Latent variance to 1e-12 where the factor is
+    float64; the hybrid's and PIC's are float32, whose product JAX sums in float32: 1e-5 of
+    ``σ`` (a few float32 roundings of a sum of terms bounded by ``σ``)."""
+    sur = fitted(kind)
+    s = layout.spec(sur)
+    m = sur.model
+    assert s.has_variance and s.record["model"] == kind
+    tol = 1e-12 if s.bins.factor_dtype == np.float64 else 1e-5 * s.sigma
+    X = np.random.default_rng(0).uniform(-1, 1, (40, 8))
+    means, variances = (np.asarray(a) for a in jax.jit(jax.vmap(m.mean_var_one))(jnp.asarray(X)))
+    bins = set()
+    for xn, mean, var in zip(X, means, variances, strict=True):
+        ref_mean, ref_var = layout.reference(s, xn)
+        np.testing.assert_allclose(ref_mean, mean, rtol=0, atol=1e-12)
+        assert abs(ref_var - float(var)) <= tol
+        bins.add(s.bins.lookup(xn))
+    assert len(bins) == s.bins.n_bins  # every bin's rows were used
+    assert s.constant_bytes(8, variance=True) > s.constant_bytes(8, variance=False)
+
+
+def test_layout_refuses_what_is_not_a_surrogate():
+    with pytest.raises(ValueError, match="export takes a gpg.Surrogate"):
+        layout.spec(fitted("gpg").model)
