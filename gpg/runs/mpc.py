@@ -16,6 +16,10 @@ for every controller. The mission is the paper's round trip (``simulate``'s flig
   gradient (:meth:`gpg.mpc.Dynamics.linearize`'s ingredients: the variance and its Jacobian):
   it steers away from states where the model is unsure (outside or at the edge of its data).
 
+* **casadi** (``casadi.enabled``): a gradient-based MPC of the same offsets through CasADi's
+  ``Opti`` and IPOPT on the exported surrogate (:mod:`gpg.runs.mpc_casadi`), its variance as
+  the cautious term, at its own rate (``casadi.dt``).
+
 Measured: tracking error (RMS, max), in-domain share, the force standard deviation met along
 the flight, and the wall time of every MPC solve (median, p95) on this machine.
 """
@@ -193,6 +197,17 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         solve = None if beta is None else make_solver(sur32, vehicle, ctrl, plan, c, beta)
         flights[name], traces[name] = _fly(
             solve, plant_step, s0, plan, winds, key, dt, every, int(c["horizon"])
+        )
+    cas = {**c, **cfg.get("casadi", {})}
+    if cas.get("enabled", False):  # IPOPT on the exported surrogate (gpg.runs.mpc_casadi)
+        from gpg.runs.mpc_casadi import make_casadi_solver
+
+        every_c = int(round(float(cas["dt"]) / dt))
+        if every_c < 1 or abs(every_c * dt - float(cas["dt"])) > 1e-9:
+            raise ValueError(f"casadi.dt ({cas['dt']}) must be a whole number of flight.dt")
+        solve = make_casadi_solver(sur, vehicle, ctrl, plan, cas, float(cas["caution"]))
+        flights["casadi"], traces["casadi"] = _fly(
+            solve, plant_step, s0, plan, winds, key, dt, every_c, int(cas["horizon"])
         )
     figures = []
     if cfg.get("figures", True):

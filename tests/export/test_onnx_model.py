@@ -30,7 +30,7 @@ def test_onnx_runtime_equals_predict(tmp_path, kind):
     1e-3 of the frame-rate threshold (a float32 central difference) or 1e-5 of a box face."""
     sur = fitted(kind)
     out = export.to_onnx(sur, tmp_path / "m.onnx")
-    rpm, euler, v = states(100, 4)
+    rpm, euler, v = states(60, 4)
     got, sess = run(out["onnx"], rpm, euler, v)
     assert [i.name for i in sess.get_inputs()] == ["rpm", "euler", "v_air"]
     ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)

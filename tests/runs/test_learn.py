@@ -57,11 +57,16 @@ def test_mpc_run(saved_surrogate, tmp_path):
         "mpc.samples=8",
         "mpc.knots=3",
         "mpc.caution_points=2",
+        "casadi.horizon=4",
+        "casadi.knots=2",
+        "casadi.caution_points=1",
+        "casadi.max_iter=5",
     ]
     res = mpc.run(compose_plain("mpc", overrides), tmp_path)
     assert finite_numbers(json.loads((tmp_path / "results.json").read_text()))
     f = res["flights"]
-    assert set(f) == {"geometric", "mpc", "mpc_cautious"}
+    assert set(f) == {"geometric", "mpc", "mpc_cautious", "casadi"}
+    assert f["casadi"]["solves"] > 0 and f["casadi"]["finite"]
     assert f["mpc"]["solves"] > 0 and f["mpc"]["solve_ms_median"] > 0 and f["geometric"]["finite"]
     with pytest.raises(ValueError, match="mpc.knots"):
         mpc.run(compose_plain("mpc", [*overrides, "mpc.knots=40"]), tmp_path / "bad")
