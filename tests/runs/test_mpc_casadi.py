@@ -13,8 +13,10 @@ from tests.export.models import fitted
 
 pytest.importorskip("casadi")
 
-C = {"dt": 0.1, "horizon": 5, "knots": 2, "caution_points": 2, "max_offset": 4.0,
-     "w_position": 10.0, "w_velocity": 1.0, "w_control": 0.05, "w_rate": 0.5, "max_iter": 30}  # fmt: skip
+C = {
+    **{"dt": 0.1, "horizon": 5, "knots": 2, "caution_points": 2, "max_offset": 4.0},
+    **{"w_position": 10.0, "w_velocity": 1.0, "w_control": 0.05, "w_rate": 0.5, "max_iter": 30},
+}
 
 
 @pytest.mark.parametrize("beta", [0.0, 2.0])
