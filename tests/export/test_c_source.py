@@ -47,8 +47,8 @@ def compiled(sur, tmp_path, dtype, **kw):
 
 @pytest.mark.parametrize(
     "kind, dtype",
-    [("gpg", "double"), ("gpgs_hybrid", "double"), ("gpgs_hybrid", "float"),
-     ("gpg_pic", "float"), ("gpgs_schur", "double")],
+    [("gpg", "double"), ("gpgs_hybrid", "float"), ("gpg_pic", "float"),
+     ("gpgs_schur", "double")],
 )  # fmt: skip
 def test_exported_c_equals_predict(tmp_path, kind, dtype):
     """Mean: double to rounding (1e-10 of each output's scale); float: the GP's arrays and

@@ -15,8 +15,7 @@ from tests.helpers import variance_rtol
 ca = pytest.importorskip("casadi")
 
 
-@pytest.mark.parametrize(("kind", "frame"), [("gpgs_hybrid", "world"), ("gpgs_hybrid", "body"),
-                                              ("gpgs", "world")])  # fmt: skip
+@pytest.mark.parametrize(("kind", "frame"), [("gpgs_hybrid", "world"), ("gpgs", "body")])
 def test_casadi_function_equals_predict_and_its_jacobians(kind, frame):
     """Values to rounding (1e-10 of each output's scale), variances within
     ``variance_rtol``; the Jacobian of force and torque in (rpm, euler, v_air) to 1e-8 of its
