@@ -18,6 +18,10 @@ from tests.export.models import fitted, rel_err, states
 from tests.helpers import variance_rtol
 
 D = ctypes.POINTER(ctypes.c_double)
+# The default model and exact GP-G in the fast set; PIC's shared rows and a slab partition
+# with a binned mean (each a fit of its own) in the slow set, to keep the fast budget.
+OTHER_KINDS = [pytest.param(k, d, marks=pytest.mark.slow)
+               for k, d in (("gpg_pic", "float"), ("gpgs_schur", "double"))]  # fmt: skip
 
 
 def compiled(sur, tmp_path, dtype, **kw):
@@ -47,8 +51,7 @@ def compiled(sur, tmp_path, dtype, **kw):
 
 @pytest.mark.parametrize(
     "kind, dtype",
-    [("gpg", "double"), ("gpgs_hybrid", "float"), ("gpg_pic", "float"),
-     ("gpgs_schur", "double")],
+    [("gpg", "double"), ("gpgs_hybrid", "float"), *OTHER_KINDS],
 )  # fmt: skip
 def test_exported_c_equals_predict(tmp_path, kind, dtype):
     """Mean: double to rounding (1e-10 of each output's scale); float: the GP's arrays and

@@ -15,7 +15,10 @@ from tests.helpers import variance_rtol
 ca = pytest.importorskip("casadi")
 
 
-@pytest.mark.parametrize(("kind", "frame"), [("gpgs_hybrid", "world"), ("gpgs", "body")])
+@pytest.mark.parametrize(
+    ("kind", "frame"),
+    [("gpgs_hybrid", "world"), pytest.param("gpgs", "body", marks=pytest.mark.slow)],
+)  # the binned kind's own fit: the slow set, for the fast budget
 def test_casadi_function_equals_predict_and_its_jacobians(kind, frame):
     """Values to rounding (1e-10 of each output's scale), variances within
     ``variance_rtol``; the Jacobian of force and torque in (rpm, euler, v_air) to 1e-8 of its

@@ -11,7 +11,13 @@ from gpg.export import layout
 from tests.export.models import CONFIGS, fitted
 
 
-@pytest.mark.parametrize("kind", sorted(CONFIGS))
+@pytest.mark.parametrize(
+    "kind",
+    [
+        k if k in ("gpg", "gpgs_hybrid") else pytest.param(k, marks=pytest.mark.slow)
+        for k in sorted(CONFIGS)
+    ],
+)  # the other kinds' fits in the slow set, for the fast budget
 def test_layout_reproduces_the_model(kind):
     """Mean to 1e-12 (float64 arithmetic, both). Latent variance to 1e-12 where the factor is
     float64; the hybrid's and PIC's are float32, whose product JAX sums in float32: 1e-5 of

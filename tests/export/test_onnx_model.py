@@ -21,7 +21,7 @@ def run(path, rpm, euler, v):
     return dict(zip([o.name for o in sess.get_outputs()], res, strict=True)), sess
 
 
-@pytest.mark.parametrize("kind", ["gpgs_hybrid", "gpgs"])
+@pytest.mark.parametrize("kind", ["gpgs_hybrid", pytest.param("gpgs", marks=pytest.mark.slow)])
 def test_onnx_runtime_equals_predict(tmp_path, kind):
     """Mean to 1e-5 of each output's scale. Variance: the states enter in float32, so besides
     the bound of ``variance_rtol`` at float32's unit roundoff the variance moves by its
