@@ -1,5 +1,6 @@
 """Releasable square buffers, memory budgets and peak-RSS sampling."""
 
+import gc
 import time
 
 import numpy as np
@@ -34,12 +35,20 @@ def test_require_and_peak():
     with pytest.raises(memory.InsufficientMemory, match=r"needs about .* GiB but only .* GiB"):
         memory.require("a test", 1 << 62)
     memory.require("a test", 1 << 10)
-    with memory.PeakRSS(interval=0.005) as p:
-        x = np.ones(50_000_000 // 8)  # 50 MB touched
-        # held until the sampler has seen it (a loaded machine can delay its thread by more
-        # than any fixed sleep), for at most 5 s
-        deadline = time.monotonic() + 5.0
-        while p.peak - p.start <= 30_000_000 and time.monotonic() < deadline:
-            time.sleep(0.005)
-        del x
-    assert p.peak_delta > 30_000_000
+    gc.collect()
+    for _ in range(3):  # another thread (XLA's, a previous test's arrays collected) may free
+        # memory at the same moment and hide the 50 MB: on a clean clone it did; a new try
+        with memory.PeakRSS(interval=0.005) as p:
+            before = memory.rss_bytes()
+            x = np.ones(50_000_000 // 8)  # 50 MB touched
+            held = memory.rss_bytes()
+            # held until the sampler has seen it (a loaded machine can delay its thread by
+            # more than any fixed sleep), for at most 5 s
+            deadline = time.monotonic() + 5.0
+            while p.peak < held and time.monotonic() < deadline:
+                time.sleep(0.005)
+            del x
+        if held - before > 30_000_000:  # the allocation showed in the RSS
+            break
+    assert held - before > 30_000_000
+    assert p.peak >= held and p.peak_delta == p.peak - p.start
