@@ -97,17 +97,10 @@ def _ca_select(ca, b, branches):
 
 
 def _ca_lookup(ca, bins, xn):
-    """The bin index as MX: a sum of comparisons (slab) or of the leaves' boxes (tree)."""
-    from gpg.gp.partition import Partition
-
+    """The bin index as MX: the sum of each bin's index times whether its box holds ``xn``."""
     if bins.n_bins == 1:
         return ca.MX(0)
-    if bins.scheme == "slab":
-        d = int(bins.split_dim[0])
-        return sum(ca.if_else(xn[d] > float(c), 1, 0) for c in bins.split_value)
-    part = Partition(bins.split_dim, bins.split_value, bins.left, bins.right, bins.n_bins,
-                     bins.depth, bins.scheme)  # fmt: skip
-    lo, hi = part.boxes(8)
+    lo, hi = bins.boxes()
     out = 0
     for i in range(bins.n_bins):
         inside = ca.MX(1)

@@ -30,6 +30,7 @@ from gpg.gp.binned import BinnedGP, near_rows
 from gpg.gp.exact import ExactGP
 from gpg.gp.hybrid import HybridGP
 from gpg.gp.mean import GlobalMean
+from gpg.gp.partition import Partition
 from gpg.names import AERO
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -81,6 +82,18 @@ class Bins:
             go_left = xn[self.split_dim[node]] <= self.split_value[node]
             node = int(self.left[node] if go_left else self.right[node])
         return -node - 1
+
+    def boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each bin's box ``(lo, hi]`` (B, 8), ±inf where unbounded: the writers that cannot
+        walk the tree (CasADi, ONNX) test a query against every box."""
+        if self.scheme != "slab":
+            part = Partition(self.split_dim, self.split_value, self.left, self.right,
+                             self.n_bins, self.depth, self.scheme)  # fmt: skip
+            return part.boxes(8)
+        cuts = np.concatenate([[-np.inf], self.split_value, [np.inf]])
+        lo, hi = np.full((self.n_bins, 8), -np.inf), np.full((self.n_bins, 8), np.inf)
+        lo[:, self.split_dim[0]], hi[:, self.split_dim[0]] = cuts[:-1], cuts[1:]
+        return lo, hi
 
 
 @dataclass(frozen=True)

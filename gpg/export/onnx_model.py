@@ -45,7 +45,7 @@ def to_onnx(
     import onnx
 
     s = spec(sur, variance=variance)
-    n_const = s.constant_bytes(4, variance=s.has_variance)
+    n_const = s.constant_bytes(8, variance=s.has_variance)  # float64 but the float32 factors
     if n_const > max_bytes:
         raise ValueError(
             f"the export of {s.model!r} holds {n_const / 2**20:.1f} MiB of constants, over "
@@ -66,16 +66,22 @@ class _Graph:
 
     def __init__(self, onnx):
         self.onnx, self.h = onnx, onnx.helper
-        self.nodes, self.inits, self.n = [], [], 0
+        self.nodes, self.inits, self.n, self.small = [], [], 0, {}
 
     def name(self, hint: str) -> str:
         self.n += 1
         return f"{hint}_{self.n}"
 
     def const(self, a, hint: str = "c", dtype=np.float32) -> str:
-        name = self.name(hint)
         arr = np.asarray(a, dtype=dtype)
+        # the frame repeats the same scalars and indices hundreds of times: one each
+        key = (arr.dtype.str, arr.shape, arr.tobytes()) if arr.size <= 8 else None
+        if key in self.small:
+            return self.small[key]
+        name = self.name(hint)
         self.inits.append(self.onnx.numpy_helper.from_array(arr, name))
+        if key is not None:
+            self.small[key] = name
         return name
 
     def op(self, kind: str, *inputs: str, hint: str | None = None, **attrs) -> str:
@@ -261,20 +267,10 @@ def _rows(g: _Graph, s: Spec, xn, X: np.ndarray):
 
 
 def _onehot(g: _Graph, s: Spec, xn):
-    """(N, B) 1.0 in each state's bin (the boxes of :meth:`Partition.boxes`), float64."""
-    from gpg.gp.partition import Partition
-
-    b = s.bins
-    if b.n_bins == 1:
+    """(N, B) 1.0 in each state's bin (:meth:`gpg.export.layout.Bins.boxes`), float64."""
+    if s.bins.n_bins == 1:
         return None
-    if b.scheme == "slab":
-        cuts = np.concatenate([[-np.inf], b.split_value, [np.inf]])
-        lo = np.full((b.n_bins, 8), -np.inf)
-        hi = np.full((b.n_bins, 8), np.inf)
-        lo[:, b.split_dim[0]], hi[:, b.split_dim[0]] = cuts[:-1], cuts[1:]
-    else:
-        part = Partition(b.split_dim, b.split_value, b.left, b.right, b.n_bins, b.depth, b.scheme)
-        lo, hi = part.boxes(8)
+    lo, hi = s.bins.boxes()
     # xn (N, 8) against every box (B, 8): inside where lo < x <= hi in every dimension.
     x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))  # (N, 1, 8)
     big = 1e300

@@ -262,9 +262,7 @@ def _call_c(fn, states, n_levels: int, variance: bool) -> dict[str, np.ndarray]:
     var, ok = np.zeros((n, 6 + n_levels)), np.zeros(n, bool)
     for i in range(n):
         args = [np.ascontiguousarray(a[i], dtype=float).ctypes.data_as(D) for a in (rpm, euler, v)]
-        outs = [a[i].ctypes.data_as(D) for a in (f, t, lv)] + (
-            [var[i].ctypes.data_as(D)] if variance else []
-        )  # noqa: E501
+        outs = [a[i].ctypes.data_as(D) for a in (f, t, lv, var)][: 4 if variance else 3]
         ok[i] = fn(*args, *outs)
     got = {"force": f, "torque": t, "levels": lv[:, :n_levels], "in_domain": ok}
     return {**got, "variance": var} if variance else got
