@@ -60,7 +60,7 @@ from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 9  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+FORMAT_VERSION = 10  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
 # 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels);
 # 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads;
 # 6: fields renamed (ν² is ``noise``, M_noise ``noise_model``); 4 and 5 load through RENAMED;
@@ -68,7 +68,8 @@ FORMAT_VERSION = 9  # 2: noise, output scales, hybrid and PIC models; 3: M_noise
 # 8: a conditioned ExactGP keeps its new rows factored (gpg.linalg.tri.BorderedTriangular)
 # 9: an ExactGP factorises only the rows it observed (``order`` names them); the decoupled
 #    factors of 7 and 8 still load and condition
-READABLE_VERSIONS = (4, 5, 6, 7, 8, 9)
+# 10: Surrogate.frame (the body-frame formulation); older files load as the airflow frame
+READABLE_VERSIONS = (4, 5, 6, 7, 8, 9, 10)
 # Fields renamed since an older format: (module, class) -> {old field: new field}. Reading one
 # warns (DeprecationWarning): save the surrogate again to write the current format.
 RENAMED = {
@@ -147,8 +148,11 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
         fields = _renamed_fields(module, desc["__class__"], desc["fields"])
         known = {f.name: f for f in dataclasses.fields(cls)}
         # A field added since the file was written takes its default (format 7 added the
-        # exact model's row order and the hybrid's training record, both None before).
-        added = {n for n, f in known.items() if n not in fields and f.default is None}
+        # exact model's row order and the hybrid's training record, both None before; format
+        # 10 the surrogate's frame, "airflow" before).
+        added = {
+            n for n, f in known.items() if n not in fields and f.default is not dataclasses.MISSING
+        }
         if set(known) - added != set(fields):
             raise CheckpointError(
                 f"{desc['__class__']} fields differ from this gpg version: "
@@ -156,7 +160,7 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
             )
         obj = object.__new__(cls)
         for name in added:
-            object.__setattr__(obj, name, None)
+            object.__setattr__(obj, name, known[name].default)
         for name, value in fields.items():
             object.__setattr__(obj, name, _rebuild(value, arrays))
         return obj

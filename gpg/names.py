@@ -19,3 +19,24 @@ UNITS = {
     **{m: "N*m" for m in AERO[3:]},
     **{n: "dB" for n in NOISE},
 }
+
+# The body-frame formulation (gpg.quadrotor.generator, "frame: body"): the loads depend on the
+# rotor speeds and the air velocity in the body frame alone, ``x_B = (r1..r4, u, v, w)`` with
+# ``(u, v, w) = R_WBᵀ v_air`` (m/s, FRD: u forward, v right, w down), smooth everywhere, hover
+# included; outputs the force and moment in the body frame. Gradients along all seven inputs.
+FRAMES = ("airflow", "body")
+BODY_INPUTS = ("r1", "r2", "r3", "r4", "u", "v", "w")
+UNITS.update({c: "m/s" for c in BODY_INPUTS[4:]})
+
+
+def inputs(frame: str = "airflow") -> tuple[str, ...]:
+    """The input names of a dataset in ``frame`` (:data:`FRAMES`)."""
+    if frame not in FRAMES:
+        raise ValueError(f"frame must be one of {list(FRAMES)}, got {frame!r}")
+    return INPUTS if frame == "airflow" else BODY_INPUTS
+
+
+def grad_inputs(frame: str = "airflow") -> tuple[str, ...]:
+    """The inputs a dataset in ``frame`` has gradients along: 7 in both frames (the airflow
+    frame has none along the airspeed; the body frame has them along every input)."""
+    return inputs(frame)[:7]

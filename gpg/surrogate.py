@@ -10,6 +10,12 @@
 4. rotate the residual force and moment back to the world frame and add the simplified model
    ``M`` evaluated at the world attitude: ``F_W = R_WH μ_F + F_M,W`` (likewise the moment).
 
+The body frame (a surrogate fitted on body-frame data, ``frame == "body"``): step 1 is
+``x_B = (r1..r4, R_WBᵀ v_air)``, smooth everywhere, hover and vertical air included, with no
+frame of its own to turn; the GP's residuals live in the body frame, ``F_W = R_WB μ_F + F_M,W``.
+Its ``in_domain`` is the rotor speeds' box and the ball of air velocities of the data (the
+largest ball about hover inside their box: ``|v_air| ≤ V``).
+
 ``in_domain`` is False when an rpm is negative or ``x_H`` leaves the training box (e.g. flying
 sideways or backwards puts ``ψ_H`` beyond ±90°), or where the airflow frame turns faster than
 :data:`MAX_FRAME_RATE` with the air velocity (next to its singular sets, where 1 mm/s of air
@@ -109,6 +115,8 @@ class Surrogate(eqx.Module):
     # m/s: below it the airflow frame turns toward the body heading (frames.airflow_direction)
     hover_speed: float = eqx.field(static=True, default=HOVER_SPEED)
     noise_model: SimpleNoise | None = None  # M_noise, added back to the levels (None: not used)
+    # "airflow": the paper's inputs x_H; "body": x_B = (rpm, R_WBᵀ v_air) (gpg.names.FRAMES)
+    frame: str = eqx.field(static=True, default="airflow")
 
     @classmethod
     @float64
@@ -143,9 +151,14 @@ class Surrogate(eqx.Module):
         (:mod:`gpg.parallel`).
         """
         cfg = models.resolve_config(model, config)
-        box = None if bounds is None else Bounds.from_config(bounds).arrays()
+        box = None if bounds is None else Bounds.from_config(bounds).arrays(dataset.frame)
         if noise_model and not residual:
             raise ValueError("noise_model=True needs residual=True (M_noise uses M's loads)")
+        if noise_model and dataset.frame == "body":
+            raise ValueError(
+                "noise_model=True (M_noise) takes the airflow frame's inputs; this dataset is in "
+                "the body frame: fit without it"
+            )
         simple = noise = None  # M and M_noise
         if residual:
             veh = dataset_vehicle(dataset, vehicle)
@@ -190,6 +203,7 @@ class Surrogate(eqx.Module):
                 config.to_dict() if isinstance(config, ModelConfig) else config, sort_keys=True
             ),
             hover_speed=hover_speed,
+            frame=dataset.frame,
         )
 
     def condition(self, dataset: Dataset) -> Surrogate:
@@ -402,7 +416,7 @@ def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
     else the data's own extent."""
     bounds = dataset.meta.get("bounds")
     if bounds:
-        return Bounds.from_config(bounds).arrays()
+        return Bounds.from_config(bounds).arrays(dataset.frame)
     return dataset.x.min(0), dataset.x.max(0)
 
 
@@ -515,17 +529,27 @@ def predict_state(
     if sur.box_lo.dtype != dt:  # float64 arrays in a float32 program: convert once, explicitly
         sur = sur.astype(dt)
     rpm, euler, v_air = (jnp.asarray(a).astype(dt) for a in (rpm, euler, v_air))
-    euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
-    x_h = jnp.concatenate([rpm, euler_h, speed[None]])
-    span = sur.box_hi - sur.box_lo
-    tol = 1e-9 * jnp.maximum(span, 1.0)
-    inside = jnp.all((x_h >= sur.box_lo - tol) & (x_h <= sur.box_hi + tol))
     finite = (
         jnp.all(jnp.isfinite(rpm)) & jnp.all(jnp.isfinite(euler)) & jnp.all(jnp.isfinite(v_air))
     )
-    # Near the airflow frame's singular sets the data's coordinates of the query swing with
-    # millimetres per second of air, and a prediction with them: not in domain there.
-    steady = airflow_frame_rate(euler, v_air, sur.hover_speed) <= MAX_FRAME_RATE
+    span = sur.box_hi - sur.box_lo
+    tol = 1e-9 * jnp.maximum(span, 1.0)
+    if sur.frame == "body":
+        R_WH = R_WB(euler)  # the GP's frame is the body's
+        x_h = jnp.concatenate([rpm, matvec(R_WH.T, v_air)])
+        inside = jnp.all(
+            (x_h[:4] >= sur.box_lo[:4] - tol[:4]) & (x_h[:4] <= sur.box_hi[:4] + tol[:4])
+        )
+        radius = jnp.minimum(jnp.min(sur.box_hi[4:]), jnp.min(-sur.box_lo[4:]))
+        inside = inside & (jnp.sum(x_h[4:] ** 2) <= (radius * (1.0 + 1e-9)) ** 2)
+        steady = jnp.asarray(True)  # no coordinate singularity to stay away from
+    else:
+        euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
+        x_h = jnp.concatenate([rpm, euler_h, speed[None]])
+        inside = jnp.all((x_h >= sur.box_lo - tol) & (x_h <= sur.box_hi + tol))
+        # Near the airflow frame's singular sets the data's coordinates of the query swing
+        # with millimetres per second of air, and a prediction with them: not in domain there.
+        steady = airflow_frame_rate(euler, v_air, sur.hover_speed) <= MAX_FRAME_RATE
     in_domain = finite & jnp.all(rpm >= 0) & inside & steady
 
     xn = sur.normalizer.x(x_h)

@@ -148,3 +148,38 @@ def _exact_row(model, xn):
     h = model.hyper
     k = kernels.query_rows(xn[None], model.X, h.variance, h.lengthscale, model.grad_dims)[0]
     return k if model.order is None else k[model.order]
+
+
+def smooth_body(x, W):
+    """:func:`smooth` for body-frame inputs ``(rpm, u, v, w)`` (N, 7): outputs (N, 9) and exact
+    Jacobians along all seven inputs (N, 9, 7)."""
+    scale = np.array([1 / 3500.0] * 4 + [1 / 20.0] * 3)
+    u = x * scale - np.array([1.0] * 4 + [0.0] * 3)
+    z = u @ W
+    out_scale = np.array([3, 3, 20, 0.5, 0.5, 0.2, 5, 5, 5])
+    y = (np.sin(z) + 0.3 * z) * out_scale + np.array([0, 0, -26, 0, 0, 0, 60, 60, 50])
+    dz = (np.cos(z) + 0.3)[:, :, None] * (W.T[None] * scale[None, None, :])
+    return y, dz * out_scale[None, :, None]
+
+
+def synthetic_body_dataset(n=60, seed=0):
+    """A body-frame dataset (the envelope's ball of air velocities) of a smooth analytic
+    function with exact gradients along all seven inputs."""
+    rng = np.random.default_rng(seed)
+    W = rng.normal(scale=0.5, size=(7, 9))
+    x = latin_hypercube(n, Bounds(), seed, "body")
+    y, J = smooth_body(x, W)
+    return Dataset(
+        x=x,
+        y_aero=y[:, :6],
+        jac_aero=J[:, :6],
+        y_noise=y[:, 6:],
+        jac_noise=J[:, 6:],
+        meta={
+            "frame": "body",
+            "bounds": {"rpm": [0.0, 7000.0], "airspeed": [0.0, 20.0]},
+            "simple_model": {"P_F": 5.3e-7, "T_z": 8.4e-9},
+            "name": "synthetic_body",
+            "vehicle": vehicle_config("sui_endurance"),
+        },
+    ), W

@@ -57,8 +57,15 @@ class Bounds:
                 raise
             raise ValueError(str(exc).replace("bounds.", f"{where}.")) from None
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper bounds of ``x`` (8,) in file units (rpm, rad, m/s)."""
+    def arrays(self, frame: str = "airflow") -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of ``x`` (8,) in file units (rpm, rad, m/s); in the body
+        frame (7,): the rotor speeds' box and the box ``[-V, V]³`` around the ball of air
+        velocities of radius ``V = airspeed[1]`` (the angles do not bound body-frame data)."""
+        if frame == "body":
+            v = self.airspeed[1]
+            return (np.array([self.rpm[0]] * 4 + [-v] * 3), np.array([self.rpm[1]] * 4 + [v] * 3))
+        if frame != "airflow":
+            raise ValueError(f"frame must be 'airflow' or 'body', got {frame!r}")
         rad = math.pi / 180.0
         lo = [self.rpm[0]] * 4 + [a[0] * rad for a in (self.yaw_deg, self.pitch_deg, self.roll_deg)]
         hi = [self.rpm[1]] * 4 + [a[1] * rad for a in (self.yaw_deg, self.pitch_deg, self.roll_deg)]

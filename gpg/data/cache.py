@@ -49,7 +49,10 @@ def build_generator(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any])
 def dataset_key(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> str:
     """Cache key: hash of everything that determines the data (not ``chunk`` or ``workers``,
     which do not)."""
-    relevant = {k: v for k, v in data_cfg.items() if k not in ("chunk", "workers")}
+    # chunk and workers do not change the data; mirror images are made after the cache
+    relevant = {k: v for k, v in data_cfg.items() if k not in ("chunk", "workers", "mirror")}
+    if relevant.get("frame") == "airflow":  # the default: the same key as before it existed
+        del relevant["frame"]
     blob = json.dumps(
         {"data": relevant, "vehicle": vehicle_cfg, "generator_version": GENERATOR_VERSION},
         sort_keys=True,
@@ -71,6 +74,13 @@ def check_numbers(data_cfg: Mapping[str, Any]) -> None:
     for key in ("keep_raw", "noise"):
         if not isinstance(data_cfg.get(key, True), bool):
             raise ValueError(f"data.{key} must be true or false, got {data_cfg.get(key)!r}")
+    if data_cfg.get("frame", "airflow") not in ("airflow", "body"):
+        raise ValueError(f"data.frame must be 'airflow' or 'body', got {data_cfg.get('frame')!r}")
+    mirror = data_cfg.get("mirror") or []
+    if not isinstance(mirror, list | tuple) or not set(mirror) <= {"x", "y"}:
+        raise ValueError(f"data.mirror must be a list of body axes 'x', 'y', got {mirror!r}")
+    if mirror and data_cfg.get("frame", "airflow") != "body":
+        raise ValueError("data.mirror takes body-frame data (data.frame: body)")
 
 
 def _generate_pair(
@@ -95,6 +105,7 @@ def _generate_pair(
     }
     chunk = int(data_cfg.get("chunk", 512))
     workers = int(data_cfg.get("workers", 1))
+    frame = data_cfg.get("frame", "airflow")
     train = generate(
         gen,
         int(data_cfg["n_train"]),
@@ -108,6 +119,7 @@ def _generate_pair(
         progress="train set" if progress else False,
         meta={**meta, "split": "train"},
         workers=workers,
+        frame=frame,
     )
     test = generate(
         gen,
@@ -121,6 +133,7 @@ def _generate_pair(
         progress="test set" if progress else False,
         meta={**meta, "split": "test"},
         workers=workers,
+        frame=frame,
     )
     return train, test
 
@@ -200,9 +213,23 @@ def load_data(cfg: dict[str, Any]) -> tuple[Dataset, Dataset, dict[str, Any]]:
         if not (paths.get("train") and paths.get("test")):
             raise ValueError("give both dataset.train and dataset.test (held-out test set)")
         train, test = Dataset.load(paths["train"]), Dataset.load(paths["test"])
-        return train, test, {"key": None, "train": str(paths["train"]), "test": str(paths["test"])}
+        info = {"key": None, "train": str(paths["train"]), "test": str(paths["test"])}
+        return with_mirrors(train, cfg), test, info
     train, test, _, info = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])
-    return train, test, info
+    return with_mirrors(train, cfg), test, info
+
+
+def with_mirrors(train: Dataset, cfg: dict[str, Any]) -> Dataset:
+    """The training set with its mirror images (``data.mirror``, body frame only: see
+    :mod:`gpg.data.symmetry`; none by default). Made after the cache, so the cached files and
+    their key do not depend on it; the test set is never mirrored."""
+    axes = tuple((cfg.get("data") or {}).get("mirror") or ())
+    if not axes:
+        return train
+    from gpg.data.symmetry import augment
+    from gpg.quadrotor.vehicle import Vehicle
+
+    return augment(train, Vehicle.from_config(cfg["vehicle"]), axes)
 
 
 def load_train(cfg: dict[str, Any]) -> Dataset:

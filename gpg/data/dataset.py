@@ -1,6 +1,7 @@
 """The dataset file: one ``.npz`` of arrays plus a JSON sidecar (docs/design.md, "Dataset file").
 
-Arrays: ``x (N, 8)``, ``y_aero (N, 6)``, ``jac_aero (N, 6, 7)``, ``y_noise (N, 3)``,
+Arrays: ``x (N, 8)`` (``(N, 7)`` in the body frame: ``meta["frame"] == "body"``, inputs
+:func:`gpg.names.inputs`), ``y_aero (N, 6)``, ``jac_aero (N, 6, 7)``, ``y_noise (N, 3)``,
 ``jac_noise (N, 3, 7)``, and the raw finite-difference samples ``x_raw (8N, 8)``,
 ``y_raw (8N, 6 or 9)`` for the 8X baselines (point-major: rows ``8i..8i+7`` are point ``i``
 and its seven perturbations). Noise, gradients and raw samples may each be absent (a user's
@@ -27,7 +28,7 @@ import numpy as np
 
 from gpg._checks import as_float_array, require_finite, require_shape
 from gpg._io import atomic_write
-from gpg.names import AERO, GRAD_INPUTS, INPUTS, NOISE, UNITS
+from gpg.names import AERO, FRAMES, GRAD_INPUTS, NOISE, UNITS, grad_inputs, inputs
 
 SCHEMA_VERSION = 1
 _ARRAYS = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "x_raw", "y_raw")
@@ -64,6 +65,22 @@ class Dataset:
     @property
     def n(self) -> int:
         return self.x.shape[0]
+
+    @property
+    def frame(self) -> str:
+        """``"airflow"`` (the paper's inputs, the default) or ``"body"`` (``meta["frame"]``)."""
+        return self.meta.get("frame", "airflow")
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """The names of the columns of ``x`` (:func:`gpg.names.inputs` of :attr:`frame`)."""
+        return inputs(self.frame)
+
+    @property
+    def airspeed(self) -> np.ndarray:
+        """Each case's airspeed (N,), m/s: the last input in the airflow frame, ``|(u, v, w)|``
+        in the body frame."""
+        return self.x[:, 7] if self.frame == "airflow" else np.linalg.norm(self.x[:, 4:7], axis=1)
 
     @property
     def has_noise(self) -> bool:
@@ -115,7 +132,10 @@ class Dataset:
 
     def validate(self) -> None:
         """Shapes and finiteness; ``ValueError`` names the array and, for NaN/inf, the rows."""
-        require_shape("x", self.x, (None, 8))
+        if self.frame not in FRAMES:
+            raise ValueError(f"meta['frame'] must be one of {list(FRAMES)}, got {self.frame!r}")
+        d = len(self.inputs)
+        require_shape("x", self.x, (None, d))
         n = self.x.shape[0]
         require_shape("y_aero", self.y_aero, (n, 6))
         if self.jac_aero is not None:
@@ -129,7 +149,7 @@ class Dataset:
         if (self.x_raw is None) != (self.y_raw is None):
             raise ValueError("x_raw and y_raw must be given together")
         if self.x_raw is not None:
-            require_shape("x_raw", self.x_raw, (None, 8))
+            require_shape("x_raw", self.x_raw, (None, d))
             m = self.x_raw.shape[0]
             require_shape("y_raw", self.y_raw, (m, 9 if self.has_noise else 6))
             if m != 8 * n:
@@ -145,7 +165,7 @@ class Dataset:
         if np.any(self.x[:, :4] < 0):
             rows = np.flatnonzero(np.any(self.x[:, :4] < 0, axis=1))
             raise ValueError(f"x has negative rotor speeds in row(s) {rows[:10].tolist()}")
-        if np.any(self.x[:, 7] < 0):
+        if self.frame == "airflow" and np.any(self.x[:, 7] < 0):
             rows = np.flatnonzero(self.x[:, 7] < 0)
             raise ValueError(
                 f"x has a negative airspeed (a speed, ≥ 0 m/s) in row(s) {rows[:10].tolist()}"
@@ -160,19 +180,32 @@ class Dataset:
         naming the rows, the input and its value in the box's units."""
         from gpg.data.bounds import Bounds
 
-        lo, hi = Bounds.from_config(self.meta["bounds"], "meta['bounds']").arrays()
+        box = Bounds.from_config(self.meta["bounds"], "meta['bounds']")
+        lo, hi = box.arrays(self.frame)
         tol = 1e-9 * np.maximum(hi - lo, 1.0)  # the degree-to-radian conversion's rounding
         out = (self.x < lo - tol) | (self.x > hi + tol)
+        if self.frame == "body":  # the ball of air velocities, not its bounding box
+            speed = np.linalg.norm(self.x[:, 4:7], axis=1)
+            far = speed > box.airspeed[1] * (1 + 1e-9)
+            if far.any():
+                rows = np.flatnonzero(far)
+                raise ValueError(
+                    f"x has {rows.size} case(s) outside the ball of air velocities the dataset "
+                    f"declares (airspeed up to {box.airspeed[1]:g} m/s), in row(s) "
+                    f"{rows[:10].tolist()}: row {rows[0]} has |(u, v, w)| = "
+                    f"{speed[rows[0]]:g} m/s"
+                )
         if not out.any():
             return
         rows = np.flatnonzero(out.any(axis=1))
         r, j = rows[0], int(np.flatnonzero(out[rows[0]])[0])
-        deg = 180.0 / np.pi if 4 <= j <= 6 else 1.0
-        unit = "°" if deg != 1.0 else f" {UNITS[INPUTS[j]]}"
+        names = self.inputs
+        deg = 180.0 / np.pi if 4 <= j <= 6 and self.frame == "airflow" else 1.0
+        unit = "°" if deg != 1.0 else f" {UNITS[names[j]]}"
         more = f" (and {rows.size - 10} more)" if rows.size > 10 else ""
         raise ValueError(
             f"x has {rows.size} case(s) outside the box the dataset declares (its 'bounds'), in "
-            f"row(s) {rows[:10].tolist()}{more}: row {r} has {INPUTS[j]} = {self.x[r, j] * deg:g}"
+            f"row(s) {rows[:10].tolist()}{more}: row {r} has {names[j]} = {self.x[r, j] * deg:g}"
             f"{unit}, outside [{lo[j] * deg:g}, {hi[j] * deg:g}]{unit}; check the units (angles "
             "in degrees need units={'yaw': 'deg', ...}) or widen the bounds"
         )
@@ -268,9 +301,9 @@ class Dataset:
             **self.meta,
             "schema_version": SCHEMA_VERSION,
             "n": self.n,
-            "inputs": list(INPUTS),
+            "inputs": list(self.inputs),
             "outputs": list(self.output_names),
-            "units": {k: UNITS[k] for k in INPUTS + self.output_names},
+            "units": {k: UNITS[k] for k in self.inputs + self.output_names},
             "arrays": [k for k in _ARRAYS if getattr(self, k) is not None],
             "missing": list(self.missing),
         }
@@ -373,6 +406,7 @@ _UNIT_FACTORS = {
     "dB": {"dB": 1.0},
 }
 GRADIENT_COLUMNS = tuple(f"d{o}/d{i}" for o in AERO + NOISE for i in GRAD_INPUTS)
+_BODY_GRADIENT_COLUMNS = tuple(f"d{o}/d{i}" for o in AERO + NOISE for i in grad_inputs("body"))
 
 
 def unit_factor(field: str, unit: str | None) -> float:
@@ -399,8 +433,13 @@ def from_csv(
     vehicle: Any = None,
     bounds: Mapping[str, Any] | None = None,
     meta: Mapping[str, Any] | None = None,
+    frame: str = "airflow",
 ) -> Dataset:
     """Import a CSV file by mapping schema fields to its column names.
+
+    ``frame="body"`` reads body-frame data instead (inputs ``r1..r4, u, v, w``: the air
+    velocity in the body frame, m/s; outputs in the body frame; gradients along all seven
+    inputs, ``"dFx/du"``); ``bounds`` then takes ``rpm`` and ``airspeed`` (the ball's radius).
 
     ``columns`` maps schema fields (``r1..r4, yaw, pitch, roll, airspeed, Fx..Mz, L1..L3``) to
     CSV headers; inputs and the six aerodynamic outputs are required, noise optional. Gradients
@@ -426,6 +465,8 @@ def from_csv(
                 f"{'CSV header' if name == 'columns' else 'value'}), got a "
                 f"{type(arg).__name__}"
             )
+    names, gnames = inputs(frame), grad_inputs(frame)  # a ValueError names a bad frame
+    grad_fields = GRADIENT_COLUMNS if frame == "airflow" else _BODY_GRADIENT_COLUMNS
     if columns is None:
         raise ValueError(
             "from_csv: columns is required: a mapping of schema fields (r1..r4, yaw, pitch, roll, "
@@ -433,19 +474,19 @@ def from_csv(
         )
     units = dict(units or {})
     columns = dict(columns)
-    known = set(UNITS) | set(GRADIENT_COLUMNS)
+    known = set(names + AERO + NOISE) | set(grad_fields)
     unknown = sorted(set(columns) - known)
     if unknown:
         raise ValueError(
-            f"unknown schema fields {unknown}; valid: {list(INPUTS + AERO + NOISE)} "
-            "and gradients like 'dFx/dr1'"
+            f"unknown schema fields {unknown} (frame {frame!r}); valid: "
+            f"{list(names + AERO + NOISE)} and gradients like 'dFx/dr1'"
         )
     bad_units = sorted(set(units) - set(UNITS))
     if bad_units:
         raise ValueError(f"units given for unknown fields {bad_units}")
     for f, u in units.items():
         unit_factor(f, u)
-    missing = [f for f in INPUTS + AERO if f not in columns]
+    missing = [f for f in names + AERO if f not in columns]
     if missing:
         raise ValueError(f"columns mapping lacks required fields {missing}")
     noise = [f for f in NOISE if f in columns]
@@ -454,12 +495,12 @@ def from_csv(
     _check_one_field_per_column(columns)
     outs = AERO + (NOISE if noise else ())
     if gradients is not None:
-        if any(g in columns for g in GRADIENT_COLUMNS):
+        if any(g in columns for g in grad_fields):
             raise ValueError("give gradient columns either one by one or by a pattern, not both")
-        columns.update(_gradient_columns(gradients, columns, outs))
+        columns.update(_gradient_columns(gradients, columns, outs, gnames))
         _check_one_field_per_column(columns)
-    grads = [g for g in GRADIENT_COLUMNS if g in columns]
-    want_grads = [f"d{o}/d{i}" for o in outs for i in GRAD_INPUTS]
+    grads = [g for g in grad_fields if g in columns]
+    want_grads = [f"d{o}/d{i}" for o in outs for i in gnames]
     if grads and sorted(grads) != sorted(want_grads):
         lacking = sorted(set(want_grads) - set(grads))
         raise ValueError(f"gradients must be complete; missing {lacking[:6]} ...")
@@ -477,11 +518,13 @@ def from_csv(
 
         Bounds.from_config(bounds)
         extra_meta["bounds"] = {k: list(v) for k, v in bounds.items()}
+    if frame != "airflow":
+        extra_meta["frame"] = frame
 
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"CSV file {path} does not exist")
-    data = _read_csv(path, columns, blank={columns[g] for g in GRADIENT_COLUMNS if g in columns})
+    data = _read_csv(path, columns, blank={columns[g] for g in grad_fields if g in columns})
     col = {k: data[:, j] for j, k in enumerate(columns)}
 
     def get(fields):
@@ -490,14 +533,14 @@ def from_csv(
     def grad(outputs):
         out = np.empty((data.shape[0], len(outputs), 7))
         for a, o in enumerate(outputs):
-            for b, i in enumerate(GRAD_INPUTS):
+            for b, i in enumerate(gnames):
                 out[:, a, b] = (
                     col[f"d{o}/d{i}"] * unit_factor(o, units.get(o)) / unit_factor(i, units.get(i))
                 )
         return out
 
     return Dataset(
-        x=get(INPUTS),
+        x=get(names),
         y_aero=get(AERO),
         y_noise=get(NOISE) if noise else None,
         jac_aero=grad(AERO) if grads else None,
@@ -521,11 +564,13 @@ def _check_one_field_per_column(columns: Mapping[str, str]) -> None:
         )
 
 
-def _gradient_columns(pattern: str, columns: Mapping[str, str], outs) -> dict[str, str]:
+def _gradient_columns(
+    pattern: str, columns: Mapping[str, str], outs, gnames=GRAD_INPUTS
+) -> dict[str, str]:
     """Schema gradient field -> CSV header, from a pattern (see :func:`from_csv`)."""
     out = {}
     for o in outs:
-        for i in GRAD_INPUTS:
+        for i in gnames:
             try:
                 out[f"d{o}/d{i}"] = pattern.format(
                     output=columns[o], input=columns[i], output_field=o, input_field=i

@@ -104,6 +104,7 @@ class Training:
     simple: SimpleModel | None
     output_names: tuple[str, ...]
     noise_model: SimpleNoise | None = None
+    frame: str = "airflow"  # the data's inputs (gpg.names.FRAMES): where M's attitude comes from
 
 
 class FittedCoefficientsWarning(UserWarning):
@@ -126,7 +127,7 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
         return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
     from gpg.quadrotor.frames import R_WB  # local: only this fallback needs it
 
-    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(ds.x[:, 4:7])))
+    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(_attitude(ds))))
     F_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, :3])
     tau_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, 3:])
     r2 = ds.x[:, :4] ** 2
@@ -153,13 +154,20 @@ def residuals(
     y, J = ds.y.copy(), None if ds.jac is None else ds.jac.copy()
     y_raw = None if ds.y_raw is None else ds.y_raw.copy()
     if simple is not None:
-        yM, JM = (np.asarray(a) for a in simple.batch(ds.x[:, :7]))
+        yM, JM = (np.asarray(a) for a in simple.batch(_m_inputs(ds, ds.x)))
+        if ds.frame == "body":  # M in the body frame depends on the rotor speeds alone
+            JM = JM.copy()
+            JM[:, :, 4:] = 0.0
         y[:, :6] -= yM
         if J is not None:
             J[:, :6] -= JM
         if y_raw is not None:
-            y_raw[:, :6] -= np.asarray(simple.values(ds.x_raw[:, :7]))
+            y_raw[:, :6] -= np.asarray(simple.values(_m_inputs(ds, ds.x_raw)))
     if noise_model is not None and ds.has_noise:
+        if ds.frame == "body":
+            raise ValueError(
+                "M_noise (noise_model) takes airflow-frame inputs: not for body-frame data"
+            )
         yN, JN = (np.asarray(a) for a in noise_model.batch(ds.x))
         y[:, 6:9] -= yN
         if J is not None:
@@ -167,6 +175,19 @@ def residuals(
         if y_raw is not None:
             y_raw[:, 6:9] -= np.asarray(noise_model.batch(ds.x_raw)[0])
     return y, J, y_raw
+
+
+def _attitude(ds: Dataset) -> np.ndarray:
+    """The attitude of each case in the dataset's frame: its Euler angles in the airflow
+    frame, the identity (zeros) in the body frame, where the outputs are already body-frame."""
+    return ds.x[:, 4:7] if ds.frame == "airflow" else np.zeros((ds.n, 3))
+
+
+def _m_inputs(ds: Dataset, x: np.ndarray) -> np.ndarray:
+    """``x_M = (r1..r4, yaw, pitch, roll)`` of :class:`SimpleModel` for rows ``x`` of ``ds``."""
+    if ds.frame == "airflow":
+        return x[:, :7]
+    return np.concatenate([x[:, :4], np.zeros((x.shape[0], 3))], axis=1)
 
 
 def prepare(
@@ -198,6 +219,7 @@ def prepare(
         simple=simple,
         output_names=ds.output_names,
         noise_model=noise_model if ds.has_noise else None,
+        frame=ds.frame,
     )
 
 
@@ -265,7 +287,9 @@ def restore(
     back."""
     y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
     if training.simple is not None:
-        y[:, :6] += np.asarray(training.simple.values(jnp.asarray(x)[:, :7]))
+        x = np.asarray(x)
+        x_m = x[:, :7] if training.frame == "airflow" else np.c_[x[:, :4], np.zeros((len(x), 3))]
+        y[:, :6] += np.asarray(training.simple.values(jnp.asarray(x_m)))
     if training.noise_model is not None and y.shape[1] > 6:
         y[:, 6:9] += np.asarray(training.noise_model.batch(x)[0])
     return y

@@ -7,6 +7,13 @@ evaluations plus the base point are the "raw 8X samples" of the non-gradient bas
 
 The paper's rpm step is undefined at 0 rpm (a 10 % step of nothing); here the step is
 ``max(0.1 r, rpm_floor)`` with a 10 rpm floor by default.
+
+The body frame (``frame="body"``, the whole flight envelope): rotor speeds as above and the air
+velocity in the body frame from every direction, ``(u, v, w) = s·d`` with the speed ``s``
+uniform in ``[airspeed]`` and the direction ``d`` uniform on the sphere (one Latin hypercube
+over rotor speeds, speed, ``d_z`` and the azimuth of ``d``): hover, axial climb and descent and
+air from behind are all inside. Forward differences step each rotor speed as above and each
+air-velocity component by ``fd.velocity`` (m/s): the same 8 runs a case as the paper's.
 """
 
 from __future__ import annotations
@@ -14,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -26,12 +34,27 @@ from gpg.quadrotor.generator import Generator, evaluate_batch
 
 
 def latin_hypercube(
-    n: int, bounds: Bounds | tuple[np.ndarray, np.ndarray], seed: int
+    n: int, bounds: Bounds | tuple[np.ndarray, np.ndarray], seed: int, frame: str = "airflow"
 ) -> np.ndarray:
     """``n`` inputs (n, 8) from a scrambled Latin hypercube (``scipy.stats.qmc``) over
-    ``bounds``, or over a box given as its lower and upper corners (8,) each."""
+    ``bounds``, or over a box given as its lower and upper corners (8,) each. In the body frame
+    (n, 7): rotor speeds in ``bounds.rpm`` and air velocities ``s·d``, ``s`` uniform in
+    ``bounds.airspeed``, ``d`` uniform on the sphere (see the module docstring)."""
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
+    if frame == "body":
+        if not isinstance(bounds, Bounds):
+            raise ValueError("the body frame samples from a Bounds (rpm and airspeed)")
+        unit = qmc.LatinHypercube(d=7, rng=np.random.default_rng(seed)).random(n)
+        rpm = qmc.scale(unit[:, :4], [bounds.rpm[0]] * 4, [bounds.rpm[1]] * 4)
+        s = bounds.airspeed[0] + (bounds.airspeed[1] - bounds.airspeed[0]) * unit[:, 4]
+        dz = 2.0 * unit[:, 5] - 1.0  # uniform on the sphere: d_z uniform in [-1, 1]
+        az = 2.0 * np.pi * unit[:, 6]
+        rho = np.sqrt(np.maximum(1.0 - dz**2, 0.0))
+        vel = s[:, None] * np.stack([rho * np.cos(az), rho * np.sin(az), dz], axis=1)
+        return np.concatenate([rpm, vel], axis=1)
+    if frame != "airflow":
+        raise ValueError(f"frame must be 'airflow' or 'body', got {frame!r}")
     lo, hi = bounds.arrays() if isinstance(bounds, Bounds) else bounds
     unit = qmc.LatinHypercube(d=8, rng=np.random.default_rng(seed)).random(n)
     return qmc.scale(unit, lo, hi)
@@ -39,11 +62,13 @@ def latin_hypercube(
 
 @dataclass(frozen=True)
 class FDSteps:
-    """Forward-difference steps: rotor speeds by ``rpm_rel`` (floored), angles by ``angle_deg``."""
+    """Forward-difference steps: rotor speeds by ``rpm_rel`` (floored), angles by ``angle_deg``,
+    body-frame air-velocity components by ``velocity`` (m/s)."""
 
     rpm_rel: float = 0.10
     rpm_floor: float = 10.0
     angle_deg: float = 1.0
+    velocity: float = 0.1
 
     def __post_init__(self):
         for k, v in asdict(self).items():
@@ -51,19 +76,21 @@ class FDSteps:
                 raise ValueError(f"fd.{k} must be > 0, got {v}")
 
     def steps(self, x: np.ndarray) -> np.ndarray:
-        """Step of each of the 7 gradient inputs at each point (N, 7)."""
+        """Step of each of the 7 gradient inputs at each point (N, 7): the angles' in the
+        airflow frame (x with 8 columns), the air velocity's in the body frame (7 columns)."""
         h_rpm = np.maximum(self.rpm_rel * x[:, :4], self.rpm_floor)
-        h_ang = np.full((x.shape[0], 3), math.radians(self.angle_deg))
-        return np.concatenate([h_rpm, h_ang], axis=1)
+        h = math.radians(self.angle_deg) if x.shape[1] == 8 else self.velocity
+        return np.concatenate([h_rpm, np.full((x.shape[0], 3), h)], axis=1)
 
 
 def raw_samples(x: np.ndarray, fd: FDSteps) -> tuple[np.ndarray, np.ndarray]:
-    """The 8 raw inputs per point (8N, 8), point-major, and the steps (N, 7)."""
+    """The 8 raw inputs per point (8N, D), point-major, and the steps (N, 7)."""
     h = fd.steps(x)
-    pert = np.repeat(x[:, None, :], 8, axis=1)  # (N, 8, 8): base + 7 perturbations
+    d = x.shape[1]
+    pert = np.repeat(x[:, None, :], 8, axis=1)  # (N, 8, D): base + 7 perturbations
     idx = np.arange(7)
     pert[:, 1 + idx, idx] += h
-    return pert.reshape(-1, 8), h
+    return pert.reshape(-1, d), h
 
 
 @float64
@@ -81,8 +108,10 @@ def generate(
     progress: bool | str = False,
     meta: Mapping[str, Any] | None = None,
     workers: int = 1,
+    frame: str = "airflow",
 ) -> Dataset:
-    """Sample ``n`` inputs and evaluate the generator.
+    """Sample ``n`` inputs and evaluate the generator, in the airflow frame (the paper's) or
+    the body frame (``frame="body"``: the whole envelope, see the module docstring).
 
     ``gradients``: ``"fd"`` (the paper's forward differences; also yields the raw 8X samples),
     ``"exact"`` (forward-mode autodiff through the generator) or ``"none"``. ``workers``
@@ -92,31 +121,31 @@ def generate(
         raise ValueError(f"gradients must be 'fd', 'exact' or 'none', got {gradients!r}")
     if keep_raw and gradients != "fd":
         raise ValueError("raw 8X samples come from the finite differences: use gradients='fd'")
-    x = latin_hypercube(n, bounds, seed)
+    x = latin_hypercube(n, bounds, seed, frame)
     jac = x_raw = y_raw = None
+    ev = partial(evaluate_batch, gen, chunk=chunk, progress=progress, workers=workers, frame=frame)
     if gradients == "fd":
         x_raw, h = raw_samples(x, fd)
-        y_raw = evaluate_batch(gen, x_raw, chunk=chunk, progress=progress, workers=workers)
+        y_raw = ev(x_raw)
         y8 = y_raw.reshape(n, 8, 9)
         y = y8[:, 0]
         jac = (y8[:, 1:] - y[:, None]).transpose(0, 2, 1) / h[:, None, :]  # (N, 9, 7)
     elif gradients == "exact":
-        y, jac = evaluate_batch(
-            gen, x, chunk=chunk, with_jacobian=True, progress=progress, workers=workers
-        )
+        y, jac = ev(x, with_jacobian=True)
     else:
-        y = evaluate_batch(gen, x, chunk=chunk, progress=progress, workers=workers)
+        y = ev(x)
     out = slice(None) if noise else slice(0, 6)
     info = {
         # The dataset names its vehicle (Surrogate.fit reads it); callers may record more.
         "generator": {"name": "gpg BEMT + tonal acoustics", "vehicle": gen.vehicle.name},
-        "bounds": asdict(bounds),
+        "bounds": _bounds_meta(bounds, frame),
         "seed": seed,
         "gradients": gradients,
-        "fd": asdict(fd) if gradients == "fd" else None,
+        "fd": _fd_meta(fd, frame) if gradients == "fd" else None,
         "raw_layout": "point-major: row 8i is point i, rows 8i+1..8i+7 perturb x_0..x_6"
         if keep_raw
         else None,
+        **({"frame": frame} if frame != "airflow" else {}),
         **dict(meta or {}),
     }
     return Dataset(
@@ -129,3 +158,17 @@ def generate(
         y_raw=y_raw[:, out] if keep_raw else None,
         meta=info,
     )
+
+
+def _bounds_meta(bounds: Bounds, frame: str) -> dict[str, Any]:
+    """The bounds a dataset records: the body frame's are the rotor speeds and the ball."""
+    out = asdict(bounds)
+    return out if frame == "airflow" else {k: out[k] for k in ("rpm", "airspeed")}
+
+
+def _fd_meta(fd: FDSteps, frame: str) -> dict[str, Any]:
+    """The steps a dataset records: the angle step in the airflow frame, the velocity step in
+    the body frame (the other is not used)."""
+    out = asdict(fd)
+    out.pop("velocity" if frame == "airflow" else "angle_deg")
+    return out

@@ -149,6 +149,11 @@ def _min_distance(A: np.ndarray, B: np.ndarray, chunk: int = 4096) -> np.ndarray
 @float64
 def condition(sur, dataset: Dataset):
     """``sur`` conditioned on the cases of ``dataset`` (:meth:`gpg.Surrogate.condition`)."""
+    if sur.frame != "airflow":
+        raise ValueError(
+            "conditioning a body-frame surrogate is not supported yet (its new cases' checks "
+            "read the airflow frame's inputs): refit with Surrogate.fit on all the cases"
+        )
     new = new_cases(sur, dataset)
     cfg = models.resolve_config(sur.model_name, sur.config)
     kind = models.SPECS[sur.model_name].kind

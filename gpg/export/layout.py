@@ -162,14 +162,20 @@ def column_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, last
 
 
-def spec(sur: Surrogate, *, variance: bool = True) -> Spec:
+def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None) -> Spec:
     """The export layout of ``sur`` (``variance``: keep the variance factors), or ``ValueError``
     saying why it cannot be exported: not a Surrogate, a noise model ``M_noise`` (its own
     network is not exported), a model kind without a closed form here, an exact model whose
-    factor has rows in a non-layout order (a model grown by ``condition``), non-finite arrays.
-    """
+    factor has rows in a non-layout order (a model grown by ``condition``), non-finite arrays,
+    an exact model's variance factor whose triangle alone is over ``max_bytes`` (refused before
+    the factor is made dense: 256 MB at data=default)."""
     if not isinstance(sur, Surrogate):
         raise ValueError(f"export takes a gpg.Surrogate, got {type(sur).__name__}")
+    if sur.frame != "airflow":
+        raise ValueError(
+            "a body-frame surrogate is not exported yet (the C, CasADi and ONNX writers emit the "
+            "airflow frame's inputs): export an airflow-frame fit"
+        )
     if sur.noise_model is not None:
         raise ValueError(
             "a surrogate with M_noise cannot be exported (its network is not exported): fit "
@@ -185,6 +191,7 @@ def spec(sur: Surrogate, *, variance: bool = True) -> Spec:
     elif isinstance(m, ExactGP):
         global_mean = _global(m.mean)
         if variance:
+            _check_exact_size(m, max_bytes)
             bins = _exact_bins(m)
         grad_dims, ls, sigma = m.grad_dims, m.hyper.lengthscale, m.hyper.variance
     elif isinstance(m, BinnedGP):
@@ -234,6 +241,21 @@ def _global(mean: GlobalMean) -> dict[str, np.ndarray]:
         alpha[:, :m] += (xs[:, g] * inv_ls[g])[:, None] * coef[:, (1 + i) * m : (2 + i) * m]
     return {"xs": xs, "coef": coef, "alpha": alpha, "inv_ls": inv_ls,
             "sigma": _f64(mean.variance).reshape(1)}  # fmt: skip
+
+
+def _check_exact_size(m: ExactGP, max_bytes: int | None) -> None:
+    """Refuse the exact variance when its triangle, at float32 or its stored size if smaller,
+    cannot fit ``max_bytes`` whatever the writer (the writers check their own size after)."""
+    if max_bytes is None:
+        return
+    n = int(np.asarray(m.X).shape[0]) * (1 + len(m.grad_dims))
+    least = n * (n + 1) // 2 * min(4, np.dtype(m.chol_inv.dtype).itemsize)
+    if least > max_bytes:
+        raise ValueError(
+            f"the variance of exact {type(m).__name__} over {n} rows holds at least "
+            f"{least / 2**20:.1f} MiB of constants, over max_bytes={max_bytes / 2**20:.1f} MiB: "
+            "export it with variance=False (gpgs_hybrid's near-set variance is the real-time one)"
+        )
 
 
 def _exact_bins(m: ExactGP) -> Bins:

@@ -44,7 +44,7 @@ def to_onnx(
     extra."""
     import onnx
 
-    s = spec(sur, variance=variance)
+    s = spec(sur, variance=variance, max_bytes=max_bytes)
     n_const = s.constant_bytes(8, variance=s.has_variance)  # float64 but the float32 factors
     if n_const > max_bytes:
         raise ValueError(

@@ -142,6 +142,12 @@ def build_partition(
     scheme also reads the targets ``Y``: its bins follow their local variation)."""
     pc = cfg.partition
     opts: dict[str, Any] = {"dim": pc.dim} if pc.scheme in ("slab", "adaptive") else {}
+    if opts and not 0 <= pc.dim < X.shape[1]:
+        raise ValueError(
+            f"partition.dim={pc.dim} is not an input of the {X.shape[1]}-input data (0 to "
+            f"{X.shape[1] - 1}; body-frame data has 7 inputs r1..r4, u, v, w: e.g. "
+            "partition.dim=4 cuts along u, or partition.scheme=kdtree)"
+        )
     if pc.scheme == "adaptive":
         if Y is None:
             raise ValueError("partition.scheme=adaptive needs the training targets")

@@ -4,6 +4,11 @@
 airspeed is ``v_air = (V, 0, 0)`` (the vehicle moves along +x); ``y = (Fx, Fy, Fz, Mx, My, Mz,
 L1, L2, L3)``: aerodynamic force (N) and moment about the centre of mass (N·m) in the dataset
 frame, without gravity, and the tonal OASPL (dB) at the three microphones.
+
+The body frame (``frame="body"``): ``x_B = (r1, r2, r3, r4, u, v, w)``, the air velocity of
+the vehicle in its own frame (FRD, m/s; from any direction, hover at ``0``), and ``y`` the same
+quantities in the body frame: force and moment in FRD, the levels at microphones fixed to the
+body (the same positions, read in the body frame instead of the airflow frame).
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from gpg.quadrotor.vehicle import Vehicle
 GENERATOR_VERSION = "1"
 N_INPUTS = 8
 N_GRAD = 7  # gradients exist for rpm and Euler angles, not for airspeed
+BODY_INPUTS = 7  # the body frame: rpm and the body-frame air velocity, a gradient along each
 
 
 class Generator(eqx.Module):
@@ -52,20 +58,40 @@ def evaluate(gen: Generator, x: Float[ArrayLike, " 8"]) -> Float[Array, " 9"]:
     return jnp.concatenate([res.force_W, res.torque_W, noise])
 
 
+def evaluate_body(gen: Generator, x: Float[ArrayLike, " 7"]) -> Float[Array, " 9"]:
+    """``y_B(x_B)`` for one body-frame case: the wrench in the body frame and the OASPLs. The
+    same physics as :func:`evaluate` with the attitude the identity and the air velocity
+    ``(u, v, w)``: ``evaluate(R_WB(θ), V) = R_WB(θ) evaluate_body(R_WB(θ)ᵀ V e_x)``."""
+    x = jnp.asarray(x)
+    res = bemt.aero(gen.vehicle, gen.bemt, x[:4], jnp.eye(3, dtype=x.dtype), x[4:7])
+    noise = acoustics.oaspl(gen.vehicle, res, gen.acoustics)
+    return jnp.concatenate([res.force_W, res.torque_W, noise])
+
+
+def jacobian_body(gen: Generator, x: Float[ArrayLike, " 7"]) -> Float[Array, "9 7"]:
+    """Exact ``∂y_B/∂x_B`` along all seven body-frame inputs, by forward-mode autodiff."""
+    return jax.jacfwd(partial(evaluate_body, gen))(jnp.asarray(x))
+
+
 def jacobian(gen: Generator, x: Float[ArrayLike, " 8"]) -> Float[Array, "9 7"]:
     """Exact ``∂y/∂x_j`` for the 7 rpm and angle inputs, by forward-mode autodiff."""
     x = jnp.asarray(x)
     return jax.jacfwd(lambda head: evaluate(gen, jnp.concatenate([head, x[7:]])))(x[:7])
 
 
+_FNS = {"airflow": (evaluate, jacobian), "body": (evaluate_body, jacobian_body)}
+
+
 @eqx.filter_jit
 def _batch(gen: Generator, X: Array) -> Array:
-    return jax.vmap(partial(evaluate, gen))(X)
+    f = evaluate if X.shape[1] == N_INPUTS else evaluate_body
+    return jax.vmap(partial(f, gen))(X)
 
 
 @eqx.filter_jit
 def _batch_jac(gen: Generator, X: Array) -> tuple[Array, Array]:
-    return jax.vmap(partial(evaluate, gen))(X), jax.vmap(partial(jacobian, gen))(X)
+    f, jac = _FNS["airflow" if X.shape[1] == N_INPUTS else "body"]
+    return jax.vmap(partial(f, gen))(X), jax.vmap(partial(jac, gen))(X)
 
 
 @float64
@@ -77,8 +103,10 @@ def evaluate_batch(
     with_jacobian: bool = False,
     progress: bool | str = False,
     workers: int = 1,
+    frame: str = "airflow",
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-    """``y`` for many inputs (N, 9) as NumPy, in chunks of ``chunk`` rows (bounded memory).
+    """``y`` for many inputs (N, 9) as NumPy, in chunks of ``chunk`` rows (bounded memory);
+    ``X`` (N, 8) in the airflow frame, (N, 7) in the body frame (``frame="body"``).
 
     With ``with_jacobian`` also the exact Jacobians (N, 9, 7). The last chunk is padded to the
     chunk size, so one compiled program serves every chunk and the result of a row does not
@@ -89,8 +117,11 @@ def evaluate_batch(
     whatever the number of workers; the work is embarrassingly parallel, one chunk per task.
     """
     X = np.asarray(X, dtype=np.float64)
-    if X.ndim != 2 or X.shape[1] != N_INPUTS:
-        raise ValueError(f"X must have shape (N, {N_INPUTS}), got {X.shape}")
+    if frame not in _FNS:
+        raise ValueError(f"frame must be 'airflow' or 'body', got {frame!r}")
+    d = N_INPUTS if frame == "airflow" else BODY_INPUTS
+    if X.ndim != 2 or X.shape[1] != d:
+        raise ValueError(f"X must have shape (N, {d}) in the {frame} frame, got {X.shape}")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     n = X.shape[0]
@@ -182,3 +213,32 @@ def _wait(pending):
 
     # A timeout keeps the loop returning to the interrupt check while workers compute.
     return wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+
+
+# The vortex-ring state's region in descent, in units of the hover induced velocity v_h: from
+# a quarter of v_h to 1.75 v_h of descent through the disk, while the edgewise air is slower
+# than v_h (W. Johnson, "Model for vortex ring state influence on rotorcraft flight dynamics",
+# NASA/TP-2005-213477: the boundaries of its onset and end from flight and tunnel data).
+VRS_DESCENT = (0.25, 1.75)
+VRS_EDGEWISE = 1.0
+
+
+def vortex_ring_state(
+    vehicle, x_body: Float[ArrayLike, "N 7"], force_body: Float[ArrayLike, "N 3"]
+) -> np.ndarray:
+    """Which body-frame cases (N,) lie in the vortex-ring state, where this generator's inflow
+    is a regularisation (``BEMTConfig.kappa2``: one momentum root where the real flow is
+    unsteady and momentum theory has none or several) and its loads should not be trusted.
+
+    Per case: ``v_h = √(T / (8 ρ A))`` from the thrust of the four rotors ``T = −F_z`` (the
+    body-frame force's ``z``, N), the descent through the disks ``w`` (the body-frame air's
+    ``z``, positive down: the air comes up through the rotors) and the edgewise speed
+    ``√(u² + v²)``: flagged where ``0.25 v_h ≤ w ≤ 1.75 v_h`` and the edgewise speed is below
+    ``v_h`` (:data:`VRS_DESCENT`, :data:`VRS_EDGEWISE`)."""
+    x = np.asarray(x_body, float)
+    thrust = np.maximum(-np.asarray(force_body, float)[:, 2], 0.0)
+    area = np.pi * float(vehicle.rotor.radius) ** 2
+    v_h = np.sqrt(thrust / (8.0 * float(vehicle.air_density) * area))
+    w, edge = x[:, 6], np.hypot(x[:, 4], x[:, 5])
+    lo, hi = VRS_DESCENT
+    return (v_h > 0) & (w >= lo * v_h) & (w <= hi * v_h) & (edge < VRS_EDGEWISE * v_h)

@@ -134,7 +134,10 @@ def latency(fn: Callable[..., Any], args_list: Sequence[tuple], n: int) -> dict[
 def world_states(x: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The first ``n`` (at least one) dataset inputs ``x`` (rpm, Euler angles, airspeed) as
     world-frame states ``(rpm, euler, v_air)``, the airflow along +x: NumPy arrays, as a
-    simulator written in Python passes them."""
+    simulator written in Python passes them. Body-frame inputs ``(rpm, u, v, w)`` (7 columns)
+    become the identity attitude with that air."""
+    if x.shape[1] == 7:
+        return [(np.array(r[:4]), np.zeros(3), np.array(r[4:7])) for r in x[: max(n, 1)]]
     return [(np.array(r[:4]), np.array(r[4:7]), np.array([r[7], 0.0, 0.0])) for r in x[: max(n, 1)]]
 
 

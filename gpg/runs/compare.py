@@ -160,9 +160,14 @@ def evaluate(
     names = list(training.output_names)
     part = built.model.partition
     if part is None or part.n_bins == 1:  # no boundary of its own: the paper's 10 slabs
-        part = models.build_partition(training.X, ModelConfig())
+        # (along the airspeed; body-frame data have no airspeed input: 10 kd-tree bins)
+        body = training.X.shape[1] == 7
+        part = models.build_partition(
+            training.X,
+            ModelConfig.from_dict({"partition": {"scheme": "kdtree"}}) if body else ModelConfig(),
+        )
     abs_err = np.abs(y_pred - y_true)
-    lo, hi = float(train.x[:, 7].min()), float(train.x[:, 7].max())
+    lo, hi = float(train.airspeed.min()), float(train.airspeed.max())
     lat = _latencies(built.model, training, train, name, mcfg, test, n_queries)
     run = ModelRun(
         model=name,
@@ -177,7 +182,7 @@ def evaluate(
         **_hyper_record(built, fitted.hyper_fit),
         model_bytes=built.model.nbytes(),
         peak_memory_bytes=fitted.peak_memory_bytes,
-        error_vs_airspeed=error_vs_airspeed(test.x[:, 7], abs_err, lo, hi),
+        error_vs_airspeed=error_vs_airspeed(test.airspeed, abs_err, lo, hi),
         **lat,
     )
     return run, abs_err

@@ -26,7 +26,7 @@ def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
     if ds.jac is None:
         return {}
     idx = np.arange(min(n, ds.n))
-    _, exact = evaluate_batch(gen, ds.x[idx], chunk=32, with_jacobian=True)
+    _, exact = evaluate_batch(gen, ds.x[idx], chunk=32, with_jacobian=True, frame=ds.frame)
     fd = ds.jac[idx]
     exact = exact[:, : fd.shape[1]]
     scale = np.std(exact, axis=0, keepdims=True) + 1e-12  # per output and input

@@ -48,3 +48,26 @@ def test_unwritable_cache_is_found_before_generating(tmp_path):
         ValueError, match="the dataset cache directory \\(cache_dir\\) .* is not writable"
     ):
         ensure_datasets(conf("smoke", "data"), conf("sui_endurance", "vehicle"), blocker / "cache")
+
+
+def test_mirror_images_are_added_after_the_cache(tmp_path):
+    """``data.mirror`` doubles (or quadruples) the body-frame training set as it is loaded,
+    never the test set; it is not part of the cache key; airflow-frame data refuse it."""
+    from tests.helpers import synthetic_body_dataset
+
+    train, _ = synthetic_body_dataset(8, seed=0)
+    test, _ = synthetic_body_dataset(5, seed=1)
+    train.save(tmp_path / "train")
+    test.save(tmp_path / "test")
+    cfg = compose_plain("compare", ["data=envelope_smoke", "data.mirror=[x]"])
+    cfg["dataset"] = {"train": str(tmp_path / "train"), "test": str(tmp_path / "test")}
+    got_train, got_test, _ = cache.load_data(cfg)
+    assert got_train.n == 16 and got_test.n == 5 and got_train.meta["mirrored"] == ["x"]
+    plain = dict(cfg["data"], mirror=[])
+    assert cache.dataset_key(cfg["data"], cfg["vehicle"]) == cache.dataset_key(
+        plain, cfg["vehicle"]
+    )
+    with pytest.raises(ValueError, match="data.mirror takes body-frame data"):
+        cache.check_numbers(dict(compose_plain("compare", ["data=smoke"])["data"], mirror=["x"]))
+    with pytest.raises(ValueError, match="data.mirror must be a list of body axes"):
+        cache.check_numbers(dict(cfg["data"], mirror=["z"]))

@@ -303,7 +303,7 @@ def test_names_table_is_consistent():
     from gpg import names
 
     assert names.GRAD_INPUTS == ("r1", "r2", "r3", "r4", "yaw", "pitch", "roll")
-    assert set(names.UNITS) == set(names.INPUTS + names.OUTPUTS)
+    assert set(names.UNITS) == set(names.INPUTS + names.BODY_INPUTS + names.OUTPUTS)
 
 
 def test_csv_refuses_what_it_cannot_read_unambiguously(rng, tmp_path):
@@ -434,3 +434,50 @@ def test_repeated_inputs_are_found_and_warned_about(rng):
                       r"grows"):  # fmt: skip
         with pytest.warns(UserWarning, match=r"exact copies .* rows \[\[2, 5, 9\]\]"):
             prepare(rep, None)
+
+
+def test_body_frame_dataset_shapes_ball_and_csv(rng, tmp_path):
+    """``meta["frame"] == "body"``: seven inputs ``r1..r4, u, v, w``, the ball of the declared
+    airspeed (a case in its box but outside the ball is named), and a CSV import of body-frame
+    columns with gradients along ``u, v, w``."""
+    n = 4
+    x = np.column_stack([rng.uniform(0, 7000, (n, 4)), rng.uniform(-5, 5, (n, 3))])
+    meta = {"frame": "body", "bounds": {"rpm": [0.0, 7000.0], "airspeed": [0.0, 20.0]}}
+    ds = Dataset(
+        x=x, y_aero=rng.normal(size=(n, 6)), jac_aero=rng.normal(size=(n, 6, 7)), meta=meta
+    )
+    assert ds.inputs == ("r1", "r2", "r3", "r4", "u", "v", "w")
+    with pytest.raises(ValueError, match=r"x must have shape \(\*, 7\)|x must have shape"):
+        Dataset(x=np.c_[x, np.ones(n)], y_aero=ds.y_aero, meta=meta)
+    far = x.copy()
+    far[2, 4:] = [12.0, 12.0, 12.0]
+    with pytest.raises(
+        ValueError, match=r"outside the ball .* row\(s\) \[2\]: row 2 has \|\(u, v, w\)\| = 20.78"
+    ):
+        Dataset(x=far, y_aero=ds.y_aero, meta=meta)
+    with pytest.raises(ValueError, match="meta\\['frame'\\] must be one of"):
+        Dataset(x=x, y_aero=ds.y_aero, meta={"frame": "wind"})
+    cols = {f: f.upper() for f in ("r1", "r2", "r3", "r4", "u", "v", "w")}
+    cols.update({f: f for f in ("Fx", "Fy", "Fz", "Mx", "My", "Mz")})
+    header = list(cols.values()) + [
+        f"d{o}_d{i}"
+        for o in ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+        for i in cols
+        if i in "r1r2r3r4uvw"
+    ]
+    body = np.column_stack([x, ds.y_aero, ds.jac_aero.reshape(n, -1)])
+    write_csv(tmp_path / "b.csv", body, header)
+    got = from_csv(
+        tmp_path / "b.csv",
+        cols,
+        gradients="d{output_field}_d{input_field}",
+        units={"u": "km/h"},
+        bounds={"rpm": [0, 7000], "airspeed": [0, 30]},
+        frame="body",
+    )
+    assert got.frame == "body"
+    np.testing.assert_allclose(got.x[:, 4], x[:, 4] / 3.6, rtol=1e-15)
+    np.testing.assert_allclose(got.jac_aero[:, :, 5:], ds.jac_aero[:, :, 5:], rtol=1e-15)
+    np.testing.assert_allclose(got.jac_aero[:, :, 4], ds.jac_aero[:, :, 4] * 3.6, rtol=1e-14)
+    with pytest.raises(ValueError, match=r"unknown schema fields \['yaw'\] \(frame 'body'\)"):
+        from_csv(tmp_path / "b.csv", {**cols, "yaw": "R1"}, frame="body")

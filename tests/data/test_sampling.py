@@ -118,3 +118,30 @@ def test_generation_is_bit_identical_with_one_and_four_worker_processes(vehicle,
 def test_workers_must_be_a_positive_integer(gen):
     with pytest.raises(ValueError, match="workers must be a positive integer, got 0"):
         generate(gen, 2, chunk=32, workers=0)
+
+
+def test_body_frame_sampling_covers_the_ball_from_every_direction():
+    """Body frame: rotor speeds stratified in their box, air velocities inside the ball of
+    radius 20 m/s with the speed stratified (one point per stratum) and directions on the
+    whole sphere: every octant, air from behind (u < 0), climb and descent (w of both signs)."""
+    x = latin_hypercube(400, Bounds(), seed=1, frame="body")
+    assert x.shape == (400, 7)
+    speed = np.linalg.norm(x[:, 4:], axis=1)
+    assert speed.max() <= 20.0 * (1 + 1e-12)
+    assert sorted(np.floor(speed / 20.0 * 400).astype(int)) == list(range(400))
+    octants = {tuple(s) for s in (np.sign(x[:, 4:]) > 0).astype(int)}
+    assert len(octants) == 8
+    d = x[:, 4:] / speed[:, None]
+    assert abs(np.mean(d[:, 2])) < 0.1 and abs(np.mean(d[:, 0])) < 0.1  # uniform on the sphere
+    with pytest.raises(ValueError, match="frame must be 'airflow' or 'body'"):
+        latin_hypercube(3, Bounds(), seed=0, frame="wind")
+
+
+def test_body_frame_differences_step_the_air_velocity():
+    x = np.array([[3000.0, 3000.0, 3000.0, 3000.0, -2.0, 0.5, 3.0]])
+    raw, h = raw_samples(x, FDSteps(velocity=0.05))
+    assert raw.shape == (8, 7)
+    np.testing.assert_allclose(h[0], [300.0] * 4 + [0.05] * 3)
+    for k in range(7):
+        d = raw[1 + k] - x[0]
+        assert np.count_nonzero(d) == 1 and np.isclose(d[k], h[0, k], rtol=1e-12)

@@ -42,3 +42,21 @@ def test_layout_reproduces_the_model(kind):
 def test_layout_refuses_what_is_not_a_surrogate():
     with pytest.raises(ValueError, match="export takes a gpg.Surrogate"):
         layout.spec(fitted("gpg").model)
+
+
+def test_exact_variance_over_max_bytes_is_refused_before_the_factor_is_made_dense(monkeypatch):
+    """The exact kinds' variance is the dense ``L⁻¹`` of every row: at data=default 256 MB in
+    float32, which would be allocated only to be refused. The size follows from the shapes."""
+    sur = fitted("gpg")
+    n = sur.model.X.shape[0] * (1 + len(sur.model.grad_dims))
+    least = n * (n + 1) // 2 * 4  # the triangle at float32 (stored float64 here)
+
+    def never(self):
+        raise AssertionError("the factor was made dense before the size check")
+
+    monkeypatch.setattr(type(sur.model.chol_inv), "to_dense", never)
+    with pytest.raises(ValueError, match=r"at least .* MiB of constants, over max_bytes"):
+        layout.spec(sur, max_bytes=least - 1)
+    assert layout.spec(sur, variance=False, max_bytes=least - 1).bins is None
+    with pytest.raises(AssertionError, match="made dense"):  # under the limit it goes on
+        layout.spec(sur, max_bytes=least)

@@ -1,0 +1,382 @@
+"""The whole flight envelope: the body-frame formulation against the paper's airflow frame
+(``python -m experiments.envelope``).
+
+Three training sets of the same number of simulator runs (8 a case: the base point and 7
+forward differences): the paper's (``airflow_data``, airflow-frame inputs), **the same cases in
+the body frame** (``x_B = (rpm, R(θ)ᵀ V e_x)``, differences along ``u, v, w`` instead of the
+angles) and the whole envelope (``data``, :mod:`gpg.data.sampling`'s body-frame ball). Each
+model of ``models`` is fitted on each, and every surrogate is asked through
+:meth:`gpg.Surrogate.predict_batch` (world-frame states, so both formulations answer the same
+question) at two test sets: the paper's box (the airflow test set) and the envelope (the body
+test set). Reported: mean absolute error of ``Fx`` (N), ``Mx`` (N·m) and, where the test set
+is in the surrogate's own frame, ``L1`` (dB: the microphones are fixed to the airflow frame in
+one formulation and to the body in the other, so the levels are not the same quantity across
+frames), and the share of test states ``in_domain``.
+
+Then, for the ``env.model`` of each formulation: the **jump** (the largest change of the
+predicted force for ``jump.step`` m/s of air along each world axis at ``jump.n_states`` states:
+a third anywhere in the ball, a third near hover, a third near vertical air) and **the RL
+environment's in-domain share** (the geometric controller, ``env.n_envs`` environments for
+``env.steps`` steps, each task of ``env.tasks`` and each wind of ``env.wind_max``, wind from any
+direction). ``results.json`` holds everything with the resolved config.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gpg._dtype import float64
+from gpg.data.bounds import Bounds
+from gpg.data.cache import build_generator, ensure_datasets
+from gpg.data.dataset import Dataset
+from gpg.data.sampling import FDSteps, raw_samples
+from gpg.quadrotor.frames import R_WB
+from gpg.quadrotor.generator import evaluate_batch
+from gpg.runs.common import check_options, conf, machine, report, table, write_json
+
+OPTIONS = {
+    "cache_dir": "path",
+    "airflow_data": "path",
+    "progress": "bool",
+}  # the run's own keys besides its config groups (runs.common.check_options)
+
+
+def body_inputs(x_air: np.ndarray) -> np.ndarray:
+    """Airflow-frame cases ``(rpm, yaw, pitch, roll, V)`` (N, 8) as body-frame inputs
+    ``(rpm, u, v, w)`` (N, 7): the air ``V e_x`` of the dataset frame seen from the body,
+    ``R_WB(θ)ᵀ V e_x``."""
+    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(x_air[:, 4:7])))
+    v_b = R[:, 0, :] * x_air[:, 7:8]  # R^T e_x is R's first row
+    return np.concatenate([x_air[:, :4], v_b], axis=1)
+
+
+@float64
+def same_cases_in_body_frame(
+    gen, train: Dataset, fd: FDSteps, *, chunk: int = 512, progress: bool = False
+) -> Dataset:
+    """The cases of the airflow-frame ``train`` run again in the body frame with body-frame
+    forward differences: as many simulator runs as ``train`` (8 a case), the same points."""
+    x = body_inputs(train.x)
+    x_raw, h = raw_samples(x, fd)
+    y_raw = evaluate_batch(
+        gen, x_raw, chunk=chunk, progress="body frame, same cases" if progress else False,
+        frame="body",
+    )  # fmt: skip
+    n = x.shape[0]
+    y8 = y_raw.reshape(n, 8, -1)
+    y = y8[:, 0]
+    jac = (y8[:, 1:] - y[:, None]).transpose(0, 2, 1) / h[:, None, :]
+    bounds = train.meta.get("bounds") or {}
+    meta = {
+        **{k: v for k, v in train.meta.items() if k not in ("bounds", "fd", "raw_layout")},
+        "frame": "body",
+        "bounds": {k: list(bounds[k]) for k in ("rpm", "airspeed") if k in bounds},
+        "fd": {"rpm_rel": fd.rpm_rel, "rpm_floor": fd.rpm_floor, "velocity": fd.velocity},
+        "cases": "the airflow-frame training cases, in the body frame",
+    }
+    return Dataset(
+        x=x, y_aero=y[:, :6], jac_aero=jac[:, :6],
+        y_noise=y[:, 6:] if train.has_noise else None,
+        jac_noise=jac[:, 6:] if train.has_noise else None,
+        x_raw=x_raw, y_raw=y_raw if train.has_noise else y_raw[:, :6], meta=meta,
+    )  # fmt: skip
+
+
+def world_states(ds: Dataset) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A test set's cases as world-frame states whose world frame is the dataset's frame:
+    airflow data fly level air ``V e_x`` at attitude ``(yaw, pitch, roll)``; body data are at
+    the identity attitude with air ``(u, v, w)``."""
+    if ds.frame == "airflow":
+        v = np.zeros((ds.n, 3))
+        v[:, 0] = ds.x[:, 7]
+        return ds.x[:, :4], ds.x[:, 4:7], v
+    return ds.x[:, :4], np.zeros((ds.n, 3)), ds.x[:, 4:7]
+
+
+def test_errors(sur, test: Dataset) -> dict[str, Any]:
+    """Mean absolute errors of Fx, Mx (and L1 in the surrogate's own frame) over every test
+    state, and the share of them in domain."""
+    p = sur.predict_batch(*world_states(test), mean_only=True)
+    force, torque, ok = (np.asarray(a) for a in (p.force, p.torque, p.in_domain))
+    out = {
+        "Fx_mae": float(np.mean(np.abs(force[:, 0] - test.y_aero[:, 0]))),
+        "Mx_mae": float(np.mean(np.abs(torque[:, 0] - test.y_aero[:, 3]))),
+        "L1_mae": None,
+        "in_domain": float(np.mean(ok)),
+        "Fx_mae_in_domain": float(np.mean(np.abs(force[ok, 0] - test.y_aero[ok, 0])))
+        if ok.any()
+        else None,
+    }
+    if sur.frame == test.frame and test.has_noise and sur.n_levels:
+        out["L1_mae"] = float(np.mean(np.abs(np.asarray(p.levels)[:, 0] - test.y_noise[:, 0])))
+    return out
+
+
+GROUPS = ("ball", "near hover", "near vertical")
+
+
+def jump_states(n: int, seed: int, speed: float) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+    """``n`` states and their group (:data:`GROUPS`): rotor speeds about hover, random headings
+    and tilts, and air velocities a third anywhere in the ball of radius ``speed``, a third
+    within 0.5 m/s of hover, a third near vertical (horizontal part under 0.3 m/s, vertical up
+    to ``speed`` either way, exact hover and vertical 3 and 10 m/s among them)."""
+    rng = np.random.default_rng(seed)
+    k = n // 3
+    d = rng.normal(size=(2 * k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = np.concatenate([speed * rng.uniform(size=k) ** (1 / 3), 0.5 * rng.uniform(size=k)])
+    vert = np.concatenate(
+        [0.3 * rng.uniform(-1, 1, (n - 2 * k, 2)), rng.uniform(-speed, speed, (n - 2 * k, 1))], 1
+    )
+    special = np.array([[0, 0, 0], [0, 0, 3], [0, 0, -3], [0, 0, 10], [0, 0, -10.0]])
+    v = np.concatenate([d * r[:, None], vert, special])
+    group = np.array([0] * k + [1] * k + [2] * (n - 2 * k) + [1] + [2] * 4)
+    m = v.shape[0]
+    rpm = rng.uniform(3000, 4500, (m, 4))
+    euler = np.stack(
+        [rng.uniform(-np.pi, np.pi, m), rng.uniform(-0.5, 0.5, m), rng.uniform(-0.5, 0.5, m)], 1
+    )
+    return (rpm, euler, v), group
+
+
+def force_changes(force_at, states, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per state, the largest change of any force component for ``step`` m/s of air along any
+    world axis, and whether ``force_at`` flagged the state in domain at both ends."""
+    rpm, euler, v = states
+    f0, ok0 = force_at(rpm, euler, v)
+    change, ok = np.zeros(len(v)), ok0.copy()
+    for axis in range(3):
+        dv = np.zeros(3)
+        dv[axis] = step
+        f1, ok1 = force_at(rpm, euler, v + dv)
+        change = np.maximum(change, np.abs(f1 - f0).max(1))
+        ok &= ok1
+    return change, ok
+
+
+def jump(sur, states, group: np.ndarray, step: float, truth: np.ndarray) -> dict[str, Any]:
+    """The surrogate's largest force change for ``step`` m/s of air, per group of states, over
+    all of them and over those in domain, beside the generator's own (``truth``, per state)."""
+
+    def force_at(rpm, euler, v):
+        p = sur.predict_batch(rpm, euler, v, mean_only=True)
+        return np.asarray(p.force), np.asarray(p.in_domain)
+
+    change, ok = force_changes(force_at, states, step)
+    out = {"in_domain": float(np.mean(ok))}
+    for g, name in enumerate(GROUPS):
+        sel = group == g
+        i = int(np.argmax(np.where(sel, change, -1.0)))
+        out[name] = {
+            "max_change_N": float(change[sel].max()),
+            "at_v_air": states[2][i].tolist(),
+            "max_change_in_domain_N": float(change[sel & ok].max()) if (sel & ok).any() else None,
+            "generator_max_change_N": float(truth[sel].max()),
+        }
+    return out
+
+
+def generator_changes(gen, states, step: float) -> np.ndarray:
+    """The generator's own largest force change for ``step`` m/s of air at the states (the
+    world-frame force of the body-frame generator at ``R_WBᵀ v``, rotated back)."""
+    from gpg.quadrotor.generator import evaluate_batch
+
+    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(states[1])))
+
+    def force_at(rpm, euler, v):
+        xb = np.concatenate([rpm, np.einsum("nji,nj->ni", R, v)], axis=1)
+        y = evaluate_batch(gen, xb, frame="body")
+        return np.einsum("nij,nj->ni", R, y[:, :3]), np.ones(len(v), bool)
+
+    return force_changes(force_at, states, step)[0]
+
+
+def env_in_domain(sur, vehicle, ecfg: dict[str, Any]) -> list[dict[str, Any]]:
+    """The geometric controller in the RL environment on ``sur``: the share of steps in
+    domain for each task and wind (any direction), ``n_envs`` environments, ``steps`` steps."""
+    from gpg.envs.quadrotor import EnvParams, QuadrotorEnv
+    from gpg.runs.learn import evaluate
+
+    env = QuadrotorEnv.create(vehicle, sur, action="ctbr", dtype=jnp.float32)
+    rows = []
+    for task in ecfg["tasks"]:
+        for wind in ecfg["wind_max"]:
+            params = EnvParams.create(task, wind_max=float(wind), wind_spread=3.1416)
+            r = evaluate(
+                env, params, lambda o, s, p=params: env.geometric_action(s, p),
+                jax.random.key(int(ecfg["seed"])), int(ecfg["n_envs"]), int(ecfg["steps"]),
+            )  # fmt: skip
+            rows.append(
+                {
+                    "task": task,
+                    "wind_max": float(wind),
+                    "in_domain": r["in_domain_fraction"],
+                    "rms_position_error_m": r["rms_position_error_m"],
+                    "crashed": r["crashed_fraction"],
+                }
+            )
+    return rows
+
+
+def symmetry_rows(scfg: dict[str, Any], train: Dataset, test: Dataset, vehicle) -> list[dict]:
+    """Whether mirror images pay per simulator run: ``scfg["model"]`` fitted on the first
+    ``cases`` envelope cases, on them with their mirror images across each set of
+    ``axes`` (no extra runs; levels dropped where a mirror does not keep the microphones), and
+    on 2x and 4x as many real cases; Fx and Mx errors on the envelope test set."""
+    from gpg.data.symmetry import augment, reflection
+    from gpg.surrogate import Surrogate
+
+    n = int(scfg["cases"])
+    if 4 * n > train.n:
+        raise ValueError(f"symmetry.cases={n}: 4x as many real cases exceed the {train.n} there")
+    base = train.subset(np.arange(n)).without("raw samples")
+    variants = [(f"{n} cases", base, base.runs)]
+    for axes in scfg["axes"]:
+        axes = tuple(axes)
+        keeps = all(_keeps_levels(vehicle, a, reflection) for a in axes)
+        ds = augment(base if keeps else base.without("noise"), vehicle, axes)
+        variants.append((f"{n} cases + mirrors {'/'.join(axes)}", ds, base.runs))
+    for k in (2, 4):
+        real = train.subset(np.arange(k * n)).without("raw samples")
+        variants.append((f"{k * n} cases", real, real.runs))
+    rows = []
+    for name, ds, runs in variants:
+        t0 = time.perf_counter()
+        sur = Surrogate.fit(ds, scfg["model"], vehicle=vehicle)
+        e = test_errors(sur, test)
+        rows.append({"training": name, "points": ds.n, "runs": runs,
+                     "fit_s": time.perf_counter() - t0, **e})  # fmt: skip
+        report(f"symmetry {name} ({runs} runs): Fx {e['Fx_mae']:.4f} N, Mx {e['Mx_mae']:.5f} N*m")
+    return rows
+
+
+def _keeps_levels(vehicle, axis: str, reflection) -> bool:
+    try:
+        reflection(vehicle, axis, levels=True)
+    except ValueError:
+        return False
+    return True
+
+
+# Long by design: the experiment's steps in order (data, fits, tests, jump, environment).
+@float64
+def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
+    """Fit every model on the three training sets, test them, measure the jump and the
+    environment's in-domain share; write ``results.json`` into ``outdir``."""
+    from gpg.quadrotor.vehicle import Vehicle
+    from gpg.surrogate import Surrogate
+
+    outdir = Path(outdir)
+    check_options(cfg, OPTIONS)
+    if cfg["data"].get("frame") != "body":
+        raise ValueError(
+            f"data must be a body-frame config (frame: body), got {cfg['data']['name']!r}"
+        )
+    air_cfg = conf(cfg["airflow_data"], "data")
+    if air_cfg.get("frame", "airflow") != "airflow":
+        raise ValueError(
+            f"airflow_data must be an airflow-frame data config, got {cfg['airflow_data']!r}"
+        )
+    progress = bool(cfg.get("progress", True))
+    vehicle = Vehicle.from_config(cfg["vehicle"])
+    air_train, air_test, _, _ = ensure_datasets(
+        air_cfg, cfg["vehicle"], cfg["cache_dir"], progress=progress
+    )
+    env_train, env_test, _, _ = ensure_datasets(
+        cfg["data"], cfg["vehicle"], cfg["cache_dir"], progress=progress
+    )
+    gen = build_generator(air_cfg, cfg["vehicle"])
+    fd = FDSteps(
+        **{
+            **air_cfg.get("fd", {}),
+            **{k: v for k, v in cfg["data"].get("fd", {}).items() if k == "velocity"},
+        }
+    )
+    t0 = time.perf_counter()
+    same_body = same_cases_in_body_frame(gen, air_train, fd, progress=progress)
+    gen_s = time.perf_counter() - t0
+    trainings = {
+        "airflow (paper box)": air_train,
+        "body (same cases)": same_body,
+        "body (envelope)": env_train,
+    }
+    tests = {"paper box": air_test, "envelope": env_test}
+    rows, surrogates = [], {}
+    for model in cfg["models"]:
+        for tname, train in trainings.items():
+            t0 = time.perf_counter()
+            sur = Surrogate.fit(train, model, vehicle=vehicle)
+            fit_s = time.perf_counter() - t0
+            surrogates[(model, tname)] = sur
+            for test_name, test in tests.items():
+                e = test_errors(sur, test)
+                rows.append(
+                    {
+                        "model": model,
+                        "training": tname,
+                        "runs": train.runs,
+                        "test": test_name,
+                        "fit_s": fit_s,
+                        **e,
+                    }
+                )
+                report(
+                    f"{model} on {tname} -> {test_name}: Fx {e['Fx_mae']:.4f} N, "
+                    f"Mx {e['Mx_mae']:.5f} N*m, in domain {100 * e['in_domain']:.1f} %"
+                )
+    jcfg = cfg["jump"]
+    states, group = jump_states(
+        int(jcfg["n_states"]),
+        int(jcfg["seed"]),
+        float(Bounds.from_config(cfg["data"]["bounds"]).airspeed[1]),
+    )
+    truth = generator_changes(gen, states, float(jcfg["step"]))
+    ecfg = cfg["env"]
+    jumps, envs = {}, {}
+    for tname in ("airflow (paper box)", "body (envelope)"):
+        sur = surrogates[(ecfg["model"], tname)]
+        jumps[tname] = jump(sur, states, group, float(jcfg["step"]), truth)
+        report(f"jump {tname}: {jumps[tname]}")
+        envs[tname] = env_in_domain(sur, vehicle, ecfg)
+        for r in envs[tname]:
+            share = 100 * r["in_domain"]
+            report(f"env {tname} {r['task']} wind {r['wind_max']:g}: in domain {share:.1f} %")
+    sym = symmetry_rows(cfg["symmetry"], env_train, env_test, vehicle)
+    from gpg.quadrotor.generator import vortex_ring_state
+
+    vrs = {
+        name: float(np.mean(vortex_ring_state(vehicle, ds.x, ds.y_aero[:, :3])))
+        for name, ds in (("train", env_train), ("test", env_test))
+    }
+    report(f"envelope cases in the vortex-ring state (not to be trusted): {vrs}")
+    cols = [
+        ("model", "model", ""),
+        ("training", "training data", ""),
+        ("test", "test set", ""),
+        ("Fx_mae", "Fx MAE (N)", ".4f"),
+        ("Mx_mae", "Mx MAE (N·m)", ".5f"),
+        ("L1_mae", "L1 MAE (dB)", ".3f"),
+        ("in_domain", "in domain", ".3f"),
+    ]
+    summary = table(rows, cols)
+    report("\n" + summary)
+    out = {
+        "machine": machine(),
+        "accuracy": rows,
+        "jump": jumps,
+        "env": envs,
+        "symmetry": sym,
+        "vortex_ring_share": vrs,
+        "same_cases_generation_s": gen_s,
+        "summary": summary,
+        "config": cfg,
+    }
+    outdir.mkdir(parents=True, exist_ok=True)
+    write_json(outdir / "results.json", out)
+    return out

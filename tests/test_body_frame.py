@@ -1,0 +1,127 @@
+"""The body-frame formulation (gpg.names.FRAMES, ``Surrogate.frame == "body"``): inputs
+``(rpm, R_WBᵀ v_air)``, no singular coordinates. On a synthetic body-frame dataset (an
+analytic function, exact gradients): the world prediction is the body prediction rotated, the
+domain is the ball of air velocities (hover, vertical and reverse air inside), 1 mm/s of air
+moves the force by at most what its Lipschitz bound allows (no jump anywhere), derivatives
+equal finite differences, checkpoints keep the frame, and what does not take the body frame
+says so."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg import Surrogate, checkpoint
+from gpg.quadrotor.frames import R_WB
+from tests.helpers import synthetic_body_dataset
+
+
+@pytest.fixture(scope="module")
+def body():
+    ds, _ = synthetic_body_dataset(60, seed=3)
+    return (
+        ds,
+        Surrogate.fit(ds, "gpg"),
+        Surrogate.fit(
+            ds, "gpgs_hybrid", {"partition": {"points_per_bin": 20}, "near": {"points": 30}}
+        ),
+    )
+
+
+RPM = np.full(4, 3600.0)
+
+
+def test_world_prediction_is_the_body_prediction_rotated(body):
+    """``F_W = R_WB F_B`` (to rounding), the variance rotated likewise; the body entry point
+    (``predict_body``) gives the body-frame values themselves."""
+    _, sur, _ = body
+    euler = np.array([2.5, -0.4, 0.3])  # heading 143°: the air comes from behind-left
+    R = np.asarray(R_WB(jnp.asarray(euler)))
+    v_b = np.array([-6.0, 2.0, 1.5])
+    world = sur.predict(RPM, euler, R @ v_b)
+    b = sur.predict_body(RPM, R, v_b)
+    np.testing.assert_allclose(np.asarray(world.force), R @ np.asarray(b.force), atol=1e-10)
+    np.testing.assert_allclose(np.asarray(world.torque), R @ np.asarray(b.torque), atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(world.variance)[:3], (R**2) @ np.asarray(b.variance)[:3], rtol=1e-10
+    )
+    np.testing.assert_allclose(np.asarray(world.levels), np.asarray(b.levels), atol=1e-10)
+    assert bool(world.in_domain) and bool(b.in_domain)
+
+
+@pytest.mark.parametrize(
+    "v, inside",
+    [
+        ((0.0, 0.0, 0.0), True),  # hover
+        ((0.0, 0.0, 3.0), True),  # vertical descent
+        ((0.0, 0.0, -3.0), True),  # vertical climb
+        ((1.0, 0.0, -3.0), True),
+        ((-5.0, 0.0, 0.0), True),  # air from behind
+        ((0.0, -19.9, 0.0), True),
+        ((12.0, 12.0, 12.0), False),  # 20.8 m/s: outside the ball, inside its box
+        ((0.0, 0.0, 20.5), False),
+    ],
+)
+def test_domain_is_the_ball_of_air_velocities(body, v, inside):
+    _, sur, _ = body
+    assert bool(sur.predict_mean(RPM, np.array([0.7, 0.1, -0.2]), np.array(v)).in_domain) is inside
+    assert not bool(
+        sur.predict_mean(np.array([3600, 3600, -1.0, 3600]), np.zeros(3), np.zeros(3)).in_domain
+    )
+
+
+def test_no_jump_anywhere_near_hover_or_vertical_air(body):
+    """1 mm/s of air, along each axis, at hover, vertical and near-vertical air and random
+    headings: the force changes by at most ``1e-3 m/s · max|∂F/∂v|`` (the mean is smooth: no
+    frame to swing). The bound's derivative comes from jax.jacfwd at the same states, and the
+    Jacobian itself equals central finite differences (step 1e-5 m/s, float64: truncation
+    ~1e-10 relative)."""
+    _, _, hyb = body
+    rng = np.random.default_rng(0)
+    v = np.concatenate(
+        [
+            np.zeros((1, 3)),
+            [[0, 0, 3.0], [0, 0, -3.0], [0, 0, 10.0]],
+            np.c_[0.01 * rng.normal(size=(6, 2)), rng.uniform(-5, 5, (6, 1))],
+            0.3 * rng.normal(size=(6, 3)),
+        ]
+    )
+    euler = np.c_[rng.uniform(-np.pi, np.pi, len(v)), 0.2 * rng.normal(size=(len(v), 2))]
+    force = jax.jit(jax.vmap(lambda e, w: hyb.predict_mean(RPM, e, w).force))
+    dF = jax.jit(jax.vmap(jax.jacfwd(lambda e, w: hyb.predict_mean(RPM, e, w).force, argnums=1)))
+    J = np.asarray(dF(euler, v))
+    f0 = np.asarray(force(euler, v))
+    for a in range(3):
+        step = np.zeros(3)
+        step[a] = 1e-3
+        change = np.abs(np.asarray(force(euler, v + step)) - f0).max(1)
+        assert np.all(change <= 1e-3 * np.abs(J).max((1, 2)) * 1.01 + 1e-12), change
+        h = np.zeros(3)
+        h[a] = 1e-5
+        fd = (np.asarray(force(euler, v + h)) - np.asarray(force(euler, v - h))) / 2e-5
+        np.testing.assert_allclose(fd, J[:, :, a], rtol=1e-5, atol=1e-6 * np.abs(J).max())
+
+
+def test_checkpoint_keeps_the_frame(body, tmp_path):
+    _, sur, _ = body
+    checkpoint.save(tmp_path / "b", sur)
+    back = checkpoint.load(tmp_path / "b")
+    assert back.frame == "body"
+    state = (RPM, np.array([0.4, 0.0, 0.1]), np.array([0.0, 0.0, -4.0]))
+    np.testing.assert_array_equal(
+        np.asarray(back.predict(*state).force), np.asarray(sur.predict(*state).force)
+    )
+
+
+def test_what_does_not_take_the_body_frame_says_so(body):
+    from gpg import export
+
+    ds, sur, _ = body
+    with pytest.raises(ValueError, match="body frame"):
+        Surrogate.fit(ds, "gpg", noise_model=True)
+    with pytest.raises(ValueError, match="partition.dim=7 is not an input of the 7-input data"):
+        Surrogate.fit(ds, "gpgs")
+    with pytest.raises(ValueError, match="body-frame surrogate"):
+        export.to_casadi(sur)
+    with pytest.raises(ValueError, match="body-frame surrogate"):
+        sur.condition(ds.subset(np.arange(2)))
