@@ -84,6 +84,15 @@ def y_of(gen):
 
 
 @pytest.fixture(scope="session")
+def y_body_of(gen):
+    """The body-frame generator ``y_B(x_B)``, compiled once per session."""
+    from gpg.quadrotor.generator import evaluate_body
+
+    f = jax.jit(lambda x: evaluate_body(gen, x))
+    return lambda x: f(jnp.asarray(x, float))
+
+
+@pytest.fixture(scope="session")
 def jac_of(gen):
     f = jax.jit(lambda x: jacobian(gen, x))
     return lambda x: f(jnp.asarray(x, float))

@@ -18,14 +18,12 @@ from tests.helpers import synthetic_body_dataset
 
 @pytest.fixture(scope="module")
 def body():
+    """The default model on synthetic body-frame data (fixed hyperparameters: the fits' own
+    tests are elsewhere; one fit for the fast budget)."""
     ds, _ = synthetic_body_dataset(60, seed=3)
-    return (
-        ds,
-        Surrogate.fit(ds, "gpg"),
-        Surrogate.fit(
-            ds, "gpgs_hybrid", {"partition": {"points_per_bin": 20}, "near": {"points": 30}}
-        ),
-    )
+    hyper = {"fit": False, "lengthscale": 0.8, "noise": 1e-6}
+    cfg = {"hyper": hyper, "partition": {"points_per_bin": 20}, "near": {"points": 30}}
+    return ds, Surrogate.fit(ds, "gpgs_hybrid", cfg)
 
 
 RPM = np.full(4, 3600.0)
@@ -34,7 +32,7 @@ RPM = np.full(4, 3600.0)
 def test_world_prediction_is_the_body_prediction_rotated(body):
     """``F_W = R_WB F_B`` (to rounding), the variance rotated likewise; the body entry point
     (``predict_body``) gives the body-frame values themselves."""
-    _, sur, _ = body
+    _, sur = body
     euler = np.array([2.5, -0.4, 0.3])  # heading 143°: the air comes from behind-left
     R = np.asarray(R_WB(jnp.asarray(euler)))
     v_b = np.array([-6.0, 2.0, 1.5])
@@ -63,7 +61,7 @@ def test_world_prediction_is_the_body_prediction_rotated(body):
     ],
 )
 def test_domain_is_the_ball_of_air_velocities(body, v, inside):
-    _, sur, _ = body
+    _, sur = body
     assert bool(sur.predict_mean(RPM, np.array([0.7, 0.1, -0.2]), np.array(v)).in_domain) is inside
     assert not bool(
         sur.predict_mean(np.array([3600, 3600, -1.0, 3600]), np.zeros(3), np.zeros(3)).in_domain
@@ -76,7 +74,7 @@ def test_no_jump_anywhere_near_hover_or_vertical_air(body):
     frame to swing). The bound's derivative comes from jax.jacfwd at the same states, and the
     Jacobian itself equals central finite differences (step 1e-5 m/s, float64: truncation
     ~1e-10 relative)."""
-    _, _, hyb = body
+    _, hyb = body
     rng = np.random.default_rng(0)
     v = np.concatenate(
         [
@@ -103,7 +101,7 @@ def test_no_jump_anywhere_near_hover_or_vertical_air(body):
 
 
 def test_checkpoint_keeps_the_frame(body, tmp_path):
-    _, sur, _ = body
+    _, sur = body
     checkpoint.save(tmp_path / "b", sur)
     back = checkpoint.load(tmp_path / "b")
     assert back.frame == "body"
@@ -116,11 +114,11 @@ def test_checkpoint_keeps_the_frame(body, tmp_path):
 def test_what_does_not_take_the_body_frame_says_so(body):
     from gpg import export
 
-    ds, sur, _ = body
+    ds, sur = body
     with pytest.raises(ValueError, match="body frame"):
         Surrogate.fit(ds, "gpg", noise_model=True)
     with pytest.raises(ValueError, match="partition.dim=7 is not an input of the 7-input data"):
-        Surrogate.fit(ds, "gpgs")
+        Surrogate.fit(ds, "gpgs", {"hyper": {"fit": False}})
     with pytest.raises(ValueError, match="body-frame surrogate"):
         export.to_casadi(sur)
     with pytest.raises(ValueError, match="body-frame surrogate"):

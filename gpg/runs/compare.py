@@ -122,6 +122,16 @@ def _predict_test(model, Xn: np.ndarray, chunk: int = 256):
     return np.concatenate(means), np.concatenate(vars_)
 
 
+def _boundaries(part, X: np.ndarray):
+    """The bins whose boundaries the jump metric crosses: the model's own, else the paper's 10
+    slabs along the airspeed (body-frame data, without an airspeed input: 10 kd-tree bins)."""
+    if part is not None and part.n_bins > 1:
+        return part
+    body = X.shape[1] == 7
+    cfg = ModelConfig.from_dict({"partition": {"scheme": "kdtree"}}) if body else ModelConfig()
+    return models.build_partition(X, cfg)
+
+
 def evaluate(
     label: str,
     name: str,
@@ -158,14 +168,7 @@ def evaluate(
     var_y = np.asarray(built.model.predictive_variance(var_n)) * np.asarray(norm.y_std) ** 2
     y_true = test.y[:, : y_pred.shape[1]]
     names = list(training.output_names)
-    part = built.model.partition
-    if part is None or part.n_bins == 1:  # no boundary of its own: the paper's 10 slabs
-        # (along the airspeed; body-frame data have no airspeed input: 10 kd-tree bins)
-        body = training.X.shape[1] == 7
-        part = models.build_partition(
-            training.X,
-            ModelConfig.from_dict({"partition": {"scheme": "kdtree"}}) if body else ModelConfig(),
-        )
+    part = _boundaries(built.model.partition, training.X)
     abs_err = np.abs(y_pred - y_true)
     lo, hi = float(train.airspeed.min()), float(train.airspeed.max())
     lat = _latencies(built.model, training, train, name, mcfg, test, n_queries)

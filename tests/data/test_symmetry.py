@@ -4,22 +4,20 @@ is the identity, and what has no mirror symmetry is refused."""
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from gpg.data.symmetry import augment, mirror, reflection
-from gpg.quadrotor.generator import evaluate_body
 from tests.helpers import smooth_body, synthetic_body_dataset
 
 
-def test_the_generator_is_mirror_symmetric(gen, vehicle):
+def test_the_generator_is_mirror_symmetric(y_body_of, vehicle):
     """``y(A x) = T y(x)`` for both mirrors of the X layout at three cases (forward flight
     with sideslip, descent, air from behind-left): force and moment to 1e-6 of their scale
     (the physics is symmetric; the blade-element grid's azimuth stations are placed per
     rotor, and agree to the solver's convergence), levels too for the fore-aft mirror."""
-    f = jax.jit(lambda x: evaluate_body(gen, x))
+    f = y_body_of
     ds, _ = synthetic_body_dataset(3, seed=0)
     x = np.array(
         [[3500, 3700, 3300, 3600, 8.0, 2.0, -1.0], [4000, 3800, 3900, 4100, 0.5, -0.3, 3.0],

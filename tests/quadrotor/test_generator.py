@@ -4,18 +4,18 @@ as the airflow frame's, read in the body frame, and its exact Jacobian."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gpg.data.bounds import Bounds
 from gpg.data.sampling import generate
 from gpg.quadrotor.frames import R_WB
-from gpg.quadrotor.generator import evaluate, evaluate_body, jacobian_body
+from gpg.quadrotor.generator import evaluate_body, jacobian_body
 
 
-def test_body_frame_is_the_airflow_frame_rotated(gen):
+def test_body_frame_is_the_airflow_frame_rotated(y_of, y_body_of):
     """``y_W(θ, V) = R_WB(θ) y_B(R_WB(θ)ᵀ V e_x)`` for force and moment: a change of frame,
     so equal to rounding (1e-10 of the load's scale, float64)."""
-    f_air = jax.jit(lambda x: evaluate(gen, x))
-    f_body = jax.jit(lambda x: evaluate_body(gen, x))
+    f_air, f_body = y_of, y_body_of
     for x in (
         [3500, 3600, 3400, 3550, 0.4, -0.3, 0.6, 8.0],
         [5000, 2000, 4000, 3000, -1.2, 0.9, -1.4, 15.0],
@@ -29,6 +29,7 @@ def test_body_frame_is_the_airflow_frame_rotated(gen):
             np.testing.assert_allclose(y[sl], R @ yb[sl], atol=1e-10 * np.abs(y[sl]).max())
 
 
+@pytest.mark.slow  # the generator's exact Jacobian, as the airflow frame's (a long compile)
 def test_body_jacobian_equals_finite_differences(gen):
     """Near hover, climbing and with air from behind: the forward-mode Jacobian against central
     differences (steps 1e-2 rpm and 1e-5 m/s; 1e-6 of each output's largest derivative).
@@ -48,6 +49,7 @@ def test_body_jacobian_equals_finite_differences(gen):
             np.testing.assert_allclose(fd[:6], J[:6, k], atol=1e-6 * np.abs(J[:6]).max() + 1e-9)
 
 
+@pytest.mark.slow  # likewise
 def test_axial_air_is_continuous_but_not_smooth_in_the_generator(gen):
     """A finding, kept as a test: at exactly axial air (hover, vertical climb or descent) the
     wake-interference model switches which rotor is downstream of which within 1e-6 m/s of
