@@ -37,6 +37,12 @@ def synthetic_dataset(n=60, seed=0, raw=True):
     if raw:
         xr, _ = raw_samples(x, FDSteps())
         kw = {"x_raw": xr, "y_raw": smooth(xr, W)[0]}
+    return _synthetic(x, y, J, {"name": "synthetic"}, **kw), W
+
+
+def _synthetic(x, y, J, meta, **kw):
+    """A dataset of nine outputs ``y`` and their gradients ``J``, with ``M``'s coefficients
+    and the vehicle whose layout ``M`` uses."""
     return Dataset(
         x=x,
         y_aero=y[:, :6],
@@ -45,11 +51,11 @@ def synthetic_dataset(n=60, seed=0, raw=True):
         jac_noise=J[:, 6:],
         meta={
             "simple_model": {"P_F": 5.3e-7, "T_z": 8.4e-9},
-            "name": "synthetic",
-            "vehicle": vehicle_config("sui_endurance"),  # whose layout M uses
+            "vehicle": vehicle_config("sui_endurance"),
+            **meta,
         },
         **kw,
-    ), W
+    )
 
 
 def compose_plain(name: str, overrides: Sequence[str] = ()) -> dict[str, Any]:
@@ -169,17 +175,9 @@ def synthetic_body_dataset(n=60, seed=0):
     W = rng.normal(scale=0.5, size=(7, 9))
     x = latin_hypercube(n, Bounds(), seed, "body")
     y, J = smooth_body(x, W)
-    return Dataset(
-        x=x,
-        y_aero=y[:, :6],
-        jac_aero=J[:, :6],
-        y_noise=y[:, 6:],
-        jac_noise=J[:, 6:],
-        meta={
-            "frame": "body",
-            "bounds": {"rpm": [0.0, 7000.0], "airspeed": [0.0, 20.0]},
-            "simple_model": {"P_F": 5.3e-7, "T_z": 8.4e-9},
-            "name": "synthetic_body",
-            "vehicle": vehicle_config("sui_endurance"),
-        },
-    ), W
+    meta = {
+        "frame": "body",
+        "bounds": {"rpm": [0.0, 7000.0], "airspeed": [0.0, 20.0]},
+        "name": "synthetic_body",
+    }
+    return _synthetic(x, y, J, meta), W
