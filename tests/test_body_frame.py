@@ -123,3 +123,28 @@ def test_what_does_not_take_the_body_frame_says_so(body):
         export.to_casadi(sur)
     with pytest.raises(ValueError, match="body-frame surrogate"):
         sur.condition(ds.subset(np.arange(2)))
+
+
+@pytest.mark.slow  # a linearisation compile; gpg.mpc has its own fast tests
+def test_mpc_linearises_a_body_frame_surrogate_at_hover_in_still_air(body):
+    """``gpg.mpc.Dynamics`` on the body-frame surrogate at hover in still air (``v_air = 0``,
+    where the airflow frame is singular): its Jacobians equal central differences."""
+    from gpg.mpc import Dynamics, pack
+    from gpg.quadrotor.dynamics import State, Wind
+    from gpg.quadrotor.vehicle import load_vehicle
+
+    _, sur = body
+    dyn = Dynamics.create(
+        load_vehicle("sui_endurance"), sur, 0.01, wind=Wind.constant([0.0, 0.0, 0.0])
+    )
+    x = pack(State(p=jnp.zeros(3), v=jnp.zeros(3), q=jnp.array([1.0, 0, 0, 0]), w=jnp.zeros(3),
+                   rpm=jnp.full(4, 3600.0)))  # fmt: skip
+    u = jnp.full(4, 3600.0)
+    lin = jax.jit(dyn.linearize)(x, u, 0.0)
+    f = jax.jit(dyn)
+    h = jnp.concatenate([jnp.full(13, 1e-5), jnp.full(4, 1e-2)])
+    A_fd = jnp.stack(
+        [(f(x + h * e, u, 0.0) - f(x - h * e, u, 0.0)) / (2 * (h * e).sum()) for e in jnp.eye(17)],
+        axis=1,
+    )
+    np.testing.assert_allclose(lin.A, A_fd, rtol=1e-5, atol=1e-7)

@@ -34,6 +34,7 @@ import numpy as np
 from gpg._dtype import float64
 from gpg.data.bounds import Bounds
 from gpg.data.cache import build_generator, ensure_datasets
+from gpg.data.convert import body_inputs
 from gpg.data.dataset import Dataset
 from gpg.data.sampling import FDSteps, raw_samples
 from gpg.quadrotor.frames import R_WB
@@ -45,15 +46,6 @@ OPTIONS = {
     "airflow_data": "path",
     "progress": "bool",
 }  # the run's own keys besides its config groups (runs.common.check_options)
-
-
-def body_inputs(x_air: np.ndarray) -> np.ndarray:
-    """Airflow-frame cases ``(rpm, yaw, pitch, roll, V)`` (N, 8) as body-frame inputs
-    ``(rpm, u, v, w)`` (N, 7): the air ``V e_x`` of the dataset frame seen from the body,
-    ``R_WB(θ)ᵀ V e_x``."""
-    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(x_air[:, 4:7])))
-    v_b = R[:, 0, :] * x_air[:, 7:8]  # R^T e_x is R's first row
-    return np.concatenate([x_air[:, :4], v_b], axis=1)
 
 
 @float64

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from gpg.data.convert import body_inputs
 from gpg.quadrotor.frames import R_WB
 from gpg.runs import envelope
 from tests.helpers import compose_plain, finite_numbers
@@ -17,7 +18,7 @@ def test_airflow_cases_seen_from_the_body():
     frame's level air at the case's attitude, the body frame's air at the identity."""
     rng = np.random.default_rng(0)
     x = np.c_[rng.uniform(0, 7000, (5, 4)), rng.uniform(-1, 1, (5, 3)), rng.uniform(0, 20, 5)]
-    xb = envelope.body_inputs(x)
+    xb = body_inputs(x)
     for r, rb in zip(x, xb, strict=True):
         want = np.asarray(R_WB(jnp.asarray(r[4:7]))).T @ np.array([r[7], 0.0, 0.0])
         np.testing.assert_allclose(rb[4:], want, atol=1e-12)
