@@ -13,6 +13,7 @@ from gpg.quadrotor.generator import jacobian_body
 from tests.helpers import synthetic_body_dataset, synthetic_dataset
 
 
+@pytest.mark.slow  # a generator compile; to_body keeps the fast test below
 def test_converted_values_are_the_generators_body_frame(gen, y_body_of):
     """Values to 1e-10 of the load's scale at the converted inputs."""
     air = generate(gen, 3, bounds=Bounds(), seed=5, chunk=32, gradients="none", keep_raw=False,

@@ -447,6 +447,10 @@ def test_body_frame_dataset_shapes_ball_and_csv(rng, tmp_path):
         x=x, y_aero=rng.normal(size=(n, 6)), jac_aero=rng.normal(size=(n, 6, 7)), meta=meta
     )
     assert ds.inputs == ("r1", "r2", "r3", "r4", "u", "v", "w")
+    ds.save(tmp_path / "body")
+    back = Dataset.load(tmp_path / "body")
+    assert back.frame == "body" and np.array_equal(back.jac_aero, ds.jac_aero)
+    assert json.loads((tmp_path / "body.json").read_text())["inputs"][4:] == ["u", "v", "w"]
     with pytest.raises(ValueError, match=r"x must have shape \(\*, 7\)|x must have shape"):
         Dataset(x=np.c_[x, np.ones(n)], y_aero=ds.y_aero, meta=meta)
     far = x.copy()

@@ -64,6 +64,7 @@ def test_axial_air_is_continuous_but_not_smooth_in_the_generator(gen):
         assert np.abs(np.asarray(jac(jnp.array([3600.0] * 4 + [0.0, 0.0, w])))[:6, 4:]).max() > 1e2
 
 
+@pytest.mark.slow  # a compile of the batched body-frame generator (the pieces are fast tests)
 def test_body_frame_dataset_records_its_frame_and_round_trips(gen, tmp_path):
     from gpg.data.dataset import Dataset
 
