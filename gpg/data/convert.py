@@ -60,12 +60,19 @@ def to_body(ds: Dataset) -> Dataset:
         jac = np.full((ds.n, 6, 7), np.nan)
         for sl in (slice(0, 3), slice(3, 6)):
             jac[:, sl, :4] = np.einsum("nij,njk->nik", Rt, ds.jac_aero[:, sl, :4])
-    bounds = ds.meta.get("bounds") or {}
-    kept = {k: v for k, v in ds.meta.items() if k not in ("bounds", "fd", "raw_layout", "frame")}
-    meta = {
+    cases = "converted from the airflow frame: its directions only, no u, v, w gradients"
+    return Dataset(x=body_inputs(ds.x), y_aero=y, jac_aero=jac, meta=body_meta(ds.meta, cases))
+
+
+def body_meta(meta: dict, cases: str) -> dict:
+    """The metadata of an airflow-frame dataset's cases in the body frame: its bounds as the
+    rotor speeds and the ball of its airspeed range, without its finite-difference record
+    (the caller adds the body frame's), and ``cases`` saying where they come from."""
+    bounds = meta.get("bounds") or {}
+    kept = {k: v for k, v in meta.items() if k not in ("bounds", "fd", "raw_layout", "frame")}
+    return {
         **kept,
         "frame": "body",
         "bounds": {k: list(bounds[k]) for k in ("rpm", "airspeed") if k in bounds},
-        "cases": "converted from the airflow frame: its directions only, no u, v, w gradients",
+        "cases": cases,
     }
-    return Dataset(x=body_inputs(ds.x), y_aero=y, jac_aero=jac, meta=meta)

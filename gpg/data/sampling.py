@@ -93,6 +93,14 @@ def raw_samples(x: np.ndarray, fd: FDSteps) -> tuple[np.ndarray, np.ndarray]:
     return pert.reshape(-1, d), h
 
 
+def forward_differences(y_raw: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The base outputs (N, M) and their forward-difference gradients (N, M, 7) from the
+    point-major raw samples of :func:`raw_samples` (8N, M) and their steps ``h`` (N, 7)."""
+    y8 = y_raw.reshape(h.shape[0], 8, -1)
+    y = y8[:, 0]
+    return y, (y8[:, 1:] - y[:, None]).transpose(0, 2, 1) / h[:, None, :]
+
+
 @float64
 def generate(
     gen: Generator,
@@ -127,9 +135,7 @@ def generate(
     if gradients == "fd":
         x_raw, h = raw_samples(x, fd)
         y_raw = ev(x_raw)
-        y8 = y_raw.reshape(n, 8, 9)
-        y = y8[:, 0]
-        jac = (y8[:, 1:] - y[:, None]).transpose(0, 2, 1) / h[:, None, :]  # (N, 9, 7)
+        y, jac = forward_differences(y_raw, h)
     elif gradients == "exact":
         y, jac = ev(x, with_jacobian=True)
     else:
@@ -141,7 +147,7 @@ def generate(
         "bounds": _bounds_meta(bounds, frame),
         "seed": seed,
         "gradients": gradients,
-        "fd": _fd_meta(fd, frame) if gradients == "fd" else None,
+        "fd": fd_meta(fd, frame) if gradients == "fd" else None,
         "raw_layout": "point-major: row 8i is point i, rows 8i+1..8i+7 perturb x_0..x_6"
         if keep_raw
         else None,
@@ -166,7 +172,7 @@ def _bounds_meta(bounds: Bounds, frame: str) -> dict[str, Any]:
     return out if frame == "airflow" else {k: out[k] for k in ("rpm", "airspeed")}
 
 
-def _fd_meta(fd: FDSteps, frame: str) -> dict[str, Any]:
+def fd_meta(fd: FDSteps, frame: str) -> dict[str, Any]:
     """The steps a dataset records: the angle step in the airflow frame, the velocity step in
     the body frame (the other is not used)."""
     out = asdict(fd)

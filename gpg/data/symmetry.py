@@ -49,14 +49,20 @@ def reflection(vehicle: Vehicle, axis: str, *, levels: bool) -> np.ndarray:
             f"vehicle {vehicle.name!r}: the mirror in {axis} maps rotors onto rotors spinning the "
             "same way (a mirror image spins the other way): no mirror symmetry"
         )
-    if levels:
-        mics = np.asarray(vehicle.mic_positions, float)
-        if np.abs(mics * S - mics).max() > tol:
-            raise ValueError(
-                f"vehicle {vehicle.name!r}: its microphones are not their own mirror images in "
-                f"{axis}: mirror data without levels (Dataset.without('noise'))"
-            )
+    if levels and not keeps_levels(vehicle, axis):
+        raise ValueError(
+            f"vehicle {vehicle.name!r}: its microphones are not their own mirror images in "
+            f"{axis}: mirror data without levels (Dataset.without('noise'))"
+        )
     return perm
+
+
+def keeps_levels(vehicle: Vehicle, axis: str) -> bool:
+    """Whether every microphone of ``vehicle`` is its own mirror image across the plane normal
+    to body ``axis``, so that the mirror keeps the levels."""
+    mics = np.asarray(vehicle.mic_positions, float)
+    tol = 1e-9 * max(1.0, float(np.abs(np.asarray(vehicle.positions)).max()))
+    return bool(np.abs(mics * _s(axis) - mics).max() <= tol)
 
 
 def mirror(ds: Dataset, vehicle: Vehicle, axis: str) -> Dataset:

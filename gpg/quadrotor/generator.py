@@ -82,15 +82,19 @@ def jacobian(gen: Generator, x: Float[ArrayLike, " 8"]) -> Float[Array, "9 7"]:
 _FNS = {"airflow": (evaluate, jacobian), "body": (evaluate_body, jacobian_body)}
 
 
+def _fns(X: Array):
+    """The value and Jacobian functions of ``X``'s frame, told by its width (static)."""
+    return _FNS["airflow" if X.shape[1] == N_INPUTS else "body"]
+
+
 @eqx.filter_jit
 def _batch(gen: Generator, X: Array) -> Array:
-    f = evaluate if X.shape[1] == N_INPUTS else evaluate_body
-    return jax.vmap(partial(f, gen))(X)
+    return jax.vmap(partial(_fns(X)[0], gen))(X)
 
 
 @eqx.filter_jit
 def _batch_jac(gen: Generator, X: Array) -> tuple[Array, Array]:
-    f, jac = _FNS["airflow" if X.shape[1] == N_INPUTS else "body"]
+    f, jac = _fns(X)
     return jax.vmap(partial(f, gen))(X), jax.vmap(partial(jac, gen))(X)
 
 

@@ -34,9 +34,9 @@ import numpy as np
 from gpg._dtype import float64
 from gpg.data.bounds import Bounds
 from gpg.data.cache import build_generator, ensure_datasets
-from gpg.data.convert import body_inputs
+from gpg.data.convert import body_inputs, body_meta
 from gpg.data.dataset import Dataset
-from gpg.data.sampling import FDSteps, raw_samples
+from gpg.data.sampling import FDSteps, fd_meta, forward_differences, raw_samples
 from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.generator import evaluate_batch
 from gpg.runs.common import check_options, conf, machine, report, table, write_json
@@ -60,17 +60,10 @@ def same_cases_in_body_frame(
         gen, x_raw, chunk=chunk, progress="body frame, same cases" if progress else False,
         frame="body",
     )  # fmt: skip
-    n = x.shape[0]
-    y8 = y_raw.reshape(n, 8, -1)
-    y = y8[:, 0]
-    jac = (y8[:, 1:] - y[:, None]).transpose(0, 2, 1) / h[:, None, :]
-    bounds = train.meta.get("bounds") or {}
+    y, jac = forward_differences(y_raw, h)
     meta = {
-        **{k: v for k, v in train.meta.items() if k not in ("bounds", "fd", "raw_layout")},
-        "frame": "body",
-        "bounds": {k: list(bounds[k]) for k in ("rpm", "airspeed") if k in bounds},
-        "fd": {"rpm_rel": fd.rpm_rel, "rpm_floor": fd.rpm_floor, "velocity": fd.velocity},
-        "cases": "the airflow-frame training cases, in the body frame",
+        **body_meta(train.meta, "the airflow-frame training cases, in the body frame"),
+        "fd": fd_meta(fd, "body"),
     }
     return Dataset(
         x=x, y_aero=y[:, :6], jac_aero=jac[:, :6],
@@ -221,7 +214,7 @@ def symmetry_rows(scfg: dict[str, Any], train: Dataset, test: Dataset, vehicle) 
     ``cases`` envelope cases, on them with their mirror images across each set of
     ``axes`` (no extra runs; levels dropped where a mirror does not keep the microphones), and
     on 2x and 4x as many real cases; Fx and Mx errors on the envelope test set."""
-    from gpg.data.symmetry import augment, reflection
+    from gpg.data.symmetry import augment, keeps_levels
     from gpg.surrogate import Surrogate
 
     n = int(scfg["cases"])
@@ -231,7 +224,7 @@ def symmetry_rows(scfg: dict[str, Any], train: Dataset, test: Dataset, vehicle) 
     variants = [(f"{n} cases", base, base.runs)]
     for axes in scfg["axes"]:
         axes = tuple(axes)
-        keeps = all(_keeps_levels(vehicle, a, reflection) for a in axes)
+        keeps = all(keeps_levels(vehicle, a) for a in axes)
         ds = augment(base if keeps else base.without("noise"), vehicle, axes)
         variants.append((f"{n} cases + mirrors {'/'.join(axes)}", ds, base.runs))
     for k in (2, 4):
@@ -246,14 +239,6 @@ def symmetry_rows(scfg: dict[str, Any], train: Dataset, test: Dataset, vehicle) 
                      "fit_s": time.perf_counter() - t0, **e})  # fmt: skip
         report(f"symmetry {name} ({runs} runs): Fx {e['Fx_mae']:.4f} N, Mx {e['Mx_mae']:.5f} N*m")
     return rows
-
-
-def _keeps_levels(vehicle, axis: str, reflection) -> bool:
-    try:
-        reflection(vehicle, axis, levels=True)
-    except ValueError:
-        return False
-    return True
 
 
 # Long by design: the experiment's steps in order (data, fits, tests, jump, environment).

@@ -92,7 +92,8 @@ def test_mean_only_export_and_its_constants(tmp_path):
     """``variance=False``: only ``<name>_mean``, and the constants are the global mean's
     arrays alone, in the bytes of the dtype asked for. Built with ``-DGPG_NO_CLONES`` (the
     code a CPU without AVX2, or another compiler, runs) it gives the same values to rounding:
-    the AVX2 clone differs by FMA contraction only (1e-12 of the output's scale)."""
+    the AVX2 clone differs by FMA contraction only, a rounding of each term of the mean's
+    cancelling sum, so the bound is the one held against predict (1e-10 of the scale)."""
     sur = fitted("gpg")
     state = (np.full(4, 3600.0), np.array([0.1, -0.05, 0.02]), np.array([3.0, 0.5, -0.2]))
     for dtype, size in (("double", 8), ("float", 4)):
@@ -104,7 +105,7 @@ def test_mean_only_export_and_its_constants(tmp_path):
         _, generic = compiled(sur, tmp_path / dtype / "generic", dtype, ("-DGPG_NO_CLONES",),
                               variance=False)  # fmt: skip
         ok2, *vals2 = generic(*state, with_var=False)[:4]
-        assert ok2 and all(rel_err(a, b) <= 1e-12 for a, b in zip(vals2, vals, strict=True))
+        assert ok2 and all(rel_err(a, b) <= 1e-10 for a, b in zip(vals2, vals, strict=True))
         n, c = np.asarray(sur.model.mean.coef).shape
         assert out["constant_bytes"] == n * 8 * 8 + (n * c + 8 + 1) * size  # positions double
         assert not out["variance"] and "quad_predict" not in out["h"].read_text()
