@@ -3,23 +3,29 @@
 #   make test-slow  the slow tests too: whole experiments and subprocess runs (minutes)
 #   make test-xla   the fast set under another XLA CPU configuration (XLA_ALT), optimised
 #   make compare    create .venv, install gpg, run every model on data=default
+#   make docs       the documentation site into site/ (warnings are errors; notebooks executed)
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+DOCS_STAMP := $(VENV)/.installed-docs
 
 # The other compiler configuration of `make test-xla`: SSE4.2 code instead of AVX2, and float32
 # products in XLA's own kernels instead of YNNPACK's, which choose their blocking from the CPU
 # they find (what made a float32 variance differ between two machines of the same kind).
 XLA_ALT ?= --xla_cpu_max_isa=SSE4_2 --xla_cpu_experimental_ynn_fusion_type=
 
-.PHONY: test test-slow test-xla compare lint clean
+.PHONY: test test-slow test-xla compare docs lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
+
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e '.[docs]'
+	touch $(DOCS_STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
@@ -43,5 +49,11 @@ test-slow: lint
 compare: $(STAMP)
 	$(PY) -m experiments.compare
 
+# The notebooks run on the first build (about 4 minutes) and are cached under build/docs/ by
+# their bytes; --strict fails on any warning: a broken link or anchor, a reference target that
+# does not exist, a docstring that does not parse.
+docs: $(DOCS_STAMP)
+	$(VENV)/bin/mkdocs build --strict
+
 clean:
-	rm -rf $(VENV) outputs multirun .pytest_cache .ruff_cache
+	rm -rf $(VENV) outputs multirun .pytest_cache .ruff_cache site build/docs

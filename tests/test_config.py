@@ -31,6 +31,22 @@ def test_hydra_composes_the_same_model_config():
     assert cfg["model"] == conf("gpgs_hybrid", "model")
 
 
+@pytest.mark.parametrize("entry", ["compare", "envelope"])
+def test_entry_point_configs_read_without_hydra_as_hydra_composes_them(entry):
+    """notebooks/02 runs the comparison from ``conf("compare")``: group defaults
+    (``data: default``) go under their key, Hydra's own settings stay out."""
+    assert conf(entry) == compose_plain(entry, [])
+
+
+def test_defaults_hydra_alone_reads_are_refused(tmp_path, monkeypatch):
+    import gpg.runs.common as common
+
+    (tmp_path / "x.yaml").write_text("defaults:\n  - override data: smoke\n  - _self_\n")
+    monkeypatch.setattr(common, "CONF_DIR", tmp_path)
+    with pytest.raises(ValueError, match="'override data': 'smoke'.*needs Hydra"):
+        conf("x")
+
+
 def test_every_model_key_is_commented():
     for path in sorted(Path(str(gpg_conf.group("model"))).glob("*.yaml")):
         for i, line in enumerate(path.read_text().splitlines(), 1):

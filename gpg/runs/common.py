@@ -8,6 +8,7 @@ import json
 import logging
 import os
 import platform
+import re
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -47,8 +48,10 @@ def conf(name: str, group: str | None = None) -> dict[str, Any]:
     ``conf("smoke", "data")`` reads the data scale ``smoke`` shipped with gpg
     (``gpg/conf/data/smoke.yaml``; likewise the groups ``model`` and ``vehicle``, found in an
     installed gpg too); other groups and the entry points' configs are read from the
-    repository's ``conf/``. A defaults list naming files of the same group
-    (``model/*.yaml`` extend ``_base``) is composed as Hydra does."""
+    repository's ``conf/``. A defaults list is composed as Hydra does: a file of the same group
+    (``model/*.yaml`` extend ``_base``) is merged in, a ``group: name`` entry
+    (``conf/compare.yaml``'s ``data: default``) goes under the key ``group``; Hydra's own
+    settings (``hydra:``) are left out."""
     import yaml
 
     from gpg import conf as package_conf
@@ -66,6 +69,7 @@ def conf(name: str, group: str | None = None) -> dict[str, Any]:
             raise ValueError(f"no config {path}; known: {known}")
         text = path.read_text(encoding="utf-8")
     own = yaml.safe_load(text) or {}
+    own.pop("hydra", None)
     defaults = own.pop("defaults", None)
     if defaults is None:
         return own
@@ -75,8 +79,14 @@ def conf(name: str, group: str | None = None) -> dict[str, Any]:
             out = deep_merge(out, own)
         elif isinstance(entry, str):
             out = deep_merge(out, conf(entry, group))
+        elif isinstance(entry, dict) and len(entry) == 1 and re.fullmatch(r"\w+", *entry):
+            ((sub, sub_name),) = entry.items()
+            out = deep_merge(out, {sub: conf(sub_name, sub)})
         else:
-            raise ValueError(f"{where}: only defaults of its own group can be read without Hydra")
+            raise ValueError(
+                f"{where}: the defaults entry {entry!r} needs Hydra (only 'name' and"
+                " 'group: name' entries are read without it)"
+            )
     return out
 
 
