@@ -121,8 +121,47 @@ def test_what_does_not_take_the_body_frame_says_so(body):
         Surrogate.fit(ds, "gpgs", {"hyper": {"fit": False}})
     with pytest.raises(ValueError, match="body-frame surrogate"):
         export.to_casadi(sur)
-    with pytest.raises(ValueError, match="body-frame surrogate"):
-        sur.condition(ds.subset(np.arange(2)))
+
+
+def test_condition_and_propose_on_body_frame_cases(body):
+    """New cases (air from every direction, some without the w gradient) conditioned equal a
+    rebuild on all cases with the same hyperparameters and bins, to 1e-8 of the normalised
+    mean and variance; the next cases are proposed inside the ball; cases outside the ball or
+    in the other frame are refused by name."""
+    from dataclasses import replace
+
+    from gpg import design
+    from gpg.data import Bounds, latin_hypercube
+    from tests.helpers import _synthetic, smooth_body, synthetic_body_dataset, synthetic_dataset
+
+    ds, sur = body
+    _, W = synthetic_body_dataset(60, seed=3)  # the fixture's function
+    x = latin_hypercube(12, Bounds(), 11, "body")
+    new = _synthetic(x, *smooth_body(x, W), ds.meta)
+    jac, jn = new.jac_aero.copy(), new.jac_noise.copy()
+    jac[::2, :, 6], jn[::2, :, 6] = np.nan, np.nan
+    new = replace(new, jac_aero=jac, jac_noise=jn)
+    grown = sur.condition(new)
+    ref = design.rebuild(sur, design.merge_datasets(ds, new))
+    Q = np.asarray(sur.normalizer.x(latin_hypercube(30, Bounds(), 12, "body")))
+    (m1, v1), (m2, v2) = grown.model.predict(Q), ref.predict(Q)
+    np.testing.assert_allclose(m1, m2, atol=1e-8)
+    np.testing.assert_allclose(v1, v2, atol=1e-8)
+
+    far = x.copy()
+    far[0, 4:] = [12.0, 12.0, 12.0]  # 20.8 m/s: inside the ball's box, outside the ball
+    wider = {**ds.meta, "bounds": {"rpm": [0.0, 7000.0], "airspeed": [0.0, 25.0]}}
+    with pytest.raises(ValueError, match=r"new case\(s\) \[0\] lie outside .*ball"):
+        sur.condition(_synthetic(far, *smooth_body(far, W), wider))
+    # The next cases: drawn from the ball, never outside it; candidates outside refused.
+    p = design.propose(sur, ds, batch=3, candidates=200, reference=64)
+    assert p.x.shape == (3, 7) and p.gradients.shape == (3, 7)
+    assert np.all(np.linalg.norm(p.x[:, 4:], axis=1) <= 20.0)
+    with pytest.raises(ValueError, match=r"candidate\(s\) \[0\] lie outside .*ball"):
+        design.propose(sur, ds, batch=1, candidates=far, reference=64)
+    airflow = synthetic_dataset(5, seed=2, raw=False)[0]
+    with pytest.raises(ValueError, match="airflow frame but the surrogate was fitted in the body"):
+        sur.condition(airflow)
 
 
 @pytest.mark.slow  # a linearisation compile; gpg.mpc has its own fast tests

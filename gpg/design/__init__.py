@@ -28,6 +28,7 @@ import numpy as np
 
 from gpg import models
 from gpg._dtype import float64
+from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import residuals
 from gpg.data.sampling import latin_hypercube
@@ -37,7 +38,7 @@ from gpg.gp.exact import ExactGP
 from gpg.gp.fit import fit_hyperparameters
 from gpg.gp.hyper import Hyper
 from gpg.kinds.base import Arrays, Cases, Kind
-from gpg.names import GRAD_DIMS, INPUTS
+from gpg.names import GRAD_DIMS
 
 __all__ = [
     "GRADIENTS",
@@ -73,10 +74,12 @@ def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
     that can fail: a ``ValueError`` naming the problem, before anything is changed.
 
     Refused: something other than a :class:`gpg.data.Dataset`; other outputs than the
-    surrogate's (names); inputs outside its box (rows named: other units, degrees for radians
-    or km/h for m/s, land there; to extend the domain, refit with wider ``bounds``); a case
-    that duplicates a training case or another new case. NaN is refused by the dataset
-    itself, except for a gradient whose perturbation was not run.
+    surrogate's (names), or cases in the other frame (airflow or body); inputs outside its
+    domain, the box (and for the body frame the ball of air velocities ``|v| ≤ V``) behind
+    ``in_domain`` (rows named: other units, degrees for radians or km/h for m/s, land there;
+    to extend the domain, refit with wider ``bounds``); a case that duplicates a training case
+    or another new case. NaN is refused by the dataset itself, except for a gradient whose
+    perturbation was not run.
     """
     if not isinstance(dataset, Dataset):
         raise ValueError(f"new cases must be a gpg.data.Dataset, got {type(dataset).__name__}")
@@ -85,20 +88,24 @@ def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
             f"the new cases have outputs {list(dataset.output_names)} but the surrogate "
             f"predicts {list(sur.output_names)}"
         )
+    if dataset.frame != sur.frame:
+        raise ValueError(
+            f"the new cases are in the {dataset.frame} frame but the surrogate was fitted in "
+            f"the {sur.frame} frame (gpg.data.convert.to_body converts airflow-frame cases)"
+        )
     known = training_cases(sur)
     lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
-    span = np.maximum(hi - lo, 1e-300)
-    out = np.any((dataset.x < lo - tol * span) | (dataset.x > hi + tol * span), axis=1)
+    outside = _outside(sur, dataset.x, tol)
+    out = np.any(outside, axis=1)
     if out.any():
         rows = np.flatnonzero(out)
-        bad = np.flatnonzero(
-            np.any((dataset.x[rows] < lo - tol * span) | (dataset.x[rows] > hi + tol * span), 0)
-        )
-        names = [INPUTS[i] for i in bad]
+        names = [dataset.inputs[i] for i in np.flatnonzero(np.any(outside[rows], 0))]
+        where = "box" if sur.frame == "airflow" else "domain (rotor box, ball |u, v, w| <= V)"
         raise ValueError(
-            f"new case(s) {rows[:10].tolist()} lie outside the surrogate's input box (inputs "
-            f"{names}; box {lo.round(4).tolist()} .. {hi.round(4).tolist()} in rpm, rad, m/s): "
-            "check the units (degrees for radians, km/h for m/s), or refit with wider bounds"
+            f"new case(s) {rows[:10].tolist()} lie outside the surrogate's input {where} "
+            f"(inputs {names}; box {lo.round(4).tolist()} .. {hi.round(4).tolist()} in rpm, "
+            "rad, m/s): check the units (degrees for radians, km/h for m/s), or refit with "
+            "wider bounds"
         )
     y, J, y_raw = residuals(dataset, sur.simple, sur.noise_model)
     norm = sur.normalizer
@@ -118,6 +125,24 @@ def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
     if J is None or not known.grad_dims:
         return Arrays(X, Y, None, ())
     return models.gradient_arrays(X, Y, np.asarray(norm.grad(J)))
+
+
+def _ball_radius(sur) -> float:
+    """A body-frame surrogate's ball of air velocities ``|v| <= V`` (``in_domain``'s)."""
+    lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
+    return float(min(np.min(hi[4:]), np.min(-lo[4:])))
+
+
+def _outside(sur, x: np.ndarray, tol: float) -> np.ndarray:
+    """(n, d): which inputs of each state leave the domain ``in_domain`` describes (for the
+    body frame the ball of air velocities marks all three of u, v, w)."""
+    lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
+    span = np.maximum(hi - lo, 1e-300)
+    outside = (x < lo - tol * span) | (x > hi + tol * span)
+    if sur.frame == "body":
+        ball = np.linalg.norm(x[:, 4:], axis=1) > _ball_radius(sur) * (1.0 + tol)
+        outside[:, 4:] |= ball[:, None]
+    return outside
 
 
 def _check_duplicates(Xn: np.ndarray, Xo: np.ndarray) -> None:
@@ -149,11 +174,6 @@ def _min_distance(A: np.ndarray, B: np.ndarray, chunk: int = 4096) -> np.ndarray
 @float64
 def condition(sur, dataset: Dataset):
     """``sur`` conditioned on the cases of ``dataset`` (:meth:`gpg.Surrogate.condition`)."""
-    if sur.frame != "airflow":
-        raise ValueError(
-            "conditioning a body-frame surrogate is not supported yet (its new cases' checks "
-            "read the airflow frame's inputs): refit with Surrogate.fit on all the cases"
-        )
     new = new_cases(sur, dataset)
     cfg = models.resolve_config(sur.model_name, sur.config)
     kind = models.SPECS[sur.model_name].kind
@@ -248,9 +268,10 @@ def merge_datasets(a: Dataset, b: Dataset) -> Dataset:
 
 @dataclass(frozen=True)
 class Proposal:
-    """The next cases: inputs ``x`` (B, 8) in dataset units (rpm, rad, m/s), ``gradients``
-    (B, 7) which finite-difference perturbations to run at each (over the gradient inputs
-    r1..r4, yaw, pitch, roll), and the :class:`~gpg.design.acquisition.Batch` behind them."""
+    """The next cases: inputs ``x`` (B, 8) in dataset units (rpm, rad, m/s; (B, 7) in the
+    body frame), ``gradients`` (B, 7) which finite-difference perturbations to run at each
+    (over the gradient inputs r1..r4, yaw, pitch, roll; in the body frame r1..r4, u, v, w),
+    and the :class:`~gpg.design.acquisition.Batch` behind them."""
 
     x: np.ndarray
     gradients: np.ndarray
@@ -262,8 +283,13 @@ class Proposal:
 
 
 def box_samples(sur, n: int, seed: int) -> np.ndarray:
-    """``n`` states (n, 8) of the surrogate's input box by a scrambled Latin hypercube."""
-    return latin_hypercube(n, (np.asarray(sur.box_lo), np.asarray(sur.box_hi)), seed)
+    """``n`` states of the surrogate's domain by a scrambled Latin hypercube: (n, 8) over its
+    input box, or in the body frame (n, 7) over its rotor box and ball of air velocities."""
+    lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
+    if sur.frame == "body":
+        rpm = (float(np.min(lo[:4])), float(np.max(hi[:4])))
+        return latin_hypercube(n, Bounds(rpm=rpm, airspeed=(0.0, _ball_radius(sur))), seed, "body")
+    return latin_hypercube(n, (lo, hi), seed)
 
 
 @float64
@@ -283,9 +309,10 @@ def propose(
     """The next ``batch`` cases for the simulator, for the surrogate ``sur`` fitted (or
     conditioned) on ``dataset``.
 
-    ``candidates`` and ``reference``: arrays of states (·, 8) in dataset units, or counts
-    drawn from the surrogate's box; pass visited states (flights, rollouts, those with
-    ``in_domain`` False mapped into the box) as ``reference`` to aim at them, weighted by
+    ``candidates`` and ``reference``: arrays of states (·, 8), or (·, 7) in the body frame,
+    in dataset units, or counts drawn from the surrogate's domain; pass visited states
+    (flights, rollouts, those with ``in_domain`` False mapped into the box) as ``reference``
+    to aim at them, weighted by
     ``reference_weights``. ``gradients``: ``all``, ``none`` or ``choose`` (per case, the
     perturbations worth their run). ``weights``: per-output weights (``{"Fx": 1, ...}``) whose
     fitted kernel the acquisition uses (:func:`output_hyper`); default, the surrogate's.
@@ -294,18 +321,20 @@ def propose(
         raise ValueError(f"gradients must be one of {GRADIENTS}, got {gradients!r}")
     cand = box_samples(sur, candidates, seed) if isinstance(candidates, int) else candidates
     ref = box_samples(sur, reference, seed + 1) if isinstance(reference, int) else reference
+    d = len(sur.box_lo)
     for name, arr in (("candidates", cand), ("reference", ref)):
         arr = np.asarray(arr, dtype=float)
-        if arr.ndim != 2 or arr.shape[1] != 8 or not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name} must be finite states of shape (n, 8), got {arr.shape}")
+        if arr.ndim != 2 or arr.shape[1] != d or not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must be finite states of shape (n, {d}), got {arr.shape}")
     cand, ref = np.asarray(cand, float), np.asarray(ref, float)
     lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
-    outside = np.flatnonzero(np.any((cand < lo) | (cand > hi), axis=1))
+    outside = np.flatnonzero(np.any(_outside(sur, cand, 0.0), axis=1))
     if outside.size:
+        ball = "" if sur.frame == "airflow" else f" and ball |u, v, w| <= {_ball_radius(sur):g}"
         raise ValueError(
             f"candidate(s) {outside[:10].tolist()} lie outside the surrogate's input box "
-            f"{lo.round(4).tolist()} .. {hi.round(4).tolist()}: the simulator would be run "
-            "where the surrogate does not answer"
+            f"{lo.round(4).tolist()} .. {hi.round(4).tolist()}{ball}: the simulator would be "
+            "run where the surrogate does not answer"
         )
     hyper = None if weights is None else output_hyper(sur, dataset, weights)
     gp = posterior(sur, dataset if hyper is not None else None, hyper=hyper)
