@@ -107,7 +107,7 @@ class Surrogate(eqx.Module):
     model: Predictor
     normalizer: Normalizer
     simple: SimpleModel | None
-    box_lo: Float[Array, " 8"]  # training box of x_H (rpm, rad, m/s)
+    box_lo: Float[Array, " 8"]  # training box of x_H (rpm, rad, m/s); (7,) in the body frame
     box_hi: Float[Array, " 8"]
     output_names: tuple[str, ...] = eqx.field(static=True)
     model_name: str = eqx.field(static=True)
@@ -281,6 +281,12 @@ class Surrogate(eqx.Module):
         R = _as_rotation(R_WB)
         rpm, _, v_b = _as_state(rpm, np.zeros(3), v_air_body)
         return _predict_body(self, rpm, R, v_b, bool(with_var))
+
+    @property
+    def ball_radius(self) -> Float[Array, ""]:
+        """The body frame's ``V``: ``in_domain`` holds air velocities ``|R_WBᵀ v_air| ≤ V``,
+        the largest ball about hover inside the box of ``u, v, w`` (m/s). Body frame only."""
+        return jnp.minimum(jnp.min(self.box_hi[4:]), jnp.min(-self.box_lo[4:]))
 
     def predict_batch(
         self,
@@ -540,8 +546,7 @@ def predict_state(
         inside = jnp.all(
             (x_h[:4] >= sur.box_lo[:4] - tol[:4]) & (x_h[:4] <= sur.box_hi[:4] + tol[:4])
         )
-        radius = jnp.minimum(jnp.min(sur.box_hi[4:]), jnp.min(-sur.box_lo[4:]))
-        inside = inside & (jnp.sum(x_h[4:] ** 2) <= (radius * (1.0 + 1e-9)) ** 2)
+        inside = inside & (jnp.sum(x_h[4:] ** 2) <= (sur.ball_radius * (1.0 + 1e-9)) ** 2)
         steady = jnp.asarray(True)  # no coordinate singularity to stay away from
     else:
         euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)

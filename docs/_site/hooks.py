@@ -30,7 +30,7 @@ from mkdocs.structure.files import File, Files
 
 ROOT = Path(__file__).resolve().parents[2]
 CACHE = ROOT / "build" / "docs"
-EXAMPLES = ("examples/c_flight", "notebooks")  # repository folders the site carries
+CARRIED = ("examples/c_flight", "notebooks")  # repository folders the site carries (not .ipynb)
 log = logging.getLogger("mkdocs.plugins.gpg")
 
 # Top-level modules with a reference page of their own; the other top-level modules share
@@ -139,8 +139,7 @@ def identifiers() -> dict[str, str]:
         for n in own_members(mod):
             add(f"{path}.{n}", mod.members[n], f"{path}.{n}")
         for n, target in reexports(mod).items():
-            if target.split(".")[:2] != ["gpg", "_version"]:
-                add(f"{path}.{n}", lookup(target), target)
+            add(f"{path}.{n}", lookup(target), target)
     for n, target in reexports(package()).items():
         if f"gpg.{n}" in out and n[0].isupper():
             add(n, lookup(target), target)
@@ -270,7 +269,7 @@ def on_files(files: Files, config) -> Files:
         files.append(File.generated(config, uri, content=content))
 
     generated("index.md", (ROOT / "README.md").read_text(encoding="utf-8"))
-    for folder in EXAMPLES:
+    for folder in CARRIED:
         for path in sorted((ROOT / folder).iterdir()):
             if path.is_file() and path.suffix != ".ipynb":
                 uri = f"{folder}/{path.name}"

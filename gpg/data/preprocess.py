@@ -127,7 +127,7 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
         return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
     from gpg.quadrotor.frames import R_WB  # local: only this fallback needs it
 
-    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(_attitude(ds))))
+    R = np.asarray(jax.vmap(R_WB)(jnp.asarray(_m_inputs(ds.frame, ds.x)[:, 4:7])))
     F_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, :3])
     tau_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, 3:])
     r2 = ds.x[:, :4] ** 2
@@ -154,7 +154,7 @@ def residuals(
     y, J = ds.y.copy(), None if ds.jac is None else ds.jac.copy()
     y_raw = None if ds.y_raw is None else ds.y_raw.copy()
     if simple is not None:
-        yM, JM = (np.asarray(a) for a in simple.batch(_m_inputs(ds, ds.x)))
+        yM, JM = (np.asarray(a) for a in simple.batch(_m_inputs(ds.frame, ds.x)))
         if ds.frame == "body":  # M in the body frame depends on the rotor speeds alone
             JM = JM.copy()
             JM[:, :, 4:] = 0.0
@@ -162,7 +162,7 @@ def residuals(
         if J is not None:
             J[:, :6] -= JM
         if y_raw is not None:
-            y_raw[:, :6] -= np.asarray(simple.values(_m_inputs(ds, ds.x_raw)))
+            y_raw[:, :6] -= np.asarray(simple.values(_m_inputs(ds.frame, ds.x_raw)))
     if noise_model is not None and ds.has_noise:
         if ds.frame == "body":
             raise ValueError(
@@ -177,15 +177,10 @@ def residuals(
     return y, J, y_raw
 
 
-def _attitude(ds: Dataset) -> np.ndarray:
-    """The attitude of each case in the dataset's frame: its Euler angles in the airflow
-    frame, the identity (zeros) in the body frame, where the outputs are already body-frame."""
-    return ds.x[:, 4:7] if ds.frame == "airflow" else np.zeros((ds.n, 3))
-
-
-def _m_inputs(ds: Dataset, x: np.ndarray) -> np.ndarray:
-    """``x_M = (r1..r4, yaw, pitch, roll)`` of :class:`SimpleModel` for rows ``x`` of ``ds``."""
-    if ds.frame == "airflow":
+def _m_inputs(frame: str, x: np.ndarray) -> np.ndarray:
+    """``x_M = (r1..r4, yaw, pitch, roll)`` of :class:`SimpleModel` for inputs ``x`` in
+    ``frame``: the body frame's outputs are already in the body frame (identity attitude)."""
+    if frame == "airflow":
         return x[:, :7]
     return np.concatenate([x[:, :4], np.zeros((x.shape[0], 3))], axis=1)
 
@@ -287,8 +282,7 @@ def restore(
     back."""
     y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
     if training.simple is not None:
-        x = np.asarray(x)
-        x_m = x[:, :7] if training.frame == "airflow" else np.c_[x[:, :4], np.zeros((len(x), 3))]
+        x_m = _m_inputs(training.frame, np.asarray(x))
         y[:, :6] += np.asarray(training.simple.values(jnp.asarray(x_m)))
     if training.noise_model is not None and y.shape[1] > 6:
         y[:, 6:9] += np.asarray(training.noise_model.batch(x)[0])

@@ -127,12 +127,6 @@ def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
     return models.gradient_arrays(X, Y, np.asarray(norm.grad(J)))
 
 
-def _ball_radius(sur) -> float:
-    """A body-frame surrogate's ball of air velocities ``|v| <= V`` (``in_domain``'s)."""
-    lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
-    return float(min(np.min(hi[4:]), np.min(-lo[4:])))
-
-
 def _outside(sur, x: np.ndarray, tol: float) -> np.ndarray:
     """(n, d): which inputs of each state leave the domain ``in_domain`` describes (for the
     body frame the ball of air velocities marks all three of u, v, w)."""
@@ -140,7 +134,7 @@ def _outside(sur, x: np.ndarray, tol: float) -> np.ndarray:
     span = np.maximum(hi - lo, 1e-300)
     outside = (x < lo - tol * span) | (x > hi + tol * span)
     if sur.frame == "body":
-        ball = np.linalg.norm(x[:, 4:], axis=1) > _ball_radius(sur) * (1.0 + tol)
+        ball = np.linalg.norm(x[:, 4:], axis=1) > float(sur.ball_radius) * (1.0 + tol)
         outside[:, 4:] |= ball[:, None]
     return outside
 
@@ -287,8 +281,9 @@ def box_samples(sur, n: int, seed: int) -> np.ndarray:
     input box, or in the body frame (n, 7) over its rotor box and ball of air velocities."""
     lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
     if sur.frame == "body":
-        rpm = (float(np.min(lo[:4])), float(np.max(hi[:4])))
-        return latin_hypercube(n, Bounds(rpm=rpm, airspeed=(0.0, _ball_radius(sur))), seed, "body")
+        box = Bounds(rpm=(float(np.min(lo[:4])), float(np.max(hi[:4]))),
+                     airspeed=(0.0, float(sur.ball_radius)))  # fmt: skip
+        return latin_hypercube(n, box, seed, "body")
     return latin_hypercube(n, (lo, hi), seed)
 
 
@@ -312,8 +307,8 @@ def propose(
     ``candidates`` and ``reference``: arrays of states (·, 8), or (·, 7) in the body frame,
     in dataset units, or counts drawn from the surrogate's domain; pass visited states
     (flights, rollouts, those with ``in_domain`` False mapped into the box) as ``reference``
-    to aim at them, weighted by
-    ``reference_weights``. ``gradients``: ``all``, ``none`` or ``choose`` (per case, the
+    to aim at them, weighted by ``reference_weights``. ``gradients``: ``all``, ``none`` or
+    ``choose`` (per case, the
     perturbations worth their run). ``weights``: per-output weights (``{"Fx": 1, ...}``) whose
     fitted kernel the acquisition uses (:func:`output_hyper`); default, the surrogate's.
     """
@@ -330,7 +325,7 @@ def propose(
     lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
     outside = np.flatnonzero(np.any(_outside(sur, cand, 0.0), axis=1))
     if outside.size:
-        ball = "" if sur.frame == "airflow" else f" and ball |u, v, w| <= {_ball_radius(sur):g}"
+        ball = f" and ball |u, v, w| <= {float(sur.ball_radius):g}" if sur.frame == "body" else ""
         raise ValueError(
             f"candidate(s) {outside[:10].tolist()} lie outside the surrogate's input box "
             f"{lo.round(4).tolist()} .. {hi.round(4).tolist()}{ball}: the simulator would be "

@@ -53,6 +53,7 @@ from gpg.runs.common import (
     stats,
     table,
     time_calls,
+    world_arrays,
     world_states,
     write_json,
 )
@@ -138,7 +139,7 @@ def _float32_check(sur, test, states, n: int) -> dict[str, Any]:
     """``sur.astype(float32)`` against ``sur`` on the whole test set, run as a float32 program
     runs it (x64 off): errors relative to each output's spread over the test set, and the
     float32 single-query latency."""
-    R, E, V = (np.stack(a) for a in zip(*world_states(test.x, test.n), strict=True))
+    R, E, V = world_arrays(test.x)
 
     def stack(p):
         return np.concatenate([np.asarray(p.force), np.asarray(p.torque), np.asarray(p.levels)], 1)

@@ -141,14 +141,23 @@ def latency(fn: Callable[..., Any], args_list: Sequence[tuple], n: int) -> dict[
     return stats(time_calls(lambda: fn(*next(calls)), n, warmup=3))
 
 
-def world_states(x: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The first ``n`` (at least one) dataset inputs ``x`` (rpm, Euler angles, airspeed) as
-    world-frame states ``(rpm, euler, v_air)``, the airflow along +x: NumPy arrays, as a
-    simulator written in Python passes them. Body-frame inputs ``(rpm, u, v, w)`` (7 columns)
-    become the identity attitude with that air."""
+def world_arrays(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Dataset inputs ``x`` as world-frame states ``(rpm, euler, v_air)`` (N, 4), (N, 3),
+    (N, 3) whose world frame is the dataset's: airflow-frame inputs (rpm, Euler angles,
+    airspeed; 8 columns) fly the air ``V e_x`` at that attitude, body-frame inputs
+    ``(rpm, u, v, w)`` (7 columns) the identity attitude with that air."""
     if x.shape[1] == 7:
-        return [(np.array(r[:4]), np.zeros(3), np.array(r[4:7])) for r in x[: max(n, 1)]]
-    return [(np.array(r[:4]), np.array(r[4:7]), np.array([r[7], 0.0, 0.0])) for r in x[: max(n, 1)]]
+        return x[:, :4], np.zeros((x.shape[0], 3)), x[:, 4:7]
+    v = np.zeros((x.shape[0], 3))
+    v[:, 0] = x[:, 7]
+    return x[:, :4], x[:, 4:7], v
+
+
+def world_states(x: np.ndarray, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The first ``n`` (at least one) of :func:`world_arrays`, one state at a time: NumPy
+    arrays, as a simulator written in Python passes them."""
+    rpm, euler, v = world_arrays(x[: max(n, 1)])
+    return [(np.array(r), np.array(e), np.array(a)) for r, e, a in zip(rpm, euler, v, strict=True)]
 
 
 class Fitted(NamedTuple):

@@ -38,8 +38,16 @@ from gpg.data.convert import body_inputs, body_meta
 from gpg.data.dataset import Dataset
 from gpg.data.sampling import FDSteps, fd_meta, forward_differences, raw_samples
 from gpg.quadrotor.frames import R_WB
-from gpg.quadrotor.generator import evaluate_batch
-from gpg.runs.common import check_options, conf, machine, report, table, write_json
+from gpg.quadrotor.generator import evaluate_batch, vortex_ring_state
+from gpg.runs.common import (
+    check_options,
+    conf,
+    machine,
+    report,
+    table,
+    world_arrays,
+    write_json,
+)
 
 OPTIONS = {
     "cache_dir": "path",
@@ -73,21 +81,10 @@ def same_cases_in_body_frame(
     )  # fmt: skip
 
 
-def world_states(ds: Dataset) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A test set's cases as world-frame states whose world frame is the dataset's frame:
-    airflow data fly level air ``V e_x`` at attitude ``(yaw, pitch, roll)``; body data are at
-    the identity attitude with air ``(u, v, w)``."""
-    if ds.frame == "airflow":
-        v = np.zeros((ds.n, 3))
-        v[:, 0] = ds.x[:, 7]
-        return ds.x[:, :4], ds.x[:, 4:7], v
-    return ds.x[:, :4], np.zeros((ds.n, 3)), ds.x[:, 4:7]
-
-
 def test_errors(sur, test: Dataset) -> dict[str, Any]:
     """Mean absolute errors of Fx, Mx (and L1 in the surrogate's own frame) over every test
     state, and the share of them in domain."""
-    p = sur.predict_batch(*world_states(test), mean_only=True)
+    p = sur.predict_batch(*world_arrays(test.x), mean_only=True)
     force, torque, ok = (np.asarray(a) for a in (p.force, p.torque, p.in_domain))
     out = {
         "Fx_mae": float(np.mean(np.abs(force[:, 0] - test.y_aero[:, 0]))),
@@ -170,8 +167,6 @@ def jump(sur, states, group: np.ndarray, step: float, truth: np.ndarray) -> dict
 def generator_changes(gen, states, step: float) -> np.ndarray:
     """The generator's own largest force change for ``step`` m/s of air at the states (the
     world-frame force of the body-frame generator at ``R_WBᵀ v``, rotated back)."""
-    from gpg.quadrotor.generator import evaluate_batch
-
     R = np.asarray(jax.vmap(R_WB)(jnp.asarray(states[1])))
 
     def force_at(rpm, euler, v):
@@ -325,8 +320,6 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
             share = 100 * r["in_domain"]
             report(f"env {tname} {r['task']} wind {r['wind_max']:g}: in domain {share:.1f} %")
     sym = symmetry_rows(cfg["symmetry"], env_train, env_test, vehicle)
-    from gpg.quadrotor.generator import vortex_ring_state
-
     vrs = {
         name: float(np.mean(vortex_ring_state(vehicle, ds.x, ds.y_aero[:, :3])))
         for name, ds in (("train", env_train), ("test", env_test))

@@ -3,6 +3,7 @@ body, and the whole experiment at smoke scale (slow: a generator run and twelve 
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import pytest
 from gpg.data.convert import body_inputs
 from gpg.quadrotor.frames import R_WB
 from gpg.runs import envelope
+from gpg.runs.common import world_arrays
 from tests.helpers import compose_plain, finite_numbers
 
 
@@ -23,6 +25,12 @@ def test_airflow_cases_seen_from_the_body():
         want = np.asarray(R_WB(jnp.asarray(r[4:7]))).T @ np.array([r[7], 0.0, 0.0])
         np.testing.assert_allclose(rb[4:], want, atol=1e-12)
         assert np.array_equal(rb[:4], r[:4])
+    for rows in (x, xb):
+        rpm, euler, v = world_arrays(rows)
+        assert np.array_equal(rpm, x[:, :4])
+        # the same body-frame air either way: R_WB(euler)ᵀ v_air
+        seen = np.einsum("nji,nj->ni", np.asarray(jax.vmap(R_WB)(jnp.asarray(euler))), v)
+        np.testing.assert_allclose(seen, xb[:, 4:], atol=1e-12)
     states, group = envelope.jump_states(30, 0, 20.0)
     assert len(states[2]) == len(group) == 35 and np.all(np.linalg.norm(states[2], axis=1) <= 20)
     assert np.all(np.linalg.norm(states[2][group == 2][:, :2], axis=1) < 0.5)
