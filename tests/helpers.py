@@ -108,7 +108,7 @@ def variance_rtol(sur, rpm, euler, v_air, unit_roundoff: float | None = None) ->
     import jax
     import jax.numpy as jnp
 
-    from gpg.quadrotor.frames import to_airflow_frame
+    from gpg.quadrotor.frames import R_WB, to_airflow_frame
 
     model = getattr(sur.model, "local", sur.model)  # the hybrid's near-set part
     exact = hasattr(model, "chol_inv")  # exact GP-G: one factor of every observed row
@@ -116,8 +116,11 @@ def variance_rtol(sur, rpm, euler, v_air, unit_roundoff: float | None = None) ->
     @jax.jit
     @jax.vmap
     def rows(r, e, v):
-        eh, speed, _ = to_airflow_frame(e, v, sur.hover_speed)
-        xn = sur.normalizer.x(jnp.concatenate([r, eh, speed[None]]))
+        if sur.frame == "body":
+            xn = sur.normalizer.x(jnp.concatenate([r, R_WB(e).T @ v]))
+        else:
+            eh, speed, _ = to_airflow_frame(e, v, sur.hover_speed)
+            xn = sur.normalizer.x(jnp.concatenate([r, eh, speed[None]]))
         if exact:
             return _exact_row(model, xn), 0
         b = model.partition.lookup(xn)
@@ -125,8 +128,9 @@ def variance_rtol(sur, rpm, euler, v_air, unit_roundoff: float | None = None) ->
 
     K, B = (np.asarray(a) for a in rows(*(jnp.asarray(a, float) for a in (rpm, euler, v_air))))
     # |x/l|² + |x_p/l|² at most, over the box [-1, 1]^D and the stored points (padding aside)
-    ls = np.broadcast_to(np.asarray(model.hyper.lengthscale if exact else model.lengthscale), (8,))
-    pts = np.asarray(model.X if exact else model.Xn).reshape(-1, 8)
+    d = int(np.asarray(sur.box_lo).size)
+    ls = np.broadcast_to(np.asarray(model.hyper.lengthscale if exact else model.lengthscale), (d,))
+    pts = np.asarray(model.X if exact else model.Xn).reshape(-1, d)
     pts = pts[np.abs(pts).max(axis=1) < 10]
     reach = float(np.sum(1 / ls**2) + np.max(np.sum((pts / ls) ** 2, axis=1)))
     out = []

@@ -3,12 +3,15 @@ with exact derivatives (:func:`to_casadi`) and an ONNX model (:func:`to_onnx`), 
 world-frame prediction ``(rpm, euler, v_air) -> (force, torque, levels[, variance],
 in_domain)`` with the trained arrays as constants, and each carrying a record of the gpg
 version, the model, the SHA-256 of its arrays and the units (:func:`gpg.export.layout.spec`).
+A surrogate fitted in either frame exports with that call: the airflow frame's (the paper's
+inputs) or the body frame's (rotor speeds and ``R_WBᵀ v_air``, the ball as its domain).
 
 Kinds: every real-time kind (``gpg``, ``gpgs_hybrid``, ``gpg_pic``, ``gpgs``, ``gpgs_schur``,
 ``gps_*``; ``gp`` like ``gpg``) exports its mean and its variance. The exact kinds' variance
 factor is the dense ``(N(1+G))²`` triangle (256 MB at data=default), so it passes only under
-``max_bytes`` (small models); a surrogate with ``M_noise`` is refused (its network is not
-exported), as is an exact model grown by ``condition`` when its variance is asked for.
+``max_bytes`` (small models); a surrogate with ``M_noise`` is refused (its acoustic model,
+:mod:`gpg.quadrotor.simple_noise`, is not exported), as is an exact model grown by
+``condition`` when its variance is asked for.
 """
 
 from gpg.export.c_source import to_c

@@ -8,7 +8,10 @@ global folded mean of :mod:`gpg.gp.mean` or the query's bin's mean, and the vari
 world frame and the simplified model ``M``. ``in_domain`` is the data's box, finite inputs
 and outputs, rotor speeds ≥ 0 and the airflow frame's turn rate
 (:func:`gpg.quadrotor.frames.airflow_frame_rate`, here by central differences, so a query
-within rounding of the threshold may be flagged differently).
+within rounding of the threshold may be flagged differently). A body-frame surrogate has no
+airflow frame: the GP reads ``(rpm, R_WBᵀ v_air)``, ``R_WB`` turns its outputs back, and
+``in_domain`` is the rotor box and the ball ``|R_WBᵀ v_air| ≤ V`` (``BODY_FRAME`` in the
+source; the call is the same).
 
 ``dtype="float"`` stores the GP's arrays in float (half the bytes, for a flight controller's
 flash) and evaluates the kernel and the variance's product in float; the frame, the
@@ -28,7 +31,7 @@ import numpy as np
 
 from gpg._io import atomic_write
 from gpg.export.layout import MAX_BYTES, Spec, column_spans, spec
-from gpg.names import INPUTS
+from gpg.names import inputs
 from gpg.quadrotor.frames import _TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -56,7 +59,10 @@ def to_c(
       frame) and levels as :meth:`Surrogate.predict` gives it.
 
     Units rpm, rad (yaw, pitch, roll: ``R_WB = Rz Ry Rx``), m/s, N, N·m, dB; world frame x
-    forward, y right, z down. A non-finite input gives 0 and zeros, never NaN.
+    forward, y right, z down; the same call for a surrogate of either frame. The header
+    declares ``<name>_box_lo[D]`` and ``_box_hi[D]``, the GP's input box (``D`` =
+    ``<NAME>_N_INPUTS``: 8 airflow-frame inputs, or 7 body-frame ones). A non-finite input
+    gives 0 and zeros, never NaN.
     ``ValueError`` (nothing written) for a model :func:`gpg.export.layout.spec` refuses, a bad
     ``name`` or ``dtype``, or constants over ``max_bytes``."""
     if dtype not in DTYPES:
@@ -107,13 +113,35 @@ def _ints(a) -> str:
     return "{" + ", ".join(str(int(v)) for v in np.asarray(a).ravel()) + "}" if len(a) else "{0}"
 
 
+def _domain_doc(s: Spec) -> str:
+    """The header's paragraph on ``in_domain``, for the surrogate's frame."""
+    if s.frame == "body":
+        return (
+            " * returns in_domain: 1 where the rotor speeds lie in the training data's box and\n"
+            " * the air velocity in the body frame, R_WB^T v_air = (u, v, w), lies in the ball\n"
+            f" * |(u, v, w)| <= {s.ball_radius:.17g} m/s, the inputs and outputs are finite; 0\n"
+            " * otherwise (an extrapolation: the values are returned all the same, zeros for\n"
+            " * non-finite input). The GP reads the body frame's inputs (r1..r4, u, v, w): no\n"
+            " * coordinate singularity, hover and vertical flow included. Its box (rpm, m/s;\n"
+            " * in_domain uses the ball inside it):"
+        )
+    return (
+        " * returns in_domain: 1 inside the training data's box (x_H = rpm, attitude in the\n"
+        " * airflow frame, airspeed), rotor speeds >= 0, finite inputs and outputs and a\n"
+        " * well-conditioned airflow frame; 0 otherwise (an extrapolation: the values are\n"
+        " * returned all the same, zeros for non-finite input). The box of x_H (rpm, rad, m/s):"
+    )
+
+
 def _header(name: str, s: Spec, record: dict[str, Any]) -> str:
     guard = name.upper() + "_H"
     n_levels = len(s.level_names)
     meta = json.dumps(record, indent=1, sort_keys=True).replace("*/", "* /")
+    names = inputs(s.frame)
     box = "\n".join(
-        f" *   {INPUTS[i]:9s} [{s.box_lo[i]:.17g}, {s.box_hi[i]:.17g}]" for i in range(len(INPUTS))
+        f" *   {names[i]:9s} [{s.box_lo[i]:.17g}, {s.box_hi[i]:.17g}]" for i in range(s.dim)
     )
+    domain = _domain_doc(s)
     predict = (
         f"""
 /* as {name}_mean, and variance[{6 + n_levels}]: the predictive variance of force[3] (N^2),
@@ -135,10 +163,7 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
  *             vehicle velocity minus wind
  *   force[3], torque[3]  out: aerodynamic force (N) and torque (N*m), world frame
  *   levels[{n_levels}]  out: tonal noise levels, dB ({", ".join(s.level_names) or "none"})
- * returns in_domain: 1 inside the training data's box (x_H = rpm, attitude in the airflow
- * frame, airspeed), rotor speeds >= 0, finite inputs and outputs and a well-conditioned
- * airflow frame; 0 otherwise (an extrapolation: the values are returned all the same, zeros
- * for non-finite input). The box of x_H (rpm, rad, m/s):
+{domain}
 {box}
  * Not thread-hostile: no state is kept between calls.
  */
@@ -148,8 +173,10 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
 #define {name.upper()}_N_LEVELS {n_levels}
 #define {name.upper()}_HAS_VARIANCE {int(s.has_variance)}
 
-extern const double {name}_box_lo[8];
-extern const double {name}_box_hi[8];
+#define {name.upper()}_N_INPUTS {s.dim}
+
+extern const double {name}_box_lo[{s.dim}];
+extern const double {name}_box_hi[{s.dim}];
 
 int {name}_mean(const double rpm[4], const double euler[3], const double v_air[3],
                 double force[3], double torque[3], double *levels);
@@ -159,6 +186,16 @@ int {name}_mean(const double rpm[4], const double euler[3], const double v_air[3
 
 
 _FRAMES = r"""
+/* R = Rz(yaw) Ry(pitch) Rx(roll) */
+static void rot_wb(double yaw, double pitch, double roll, double R[3][3]) {
+  double cy = cos(yaw), sy = sin(yaw), cp = cos(pitch), sp = sin(pitch);
+  double cr = cos(roll), sr = sin(roll);
+  R[0][0] = cy * cp; R[0][1] = cy * sp * sr - sy * cr; R[0][2] = cy * sp * cr + sy * sr;
+  R[1][0] = sy * cp; R[1][1] = sy * sp * sr + cy * cr; R[1][2] = sy * sp * cr - cy * sr;
+  R[2][0] = -sp;     R[2][1] = cp * sr;                R[2][2] = cp * cr;
+}
+
+#if !BODY_FRAME
 static double safe_atan2(double y, double x, double tiny) {
   if (fabs(x) <= tiny && fabs(y) <= tiny) return 0.0;
   return atan2(y, x);
@@ -167,15 +204,6 @@ static double safe_atan2(double y, double x, double tiny) {
 static double norm3(const double v[3]) {
   double s = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
   return s <= 0.0 ? 0.0 : sqrt(s);
-}
-
-/* R = Rz(yaw) Ry(pitch) Rx(roll) */
-static void rot_wb(double yaw, double pitch, double roll, double R[3][3]) {
-  double cy = cos(yaw), sy = sin(yaw), cp = cos(pitch), sp = sin(pitch);
-  double cr = cos(roll), sr = sin(roll);
-  R[0][0] = cy * cp; R[0][1] = cy * sp * sr - sy * cr; R[0][2] = cy * sp * cr + sy * sr;
-  R[1][0] = sy * cp; R[1][1] = sy * sp * sr + cy * cr; R[1][2] = sy * sp * cr - cy * sr;
-  R[2][0] = -sp;     R[2][1] = cp * sr;                R[2][2] = cp * cr;
 }
 
 /* wind axes Rz(heading) Ry(climb) of the direction d */
@@ -253,6 +281,7 @@ static double frame_rate(const double euler[3], const double v[3]) {
   sr = sqrt(sr / 2.0) / (2.0 * step);
   return se > sr ? se : sr;
 }
+#endif
 """
 
 
@@ -273,6 +302,9 @@ def _constants(name: str, dtype: str, s: Spec) -> list[str]:
         f"#define HOVER_SPEED {s.hover_speed!r}",
         f"#define MAX_FRAME_RATE {MAX_FRAME_RATE!r}",
         f"#define N_OUT {m}",
+        f"#define D_IN {s.dim}",
+        f"#define BODY_FRAME {int(s.frame == 'body')}",
+        f"#define BALL_RADIUS {s.ball_radius if s.frame == 'body' else 0.0!r}",
         f"#define N_GRAD {len(s.grad_dims)}",
         f"typedef {DTYPES[dtype][1]} real;",
         f"typedef {'float' if f_type is np.float32 else 'double'} freal;",
@@ -291,7 +323,7 @@ def _constants(name: str, dtype: str, s: Spec) -> list[str]:
     dbl("SIGMA_NOISE", np.array([s.sigma, s.noise]))
     out.append(f"static const int GRAD_DIMS[{max(len(s.grad_dims), 1)}] = {_ints(s.grad_dims)};")
     for key in ("box_lo", "box_hi"):
-        out.append(f"const double {name}_{key}[8] = {_literal(getattr(s, key), np.float64)};")
+        out.append(f"const double {name}_{key}[{s.dim}] = {_literal(getattr(s, key), np.float64)};")
     if s.allocation is not None:
         dbl("ALLOCATION", s.allocation)
     if s.global_mean is not None:
@@ -351,7 +383,7 @@ _BODY = r"""
 
 #if HAS_BINS
 /* the query's bin (gpg.gp.partition.Partition.lookup): a value on a split goes left */
-static int lookup(const double xn[8]) {
+static int lookup(const double xn[D_IN]) {
 #if SLAB
   int b = 0, i;
   for (i = 0; i < N_CUTS; i++) b += xn[SPLIT_DIM[0]] > SPLIT_VALUE[i];
@@ -366,27 +398,30 @@ static int lookup(const double xn[8]) {
 
 /* k(x, X_p) for n points, then one block of gradient rows k (x_a - X_pa) / l_a^2 per
  * gradient dimension a (gpg.gp.kernels.query_rows) */
-HOT static void krows(const double xn[8], const real *X, int n, real *out) {
+HOT static void krows(const double xn[D_IN], const real *X, int n, real *out) {
   int p, i, g, a;
   double r2, t, k;
   for (p = 0; p < n; p++) {
     r2 = 0.0;
-    for (i = 0; i < 8; i++) { t = (xn[i] - (double)X[p * 8 + i]) / LENGTHSCALE[i]; r2 += t * t; }
+    for (i = 0; i < D_IN; i++) {
+      t = (xn[i] - (double)X[p * D_IN + i]) / LENGTHSCALE[i];
+      r2 += t * t;
+    }
     k = SIGMA_NOISE[0] * exp(-0.5 * r2);
     out[p] = (real)k;
     for (g = 0; g < N_GRAD; g++) {
       a = GRAD_DIMS[g];
-      out[(1 + g) * n + p] = (real)(k * (xn[a] - (double)X[p * 8 + a]) /
+      out[(1 + g) * n + p] = (real)(k * (xn[a] - (double)X[p * D_IN + a]) /
                                     (LENGTHSCALE[a] * LENGTHSCALE[a]));
     }
   }
 }
 
 /* the kernel row of bin b's near set (shared rows first); returns its length R_b */
-static int kernel_row(const double xn[8], int b, real *k) {
+static int kernel_row(const double xn[D_IN], int b, real *k) {
   int u = N_SHARED * (1 + N_GRAD);
   if (N_SHARED) krows(xn, SHARED, N_SHARED, k);
-  krows(xn, PTS + BIN_PT_OFF[b] * 8, BIN_NPTS[b], k + u);
+  krows(xn, PTS + BIN_PT_OFF[b] * D_IN, BIN_NPTS[b], k + u);
   return u + BIN_NPTS[b] * (1 + N_GRAD);
 }
 #endif
@@ -470,11 +505,11 @@ static inline double vexp(double x) {
  * vectorise or keep their sums in registers. (The unfolded sum of gpg.export.layout's alpha
  * was tried: no more accurate in float here, where the coefficients' own rounding dominates,
  * and half again slower.) */
-HOT static void global_mean(const double xn[8], double yn[N_OUT]) {
+HOT static void global_mean(const double xn[D_IN], double yn[N_OUT]) {
   double k[N_MEAN], acc[N_OUT * (1 + N_GRAD)], xl;
   int i, j, p;
   for (p = 0; p < N_MEAN; p++) k[p] = 0.0;
-  for (i = 0; i < 8; i++) {
+  for (i = 0; i < D_IN; i++) {
     const double *col = XS_T + (long)i * N_MEAN;
     xl = xn[i] * INV_LS_M[i];
     for (p = 0; p < N_MEAN; p++) { double t = xl - col[p]; k[p] += t * t; }
@@ -494,7 +529,7 @@ HOT static void global_mean(const double xn[8], double yn[N_OUT]) {
 
 static int evaluate(const double rpm[4], const double euler[3], const double v_air[3],
                     double force[3], double torque[3], double *levels, double *variance) {
-  double eh[3], rwh[3][3], x[8], xn[8], yn[N_OUT], y[N_OUT], speed, span, tol, latent = 0.0;
+  double rwh[3][3], x[D_IN], xn[D_IN], yn[N_OUT], y[N_OUT], span, tol, latent = 0.0;
   int i, j, b = 0, nr = 0, in_domain = 1;
 #if HAS_BINS
   real k[MAX_ROWS];
@@ -504,19 +539,34 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   if (variance) for (i = 0; i < N_OUT; i++) variance[i] = 0.0;
   for (i = 0; i < 4; i++) if (!isfinite(rpm[i])) return 0;
   for (i = 0; i < 3; i++) if (!isfinite(euler[i]) || !isfinite(v_air[i])) return 0;
-  to_airflow(euler, v_air, eh, rwh);
-  speed = norm3(v_air);
   for (i = 0; i < 4; i++) x[i] = rpm[i];
-  for (i = 0; i < 3; i++) x[4 + i] = eh[i];
-  x[7] = speed;
-  for (i = 0; i < 8; i++) {
+#if BODY_FRAME
+  /* the GP's frame is the body's: x = (rpm, R_WB^T v_air), in domain inside the ball */
+  rot_wb(euler[0], euler[1], euler[2], rwh);
+  for (i = 0; i < 3; i++)
+    x[4 + i] = rwh[0][i] * v_air[0] + rwh[1][i] * v_air[1] + rwh[2][i] * v_air[2];
+  if (x[4] * x[4] + x[5] * x[5] + x[6] * x[6] >
+      (BALL_RADIUS * (1.0 + 1e-9)) * (BALL_RADIUS * (1.0 + 1e-9)))
+    in_domain = 0;
+  for (i = 0; i < 4; i++) {
+#else
+  {
+    double eh[3];
+    to_airflow(euler, v_air, eh, rwh);
+    for (i = 0; i < 3; i++) x[4 + i] = eh[i];
+    x[7] = norm3(v_air);
+  }
+  for (i = 0; i < D_IN; i++) {
+#endif
     span = BOX_HI[i] - BOX_LO[i];
     tol = 1e-9 * (span > 1.0 ? span : 1.0);
     if (x[i] < BOX_LO[i] - tol || x[i] > BOX_HI[i] + tol) in_domain = 0;
   }
   for (i = 0; i < 4; i++) if (rpm[i] < 0.0) in_domain = 0;
+#if !BODY_FRAME
   if (in_domain && !(frame_rate(euler, v_air) <= MAX_FRAME_RATE)) in_domain = 0;
-  for (i = 0; i < 8; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
+#endif
+  for (i = 0; i < D_IN; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
 #if HAS_BINS
   b = lookup(xn);
 #endif

@@ -18,7 +18,9 @@ def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", varian
     ``variance[6+K]``, then ``in_domain`` (1.0 or 0.0): :meth:`Surrogate.predict` in CasADi.
 
     ``frame="body"`` returns force and torque (and their variances) in the body frame (FRD)
-    for the same inputs (``v_air`` in the world frame). The query's bin is a
+    for the same inputs (``v_air`` in the world frame). A body-frame surrogate (fitted on
+    ``frame: body`` data) takes the same inputs: its GP reads ``(rpm, R_WBᵀ v_air)`` and its
+    ``in_domain`` is the rotor box and the ball ``|R_WBᵀ v_air| <= V``. The query's bin is a
     ``casadi.conditional`` over the bins' closed forms (its derivative is the bin's own, as in
     JAX); ``in_domain`` uses CasADi's own Jacobian of the airflow frame for the frame-rate
     test, as the library uses autodiff, and does not test the outputs for being finite.
@@ -30,22 +32,29 @@ def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", varian
         raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
     s = spec(sur, variance=variance)
     rpm, euler, v = ca.MX.sym("rpm", 4), ca.MX.sym("euler", 3), ca.MX.sym("v_air", 3)
-    euler_h, rwh = _ca_airflow(ca, euler, v, s.hover_speed)
-    d_euler = ca.jacobian(euler_h, v)
-    d_frame = ca.jacobian(ca.vec(rwh), v)
-    rate = ca.fmax(ca.norm_fro(d_euler), ca.norm_fro(d_frame) / np.sqrt(2.0))
-    if s.hover_speed <= 0.0:
-        rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= _TINY_SPEED**2, ca.inf, rate)
-    speed = _ca_norm(ca, v)
-    x = ca.vertcat(rpm, euler_h, speed)
+    if s.frame == "body":  # the GP's frame is the body's: no frame of its own, no turn rate
+        rwh = _ca_rot(ca, euler[0], euler[1], euler[2])
+        x = ca.vertcat(rpm, ca.mtimes(rwh.T, v))
+        steady = ca.sumsqr(x[4:7]) <= (s.ball_radius * (1.0 + 1e-9)) ** 2
+        n_box = 4
+    else:
+        euler_h, rwh = _ca_airflow(ca, euler, v, s.hover_speed)
+        d_euler = ca.jacobian(euler_h, v)
+        d_frame = ca.jacobian(ca.vec(rwh), v)
+        rate = ca.fmax(ca.norm_fro(d_euler), ca.norm_fro(d_frame) / np.sqrt(2.0))
+        if s.hover_speed <= 0.0:
+            rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= _TINY_SPEED**2, ca.inf, rate)
+        x = ca.vertcat(rpm, euler_h, _ca_norm(ca, v))
+        steady = rate <= MAX_FRAME_RATE
+        n_box = 8
     lo, hi = s.box_lo, s.box_hi
     tol = 1e-9 * np.maximum(hi - lo, 1.0)
     inside = ca.MX(1)
-    for i in range(8):
+    for i in range(n_box):
         inside = ca.logic_and(inside, ca.logic_and(x[i] >= lo[i] - tol[i], x[i] <= hi[i] + tol[i]))
     for i in range(4):
         inside = ca.logic_and(inside, rpm[i] >= 0)
-    in_domain = ca.logic_and(inside, rate <= MAX_FRAME_RATE)
+    in_domain = ca.logic_and(inside, steady)
     xn = (x - ca.DM(s.x_lo)) / ca.DM(s.half) - 1
     yn, latent = _ca_gp(ca, s, xn)
     y = yn * ca.DM(s.y_std) + ca.DM(s.y_mean)
@@ -72,7 +81,7 @@ def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", varian
 
 
 def _ca_gp(ca, s: Spec, xn):
-    """Normalised mean (M,) and latent variance (or None) at ``xn`` (8,), MX."""
+    """Normalised mean (M,) and latent variance (or None) at ``xn`` (D,), MX."""
     bins = s.bins
     b = None if bins is None else _ca_lookup(ca, bins, xn)
     rows = None if bins is None else [_ca_kernel_row(ca, s, xn, i) for i in range(bins.n_bins)]
@@ -104,7 +113,7 @@ def _ca_lookup(ca, bins, xn):
     out = 0
     for i in range(bins.n_bins):
         inside = ca.MX(1)
-        for d in range(8):
+        for d in range(bins.dim):
             if np.isfinite(lo[i, d]):
                 inside = ca.logic_and(inside, xn[d] > lo[i, d])
             if np.isfinite(hi[i, d]):
@@ -115,7 +124,7 @@ def _ca_lookup(ca, bins, xn):
 
 def _ca_rows(ca, s: Spec, xn, X: np.ndarray):
     p = X.shape[0]
-    diff = ca.repmat(xn.T, p, 1) - ca.DM(X)  # (p, 8)
+    diff = ca.repmat(xn.T, p, 1) - ca.DM(X)  # (p, D)
     k = s.sigma * ca.exp(-0.5 * ca.sum2((diff / ca.repmat(ca.DM(s.lengthscale).T, p, 1)) ** 2))
     grads = [k * diff[:, a] / s.lengthscale[a] ** 2 for a in s.grad_dims]
     return ca.vertcat(k, *grads)

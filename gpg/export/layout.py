@@ -66,6 +66,11 @@ class Bins:
     def n_bins(self) -> int:
         return len(self.points)
 
+    @property
+    def dim(self) -> int:
+        """``D``: inputs of a query (8 in the airflow frame, 7 in the body frame)."""
+        return self.points[0].shape[1]
+
     def rows(self, b: int, n_grad: int) -> int:
         """``R_b``: rows of bin ``b``'s kernel row."""
         u = 0 if self.shared is None else self.shared.shape[0]
@@ -84,14 +89,14 @@ class Bins:
         return -node - 1
 
     def boxes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Each bin's box ``(lo, hi]`` (B, 8), ±inf where unbounded: the writers that cannot
+        """Each bin's box ``(lo, hi]`` (B, D), ±inf where unbounded: the writers that cannot
         walk the tree (CasADi, ONNX) test a query against every box."""
         if self.scheme != "slab":
             part = Partition(self.split_dim, self.split_value, self.left, self.right,
                              self.n_bins, self.depth, self.scheme)  # fmt: skip
-            return part.boxes(8)
+            return part.boxes(self.dim)
         cuts = np.concatenate([[-np.inf], self.split_value, [np.inf]])
-        lo, hi = np.full((self.n_bins, 8), -np.inf), np.full((self.n_bins, 8), np.inf)
+        lo, hi = np.full((self.n_bins, self.dim), -np.inf), np.full((self.n_bins, self.dim), np.inf)
         lo[:, self.split_dim[0]], hi[:, self.split_dim[0]] = cuts[:-1], cuts[1:]
         return lo, hi
 
@@ -101,7 +106,9 @@ class Spec:
     """Everything an export writes, as float64 NumPy (the factor also in its stored dtype)."""
 
     model: str
+    frame: str  # the GP's inputs: "airflow" (x_H, 8) or "body" (rpm and R_WBᵀ v_air, 7)
     hover_speed: float
+    ball_radius: float  # body frame: in_domain holds |R_WBᵀ v_air| <= this (m/s); else inf
     x_lo: np.ndarray
     half: np.ndarray
     y_mean: np.ndarray
@@ -122,6 +129,11 @@ class Spec:
     @property
     def n_outputs(self) -> int:
         return self.y_mean.size
+
+    @property
+    def dim(self) -> int:
+        """``D``: inputs of the GP (8 in the airflow frame, 7 in the body frame)."""
+        return self.x_lo.size
 
     @property
     def has_variance(self) -> bool:
@@ -164,22 +176,17 @@ def column_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None) -> Spec:
     """The export layout of ``sur`` (``variance``: keep the variance factors), or ``ValueError``
-    saying why it cannot be exported: not a Surrogate, a noise model ``M_noise`` (its own
-    network is not exported), a model kind without a closed form here, an exact model whose
+    saying why it cannot be exported: not a Surrogate, a noise model ``M_noise`` (its acoustic
+    model is not exported), a model kind without a closed form here, an exact model whose
     factor has rows in a non-layout order (a model grown by ``condition``), non-finite arrays,
     an exact model's variance factor whose triangle alone is over ``max_bytes`` (refused before
     the factor is made dense: 256 MB at data=default)."""
     if not isinstance(sur, Surrogate):
         raise ValueError(f"export takes a gpg.Surrogate, got {type(sur).__name__}")
-    if sur.frame != "airflow":
-        raise ValueError(
-            "a body-frame surrogate is not exported yet (the C, CasADi and ONNX writers emit the "
-            "airflow frame's inputs): export an airflow-frame fit"
-        )
     if sur.noise_model is not None:
         raise ValueError(
-            "a surrogate with M_noise cannot be exported (its network is not exported): fit "
-            "without the noise model"
+            "a surrogate with M_noise cannot be exported (its acoustic model, "
+            "gpg.quadrotor.simple_noise, is not): fit without the noise model"
         )
     m = sur.model
     d = int(np.asarray(sur.box_lo).size)
@@ -204,7 +211,9 @@ def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None)
     norm = sur.normalizer
     out = Spec(
         model=sur.model_name,
+        frame=sur.frame,
         hover_speed=float(sur.hover_speed),
+        ball_radius=float(sur.ball_radius) if sur.frame == "body" else float("inf"),
         x_lo=_f64(norm.x_lo),
         half=_f64(norm.half_range),
         y_mean=_f64(norm.y_mean),
@@ -351,12 +360,15 @@ def _with_record(s: Spec) -> Spec:
         "model": s.model,
         "arrays_sha256": h.hexdigest(),
         "variance": s.has_variance,
+        # the same world-frame call either way; "body": the GP reads rpm and R_WBᵀ v_air
+        "gp_frame": s.frame,
         "inputs": "rpm[4] (rpm), euler[3] (rad, yaw pitch roll, R_WB = Rz Ry Rx), "
         "v_air[3] (m/s, vehicle velocity minus wind, world frame x forward y right z down)",
         "outputs": "force[3] (N), torque[3] (N*m), world frame; levels[K] (dB); variance[6+K] "
         "of each (N^2, (N*m)^2, dB^2) in the same frame",
         "levels": list(s.level_names),
         "hover_speed": s.hover_speed,
+        **({"ball_radius": s.ball_radius} if s.frame == "body" else {}),
         "max_frame_rate": MAX_FRAME_RATE,
     }
     object.__setattr__(s, "record", record)

@@ -9,7 +9,8 @@ and keeps each state's own through the one-hot of its bin's box (B small product
 than a gather of every state's factor). ``in_domain`` is the box, finite inputs and outputs,
 rotor speeds ≥ 0 and the airflow frame's turn rate by central differences (a step of
 1e-3 m/s: float32 leaves no finer one), so a state within about 1e-3 of a threshold may be
-flagged differently from the library.
+flagged differently from the library. A body-frame surrogate's graph has no airflow frame:
+the GP reads ``(rpm, R_WBᵀ v_air)`` and ``in_domain`` is the rotor box and the ball.
 """
 
 from __future__ import annotations
@@ -30,7 +31,12 @@ RATE_STEP = 1e-3  # m/s: the central-difference step of the frame rate in float3
 
 
 def to_onnx(
-    sur: Surrogate, path: str | Path, *, variance: bool = True, max_bytes: int = MAX_BYTES
+    sur: Surrogate,
+    path: str | Path,
+    *,
+    variance: bool = True,
+    batch: bool = True,
+    max_bytes: int = MAX_BYTES,
 ) -> dict[str, Any]:
     """Write ``sur`` as an ONNX model to ``path``; returns the path, bytes of the file and the
     record (also in the model's ``metadata_props``, with the units).
@@ -39,9 +45,12 @@ def to_onnx(
     ``v_air`` (N, 3) m/s world frame (vehicle velocity minus wind), float32, any N. Outputs
     ``force`` (N, 3) N, ``torque`` (N, 3) N·m (world frame), ``levels`` (N, K) dB, with
     ``variance`` (and a model that has one) ``variance`` (N, 6+K), and ``in_domain`` (N,) bool;
-    zeros where an input is not finite. ``ValueError`` (nothing written) for what
-    :func:`gpg.export.layout.spec` refuses or constants over ``max_bytes``. Needs the ``onnx``
-    extra."""
+    zeros where an input is not finite. ``batch=False`` writes the graph for one state a run
+    (``N = 1``, what a simulator calls once per step): the partitioned kinds' bin is then found
+    by ``If`` nodes along the partition's tree and only that bin is evaluated, where the
+    batched graph evaluates every bin for every state. ``ValueError`` (nothing written) for
+    what :func:`gpg.export.layout.spec` refuses or constants over ``max_bytes``. Needs the
+    ``onnx`` extra."""
     import onnx
 
     s = spec(sur, variance=variance, max_bytes=max_bytes)
@@ -51,14 +60,18 @@ def to_onnx(
             f"the export of {s.model!r} holds {n_const / 2**20:.1f} MiB of constants, over "
             f"max_bytes={max_bytes / 2**20:.1f} MiB (variance=False keeps the mean only)"
         )
-    model = _build(onnx, s)
+    model = _build(onnx, s, bool(batch))
     onnx.checker.check_model(model)
     data = model.SerializeToString()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, data)
     return {"onnx": path, "bytes": len(data), "constant_bytes": n_const, "variance": s.has_variance,
-            "record": {**s.record, "dtype": "float"}}  # fmt: skip
+            "record": _record(s, batch)}  # fmt: skip
+
+
+def _record(s: Spec, batch: bool) -> dict[str, Any]:
+    return {**s.record, "dtype": "float", "batch": bool(batch)}
 
 
 class _Graph:
@@ -224,13 +237,23 @@ def _to_airflow(g: _Graph, euler, v, h: float):
 def _frame_rate(g: _Graph, euler, v, h: float):
     """:func:`gpg.quadrotor.frames.airflow_frame_rate` by central differences (N, 1)."""
     step = RATE_STEP
-    eh, R = [], []
-    for j in range(3):
-        for sign in (1.0, -1.0):
-            vv = [g.add(v[a], g.num(sign * step)) if a == j else v[a] for a in range(3)]
-            e, r = _to_airflow(g, euler, vv, h)
-            eh.append(e)
-            R.append(r)
+    # The six perturbed states stacked along the batch axis and put through one copy of the
+    # frame's nodes (ONNX Runtime's cost for one state is per node, not per row), then split.
+    moves = [(j, sign) for j in range(3) for sign in (1.0, -1.0)]
+    v6 = [g.cat([g.add(v[a], g.num(sign * step)) if a == j else v[a] for j, sign in moves], axis=0)
+          for a in range(3)]  # fmt: skip
+    e6 = [g.cat([e] * len(moves), axis=0) for e in euler]
+    e_all, r_all = _to_airflow(g, e6, v6, h)
+
+    def parts(name):  # (6N, 1) -> six (N, 1), one per move
+        outs = [g.name("part") for _ in moves]
+        g.nodes.append(g.h.make_node("Split", [name], outs, axis=0))
+        return outs
+
+    e_parts = [parts(e) for e in e_all]
+    r_parts = [[parts(r_all[a][b]) for b in range(3)] for a in range(3)]
+    eh = [[e_parts[a][m] for a in range(3)] for m in range(len(moves))]
+    R = [[[r_parts[a][b][m] for b in range(3)] for a in range(3)] for m in range(len(moves))]
     se, sr = g.num(0.0), g.num(0.0)
     two_pi = g.num(2 * np.pi)
     for j in range(3):
@@ -255,7 +278,7 @@ def _rows(g: _Graph, s: Spec, xn, X: np.ndarray):
     """``k̄(x̂, X)`` (N, p(1+G)) in float64: values then one block per gradient dimension."""
     f64 = np.float64
     x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
-    diff = g.sub(x3, g.const(X, "pts", f64))  # (N, p, 8)
+    diff = g.sub(x3, g.const(X, "pts", f64))  # (N, p, D)
     scaled = g.div(diff, g.const(s.lengthscale, "ls", f64))
     r2 = g.op("ReduceSum", g.sq(scaled), g.const([2], "ax", np.int64), keepdims=0)
     k = g.mul(g.const(s.sigma, "k", f64), g.op("Exp", g.mul(g.const(-0.5, "k", f64), r2)))
@@ -271,8 +294,8 @@ def _onehot(g: _Graph, s: Spec, xn):
     if s.bins.n_bins == 1:
         return None
     lo, hi = s.bins.boxes()
-    # xn (N, 8) against every box (B, 8): inside where lo < x <= hi in every dimension.
-    x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))  # (N, 1, 8)
+    # xn (N, D) against every box (B, D): inside where lo < x <= hi in every dimension.
+    x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))  # (N, 1, D)
     big = 1e300
     above = g.op("Greater", x3, g.const(np.clip(lo, -big, big), "lo", np.float64))
     below = g.op("LessOrEqual", x3, g.const(np.clip(hi, -big, big), "hi", np.float64))
@@ -280,8 +303,73 @@ def _onehot(g: _Graph, s: Spec, xn):
     return g.op("ReduceProd", inside, axes=[2], keepdims=0)  # (N, B)
 
 
-def _gp(g: _Graph, s: Spec, xn):
-    """Normalised mean (N, M) and latent variance (N, 1) or None."""
+def _bin(g: _Graph, s: Spec, xn, b: int) -> list[str]:
+    """Bin ``b``'s binned mean (N, M) (kinds without a global mean) and its ``‖F_b k̄‖²``
+    (N, 1) (with the variance), float64, in that order."""
+    bins = s.bins
+    own = _rows(g, s, xn, bins.points[b])
+    row = own if bins.shared is None else g.cat([_rows(g, s, xn, bins.shared), own])
+    out = []
+    if s.global_mean is None:
+        out.append(g.op("MatMul", row, g.const(bins.coef[b].T, "bcoef", np.float64)))
+    if s.has_variance:  # the product in float32, as the default model stores its factors
+        fk = g.op("MatMul", g.op("Cast", row, to=FLOAT), g.const(bins.factor[b].T, "factor"))
+        quad = g.op("ReduceSumSquare", fk, axes=[1], keepdims=1)
+        out.append(g.op("Cast", quad, to=DOUBLE))
+    return out
+
+
+def _tree(g: _Graph, s: Spec, xn) -> list[str]:
+    """One state's bin outputs (:func:`_bin`) through ``If`` nodes that walk the partition
+    as :meth:`gpg.export.layout.Bins.lookup` does (a slab's cuts as a balanced tree): only the
+    state's own bin is evaluated."""
+    bins = s.bins
+
+    def coord(d: int):  # xn[0, d] as a one-element tensor, If's condition
+        return g.op("Gather", xn, g.const(np.array([d]), "i", np.int64), axis=1)
+
+    def branch(build) -> Any:
+        outer, g.nodes = g.nodes, []
+        outs = build()
+        nodes, g.nodes = g.nodes, outer
+        info = [g.h.make_tensor_value_info(o, DOUBLE, None) for o in outs]
+        return g.h.make_graph(nodes, g.name("branch"), [], info), len(outs)
+
+    def split(d: int, value: float, left, right) -> list[str]:
+        then, n = branch(left)
+        other, _ = branch(right)
+        names = [g.name("bin_out") for _ in range(n)]
+        cond = g.op("LessOrEqual", coord(d), g.const(np.float64(value), "k", np.float64))
+        g.nodes.append(g.h.make_node("If", [cond], names, then_branch=then, else_branch=other))
+        return names
+
+    if bins.n_bins == 1:
+        return _bin(g, s, xn, 0)
+    if bins.scheme == "slab":  # bin = number of cuts below x: x <= cut[mid] keeps bins <= mid
+        d0 = int(bins.split_dim[0])
+
+        def slab(lo: int, hi: int) -> list[str]:
+            if lo == hi:
+                return _bin(g, s, xn, lo)
+            mid = (lo + hi) // 2
+            return split(d0, float(bins.split_value[mid]),
+                         lambda: slab(lo, mid), lambda: slab(mid + 1, hi))  # fmt: skip
+
+        return slab(0, bins.n_bins - 1)
+
+    def node(k: int) -> list[str]:
+        if k < 0:
+            return _bin(g, s, xn, -k - 1)
+        left, right = int(bins.left[k]), int(bins.right[k])
+        return split(int(bins.split_dim[k]), float(bins.split_value[k]),
+                     lambda: node(left), lambda: node(right))  # fmt: skip
+
+    return node(0)
+
+
+def _gp(g: _Graph, s: Spec, xn, single: bool = False):
+    """Normalised mean (N, M) and latent variance (N, 1) or None; ``single``: N = 1, the bin
+    found by ``If`` nodes (:func:`_tree`) instead of every bin kept by a one-hot."""
     m = s.n_outputs
     bins = s.bins
     f64 = np.float64
@@ -302,17 +390,21 @@ def _gp(g: _Graph, s: Spec, xn):
         mean = g.mul(mean, g.const(gm["sigma"][0], "k", f64))
     if bins is None:
         return mean, None
+    if single:
+        outs = _tree(g, s, xn)
+        if s.global_mean is None:
+            mean, outs = outs[0], outs[1:]
+        if not s.has_variance:
+            return mean, None
+        return mean, g.op("Cast", g.sub(g.const(s.sigma, "k", np.float64), outs[0]), to=FLOAT)
     onehot = _onehot(g, s, xn)
     means, quads = [], []
     for b in range(bins.n_bins):
-        own = _rows(g, s, xn, bins.points[b])
-        row = own if bins.shared is None else g.cat([_rows(g, s, xn, bins.shared), own])
+        outs = _bin(g, s, xn, b)
         if s.global_mean is None:
-            means.append(g.op("MatMul", row, g.const(bins.coef[b].T, "bcoef", np.float64)))
-        if s.has_variance:  # the product in float32, as the default model stores its factors
-            fk = g.op("MatMul", g.op("Cast", row, to=FLOAT), g.const(bins.factor[b].T, "factor"))
-            quad = g.op("ReduceSumSquare", fk, axes=[1], keepdims=1)
-            quads.append(g.op("Cast", quad, to=DOUBLE))
+            means.append(outs.pop(0))
+        if s.has_variance:
+            quads.append(outs[0])
 
     def select(vals):
         if onehot is None:
@@ -332,8 +424,9 @@ def _gp(g: _Graph, s: Spec, xn):
 
 # Long by design: the graph from inputs to outputs in the order of Surrogate.predict's
 # pipeline (clean inputs, frame, domain, GP, rotation, M, variance, outputs).
-def _build(onnx, s: Spec):
+def _build(onnx, s: Spec, batch: bool = True):
     g = _Graph(onnx)
+    n = "N" if batch else 1
     h = onnx.helper
     F = onnx.TensorProto.FLOAT
     inputs = {"rpm": 4, "euler": 3, "v_air": 3}
@@ -347,16 +440,30 @@ def _build(onnx, s: Spec):
     rpm = [g.col(clean["rpm"], j) for j in range(4)]
     euler = [g.col(clean["euler"], j) for j in range(3)]
     v = [g.col(clean["v_air"], j) for j in range(3)]
-    eh, rwh = _to_airflow(g, euler, v, s.hover_speed)
-    speed = g.sqrt0(g.add(g.add(g.sq(v[0]), g.sq(v[1])), g.sq(v[2])))
-    x = g.cat(rpm + eh + [speed])  # (N, 8)
+    if s.frame == "body":  # the GP's frame is the body's: x = (rpm, R_WBᵀ v_air)
+        rwh = _rot(g, *euler)
+        v_b = [g.add(g.add(g.mul(rwh[0][i], v[0]), g.mul(rwh[1][i], v[1])), g.mul(rwh[2][i], v[2]))
+               for i in range(3)]  # fmt: skip
+        x = g.cat(rpm + v_b)  # (N, 7)
+        # the ball |v_b| <= V, at float32's rounding of the rotation (about 1e-6 relative)
+        r2 = g.add(g.add(g.sq(v_b[0]), g.sq(v_b[1])), g.sq(v_b[2]))
+        steady = g.op("LessOrEqual", r2, g.num((s.ball_radius * (1.0 + 1e-9)) ** 2))
+        n_box = 4
+    else:
+        eh, rwh = _to_airflow(g, euler, v, s.hover_speed)
+        speed = g.sqrt0(g.add(g.add(g.sq(v[0]), g.sq(v[1])), g.sq(v[2])))
+        x = g.cat(rpm + eh + [speed])  # (N, 8)
+        rate = _frame_rate(g, euler, v, s.hover_speed)
+        steady = g.op("LessOrEqual", rate, g.num(MAX_FRAME_RATE))
+        n_box = 8
     tol = 1e-9 * np.maximum(s.box_hi - s.box_lo, 1.0)
-    inside = g.op("And", g.op("GreaterOrEqual", x, g.const(s.box_lo - tol, "box")),
-                  g.op("LessOrEqual", x, g.const(s.box_hi + tol, "box")))  # fmt: skip
+    lo_box = np.where(np.arange(s.dim) < n_box, s.box_lo - tol, -np.inf)
+    hi_box = np.where(np.arange(s.dim) < n_box, s.box_hi + tol, np.inf)
+    inside = g.op("And", g.op("GreaterOrEqual", x, g.const(lo_box, "box")),
+                  g.op("LessOrEqual", x, g.const(hi_box, "box")))  # fmt: skip
     ok = g.op("ReduceMin", g.op("Cast", inside, to=1), axes=[1], keepdims=1)
     spinning = g.op("Cast", g.op("GreaterOrEqual", clean["rpm"], g.num(0.0)), to=1)
     ok = g.mul(ok, g.op("ReduceMin", spinning, axes=[1], keepdims=1))
-    steady = g.op("LessOrEqual", _frame_rate(g, euler, v, s.hover_speed), g.num(MAX_FRAME_RATE))
     ok = g.mul(g.mul(ok, g.op("Cast", steady, to=1)), finite)
     # The GP's mean in float64 from here (the states as given, exactly): its sum over the
     # training points cancels (at data=default |Σ k α| is a few hundredths of Σ |k α|), so
@@ -364,7 +471,7 @@ def _build(onnx, s: Spec):
     x64 = g.op("Cast", x, to=DOUBLE)
     lo, half = g.const(s.x_lo, "x_lo", np.float64), g.const(s.half, "half", np.float64)
     xn = g.sub(g.div(g.sub(x64, lo), half), g.const(1.0, "k", np.float64))
-    yn, latent = _gp(g, s, xn)
+    yn, latent = _gp(g, s, xn, single=not batch)
     y64 = g.add(
         g.mul(yn, g.const(s.y_std, "y_std", np.float64)), g.const(s.y_mean, "y_mean", np.float64)
     )
@@ -401,20 +508,20 @@ def _build(onnx, s: Spec):
     results = []
     for key, val in outs.items():
         g.nodes.append(h.make_node("Where", [is_finite, val, g.num(0.0)], [key]))
-        results.append(h.make_tensor_value_info(key, F, ["N", None]))
+        results.append(h.make_tensor_value_info(key, F, [n, None]))
     flat = g.op("Squeeze", ok, g.const([1], "ax", np.int64))
     g.nodes.append(h.make_node("Cast", [g.op("Greater", flat, g.num(0.5))], ["in_domain"], to=9))
-    results.append(h.make_tensor_value_info("in_domain", onnx.TensorProto.BOOL, ["N"]))
+    results.append(h.make_tensor_value_info("in_domain", onnx.TensorProto.BOOL, [n]))
     graph = h.make_graph(
         g.nodes,
         f"gpg_{s.model}",
-        [h.make_tensor_value_info(k, F, ["N", n]) for k, n in inputs.items()],
+        [h.make_tensor_value_info(k, F, [n, d]) for k, d in inputs.items()],
         results,
         initializer=g.inits,
     )
     model = h.make_model(graph, opset_imports=[h.make_opsetid("", OPSET)], producer_name="gpg")
     model.ir_version = 8
-    record = {**s.record, "dtype": "float"}
+    record = _record(s, batch)
     h.set_model_props(model, {k: str(v) for k, v in record.items()})
     model.doc_string = (
         f"gpg {record['gpg_version']} {s.model}: {record['inputs']} -> {record['outputs']}"

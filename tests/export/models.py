@@ -6,14 +6,15 @@ import functools
 import numpy as np
 
 from gpg.surrogate import Surrogate
-from tests.helpers import synthetic_dataset
+from tests.helpers import synthetic_body_dataset, synthetic_dataset
 
 BASE = {"hyper": {"fit": False, "lengthscale": 0.8}}
 # Three bins for the hybrid and the local kinds (40 cases would give the hybrid one), a slab
 # partition for gpgs_schur, 10 inducing points for PIC: every lookup and row layout is met.
 CONFIGS = {
     "gpg": {},
-    "gpgs_hybrid": {"partition": {"bins": 3, "points_per_bin": None}},
+    # near sets of 20 of the 40 points: each bin's variance its own (a wrong bin is seen)
+    "gpgs_hybrid": {"partition": {"bins": 3, "points_per_bin": None}, "near": {"points": 20}},
     "gpgs": {"partition": {"bins": 3}},
     "gpg_pic": {"partition": {"bins": 3}, "inducing": {"points": 10}},
     "gpgs_schur": {"partition": {"bins": 2, "scheme": "slab"}},
@@ -27,20 +28,30 @@ def dataset():
 
 @functools.cache
 def fitted(kind: str) -> Surrogate:
+    """``kind`` on the airflow-frame cases; ``"<kind>_body"`` on body-frame cases (inputs
+    ``rpm, u, v, w``, the ball of air velocities)."""
     import warnings
 
+    if kind.endswith("_body"):
+        base = kind.removesuffix("_body")
+        ds = synthetic_body_dataset(40, seed=3)[0]
+        return Surrogate.fit(ds, base, {**BASE, **CONFIGS[base]})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # gpgs_schur warns that its far set is correlated
         return Surrogate.fit(dataset(), kind, {**BASE, **CONFIGS[kind]})
 
 
-def states(n, seed):
-    """Inside the box mostly, some outside (fast, sideways, backwards), some near vertical."""
+def states(n, seed, body=False):
+    """Inside the box mostly, some outside (fast, sideways, backwards), some near vertical.
+    ``body``: the last fifth 2.5 times faster, beyond the body frame's ball of 20 m/s (inside
+    it the body frame has no other limit)."""
     rng = np.random.default_rng(seed)
     rpm = rng.uniform(500, 6500, (n, 4))
     euler = rng.uniform([-np.pi, -0.9, -1.2], [np.pi, 0.9, 1.2], (n, 3))
     v = rng.uniform(-12, 12, (n, 3))
     v[: n // 4, :2] *= 1e-3  # near vertical airflow: the frame-rate flag's region
+    if body:
+        v[-(n // 5) :] *= 2.5
     return rpm, euler, v
 
 

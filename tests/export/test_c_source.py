@@ -1,7 +1,7 @@
 """C export (gpg/export/c_source.py): the generated source compiled with the system ``cc``
 and called through ctypes equals ``Surrogate.predict`` (force, torque, levels, variance,
-``in_domain``) for every exportable kind, in double to rounding and in float to float
-accuracy; bad exports are refused before anything is written."""
+``in_domain``) for every exportable kind, in both frames, in double to rounding and in float
+to float accuracy; bad exports are refused before anything is written."""
 
 import ctypes
 import subprocess
@@ -51,7 +51,7 @@ def compiled(sur, tmp_path, dtype, cflags=(), **kw):
 
 @pytest.mark.parametrize(
     "kind, dtype",
-    [("gpg", "double"), ("gpgs_hybrid", "float"), *OTHER_KINDS],
+    [("gpg", "double"), ("gpgs_hybrid", "float"), ("gpgs_hybrid_body", "double"), *OTHER_KINDS],
 )  # fmt: skip
 def test_exported_c_equals_predict(tmp_path, kind, dtype):
     """Mean: double to rounding (1e-10 of each output's scale); float: the GP's arrays and
@@ -62,10 +62,13 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
     library autodiff)."""
     sur = fitted(kind)
     out, call = compiled(sur, tmp_path, dtype)
-    rpm, euler, v = states(50, 1)
+    rpm, euler, v = states(50, 1, body=sur.frame == "body")
     ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
-    rate = np.asarray(jax.vmap(lambda e, w: airflow_frame_rate(e, w, sur.hover_speed))(
-        jnp.asarray(euler), jnp.asarray(v)))  # fmt: skip
+    if sur.frame == "body":  # no frame rate: in_domain is the rotor box and the ball
+        rate = np.zeros(len(rpm))
+    else:
+        rate = np.asarray(jax.vmap(lambda e, w: airflow_frame_rate(e, w, sur.hover_speed))(
+            jnp.asarray(euler), jnp.asarray(v)))  # fmt: skip
     rtol = 1e-10 if dtype == "double" else 1e-5
     vtol = variance_rtol(sur, rpm, euler, v, None if dtype == "double" else 2.0**-24)
     flags = []
@@ -85,7 +88,10 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
     assert 0 < sum(flags) < len(flags)  # both kinds of state were met
     text = out["h"].read_text()
     assert out["record"]["arrays_sha256"] in text and "int quad_predict(" in text
-    assert out["variance"] and out["record"]["model"] == kind
+    assert out["variance"] and out["record"]["model"] == kind.removesuffix("_body")
+    assert out["record"]["gp_frame"] == sur.frame
+    d = np.asarray(sur.box_lo).size
+    assert f"#define QUAD_N_INPUTS {d}" in text and f"quad_box_lo[{d}]" in text
 
 
 def test_mean_only_export_and_its_constants(tmp_path):

@@ -1,6 +1,8 @@
 """CasADi export (gpg/export/casadi_function.py): values and variances equal
 ``Surrogate.predict``, CasADi's own Jacobians equal ``jax.jacrev`` of the library's
-prediction, in the world and the body frame, for a global-mean and a binned-mean kind."""
+prediction, in the world and the body frame, for a global-mean and a binned-mean kind, and for
+a surrogate fitted in the body frame (no airflow frame anywhere: its Jacobians are smooth at
+hover and in vertical air)."""
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +19,11 @@ ca = pytest.importorskip("casadi")
 
 @pytest.mark.parametrize(
     ("kind", "frame"),
-    [("gpgs_hybrid", "world"), pytest.param("gpgs", "body", marks=pytest.mark.slow)],
+    [
+        ("gpgs_hybrid", "world"),
+        ("gpgs_hybrid_body", "world"),
+        pytest.param("gpgs", "body", marks=pytest.mark.slow),
+    ],
 )  # the binned kind's own fit: the slow set, for the fast budget
 def test_casadi_function_equals_predict_and_its_jacobians(kind, frame):
     """Values to rounding (1e-10 of each output's scale), variances within
@@ -39,7 +45,7 @@ def test_casadi_function_equals_predict_and_its_jacobians(kind, frame):
     out = f(*syms)
     wrt = ca.vertcat(*syms)
     jf = ca.Function("j", syms, [ca.jacobian(ca.vertcat(out[0], out[1], out[3]), wrt)])
-    rpm, euler, v = states(30, 2)
+    rpm, euler, v = states(30, 2, body=sur.frame == "body")
     vtol = variance_rtol(sur, rpm, euler, v)
     seen = set()
     for i in range(len(rpm)):
@@ -51,7 +57,7 @@ def test_casadi_function_equals_predict_and_its_jacobians(kind, frame):
         seen.add(float(ok))
         Jj = np.concatenate([np.asarray(a) for a in jac(rpm[i], euler[i], v[i])], axis=1)
         Jc = np.asarray(jf(rpm[i], euler[i], v[i]))
-        rows = slice(None) if kind == "gpgs" else slice(0, 6)
+        rows = slice(None) if kind == "gpgs" else slice(0, 6)  # the factors' dtype
         np.testing.assert_allclose(Jc[rows], Jj[rows], rtol=0, atol=1e-8 * np.abs(Jj[rows]).max())
     assert seen == {0.0, 1.0}
     assert f.name_out() == ["force", "torque", "levels", "variance", "in_domain"]

@@ -12,9 +12,12 @@ from tests.helpers import compose_plain, finite_numbers
 pytestmark = pytest.mark.slow
 
 
-def test_export_run(smoke_cache, tmp_path):
+@pytest.mark.parametrize("data", ["smoke", "envelope_smoke"])
+def test_export_run(smoke_cache, tmp_path, data):
+    """The airflow frame's smoke data and the body frame's (``data=envelope_smoke``: states in
+    the ball, any attitude); the one-state ONNX graph beside the batched one."""
     overrides = [
-        "data=smoke",
+        f"data={data}",
         "data.chunk=32",
         f"cache_dir={smoke_cache}",
         "checks.n_states=40",
@@ -33,7 +36,11 @@ def test_export_run(smoke_cache, tmp_path):
         assert (tmp_path / "export" / f"gpg_model_{dtype}.c").is_file()
     assert f["casadi"]["errors"]["force"] <= 1e-10 and f["casadi"]["errors"]["jacobian"] <= 1e-8
     assert f["onnx"]["errors"]["force"] <= 1e-4
+    assert f["onnx"]["one_state_graph"]["errors"]["force"] <= 1e-4
+    assert f["onnx"]["one_state_graph"]["errors"]["in_domain_disagree"] == 0
+    assert saved["record"]["gp_frame"] == ("body" if data == "envelope_smoke" else "airflow")
     assert (tmp_path / "export" / "gpg_model.onnx").is_file()
+    assert (tmp_path / "export" / "gpg_model_one.onnx").is_file()
     assert "| C double |" in export.summary_table(res)
 
 
