@@ -141,7 +141,6 @@ def _header(name: str, s: Spec, record: dict[str, Any]) -> str:
     box = "\n".join(
         f" *   {names[i]:9s} [{s.box_lo[i]:.17g}, {s.box_hi[i]:.17g}]" for i in range(s.dim)
     )
-    domain = _domain_doc(s)
     predict = (
         f"""
 /* as {name}_mean, and variance[{6 + n_levels}]: the predictive variance of force[3] (N^2),
@@ -163,7 +162,7 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
  *             vehicle velocity minus wind
  *   force[3], torque[3]  out: aerodynamic force (N) and torque (N*m), world frame
  *   levels[{n_levels}]  out: tonal noise levels, dB ({", ".join(s.level_names) or "none"})
-{domain}
+{_domain_doc(s)}
 {box}
  * Not thread-hostile: no state is kept between calls.
  */
@@ -304,6 +303,9 @@ def _constants(name: str, dtype: str, s: Spec) -> list[str]:
         f"#define N_OUT {m}",
         f"#define D_IN {s.dim}",
         f"#define BODY_FRAME {int(s.frame == 'body')}",
+        # the inputs held to the box: the rotor speeds alone in the body frame (the ball
+        # inside the box of u, v, w is in_domain's test there)
+        f"#define N_BOX {4 if s.frame == 'body' else s.dim}",
         f"#define BALL_RADIUS {s.ball_radius if s.frame == 'body' else 0.0!r}",
         f"#define N_GRAD {len(s.grad_dims)}",
         f"typedef {DTYPES[dtype][1]} real;",
@@ -548,7 +550,6 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   if (x[4] * x[4] + x[5] * x[5] + x[6] * x[6] >
       (BALL_RADIUS * (1.0 + 1e-9)) * (BALL_RADIUS * (1.0 + 1e-9)))
     in_domain = 0;
-  for (i = 0; i < 4; i++) {
 #else
   {
     double eh[3];
@@ -556,8 +557,8 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
     for (i = 0; i < 3; i++) x[4 + i] = eh[i];
     x[7] = norm3(v_air);
   }
-  for (i = 0; i < D_IN; i++) {
 #endif
+  for (i = 0; i < N_BOX; i++) {
     span = BOX_HI[i] - BOX_LO[i];
     tol = 1e-9 * (span > 1.0 ? span : 1.0);
     if (x[i] < BOX_LO[i] - tol || x[i] > BOX_HI[i] + tol) in_domain = 0;

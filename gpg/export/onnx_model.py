@@ -448,7 +448,7 @@ def _build(onnx, s: Spec, batch: bool = True):
         # the ball |v_b| <= V, at float32's rounding of the rotation (about 1e-6 relative)
         r2 = g.add(g.add(g.sq(v_b[0]), g.sq(v_b[1])), g.sq(v_b[2]))
         steady = g.op("LessOrEqual", r2, g.num((s.ball_radius * (1.0 + 1e-9)) ** 2))
-        n_box = 4
+        n_box = 4  # the rotor speeds; the ball is the test of u, v, w
     else:
         eh, rwh = _to_airflow(g, euler, v, s.hover_speed)
         speed = g.sqrt0(g.add(g.add(g.sq(v[0]), g.sq(v[1])), g.sq(v[2])))
@@ -456,11 +456,11 @@ def _build(onnx, s: Spec, batch: bool = True):
         rate = _frame_rate(g, euler, v, s.hover_speed)
         steady = g.op("LessOrEqual", rate, g.num(MAX_FRAME_RATE))
         n_box = 8
-    tol = 1e-9 * np.maximum(s.box_hi - s.box_lo, 1.0)
-    lo_box = np.where(np.arange(s.dim) < n_box, s.box_lo - tol, -np.inf)
-    hi_box = np.where(np.arange(s.dim) < n_box, s.box_hi + tol, np.inf)
-    inside = g.op("And", g.op("GreaterOrEqual", x, g.const(lo_box, "box")),
-                  g.op("LessOrEqual", x, g.const(hi_box, "box")))  # fmt: skip
+    box_lo, box_hi = s.box_lo[:n_box], s.box_hi[:n_box]
+    tol = 1e-9 * np.maximum(box_hi - box_lo, 1.0)
+    boxed = x if n_box == s.dim else g.cat(rpm)
+    inside = g.op("And", g.op("GreaterOrEqual", boxed, g.const(box_lo - tol, "box")),
+                  g.op("LessOrEqual", boxed, g.const(box_hi + tol, "box")))  # fmt: skip
     ok = g.op("ReduceMin", g.op("Cast", inside, to=1), axes=[1], keepdims=1)
     spinning = g.op("Cast", g.op("GreaterOrEqual", clean["rpm"], g.num(0.0)), to=1)
     ok = g.mul(ok, g.op("ReduceMin", spinning, axes=[1], keepdims=1))

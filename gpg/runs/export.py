@@ -11,8 +11,7 @@ for the variance; CasADi's Jacobians against ``jax.jacrev``), and timed on this 
 query per call: the C through a small C driver (median of ``c.calls``, compiled with
 ``c.flags``), the CasADi function's own evaluation, ONNX Runtime (one state per run, and a
 batch, and the one-state graph of ``to_onnx(batch=False)``) and ``Surrogate.realtime`` in the
-same run. ``results.json`` holds the record, sizes,
-checks and latencies.
+same run. ``results.json`` holds the record, sizes, checks and latencies.
 """
 
 from __future__ import annotations
