@@ -15,7 +15,9 @@ source; the call is the same).
 
 ``dtype="float"`` stores the GP's arrays in float (half the bytes, for a flight controller's
 flash) and evaluates the kernel and the variance's product in float; the frame, the
-normalisation and the mean's sums stay in double. A variance factor stored in float32 (the
+normalisation and the mean's sums stay in double, and so do the global mean's training
+positions and the value block of its coefficients, where its folded sum cancels
+(:func:`_split_coef`). A variance factor stored in float32 (the
 default model's ``variance_dtype``) is written as float in either dtype: its values are
 exactly those floats, and the product is then accumulated in the dtype asked for.
 """
@@ -30,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.export.layout import MAX_BYTES, Spec, column_spans, spec
+from gpg.export.layout import MAX_BYTES, Spec, row_spans, spec
 from gpg.names import inputs
 from gpg.quadrotor.frames import _TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
@@ -72,6 +74,8 @@ def to_c(
     s = spec(sur, variance=variance, max_bytes=max_bytes)
     itemsize = np.dtype(DTYPES[dtype][0]).itemsize
     n_const = s.constant_bytes(itemsize, variance=s.has_variance)
+    if s.global_mean is not None:  # the folded mean's value block in double (_split_coef)
+        n_const += s.global_mean["xs"].shape[0] * s.n_outputs * (8 - itemsize)
     if n_const > max_bytes:
         raise ValueError(
             f"the export of {s.model!r} holds {n_const / 2**20:.1f} MiB of constants, over "
@@ -310,6 +314,7 @@ def _constants(name: str, dtype: str, s: Spec) -> list[str]:
         f"#define N_GRAD {len(s.grad_dims)}",
         f"typedef {DTYPES[dtype][1]} real;",
         f"typedef {'float' if f_type is np.float32 else 'double'} freal;",
+        f"#define FREAL_IS_REAL {int(f_type is np_type)}",
     ]
 
     def dbl(key, a):
@@ -336,7 +341,9 @@ def _constants(name: str, dtype: str, s: Spec) -> list[str]:
         # double whatever the dtype: a float position moves every kernel value by ~1e-7
         # relative, which the mean's cancelling sum amplifies (measured 5e-5 at data=default)
         dbl("XS_T", gm["xs"].T)
-        rl("COEF", gm["coef"])
+        value, grad = _split_coef(gm, s.grad_dims, m, np_type)
+        dbl("COEF0", value)
+        rl("COEFG", grad)
     b = s.bins
     if b is None:
         return out
@@ -362,20 +369,20 @@ def _constants(name: str, dtype: str, s: Spec) -> list[str]:
         )
         rl("BCOEF", np.concatenate([c.ravel() for c in b.coef]))
     if b.factor is not None:
-        firsts, lens, data, col_base, offs, pos = [], [], [], [], [], 0
+        firsts, lens, data, row_base, offs, pos = [], [], [], [], [], 0
         for F in b.factor:
-            first, last = column_spans(F)
-            col_base.append(sum(len(f) for f in firsts))
+            first, last = row_spans(F)
+            row_base.append(sum(len(f) for f in firsts))
             firsts.append(first)
             lens.append(last - first)
-            for j in range(F.shape[1]):
+            for i in range(F.shape[0]):
                 offs.append(pos)
-                data.append(F[first[j] : last[j], j])
-                pos += last[j] - first[j]
-        out.append(f"static const long COL_BASE[{b.n_bins}] = {_ints(col_base)};")
-        out.append(f"static const int COL_FIRST[{len(offs)}] = {_ints(np.concatenate(firsts))};")
-        out.append(f"static const int COL_LEN[{len(offs)}] = {_ints(np.concatenate(lens))};")
-        out.append(f"static const long COL_OFF[{len(offs)}] = {_ints(offs)};")
+                data.append(F[i, first[i] : last[i]])
+                pos += last[i] - first[i]
+        out.append(f"static const long ROW_BASE[{b.n_bins}] = {_ints(row_base)};")
+        out.append(f"static const int ROW_FIRST[{len(offs)}] = {_ints(np.concatenate(firsts))};")
+        out.append(f"static const int ROW_LEN[{len(offs)}] = {_ints(np.concatenate(lens))};")
+        out.append(f"static const long ROW_OFF[{len(offs)}] = {_ints(offs)};")
         rl("FACT", np.concatenate(data), "freal", f_type)
     return out
 
@@ -429,33 +436,85 @@ static int kernel_row(const double xn[D_IN], int b, real *k) {
 #endif
 
 #if HAS_VAR
-/* sigma - |F_b k|^2: F_b column by column (each column's non-zero span, contiguous), so the
- * inner loop is an axpy the compiler vectorises without reordering a sum */
-HOT static double latent_variance(const real *k, int b, int nr) {
-  real v[MAX_ROWS];
-  double q0 = 0.0, q1 = 0.0, q2 = 0.0, q3 = 0.0;
-  long base = COL_BASE[b];
-  int c, i;
-  for (i = 0; i < nr; i++) v[i] = 0;
-  for (c = 0; c < nr; c++) {
-    const real kc = k[c];
-    const freal *f = FACT + COL_OFF[base + c];
-    real *vv = v + COL_FIRST[base + c];
-    int len = COL_LEN[base + c];
-    if (kc == 0) continue;
-    /* by fours: gcc -O2 vectorises straight-line groups (SLP), not a loop of unknown length */
-    for (i = 0; i + 3 < len; i += 4) {
-      vv[i] += (real)f[i] * kc; vv[i + 1] += (real)f[i + 1] * kc;
-      vv[i + 2] += (real)f[i + 2] * kc; vv[i + 3] += (real)f[i + 3] * kc;
-    }
-    for (; i < len; i++) vv[i] += (real)f[i] * kc;
+/* sigma - |F_b k|^2, F_b row by row (each row's non-zero span, contiguous): a dot product
+ * per row whose four partial sums stay in registers (the column-by-column axpy it replaces
+ * was bound by its stores, one sum by its additions' latency). With GCC or clang the sums are
+ * vectors: 32 bytes (AVX2), and 64 bytes in a version for CPUs with AVX-512, picked at run
+ * time (64-byte vectors split in two on AVX2 were 3x slower). -DGPG_NO_VECTOR, or another
+ * compiler, takes the scalar loop. */
+#if (defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 9)) && !defined(GPG_NO_VECTOR)
+#if FREAL_IS_REAL
+#define VLOAD(V, T, F) memcpy(&(V), (F), sizeof(V))
+#else
+#define VLOAD(V, T, F) \
+  do { T##_f t_; memcpy(&t_, (F), sizeof t_); (V) = __builtin_convertvector(t_, T); } while (0)
+#endif
+#define ROW_DOT(NAME, T, W)                                                                  \
+  static inline real NAME(const freal *f, const real *k, int len) {                         \
+    T a = {0}, b = {0}, c = {0}, d = {0}, kv, fv;                                            \
+    real s = 0;                                                                              \
+    int i, j;                                                                                \
+    for (i = 0; i + 4 * (W) <= len; i += 4 * (W)) {                                          \
+      memcpy(&kv, k + i, sizeof kv); VLOAD(fv, T, f + i); a += fv * kv;                      \
+      memcpy(&kv, k + i + (W), sizeof kv); VLOAD(fv, T, f + i + (W)); b += fv * kv;          \
+      memcpy(&kv, k + i + 2 * (W), sizeof kv); VLOAD(fv, T, f + i + 2 * (W)); c += fv * kv;  \
+      memcpy(&kv, k + i + 3 * (W), sizeof kv); VLOAD(fv, T, f + i + 3 * (W)); d += fv * kv;  \
+    }                                                                                        \
+    for (; i + (W) <= len; i += (W)) {                                                       \
+      memcpy(&kv, k + i, sizeof kv); VLOAD(fv, T, f + i); a += fv * kv;                      \
+    }                                                                                        \
+    a += b; c += d; a += c;                                                                  \
+    for (j = 0; j < (W); j++) s += a[j];                                                     \
+    for (; i < len; i++) s += (real)f[i] * k[i];                                             \
+    return s;                                                                                \
   }
-  for (i = 0; i + 3 < nr; i += 4) {
-    q0 += (double)v[i] * v[i]; q1 += (double)v[i + 1] * v[i + 1];
-    q2 += (double)v[i + 2] * v[i + 2]; q3 += (double)v[i + 3] * v[i + 3];
+typedef real v32 __attribute__((vector_size(32)));
+typedef freal v32_f __attribute__((vector_size(32 / sizeof(real) * sizeof(freal))));
+ROW_DOT(row_dot, v32, (int)(32 / sizeof(real)))
+#else
+static real row_dot(const freal *f, const real *k, int len) {
+  real s0 = 0, s1 = 0, s2 = 0, s3 = 0;
+  int i;
+  for (i = 0; i + 3 < len; i += 4) {
+    s0 += (real)f[i] * k[i]; s1 += (real)f[i + 1] * k[i + 1];
+    s2 += (real)f[i + 2] * k[i + 2]; s3 += (real)f[i + 3] * k[i + 3];
   }
-  for (; i < nr; i++) q0 += (double)v[i] * v[i];
-  return SIGMA_NOISE[0] - ((q0 + q1) + (q2 + q3));
+  for (; i < len; i++) s0 += (real)f[i] * k[i];
+  return (s0 + s1) + (s2 + s3);
+}
+#endif
+
+#define LATENT_VARIANCE(NAME, DOT)                                                           \
+  static double NAME(const real *k, int b, int nr) {                                        \
+    double q = 0.0, v;                                                                       \
+    long base = ROW_BASE[b];                                                                 \
+    int r;                                                                                   \
+    for (r = 0; r < nr; r++) {                                                               \
+      v = (double)DOT(FACT + ROW_OFF[base + r], k + ROW_FIRST[base + r], ROW_LEN[base + r]); \
+      q += v * v;                                                                            \
+    }                                                                                        \
+    return SIGMA_NOISE[0] - q;                                                               \
+  }
+HOT LATENT_VARIANCE(latent_variance_any, row_dot)
+
+#if defined(GPG_CLONES) && !defined(GPG_NO_AVX512) && !defined(GPG_NO_VECTOR)
+#pragma GCC push_options
+#pragma GCC target("arch=x86-64-v4")
+typedef real v64 __attribute__((vector_size(64)));
+typedef freal v64_f __attribute__((vector_size(64 / sizeof(real) * sizeof(freal))));
+ROW_DOT(row_dot64, v64, (int)(64 / sizeof(real)))
+LATENT_VARIANCE(latent_variance64, row_dot64)
+#pragma GCC pop_options
+#define HAS_AVX512()                                                                         \
+  (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&               \
+   __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq"))
+#else
+#define HAS_AVX512() 0
+#define latent_variance64 latent_variance_any
+#endif
+
+static double latent_variance(const real *k, int b, int nr) {
+  return HAS_AVX512() ? latent_variance64(k, b, nr) : latent_variance_any(k, b, nr);
 }
 #endif
 
@@ -630,10 +689,14 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
 
 # The hot loops also in an AVX2/FMA version that glibc's loader picks on CPUs that have it
 # (GCC's function multiversioning): the default x86-64 target has 2-wide doubles only. Measured
-# at data=default on the development CPU: the mean 15.9 -> 11.3 us. Off elsewhere (ARM, clang,
-# musl, MSVC) and with -DGPG_NO_CLONES; the values do not depend on it beyond FMA rounding.
+# at data=default on the development CPU: the mean 15.9 -> 11.3 us. With them (GPG_CLONES), the
+# variance's row products also have an AVX-512 version, picked at run time (latent_variance).
+# Off elsewhere (ARM, clang, musl, MSVC) and with -DGPG_NO_CLONES; -DGPG_NO_AVX512 leaves out
+# the AVX-512 version alone (for CPUs that slow their clock for 512-bit work). The values do
+# not depend on the version beyond FMA rounding and the order of the variance's partial sums.
 _CLONES = """#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && \\
     defined(__x86_64__) && defined(__linux__) && defined(__GLIBC__) && !defined(GPG_NO_CLONES)
+#define GPG_CLONES 1
 #define HOT __attribute__((target_clones("arch=x86-64-v3", "default")))
 #else
 #define HOT
@@ -671,27 +734,49 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
 }}
 """
     consts = "\n".join(defs + _constants(name, dtype, s))
-    sums = _coef_sums(s.n_outputs * (1 + len(s.grad_dims))) if s.global_mean is not None else ""
+    m = s.n_outputs
+    sums = _coef_sums(m, m * len(s.grad_dims)) if s.global_mean is not None else ""
     return head + consts + "\n" + _FRAMES + sums + _BODY + public
 
 
-def _coef_sums(n_coef: int, block: int = 24) -> str:
-    """``acc[j] = sum_p k[p] COEF[p, j]`` for the global mean, ``block`` sums at a time in
-    named locals: held in registers across the loop over the points instead of loaded and
-    stored each time (3x faster at -O2 at data=default; each sum keeps its order, so the
-    values do not change)."""
+def _split_coef(
+    gm: dict[str, np.ndarray], grad_dims, m: int, np_type
+) -> tuple[np.ndarray, np.ndarray]:
+    """The folded mean's value block ``c⁰`` (N, M), kept in double, and its gradient blocks
+    ``cᵍ`` (N, G·M) in the dtype asked for. The value block is where the folded sum cancels
+    (``c⁰ = α⁰ − Σ_g (x_p,g/l_g²) αᵍ``), so it stays in double; and it is refolded from the
+    stored ``cᵍ`` so that their rounding enters the mean as ``Σ_p k_p (x_g − x_p,g)/l_g² δᵍ_p``,
+    small where ``k_p`` is not, instead of ``Σ_p k_p x_g/l_g² δᵍ_p``. At data=default this
+    takes the float export's mean error from 1.9e-5 to below 1e-5 of the force's scale for 36 kB
+    (the float mean-only export then holds 388 kB). In double it changes nothing."""
+    coef, xs, inv_ls = gm["coef"], gm["xs"], gm["inv_ls"]
+    value, grad = coef[:, :m].copy(), coef[:, m:].astype(np_type)
+    delta = coef[:, m:] - grad.astype(np.float64)
+    for i, g in enumerate(grad_dims):
+        value += (xs[:, g] * inv_ls[g])[:, None] * delta[:, i * m : (i + 1) * m]
+    return value, grad
+
+
+def _coef_sums(m: int, n_grad: int, block: int = 24) -> str:
+    """``acc[j] = sum_p k[p] C[p, j]`` for the global mean (``C`` = ``COEF0`` for its ``m``
+    value columns, then ``COEFG`` for its ``n_grad`` gradient ones), ``block`` sums at a time
+    in named locals: held in registers across the loop over the points instead of loaded and
+    stored each time (3x faster at -O2 at data=default; each sum keeps its order)."""
     parts = [
-        "/* acc[j] = sum_p k[p] COEF[p * NC + j], the sums in blocks held in registers */",
+        "/* acc[j] = sum_p k[p] C[p, j], the sums in blocks held in registers */",
         "HOT static void coef_sums(const double *k, double *acc) {",
         "  int p;",
     ]
-    for j0 in range(0, n_coef, block):
-        b = min(block, n_coef - j0)
+    groups = [("COEF0", m, 0, j0) for j0 in range(0, m, block)]
+    groups += [("COEFG", n_grad, m, j0) for j0 in range(0, n_grad, block)]
+    for array, width, acc0, j0 in groups:
+        b = min(block, width - j0)
         names = [f"a{q}" for q in range(b)]
         parts.append("  {")
         parts.append(f"    double {', '.join(n + ' = 0.0' for n in names)};")
         parts.append("    for (p = 0; p < N_MEAN; p++) {")
-        parts.append(f"      const real *c = COEF + (long)p * {n_coef} + {j0};")
+        parts.append(f"      const {'double' if array == 'COEF0' else 'real'} *c = "
+                     f"{array} + (long)p * {width} + {j0};")  # fmt: skip
         parts.append("      const double kp = k[p];")
         for i in range(0, b, 4):
             parts.append(
@@ -701,7 +786,7 @@ def _coef_sums(n_coef: int, block: int = 24) -> str:
         parts.append("    }")
         for i in range(0, b, 4):
             parts.append(
-                "    " + " ".join(f"acc[{j0 + q}] = a{q};" for q in range(i, min(b, i + 4)))
+                "    " + " ".join(f"acc[{acc0 + j0 + q}] = a{q};" for q in range(i, min(b, i + 4)))
             )
         parts.append("  }")
     parts.append("}")

@@ -160,17 +160,17 @@ class Spec:
 
 
 def _triangle_size(F: np.ndarray) -> int:
-    """Entries of ``F`` inside each column's first-to-last non-zero span (what a writer keeps)."""
-    first, last = column_spans(F)
+    """Entries of ``F`` inside each row's first-to-last non-zero span (what a writer keeps)."""
+    first, last = row_spans(F)
     return int(np.sum(np.maximum(last - first, 0)))
 
 
-def column_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per column of ``F``: its first non-zero row and one past its last (equal when none)."""
-    nz = F != 0
+def row_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``F``: its first non-zero column and one past its last (equal when none)."""
+    nz = F.T != 0
     any_ = nz.any(axis=0)
     first = np.where(any_, nz.argmax(axis=0), 0)
-    last = np.where(any_, F.shape[0] - nz[::-1].argmax(axis=0), 0)
+    last = np.where(any_, nz.shape[0] - nz[::-1].argmax(axis=0), 0)
     return first, last
 
 

@@ -71,8 +71,8 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
             jnp.asarray(euler), jnp.asarray(v)))  # fmt: skip
     rtol = 1e-10 if dtype == "double" else 1e-5
     vtol = variance_rtol(sur, rpm, euler, v, None if dtype == "double" else 2.0**-24)
-    flags = []
-    for i in range(len(rpm)):
+
+    def check(call, i):
         ok, f, t, lv, var = call(rpm[i], euler[i], v[i])
         for got, want in ((f, ref.force[i]), (t, ref.torque[i]), (lv, ref.levels[i])):
             assert rel_err(got, want) <= rtol, (i, got, want)
@@ -84,8 +84,15 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
         assert ok2 == ok and all(
             np.array_equal(a, b) for a, b in zip(mean, (f, t, lv), strict=True)
         )
-        flags.append(ok)
+        return ok
+
+    flags = [check(call, i) for i in range(len(rpm))]
     assert 0 < sum(flags) < len(flags)  # both kinds of state were met
+    if kind == "gpgs_hybrid":  # the variance's other versions than this CPU's
+        for i, cflags in enumerate((["-DGPG_NO_AVX512"], ["-DGPG_NO_CLONES", "-DGPG_NO_VECTOR"])):
+            (tmp_path / str(i)).mkdir()
+            other = compiled(sur, tmp_path / str(i), dtype, cflags)[1]
+            assert [check(other, j) for j in range(10)] == flags[:10]
     text = out["h"].read_text()
     assert out["record"]["arrays_sha256"] in text and "int quad_predict(" in text
     assert out["variance"] and out["record"]["model"] == kind.removesuffix("_body")
@@ -113,7 +120,8 @@ def test_mean_only_export_and_its_constants(tmp_path):
         ok2, *vals2 = generic(*state, with_var=False)[:4]
         assert ok2 and all(rel_err(a, b) <= 1e-10 for a, b in zip(vals2, vals, strict=True))
         n, c = np.asarray(sur.model.mean.coef).shape
-        assert out["constant_bytes"] == n * 8 * 8 + (n * c + 8 + 1) * size  # positions double
+        m = len(sur.output_names)  # positions and the mean's value block in double
+        assert out["constant_bytes"] == n * 8 * 8 + n * m * 8 + (n * (c - m) + 8 + 1) * size
         assert not out["variance"] and "quad_predict" not in out["h"].read_text()
 
 
