@@ -18,7 +18,8 @@ for every controller. The mission is the paper's round trip (``simulate``'s flig
 
 * **casadi** (``casadi.enabled``): a gradient-based MPC of the same offsets through CasADi's
   ``Opti`` and IPOPT on the exported surrogate (:mod:`gpg.runs.mpc_casadi`), its variance as
-  the cautious term, at its own rate (``casadi.dt``).
+  the cautious term (linearised about the previous plan, or exact), at its own rate
+  (``casadi.dt``).
 
 Measured: tracking error (RMS, max), in-domain share, the force standard deviation met along
 the flight, and the wall time of every MPC solve (median, p95) on this machine.
