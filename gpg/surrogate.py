@@ -154,11 +154,6 @@ class Surrogate(eqx.Module):
         box = None if bounds is None else Bounds.from_config(bounds).arrays(dataset.frame)
         if noise_model and not residual:
             raise ValueError("noise_model=True needs residual=True (M_noise uses M's loads)")
-        if noise_model and dataset.frame == "body":
-            raise ValueError(
-                "noise_model=True (M_noise) takes the airflow frame's inputs; this dataset is in "
-                "the body frame: fit without it"
-            )
         simple = noise = None  # M and M_noise
         if residual:
             veh = dataset_vehicle(dataset, vehicle)

@@ -111,10 +111,25 @@ def test_checkpoint_keeps_the_frame(body, tmp_path):
     )
 
 
+@pytest.mark.slow  # M_noise's compilation (10 s); its body-frame physics has a fast test
+def test_m_noise_in_the_body_frame(body):
+    """``noise_model=True`` fits body-frame data: the levels' targets are ``L − M_noise(x_B)``
+    and ``predict`` adds ``M_noise`` at the query's ``x_B = (rpm, R_WBᵀ v_air)`` back to the
+    GP's levels (recomputed here from the model's parts, float64: 1e-10)."""
+    ds, _ = body
+    sur = Surrogate.fit(ds, "gpg", {"hyper": {"fit": False, "lengthscale": 0.8, "noise": 1e-6}},
+                        noise_model=True)  # fmt: skip
+    assert sur.noise_model is not None
+    euler, v = np.array([2.5, -0.4, 0.3]), np.array([-3.0, 1.0, 2.0])
+    x_b = jnp.concatenate([jnp.asarray(RPM), R_WB(jnp.asarray(euler)).T @ jnp.asarray(v)])
+    gp = sur.normalizer.y_inv(sur.model.mean_one(sur.normalizer.x(x_b)))
+    p = sur.predict(RPM, euler, v)
+    np.testing.assert_allclose(p.levels, gp[6:] + sur.noise_model(x_b), rtol=1e-10)
+    assert bool(p.in_domain)
+
+
 def test_what_does_not_take_the_body_frame_says_so(body):
     ds, _ = body
-    with pytest.raises(ValueError, match="body frame"):
-        Surrogate.fit(ds, "gpg", noise_model=True)
     with pytest.raises(ValueError, match="partition.dim=7 is not an input of the 7-input data"):
         Surrogate.fit(ds, "gpgs", {"hyper": {"fit": False}})
 

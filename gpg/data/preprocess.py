@@ -164,10 +164,6 @@ def residuals(
         if y_raw is not None:
             y_raw[:, :6] -= np.asarray(simple.values(_m_inputs(ds.frame, ds.x_raw)))
     if noise_model is not None and ds.has_noise:
-        if ds.frame == "body":
-            raise ValueError(
-                "M_noise (noise_model) takes airflow-frame inputs: not for body-frame data"
-            )
         yN, JN = (np.asarray(a) for a in noise_model.batch(ds.x))
         y[:, 6:9] -= yN
         if J is not None:

@@ -17,13 +17,16 @@ solution replaced by ``M`` and a prescribed inflow:
 * **Thickness** noise of the blades, as in the generator.
 
 The in-plane air velocity at each hub follows from the attitude and airspeed inputs as in the
-generator. Left out after an exploratory check on data=default (a script not kept in the
-repository): the axial flow through the disk, with ``v₀`` solved from momentum including it,
-made the training residual ``L − M_noise`` rougher, most at L3 (``M``'s thrust, which sets
-``v₀``, ignores the axial flow too); the generator's nonlinear polar in place of the linear lift
-did not make it smoother; more span elements changed it little. Body rates are not inputs.
-What ``M_noise`` misses (wake interference, the real inflow solution, the polar, tip loss) is
-what the GP learns. Its Jacobian comes from ``jax.jacfwd``.
+generator, or, for a body-frame input ``x_B = (r1..r4, u, v, w)`` (seven entries, the
+``frame="body"`` datasets of :mod:`gpg.data`), is its ``(u, v)``: the same physics, with
+``M_noise_B(r, R_WB(θ)ᵀ V e_x) = M_noise(r, θ, V)``. Left out after an exploratory check on
+data=default (a script not kept in the repository): the axial flow through the disk, with
+``v₀`` solved from momentum including it, made the training residual ``L − M_noise`` rougher,
+most at L3 (``M``'s thrust, which sets ``v₀``, ignores the axial flow too); the generator's
+nonlinear polar in place of the linear lift did not make it smoother; more span elements
+changed it little. Body rates are not inputs. What ``M_noise`` misses (wake interference, the
+real inflow solution, the polar, tip loss) is what the GP learns. Its Jacobian comes from
+``jax.jacfwd``.
 
 It needs the acoustic part of the vehicle (rotor geometry, airfoil, microphones, air
 properties): a vehicle file for ``M`` and flight only has none, and
@@ -49,7 +52,8 @@ _EPS_V = 1e-6  # m/s, keeps speeds and their derivatives finite at rest
 
 
 class SimpleNoise(eqx.Module):
-    """``M_noise(x) -> (L1, L2, L3)`` dB at a dataset input ``x = (r1..r4, ψ, θ, φ, V)``."""
+    """``M_noise(x) -> (L1, L2, L3)`` dB at a dataset input ``x = (r1..r4, ψ, θ, φ, V)``, or at a
+    body-frame one ``x_B = (r1..r4, u, v, w)`` (told apart by their length)."""
 
     vehicle: Vehicle
     P_F: Float[Array, ""]  # N/rpm², M's thrust coefficient
@@ -85,13 +89,18 @@ class SimpleNoise(eqx.Module):
             )
         return cls(vehicle=vehicle, P_F=simple.P_F, T_z=simple.T_z)
 
-    def load_shape(self, x: Float[Array, " 8"]) -> Float[Array, "4 P"]:
+    def load_shape(self, x: Float[Array, " D"]) -> Float[Array, "4 P"]:
         """``s_i(ψ)``: each rotor's blade load at the azimuths ``2πk/P`` over its mean, from the
-        quasi-steady blade elements (module docstring) at the dataset input ``x``."""
+        quasi-steady blade elements (module docstring) at the dataset input ``x`` (8 airflow-
+        frame entries, or 7 body-frame ones)."""
         veh, rot = self.vehicle, self.vehicle.rotor
         R = rot.radius
         omega = x[:4] * RPM_TO_RAD_S
-        v_air_B = R_WB(x[4:7]).T @ jnp.stack([x[7], jnp.zeros_like(x[7]), jnp.zeros_like(x[7])])
+        if x.shape[0] == 7:  # body frame: the air velocity is the input
+            v_air_B = x[4:7]
+        else:
+            zero = jnp.zeros_like(x[7])
+            v_air_B = R_WB(x[4:7]).T @ jnp.stack([x[7], zero, zero])
         v_in = -v_air_B[:2]  # air relative to the hubs, in the rotor plane (as the generator)
         psi = 2.0 * jnp.pi * jnp.arange(self.n_azimuth) / self.n_azimuth
         spin = veh.spin[:, None]
@@ -125,7 +134,7 @@ class SimpleNoise(eqx.Module):
         lift = jnp.sum((chord * dr)[:, None] * (u_t**2 + v_i**2) * aoa, axis=1)  # (4, P)
         return lift / jnp.mean(lift, axis=1, keepdims=True)
 
-    def _loads(self, x: Float[Array, " 8"]) -> AeroResult:
+    def _loads(self, x: Float[Array, " D"]) -> AeroResult:
         B = self.vehicle.rotor.n_blades
         rpm = x[:4]
         r2 = rpm**2
@@ -146,27 +155,32 @@ class SimpleNoise(eqx.Module):
         z3 = jnp.zeros(3, dtype=r2.dtype)
         return AeroResult(z3, z3, z3, z3, rotors, rpm * RPM_TO_RAD_S)
 
-    def __call__(self, x: Float[ArrayLike, " 8"]) -> Float[Array, " 3"]:
-        """Levels (dB re 20 µPa) at the microphones for the dataset input ``x`` (8,)."""
+    def __call__(self, x: Float[ArrayLike, " D"]) -> Float[Array, " 3"]:
+        """Levels (dB re 20 µPa) at the microphones for the dataset input ``x``: (8,) in the
+        airflow frame or (7,) in the body frame."""
         x = jnp.asarray(x)
-        if x.shape != (8,):
+        if x.shape not in ((8,), (7,)):
             raise ValueError(
-                f"x must be one dataset input (r1..r4, yaw, pitch, roll, V), got {x.shape}"
+                "x must be one dataset input, (r1..r4, yaw, pitch, roll, V) or body-frame "
+                f"(r1..r4, u, v, w), got shape {x.shape}"
             )
         return acoustics.oaspl(self.vehicle, self._loads(x), self.cfg)
 
-    def jacobian(self, x: Float[ArrayLike, " 8"]) -> Float[Array, "3 8"]:
-        """``∂M_noise/∂x`` (3, 8), by forward-mode autodiff."""
+    def jacobian(self, x: Float[ArrayLike, " D"]) -> Float[Array, "3 D"]:
+        """``∂M_noise/∂x`` (3, D), by forward-mode autodiff."""
         return jax.jacfwd(self.__call__)(jnp.asarray(x, dtype=float))
 
     def batch(
-        self, X: Float[ArrayLike, "N 8"]
-    ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3 8"]]:
-        """Levels and Jacobians of many inputs, in padded chunks (:func:`in_chunks`): one compiled
-        program serves every N (its compilation, not the evaluation, is the cost)."""
+        self, X: Float[ArrayLike, "N D"]
+    ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3 D"]]:
+        """Levels and Jacobians of many inputs (D = 8 airflow-frame or 7 body-frame entries),
+        in padded chunks (:func:`in_chunks`): one compiled program serves every N (its
+        compilation, not the evaluation, is the cost)."""
         X = np.asarray(X, dtype=float)
-        if X.ndim != 2 or X.shape[1] != 8:
-            raise ValueError(f"X must have shape (N, 8) (dataset inputs), got {X.shape}")
+        if X.ndim != 2 or X.shape[1] not in (8, 7):
+            raise ValueError(
+                f"X must have shape (N, 8) (dataset inputs) or (N, 7) (body frame), got {X.shape}"
+            )
         return in_chunks(_batch, self, X)
 
 
