@@ -18,8 +18,9 @@ model about the previous plan, as gpg's cautious MPPI takes it: before each solv
 ``z = (rpm, euler, v − wind)`` at those steps are rolled out from the warm start, and
 ``σ(z₀)`` and ``∇σ(z₀)`` come from :meth:`Surrogate.predict` through JAX, so the NLP holds
 ``σ(z₀) + ∇σ(z₀)ᵀ(z − z₀)``. The exact term costs CasADi's virtual machine a walk through
-the variance's bins at every evaluation (0.4-2.4 s a solve at data=default against 0.1 s
-without it); the linearised one costs one JAX call a solve.
+the variance's bins at every evaluation (1.4 s a solve at data=default in
+``python -m experiments.mpc``, against 0.1 s linearised); the linearised one costs one JAX
+call a solve.
 IPOPT with a limited-memory Hessian, warm-started from the previous plan.
 """
 
@@ -64,9 +65,9 @@ def make_casadi_solver(sur, vehicle, ctrl, plan, c: dict[str, Any], beta: float)
     w = {k: float(c[k]) for k in ("w_position", "w_velocity", "w_control", "w_rate")}
     caution_at = sorted(set(np.linspace(1, H, int(c["caution_points"])).round().astype(int)))
     n_c = len(caution_at)
-    # the linearised caution: z₀, σ(z₀) and ∇σ(z₀) at each caution step, set before each solve
-    z0, s0, g0 = opti.parameter(10, n_c), opti.parameter(n_c), opti.parameter(10, n_c)
-    zs = []
+    zs = []  # the linearised caution's inputs z, and z₀, σ(z₀), ∇σ(z₀) set before each solve
+    if linear:
+        z0, s0, g0 = opti.parameter(10, n_c), opti.parameter(n_c), opti.parameter(10, n_c)
     p, v = x0[0:3], x0[3:6]
     cost = 0
     steps = ca.mtimes(ca.DM(blend), U)  # (H, 3)
@@ -127,7 +128,7 @@ def make_casadi_solver(sur, vehicle, ctrl, plan, c: dict[str, Any], beta: float)
         opti.set_value(u_prev, np.asarray(u_nom, float)[0])
         opti.set_initial(U, state["U"])
         if linear:
-            z = np.asarray(rollout(state["U"], x[:6], np.asarray(wind0, float), np.array(rows),
+            z = np.asarray(rollout(state["U"], x[:6], np.asarray(wind0, float), rows,
                                    np.asarray(u_nom, float)[0]))  # fmt: skip
             s, g = sigma_grad(jnp.asarray(z.T))
             opti.set_value(z0, z)
