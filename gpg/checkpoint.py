@@ -60,7 +60,7 @@ from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 10  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+FORMAT_VERSION = 11  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
 # 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels);
 # 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads;
 # 6: fields renamed (ν² is ``noise``, M_noise ``noise_model``); 4 and 5 load through RENAMED;
@@ -69,7 +69,9 @@ FORMAT_VERSION = 10  # 2: noise, output scales, hybrid and PIC models; 3: M_nois
 # 9: an ExactGP factorises only the rows it observed (``order`` names them); the decoupled
 #    factors of 7 and 8 still load and condition
 # 10: Surrogate.frame (the body-frame formulation); older files load as the airflow frame
-READABLE_VERSIONS = (4, 5, 6, 7, 8, 9, 10)
+# 11: ``bases`` of ExactGP, BinnedGP and the hybrid's Record (directional gradient rows of
+#     converted data); older files load them as None
+READABLE_VERSIONS = (4, 5, 6, 7, 8, 9, 10, 11)
 # Fields renamed since an older format: (module, class) -> {old field: new field}. Reading one
 # warns (DeprecationWarning): save the surrogate again to write the current format.
 RENAMED = {
@@ -149,7 +151,7 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
         known = {f.name: f for f in dataclasses.fields(cls)}
         # A field added since the file was written takes its default (format 7 added the
         # exact model's row order and the hybrid's training record, both None before; format
-        # 10 the surrogate's frame, "airflow" before).
+        # 10 the surrogate's frame, "airflow" before; format 11 the models' bases, None).
         added = {
             n for n, f in known.items() if n not in fields and f.default is not dataclasses.MISSING
         }

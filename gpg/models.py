@@ -227,17 +227,20 @@ def training_arrays(name: str, training: Training) -> Arrays:
     if spec.gradients:
         if training.dY is None:
             raise ValueError(f"model {name!r} needs gradients, which the dataset lacks")
-        return gradient_arrays(training.X, training.Y, training.dY)
+        return gradient_arrays(training.X, training.Y, training.dY, training.bases)
     return Arrays(training.X, training.Y, None, ())
 
 
-def gradient_arrays(X: np.ndarray, Y: np.ndarray, dY: np.ndarray) -> Arrays:
+def gradient_arrays(
+    X: np.ndarray, Y: np.ndarray, dY: np.ndarray, bases: np.ndarray | None = None
+) -> Arrays:
     """Arrays with gradients; NaN in ``dY`` marks a gradient dim a case was not run for (all
-    outputs alike, :attr:`gpg.data.Dataset.gradient_mask`), which becomes ``observed``."""
+    outputs alike, :attr:`gpg.data.Dataset.gradient_mask`), which becomes ``observed``;
+    ``bases`` the directions of the gradient columns (:attr:`gpg.data.Dataset.grad_dirs`)."""
     missing = np.isnan(dY)
     if not missing.any():
-        return Arrays(X, Y, dY, GRAD_DIMS)
-    return Arrays(X, Y, np.where(missing, 0.0, dY), GRAD_DIMS, ~missing[:, 0, :])
+        return Arrays(X, Y, dY, GRAD_DIMS, bases=bases)
+    return Arrays(X, Y, np.where(missing, 0.0, dY), GRAD_DIMS, ~missing[:, 0, :], bases=bases)
 
 
 def initial_hyper(cfg: ModelConfig, n_inputs: int, dY: np.ndarray | None) -> Hyper:
@@ -280,6 +283,7 @@ def fit_hyper(
             "fit_noise": h.fit_noise,
             "noise_floor": h.noise_floor,
             "observed": arrays.observed,
+            "bases": arrays.bases,
         }
         res = fit_hyperparameters(
             X, Y, dY, init=init, noise_init=h.noise_init, subset_size=h.subset, seed=h.seed,
@@ -355,6 +359,12 @@ def check_feasible(
     n = arrays.X.shape[0]
     kind = SPECS[name].kind
     kind.check(name, cfg, n)
+    if arrays.bases is not None and not kind.directional_gradients:
+        raise ValueError(
+            f"model {name!r} takes gradients along the inputs only, and this dataset's are "
+            "along other directions (grad_dirs: data converted by gpg.data.convert.to_body); "
+            "gpg and gpgs_hybrid train on such data"
+        )
     if arrays.observed is not None and not kind.partial_gradients:
         raise ValueError(
             f"model {name!r} needs every gradient at every case, and some cases lack some "

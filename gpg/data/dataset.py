@@ -31,7 +31,8 @@ from gpg._io import atomic_write
 from gpg.names import AERO, FRAMES, GRAD_INPUTS, NOISE, UNITS, grad_inputs, inputs
 
 SCHEMA_VERSION = 1
-_ARRAYS = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "x_raw", "y_raw")
+_ARRAYS = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "x_raw", "y_raw", "grad_dirs")
+_PER_CASE = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "grad_dirs")
 _OPTIONAL = {
     "noise": ("y_noise",),
     "gradients": ("jac_aero",),
@@ -52,6 +53,11 @@ class Dataset:
     x_raw: np.ndarray | None = None
     y_raw: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    # (N, 7, 7) or None: gradient column g of case i (jac_aero[i, :, g], jac_noise likewise) is
+    # the derivative along Σ_h grad_dirs[i, g, h] e_h over the 7 gradient inputs, in their
+    # units (None: along input g itself). Written by gpg.data.convert.to_body, whose angle
+    # gradients become derivatives along directions of (u, v, w).
+    grad_dirs: np.ndarray | None = None
 
     def __post_init__(self):
         for name in _ARRAYS:
@@ -146,6 +152,10 @@ class Dataset:
             if self.y_noise is None:
                 raise ValueError("jac_noise given without y_noise")
             require_shape("jac_noise", self.jac_noise, (n, 3, 7))
+        if self.grad_dirs is not None:
+            if self.jac_aero is None:
+                raise ValueError("grad_dirs given without jac_aero: it gives their directions")
+            require_shape("grad_dirs", self.grad_dirs, (n, 7, 7))
         if (self.x_raw is None) != (self.y_raw is None):
             raise ValueError("x_raw and y_raw must be given together")
         if self.x_raw is not None:
@@ -265,9 +275,7 @@ class Dataset:
     def subset(self, index: np.ndarray) -> Dataset:
         """The points ``index`` (and their raw samples)."""
         index = np.asarray(index)
-        kw = {
-            k: (None if getattr(self, k) is None else getattr(self, k)[index]) for k in _ARRAYS[:5]
-        }
+        kw = {k: (None if getattr(self, k) is None else getattr(self, k)[index]) for k in _PER_CASE}
         if self.has_raw:
             per = self.x_raw.shape[0] // self.n
             raw = (index[:, None] * per + np.arange(per)).ravel()
@@ -285,7 +293,7 @@ class Dataset:
             if self.has_raw:
                 kw["y_raw"] = self.y_raw[:, :6]
         if "gradients" in what:
-            kw.update(jac_aero=None, jac_noise=None)
+            kw.update(jac_aero=None, jac_noise=None, grad_dirs=None)
         if "raw samples" in what:
             kw.update(x_raw=None, y_raw=None)
         return replace(self, **kw)

@@ -105,6 +105,9 @@ class Training:
     output_names: tuple[str, ...]
     noise_model: SimpleNoise | None = None
     frame: str = "airflow"  # the data's inputs (gpg.names.FRAMES): where M's attitude comes from
+    # (N, G, G): the directions of the gradient columns of dY in the normalised inputs, each of
+    # unit length (gpg.gp.gram.row_directions), for data with Dataset.grad_dirs; else None
+    bases: np.ndarray | None = None
 
 
 class FittedCoefficientsWarning(UserWarning):
@@ -153,6 +156,10 @@ def residuals(
     unchanged where a model is None."""
     y, J = ds.y.copy(), None if ds.jac is None else ds.jac.copy()
     y_raw = None if ds.y_raw is None else ds.y_raw.copy()
+
+    def along(JM):  # a model's Jacobian along the data's gradient columns
+        return JM if ds.grad_dirs is None else np.einsum("nmh,ngh->nmg", JM, ds.grad_dirs)
+
     if simple is not None:
         yM, JM = (np.asarray(a) for a in simple.batch(_m_inputs(ds.frame, ds.x)))
         if ds.frame == "body":  # M in the body frame depends on the rotor speeds alone
@@ -160,14 +167,14 @@ def residuals(
             JM[:, :, 4:] = 0.0
         y[:, :6] -= yM
         if J is not None:
-            J[:, :6] -= JM
+            J[:, :6] -= along(JM)
         if y_raw is not None:
             y_raw[:, :6] -= np.asarray(simple.values(_m_inputs(ds.frame, ds.x_raw)))
     if noise_model is not None and ds.has_noise:
         yN, JN = (np.asarray(a) for a in noise_model.batch(ds.x))
         y[:, 6:9] -= yN
         if J is not None:
-            J[:, 6:9] -= JN[:, :, : J.shape[2]]
+            J[:, 6:9] -= along(JN[:, :, : J.shape[2]])
         if y_raw is not None:
             y_raw[:, 6:9] -= np.asarray(noise_model.batch(ds.x_raw)[0])
     return y, J, y_raw
@@ -194,7 +201,7 @@ def prepare(
     norm = Normalizer.fit(ds.x, y)
     X = np.asarray(norm.x(ds.x))
     Y = np.asarray(norm.y(y))
-    dY = None if J is None else np.asarray(norm.grad(J))
+    dY, bases = (None, None) if J is None else normalised_gradients(norm, J, ds.grad_dirs)
     X_raw = Y_raw = None
     if ds.has_raw:
         X_raw = np.asarray(norm.x(ds.x_raw))
@@ -211,7 +218,43 @@ def prepare(
         output_names=ds.output_names,
         noise_model=noise_model if ds.has_noise else None,
         frame=ds.frame,
+        bases=bases,
     )
+
+
+def normalised_gradients(
+    norm: Normalizer, J: Float[np.ndarray, "N M G"], dirs: Float[np.ndarray, "N G G"] | None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The GP's gradient targets from ``J`` (dataset units) and, for columns along the
+    directions ``dirs`` (:attr:`Dataset.grad_dirs`), their normalised directions
+    (:func:`normalised_directions`); ``(Normalizer.grad(J), None)`` without."""
+    if dirs is None:
+        return np.asarray(norm.grad(J)), None
+    return normalised_directions(norm, J, dirs)
+
+
+def normalised_directions(
+    norm: Normalizer, J: Float[np.ndarray, "N M G"], dirs: Float[np.ndarray, "N G G"]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Derivatives ``J[i, :, g]`` along the directions ``dirs[i, g]`` (dataset units) as the
+    GP's rows: the direction in the normalised inputs, ``d̃ = d / h`` (``h`` the half-ranges),
+    scaled to unit length, and the derivative along it, ``J / (|d̃| std(y))``. A coordinate
+    direction gives :meth:`Normalizer.grad`'s row exactly; a zero direction (no derivative)
+    keeps a unit one with its values, which must then be NaN (not run)."""
+    h = np.asarray(norm.half_range)[np.asarray(norm.grad_dims)]
+    d = np.asarray(dirs) / h[None, None, :]
+    length = np.linalg.norm(d, axis=2)  # (N, G)
+    zero = length == 0.0
+    if np.any(zero & ~np.isnan(J[:, 0, :])):
+        rows = np.flatnonzero(np.any(zero & ~np.isnan(J[:, 0, :]), axis=1))[:10].tolist()
+        raise ValueError(
+            f"grad_dirs has a zero direction with a gradient in row(s) {rows}: a derivative "
+            "needs a direction (NaN marks one that was not run)"
+        )
+    length = np.where(zero, 1.0, length)
+    d = np.where(zero[:, :, None], np.eye(d.shape[1])[None], d / length[:, :, None])
+    dY = J / (length[:, None, :] * np.asarray(norm.y_std)[None, :, None])
+    return dY, d
 
 
 def warn_repeated_inputs(ds: Dataset) -> None:

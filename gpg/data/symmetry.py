@@ -79,12 +79,19 @@ def mirror(ds: Dataset, vehicle: Vehicle, axis: str) -> Dataset:
     T_aero[:3, :3], T_aero[3:, 3:] = S, -S
     x = ds.x @ A.T
     y_aero = ds.y_aero @ T_aero.T
-    jac = None if ds.jac_aero is None else np.einsum("ij,njk,lk->nil", T_aero, ds.jac_aero, A)
-    jac_noise = None if ds.jac_noise is None else np.einsum("njk,lk->njl", ds.jac_noise, A)
+    dirs = ds.grad_dirs
+    if dirs is None:
+        jac = None if ds.jac_aero is None else np.einsum("ij,njk,lk->nil", T_aero, ds.jac_aero, A)
+        jac_noise = None if ds.jac_noise is None else np.einsum("njk,lk->njl", ds.jac_noise, A)
+    else:  # D_{A d} y'(A x) = T D_d y(x): the values keep their columns, the directions turn
+        jac = np.einsum("ij,njk->nik", T_aero, ds.jac_aero)
+        jac_noise = ds.jac_noise
+        dirs = np.einsum("ngk,lk->ngl", dirs, A)
     meta = {**ds.meta, "mirrored": [*ds.meta.get("mirrored", []), axis]}
     return Dataset(
-        x=x, y_aero=y_aero, jac_aero=jac, y_noise=ds.y_noise, jac_noise=jac_noise, meta=meta
-    )
+        x=x, y_aero=y_aero, jac_aero=jac, y_noise=ds.y_noise, jac_noise=jac_noise, meta=meta,
+        grad_dirs=dirs,
+    )  # fmt: skip
 
 
 def augment(ds: Dataset, vehicle: Vehicle, axes: tuple[str, ...] = ("x",)) -> Dataset:

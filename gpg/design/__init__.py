@@ -30,7 +30,7 @@ from gpg import models
 from gpg._dtype import float64
 from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
-from gpg.data.preprocess import residuals
+from gpg.data.preprocess import normalised_gradients, residuals
 from gpg.data.sampling import latin_hypercube
 from gpg.design.acquisition import GRADIENTS, Batch, subsets
 from gpg.design.acquisition import propose as propose_rows
@@ -124,7 +124,7 @@ def new_cases(sur, dataset: Dataset, *, tol: float = 1e-9) -> Arrays:
     Y = np.asarray(norm.y(y))
     if J is None or not known.grad_dims:
         return Arrays(X, Y, None, ())
-    return models.gradient_arrays(X, Y, np.asarray(norm.grad(J)))
+    return models.gradient_arrays(X, Y, *normalised_gradients(norm, J, dataset.grad_dirs))
 
 
 def _outside(sur, x: np.ndarray, tol: float) -> np.ndarray:
@@ -210,7 +210,7 @@ def training_arrays(sur, dataset: Dataset) -> Arrays:
     X, Y = np.asarray(norm.x(dataset.x)), np.asarray(norm.y(y))
     if J is None:
         return Arrays(X, Y, None, ())
-    return models.gradient_arrays(X, Y, np.asarray(norm.grad(J)))
+    return models.gradient_arrays(X, Y, *normalised_gradients(norm, J, dataset.grad_dirs))
 
 
 def output_hyper(sur, dataset: Dataset, weights: Mapping[str, float]) -> Hyper:
@@ -246,8 +246,12 @@ def merge_datasets(a: Dataset, b: Dataset) -> Dataset:
         j = getattr(ds, part)
         return np.full((ds.n, n_out, 7), np.nan) if j is None else j
 
+    def dirs(ds):  # directional gradient columns (converted data) or the inputs' own
+        return np.broadcast_to(np.eye(7), (ds.n, 7, 7)) if ds.grad_dirs is None else ds.grad_dirs
+
     noise = a.has_noise and b.has_noise
     grads = a.jac_aero is not None or b.jac_aero is not None
+    directional = grads and (a.grad_dirs is not None or b.grad_dirs is not None)
     return Dataset(
         x=np.concatenate([a.x, b.x]),
         y_aero=np.concatenate([a.y_aero, b.y_aero]),
@@ -257,6 +261,7 @@ def merge_datasets(a: Dataset, b: Dataset) -> Dataset:
         if grads and noise
         else None,
         meta=a.meta,
+        grad_dirs=np.concatenate([dirs(a), dirs(b)]) if directional else None,
     )
 
 

@@ -268,11 +268,11 @@ def _check_exact_size(m: ExactGP, max_bytes: int | None) -> None:
 
 
 def _exact_bins(m: ExactGP) -> Bins:
-    if m.order is not None or m.observed is not None:
+    if m.order is not None or m.observed is not None or m.bases is not None:
         raise ValueError(
             "this exact model's variance factor covers rows in another order than its layout "
-            "(a model grown by condition, or cases without some gradients): export it with "
-            "variance=False, or refit it"
+            "(a model grown by condition, cases without some gradients, or directional "
+            "gradient rows of converted data): export it with variance=False, or refit it"
         )
     return Bins(
         points=[_f64(m.X)],
@@ -293,6 +293,12 @@ def _binned(m: BinnedGP, *, coef: bool, variance: bool) -> Bins | None:
     """The real rows of every bin of ``m`` (its padding dropped)."""
     if not coef and not (variance and m.factor):
         return None
+    if m.bases is not None:
+        raise ValueError(
+            "this model's near sets hold directional gradient rows (converted data, "
+            "gpg.data.convert.to_body), which the exports do not write: export it with "
+            "variance=False (the mean exports as it is)"
+        )
     g = len(m.grad_dims)
     P = m.Xn.shape[1]
     up = 0 if m.shared is None else m.shared.shape[0] * (1 + g)

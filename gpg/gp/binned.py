@@ -23,6 +23,7 @@ from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from gpg.gp import kernels, partition
+from gpg.gp.gram import to_bases
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import output_scale
 from gpg.gp.predictor import Predictor, plain
@@ -108,6 +109,9 @@ class BinnedGP(Predictor):
     output_scale: Float[Array, " M"]
     n_near: Int[Array, " B"]
     grad_dims: tuple[int, ...] = eqx.field(static=True)
+    # (B, P, G, G): the directions of the near points' gradient rows
+    # (gpg.gp.gram.row_directions; zero on padding), None for derivatives along the inputs
+    bases: Float[Array, "B P G G"] | None = None
 
     @property
     def n_inputs(self) -> int:
@@ -138,6 +142,9 @@ class BinnedGP(Predictor):
         """``k̄(x, X_n)`` against bin ``b``'s near set: values, then gradient rows."""
         Xb = jax.lax.dynamic_index_in_dim(self.Xn, b, keepdims=False)
         row = kernels.query_rows(x[None], Xb, self.variance, self.lengthscale, self.grad_dims)[0]
+        if self.bases is not None:
+            Bb = jax.lax.dynamic_index_in_dim(self.bases, b, keepdims=False)
+            row = to_bases(row, Bb, Xb.shape[0])
         if self.shared is None:
             return row
         k_u = kernels.query_rows(
@@ -317,6 +324,7 @@ def pack_points(
     dtype: str = "float64",
     shared: np.ndarray | None = None,
     scale: np.ndarray | None = None,
+    bases: Sequence[np.ndarray] | None = None,
 ) -> BinnedGP:
     """Padded, stacked per-bin arrays of a :class:`BinnedGP`: bin ``b`` conditions on the
     points ``points[b]`` (p_b, D) through ``factors[b]`` (rows dimension-major over them),
@@ -324,7 +332,8 @@ def pack_points(
     storage type of the variance factors. ``scale`` is the per-output variance scale; by
     default it is pooled from the bins' own fits (ones where a route does not report them).
     ``factors`` may be a generator: each bin's factor is stored in bands before the next one
-    is drawn, so the dense factors are never all held at once."""
+    is drawn, so the dense factors are never all held at once. ``bases``: per bin, the
+    directions of its points' gradient rows (p_b, G, G) (:func:`gpg.gp.gram.row_directions`)."""
     B, D = len(points), points[0].shape[1]
     g = len(grad_dims)
     P = max(p.shape[0] for p in points)
@@ -370,7 +379,15 @@ def pack_points(
         output_scale=jnp.asarray(scale, dtype=float),
         n_near=jnp.asarray([p.shape[0] for p in points]),
         grad_dims=grad_dims,
+        bases=None if bases is None else jnp.asarray(_pad_bases(bases, P, g)),
     )
+
+
+def _pad_bases(bases: Sequence[np.ndarray], P: int, g: int) -> np.ndarray:
+    out = np.zeros((len(bases), P, g, g))
+    for b, B in enumerate(bases):
+        out[b, : B.shape[0]] = B
+    return out
 
 
 def pack(
@@ -383,7 +400,12 @@ def pack(
     *,
     dtype: str = "float64",
     scale: np.ndarray | None = None,
+    bases: np.ndarray | None = None,
 ) -> BinnedGP:
-    """:func:`pack_points` for near sets of training points ``X[near.near[b]]``."""
+    """:func:`pack_points` for near sets of training points ``X[near.near[b]]`` (``bases``
+    (N, G, G) the directions of their gradient rows, if not the inputs')."""
     points = [X[nb] for nb in near.near]
-    return pack_points(points, factors, part, hyper, grad_dims, dtype=dtype, scale=scale)
+    per_bin = None if bases is None else [bases[nb] for nb in near.near]
+    return pack_points(
+        points, factors, part, hyper, grad_dims, dtype=dtype, scale=scale, bases=per_bin
+    )

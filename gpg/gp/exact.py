@@ -28,7 +28,14 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg._dtype import float64, in_model_dtype
 from gpg.gp import kernels, predictor
-from gpg.gp.gram import assemble_gram, assemble_rows_gram, check_training_data
+from gpg.gp.gram import (
+    assemble_gram,
+    assemble_rows_gram,
+    check_bases,
+    check_training_data,
+    from_bases,
+    to_bases,
+)
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor, plain
@@ -65,6 +72,12 @@ class ExactGP(Predictor):
         observed: None when every row was observed, else which rows were (R,) in the layout
             (:func:`gpg.gp.gram.observed_rows`: cases without some gradients). Files of format
             7 and 8 kept the unobserved rows in the factor, decoupled; they still load.
+        bases: None when the gradient rows are coordinate derivatives, else (N, G, G): row
+            ``g`` of case ``i`` observed the derivative along ``Σ_h bases[i, g, h] e_{d_h}``
+            (``d = grad_dims``; the paper's remark on derivatives in arbitrary directions,
+            :func:`gpg.gp.gram.row_directions`). ``alpha`` and ``mean`` are then over the
+            coordinate layout (:func:`gpg.gp.gram.from_bases`), the factor over the
+            directional rows.
     """
 
     X: Float[Array, "N D"]
@@ -77,6 +90,7 @@ class ExactGP(Predictor):
     grad_dims: tuple[int, ...] = eqx.field(static=True)
     order: Int[Array, " R"] | None = None
     observed: Bool[Array, " R"] | None = None
+    bases: Float[Array, "N G G"] | None = None
 
     @classmethod
     @float64
@@ -89,6 +103,7 @@ class ExactGP(Predictor):
         grad_dims: Sequence[int] | None = None,
         hyper: Hyper | None = None,
         observed: Bool[ArrayLike, "N G"] | None = None,
+        bases: Float[ArrayLike, "N G G"] | None = None,
     ) -> ExactGP:
         """Condition the GP on values ``Y`` and, optionally, gradients ``dY``.
 
@@ -100,6 +115,9 @@ class ExactGP(Predictor):
             hyper: kernel and noise hyperparameters (default ``Hyper()``).
             observed: (N, G) which gradients each case has (default: all); the others'
                 ``dY`` entries are never read (:func:`gpg.gp.gram.observed_rows`).
+            bases: (N, G, G) when ``dY[i, :, g]`` is the derivative along the direction
+                ``Σ_h bases[i, g, h] e_{grad_dims[h]}`` rather than along ``grad_dims[g]``
+                (converted data, :func:`gpg.data.convert.to_body`); default coordinates.
 
         Raises:
             ValueError: mismatched shapes, NaN/inf in an input, bad ``grad_dims`` or
@@ -107,6 +125,7 @@ class ExactGP(Predictor):
                 is not numerically positive definite.
         """
         data = check_training_data(X, Y, dY, grad_dims, observed)
+        bases = check_bases(bases, data.X.shape[0], data.grad_dims)
         hyper = (Hyper() if hyper is None else hyper).validate(data.X.shape[1], len(data.grad_dims))
         Xj = jnp.asarray(data.X)
         Ybar, rows = data.targets(), data.rows
@@ -118,11 +137,8 @@ class ExactGP(Predictor):
         # band while its rows are released: the peak stays near one copy (12.8 GB at 40000 rows).
         memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
         buf = memory.square_buffer(r)
-        if index is None:
-            gram = assemble_gram(Xj, hyper, data.grad_dims, out=buf.array)
-        else:
-            gram = assemble_rows_gram(data.X, index, hyper, data.grad_dims, out=buf.array)
-            Ybar = Ybar[index]
+        gram, sel = _gram(data, hyper, index, bases, buf.array)
+        Ybar = Ybar if sel is None else Ybar[sel]
         chol = dense.cholesky_inplace(gram)
         alpha = dense.cho_solve(chol, Ybar)
         m = Ybar.shape[1]
@@ -137,6 +153,8 @@ class ExactGP(Predictor):
         scale = output_scale(np.sum(Ybar * alpha, axis=0), r)
         if index is not None:  # α in the layout, 0 on the rows not observed
             alpha = _scatter(alpha, index, rows.size)
+        if bases is not None:  # the mean reads coordinate rows: k̄_dirᵀ α = k̄ᵀ (Pᵀ α)
+            alpha = from_bases(alpha, bases, data.X.shape[0])
         return cls(
             X=Xj,
             alpha=jnp.asarray(alpha),
@@ -150,6 +168,7 @@ class ExactGP(Predictor):
             grad_dims=data.grad_dims,
             order=None if index is None else jnp.asarray(index),
             observed=None if rows is None else jnp.asarray(rows),
+            bases=None if bases is None else jnp.asarray(bases),
         )
 
     @float64
@@ -185,6 +204,11 @@ class ExactGP(Predictor):
         """
         from gpg.gp.update import bordered
 
+        if self.bases is not None:
+            raise ValueError(
+                "this GP was fitted on directional gradient rows (bases); conditioning such a "
+                "model is not supported: refit it on all the cases with ExactGP.fit"
+            )
         return bordered(self, X, Y, dY, observed)
 
     @property
@@ -230,6 +254,8 @@ class ExactGP(Predictor):
         :class:`gpg.gp.predictor.Predictor`.
         """
         k = _cross(self, x[None])[0]
+        if self.bases is not None:
+            k = to_bases(k, self.bases, self.X.shape[0])
         v = self.chol_inv.matvec(k if self.order is None else k[self.order])
         # Rounding can push the difference a hair below zero on training points: predict clips.
         return self.mean(x), self.hyper.variance - v @ v
@@ -241,6 +267,16 @@ class ExactGP(Predictor):
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
         """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
         return in_model_dtype(self, lambda: _predict_gradient(self, jnp.asarray(Xq)), Xq)
+
+
+def _gram(data, hyper: Hyper, index, bases, out: np.ndarray):
+    """``K̄`` plus noise over the factor's rows, written into ``out``, and those rows of the
+    layout (None: all of them, in order): the observed ones (``index``), all of them along
+    their directions (``bases``), or the plain layout."""
+    if index is None and bases is None:
+        return assemble_gram(jnp.asarray(data.X), hyper, data.grad_dims, out=out), None
+    sel = np.arange(out.shape[0]) if index is None else index
+    return assemble_rows_gram(data.X, sel, hyper, data.grad_dims, out=out, bases=bases), sel
 
 
 def _scatter(a: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:

@@ -23,7 +23,7 @@ from gpg._deprecated import deprecated
 from gpg._dtype import float64
 from gpg.gp import slq
 from gpg.gp.cg import NotConverged
-from gpg.gp.gram import Checked, check_training_data, log_marginal_likelihood
+from gpg.gp.gram import Checked, check_bases, check_training_data, log_marginal_likelihood
 from gpg.gp.hyper import Hyper, gradient_noise
 from gpg.gp.pic import inducing_inputs
 
@@ -297,6 +297,7 @@ def fit_hyperparameters(
     likelihood: str = "dense",
     stochastic: Stochastic | None = None,
     observed: Bool[ArrayLike, "N G"] | None = None,
+    bases: Float[ArrayLike, "N G G"] | None = None,
     **renamed: Any,
 ) -> HyperFitResult:
     """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
@@ -317,7 +318,9 @@ def fit_hyperparameters(
     ``"stochastic"`` never forms it (:mod:`gpg.gp.slq`: CG solves and stochastic Lanczos
     quadrature with fixed probes, options in ``stochastic``), so ``subset_size=None`` fits on
     all points at any N; it shows a progress bar per step. ``observed`` (N, G) marks the
-    gradients a case has (:func:`gpg.gp.gram.observed_rows`; dense likelihood only). The keywords
+    gradients a case has (:func:`gpg.gp.gram.observed_rows`; dense likelihood only), ``bases``
+    (N, G, G) the directions of their gradient rows (:func:`gpg.gp.gram.row_directions`;
+    likewise dense only). The keywords
     ``fit_jitter``, ``jitter_floor`` and ``jitter_init`` of earlier releases are read as the
     ``noise`` ones with a ``DeprecationWarning``.
     """
@@ -335,12 +338,16 @@ def fit_hyperparameters(
     data = check_training_data(X, Y, dY, grad_dims, observed)
     if data.observed is not None and likelihood != "dense":
         raise ValueError("observed (cases without some gradients) needs likelihood='dense'")
+    bases = check_bases(bases, data.X.shape[0], data.grad_dims)
+    if bases is not None and likelihood != "dense":
+        raise ValueError("bases (directional gradient rows) needs likelihood='dense'")
     init = _checked_init(data, init, ard, fit_grad_noise, subset_size)
     subset = _subset(data.X.shape[0], subset_size, seed)
     Xs = jnp.asarray(data.X[subset])
     pick = (None if a is None else a[subset] for a in (data.dY, data.observed))
     sub = Checked(data.X[subset], data.Y[subset], next(pick), data.grad_dims, next(pick))
     rows = sub.rows
+    sub_bases = None if bases is None else bases[subset]
     Ybar = jnp.asarray(sub.targets())
     scale = float(Ybar.size if rows is None else rows.sum() * Ybar.shape[1])
     params, grad_var = _initial_params(
@@ -350,7 +357,7 @@ def fit_hyperparameters(
     def loss(p, args):
         h = _unpack(p, init, grad_var, noise_floor)
         if likelihood == "dense":
-            lml = log_marginal_likelihood(Xs, Ybar, h, data.grad_dims, rows)
+            lml = log_marginal_likelihood(Xs, Ybar, h, data.grad_dims, rows, sub_bases)
         else:
             lml = _stochastic_lml(Xs, Ybar, h, data.grad_dims, args, opts)
         nll = -lml / scale

@@ -114,17 +114,22 @@ def assemble_gram(
     *,
     out: np.ndarray | None = None,
     chunk_rows: int = 256,
+    bases: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``K̄(X, X)`` plus its noise diagonal, written into a C-ordered NumPy buffer.
+    """``K̄(X, X)`` plus its noise diagonal, written into a C-ordered NumPy buffer (over
+    directional gradient rows with ``bases``, :func:`assemble_rows_gram`).
 
     Built in blocks of about ``chunk_rows`` rows so that the only full-size allocation is the
     result (``out`` if given), ready for :func:`gpg.linalg.dense.cholesky_inplace`. Small blocks
     stay in cache: 256 rows assembled the 8000-row K̄ fastest on the development machine.
     """
-    X = jnp.asarray(X)
-    n = X.shape[0]
+    n = np.asarray(X).shape[0]
     g = len(grad_dims)
     r = n * (1 + g)
+    if bases is not None:
+        return assemble_rows_gram(np.asarray(X), np.arange(r), hyper, grad_dims, out=out,
+                                  bases=bases)  # fmt: skip
+    X = jnp.asarray(X)
     if out is None:
         out = np.empty((r, r))
     elif out.shape != (r, r):
@@ -153,6 +158,66 @@ def row_kinds(
     return index % n, deriv
 
 
+def check_bases(
+    bases: Float[ArrayLike, "N G G"] | None, n: int, grad_dims: tuple[int, ...]
+) -> np.ndarray | None:
+    """``bases`` as a float (N, G, G) array, or None; ``ValueError`` naming it otherwise."""
+    if bases is None:
+        return None
+    g = len(grad_dims)
+    if not g:
+        raise ValueError("bases given but the data has no gradient rows")
+    bases = _checks.as_float_array("bases", bases, ndim=3)
+    if bases.shape != (n, g, g):
+        raise ValueError(f"bases must have shape (N, G, G) = ({n}, {g}, {g}), got {bases.shape}")
+    _checks.require_finite("bases", bases)
+    return bases
+
+
+def row_directions(
+    index: Int[np.ndarray, " r"],
+    n: int,
+    grad_dims: tuple[int, ...],
+    bases: Float[np.ndarray, "N G G"] | None,
+    d: int,
+) -> tuple[Int[np.ndarray, " r"], Float[np.ndarray, "r D"], Bool[np.ndarray, " r"]]:
+    """For rows ``index`` of the layout of ``n`` points: each row's point, its direction in
+    the ``d`` inputs (zero on a value row) and whether it is a value row, as
+    :func:`kernels.direction_gram` reads them. Gradient row ``g`` of case ``i`` observes the
+    derivative along ``Σ_h bases[i, g, h] e_{grad_dims[h]}`` (one-hot without ``bases``)."""
+    index = np.asarray(index, dtype=np.int64)
+    p, blk = index % n, index // n
+    value = blk == 0
+    g = np.where(value, 0, blk - 1)
+    E = np.zeros((index.size, d))
+    dims = np.asarray(grad_dims, dtype=np.int64)
+    if bases is None:
+        E[np.flatnonzero(~value), dims[g[~value]]] = 1.0
+    elif dims.size:
+        E[:, dims] = np.asarray(bases)[p, g, :]
+        E[value] = 0.0
+    return p, E, value
+
+
+def to_bases(k: Float[Array, "*Q R"], bases: Float[Array, "N G G"], n: int) -> Float[Array, "*Q R"]:
+    """Kernel rows in the coordinate layout (values, then one block per gradient dim) turned
+    into the rows a case with gradient ``bases`` observes: ``B_i ∂k`` per case (JAX)."""
+    g = bases.shape[1]
+    lead = k.shape[:-1]
+    grads = k[..., n:].reshape(*lead, g, n)
+    turned = jnp.einsum("igh,...hi->...gi", bases.astype(k.dtype), grads)
+    return jnp.concatenate([k[..., :n], turned.reshape(*lead, g * n)], axis=-1)
+
+
+def from_bases(alpha: Float[np.ndarray, "R M"], bases: np.ndarray, n: int) -> np.ndarray:
+    """Coefficients over directional rows (0 on rows not observed) as coefficients over the
+    coordinate layout, ``Σ_g B_i[g, h] α_{g,i}``: what the folded mean and the exports read,
+    so that ``k̄_coordᵀ α_coord = k̄_dirᵀ α``."""
+    g = bases.shape[1]
+    grads = np.einsum("igh,gim->him", bases, alpha[n:].reshape(g, n, -1))
+    return np.concatenate([alpha[:n], grads.reshape(g * n, -1)])
+
+
 def rows_gram(
     X1: Float[np.ndarray, "N1 D"],
     index1: Int[np.ndarray, " r1"],
@@ -163,12 +228,19 @@ def rows_gram(
     *,
     out: np.ndarray | None = None,
     chunk: int = 2048,
+    bases1: np.ndarray | None = None,
+    bases2: np.ndarray | None = None,
 ) -> np.ndarray:
     """``K̄(X1, X2)`` (no noise) restricted to the layout rows ``index1`` of ``X1`` and columns
     ``index2`` of ``X2``, on the host, without forming the rest: how a model whose cases lack
     some gradients keeps only the rows it observed (a values-only case costs one row, not
     ``1 + G``). Built ``chunk`` rows at a time, the last chunk padded, so that a model that
-    grows reuses one compiled program per width."""
+    grows reuses one compiled program per width. ``bases1``/``bases2`` (N, G, G): cases whose
+    gradient rows are derivatives along other directions (:func:`row_directions`)."""
+    if bases1 is not None or bases2 is not None:
+        return _direction_rows_gram(
+            X1, index1, X2, index2, hyper, grad_dims, out, chunk, bases1, bases2
+        )
     p1, a1 = row_kinds(index1, X1.shape[0], grad_dims)
     p2, a2 = row_kinds(index2, X2.shape[0], grad_dims)
     r1 = p1.shape[0]
@@ -188,6 +260,26 @@ def rows_gram(
     return out
 
 
+def _direction_rows_gram(X1, index1, X2, index2, hyper, grad_dims, out, chunk, bases1, bases2):
+    d = np.asarray(X1).shape[1]
+    p1, E1, v1 = row_directions(index1, np.asarray(X1).shape[0], grad_dims, bases1, d)
+    p2, E2, v2 = row_directions(index2, np.asarray(X2).shape[0], grad_dims, bases2, d)
+    r1 = p1.shape[0]
+    if out is None:
+        out = np.empty((r1, p2.shape[0]))
+    step = min(chunk, max(r1, 1))
+    right = (jnp.asarray(np.asarray(X2)[p2]), jnp.asarray(E2), jnp.asarray(v2))
+    for start in range(0, r1, step):
+        stop = min(start + step, r1)
+        sel = np.arange(start, start + step).clip(max=r1 - 1)  # padded with the last row
+        block = kernels.direction_gram(
+            jnp.asarray(np.asarray(X1)[p1[sel]]), jnp.asarray(E1[sel]), jnp.asarray(v1[sel]),
+            *right, hyper.variance, hyper.lengthscale,
+        )  # fmt: skip
+        out[start:stop] = np.asarray(block)[: stop - start]
+    return out
+
+
 def assemble_rows_gram(
     X: Float[np.ndarray, "N D"],
     index: Int[np.ndarray, " r"],
@@ -195,10 +287,15 @@ def assemble_rows_gram(
     grad_dims: tuple[int, ...],
     *,
     out: np.ndarray | None = None,
+    bases: np.ndarray | None = None,
 ) -> np.ndarray:
     """``K̄`` plus its noise diagonal over the layout rows ``index`` only (the observed rows of
-    cases that lack some gradients, :func:`observed_rows`): :func:`assemble_gram` for them."""
-    out = rows_gram(X, index, X, index, hyper, grad_dims, out=out, chunk=256)
+    cases that lack some gradients, :func:`observed_rows`): :func:`assemble_gram` for them.
+    ``bases`` (N, G, G): the cases' gradient rows are along those directions
+    (:func:`row_directions`); row ``g`` keeps the noise ``λ_g²`` of gradient dim ``g``."""
+    out = rows_gram(
+        X, index, X, index, hyper, grad_dims, out=out, chunk=256, bases1=bases, bases2=bases
+    )
     n, g = np.asarray(X).shape[0], len(grad_dims)
     out.flat[:: out.shape[0] + 1] += np.asarray(hyper.noise_diagonal(n, g))[np.asarray(index)]
     return out
@@ -267,14 +364,25 @@ def log_marginal_likelihood(
     hyper: Hyper,
     grad_dims: tuple[int, ...] = (),
     rows: Bool[ArrayLike, " R"] | None = None,
+    bases: Float[ArrayLike, "N G G"] | None = None,
 ) -> Float[Array, ""]:
     """``Σ_m log N(Ȳ_m | 0, K̄)``: pure JAX, differentiable in ``hyper`` (small N only).
 
     ``Ybar`` is the stacked target of :func:`stack_targets` (0 on unobserved rows); ``rows``
     the observed rows (:func:`observed_rows`, a host array), which alone are formed and count:
-    a values-only case adds one row to the factorisation, not ``1 + G``.
+    a values-only case adds one row to the factorisation, not ``1 + G``. ``bases`` (N, G, G):
+    directional gradient rows (:func:`row_directions`).
     """
-    if rows is None:
+    if bases is not None:
+        n, g = X.shape[0], len(grad_dims)
+        index = np.arange(n * (1 + g)) if rows is None else np.flatnonzero(np.asarray(rows))
+        p, E, v = row_directions(index, n, grad_dims, np.asarray(bases), X.shape[1])
+        Xr = jnp.asarray(X)[p]
+        E, v = jnp.asarray(E, dtype=Xr.dtype), jnp.asarray(v)
+        K = kernels.direction_gram(Xr, E, v, Xr, E, v, hyper.variance, hyper.lengthscale)
+        K = K + jnp.diag(hyper.noise_diagonal(n, g)[index])
+        Ybar = Ybar[index]
+    elif rows is None:
         K = noisy_gram(X, hyper, grad_dims)
     else:
         index = np.flatnonzero(np.asarray(rows))

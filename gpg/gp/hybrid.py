@@ -16,13 +16,15 @@ from gpg.gp.predictor import Predictor
 
 class Record(eqx.Module):
     """The training data a hybrid was built on, normalised: inputs ``X`` (N, D), stacked
-    targets ``Ybar`` (R, M) in the layout of :mod:`gpg.gp.kernels`, the hyperparameters, and
-    which rows were observed (R,) or None for all."""
+    targets ``Ybar`` (R, M) in the layout of :mod:`gpg.gp.kernels`, the hyperparameters,
+    which rows were observed (R,) or None for all, and the gradient rows' directions."""
 
     X: Float[Array, "N D"]
     Ybar: Float[Array, "R M"]
     hyper: Hyper
     rows: Bool[Array, " R"] | None = None
+    # (N, G, G): the directions of the gradient rows (gpg.gp.gram.row_directions), or None
+    bases: Float[Array, "N G G"] | None = None
 
 
 class HybridGP(Predictor):

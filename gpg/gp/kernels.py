@@ -26,7 +26,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 
 class KernelBlocks(NamedTuple):
@@ -219,6 +219,39 @@ def row_gram(
     s2 = jnp.where(g2[None, :], (X1[:, i2] - own2) * inv2[i2][None, :], 1.0)
     same = (g1[:, None] & g2[None, :]) & (i1[:, None] == i2[None, :])
     return K * (s1 * s2 + jnp.where(same, inv2[i1][:, None], 0.0))
+
+
+@jax.jit
+def direction_gram(
+    X1: Float[Array, "R1 D"],
+    E1: Float[Array, "R1 D"],
+    v1: Bool[Array, " R1"],
+    X2: Float[Array, "R2 D"],
+    E2: Float[Array, "R2 D"],
+    v2: Bool[Array, " R2"],
+    variance: Float[ArrayLike, ""],
+    lengthscale: Float[ArrayLike, "*L"],
+) -> Float[Array, "R1 R2"]:
+    """Covariance of rows that observe ``f`` (``v1[i]``) or its derivative along a direction
+    ``E1[i]`` (D,) at ``X1[i]`` (likewise ``X2, E2, v2``): the paper's remark on derivatives
+    in arbitrary directions. The blocks of Eq. (kernel_gradient) are linear in the directions,
+    so with ``u = (x1 − x2) / l²``: ``cov(D_e f, f) = −(e·u) k``, ``cov(f, D_f f) = (f·u) k``
+    and ``cov(D_e f, D_f f) = (Σ_d e_d f_d / l_d² − (e·u)(f·u)) k``, i.e.
+    ``k (a1 a2 + [both derivatives] e·f/l²)`` with ``a1 = −e·u`` (1 for a value) and
+    ``a2 = f·u`` (1). One-hot directions give :func:`row_gram`.
+    """
+    d = X1.shape[1]
+    ls = jnp.broadcast_to(jnp.asarray(lengthscale, dtype=X1.dtype), (d,))
+    inv2 = 1.0 / ls**2
+    K = rbf_matrix(X1 / ls, X2 / ls, variance)
+    W1, W2 = E1 * inv2, E2 * inv2
+    # e·u for every pair from two products: e·(x1 − x2)/l² = (e/l²)·x1 − (e/l²)·x2.
+    eu = jnp.sum(W1 * X1, 1)[:, None] - W1 @ X2.T
+    fu = X1 @ W2.T - jnp.sum(W2 * X2, 1)[None, :]
+    a1 = jnp.where(v1[:, None], 1.0, -eu)
+    a2 = jnp.where(v2[None, :], 1.0, fu)
+    both = (~v1)[:, None] & (~v2)[None, :]
+    return K * (a1 * a2 + jnp.where(both, W1 @ E2.T, 0.0))
 
 
 def rbf_matrix(A: Array, B: Array, variance) -> Array:

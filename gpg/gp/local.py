@@ -42,6 +42,7 @@ def precompute(
     devices=None,
     rows: np.ndarray | None = None,
     bins: Sequence[int] | None = None,
+    bases: np.ndarray | None = None,
 ) -> list[BinFactors]:
     """Per-bin coefficients and factors of the local GPs over ``near.near``.
 
@@ -49,21 +50,28 @@ def precompute(
     layout of :mod:`gpg.gp.kernels`; ``devices`` (a mesh, a device count or list,
     :mod:`gpg.parallel`) spreads the bins over JAX devices, None keeps the host path.
     ``rows`` (R,) marks the observed rows (:func:`gpg.gp.gram.observed_rows`; host path
-    only); ``bins`` restricts the work to those bins (the others are not returned).
+    only); ``bins`` restricts the work to those bins (the others are not returned);
+    ``bases`` (N, G, G) the directions of the gradient rows (host path only,
+    :func:`gpg.gp.gram.row_directions`).
     """
     dims = tuple(grad_dims)
     chosen = near.near if bins is None else [near.near[b] for b in bins]
     if devices is not None:
-        if rows is not None:
-            raise ValueError("cases without some gradients are built on the host: devices=None")
+        if rows is not None or bases is not None:
+            raise ValueError(
+                "cases without some gradients, or with directional ones, are built on the "
+                "host: devices=None"
+            )
         return _sharded(X, Ybar, hyper, dims, chosen, parallel.devices(devices))
     n, g = X.shape[0], len(dims)
-    return [_host(X, Ybar, hyper, dims, nb, near_rows(nb, n, g), rows) for nb in chosen]
+    return [_host(X, Ybar, hyper, dims, nb, near_rows(nb, n, g), rows, bases) for nb in chosen]
 
 
-def _host(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray, rows=None) -> BinFactors:
+def _host(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray, rows=None, bases=None):
     seen = None if rows is None else rows[r]
-    gram = mask_gram_inplace(assemble_gram(jnp.asarray(X[nb]), hyper, dims), seen)
+    Xb = np.asarray(X[nb]) if bases is not None else jnp.asarray(X[nb])
+    sub = None if bases is None else bases[nb]
+    gram = mask_gram_inplace(assemble_gram(Xb, hyper, dims, bases=sub), seen)
     L = dense.cholesky_inplace(gram, what="K̄_nn")
     coef = dense.cho_solve(L, Ybar[r])
     inv = dense.triangular_inverse_inplace(L)

@@ -41,6 +41,9 @@ class Arrays:
     observed: np.ndarray | None = None
     # Bins to keep (a rebuild that must match a conditioned model); None: built from the config
     partition: partition.Partition | None = None
+    # (N, G, G): the directions of each case's gradient rows (gpg.gp.gram.row_directions);
+    # None for derivatives along the coordinates dims
+    bases: np.ndarray | None = None
 
     @property
     def n_grad(self) -> int:
@@ -95,6 +98,8 @@ class Kind(abc.ABC):
     predictor: ClassVar[type[Predictor] | None] = None
     # Trains on cases that carry only some gradient dims (Arrays.observed)
     partial_gradients: ClassVar[bool] = False
+    # Trains on gradient rows along other directions than the inputs' (Arrays.bases)
+    directional_gradients: ClassVar[bool] = False
 
     def condition(self, model: Predictor, new: Arrays, cfg: ModelConfig) -> Predictor:
         """``model`` conditioned on the cases ``new`` with its hyperparameters kept, equal to
@@ -133,6 +138,15 @@ class Kind(abc.ABC):
                 f"model {model!r}: partition.bins={cfg.partition.n_bins(n_points)} exceeds the "
                 f"{n_points} training points"
             )
+
+
+def refuse_directional(new: Arrays) -> None:
+    """Conditioning takes new cases with gradients along the inputs only."""
+    if new.bases is not None:
+        raise ValueError(
+            "the new cases' gradients are along other directions than the inputs (grad_dirs, "
+            "converted data): conditioning on them is not supported; refit on all the cases"
+        )
 
 
 def build_partition(

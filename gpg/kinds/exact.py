@@ -10,7 +10,7 @@ import numpy as np
 from gpg.config import ModelConfig
 from gpg.gp.exact import ExactGP
 from gpg.gp.hyper import Hyper
-from gpg.kinds.base import Arrays, Cases, Kind, Product, gram_bytes
+from gpg.kinds.base import Arrays, Cases, Kind, Product, gram_bytes, refuse_directional
 
 
 @dataclass(frozen=True)
@@ -22,17 +22,20 @@ class Exact(Kind):
     partitioned = False
     needs_gram = True
     partial_gradients = True
+    directional_gradients = True
 
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
         t0 = time.perf_counter()
         dims = arrays.dims if arrays.dY is not None else None
         model = ExactGP.fit(
-            arrays.X, arrays.Y, arrays.dY, grad_dims=dims, hyper=hyper, observed=arrays.observed
-        )
+            arrays.X, arrays.Y, arrays.dY, grad_dims=dims, hyper=hyper, observed=arrays.observed,
+            bases=arrays.bases,
+        )  # fmt: skip
         return Product(model, timings={"fit_s": time.perf_counter() - t0})
 
     def condition(self, model: ExactGP, new: Arrays, cfg: ModelConfig) -> ExactGP:
         """The bordered Cholesky update (:meth:`gpg.gp.exact.ExactGP.condition`)."""
+        refuse_directional(new)
         return model.condition(new.X, new.Y, new.dY, observed=new.observed)
 
     def cases(self, model: ExactGP) -> Cases:

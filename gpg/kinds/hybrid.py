@@ -13,13 +13,22 @@ from gpg.config import ModelConfig
 from gpg.gp import cg, local, partition, pic
 from gpg.gp.binned import BinFactors, near_rows, pack
 from gpg.gp.exact import ExactGP
-from gpg.gp.gram import assemble_gram, mask_gram_inplace
+from gpg.gp.gram import assemble_gram, from_bases, mask_gram_inplace
 from gpg.gp.hybrid import HybridGP, Record
 from gpg.gp.hyper import Hyper
 from gpg.gp.matfree import gram_matvec, gram_matvec_devices
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.update import _grown_rows, layout_index
-from gpg.kinds.base import Arrays, Cases, Kind, Product, bins_and_near, gram_bytes, near_set_bytes
+from gpg.kinds.base import (
+    Arrays,
+    Cases,
+    Kind,
+    Product,
+    bins_and_near,
+    gram_bytes,
+    near_set_bytes,
+    refuse_directional,
+)
 from gpg.linalg import dense, memory
 
 
@@ -33,16 +42,21 @@ class Hybrid(Kind):
     partitioned = True
     needs_gram = True  # by default; solver.method cg trains without K̄
     partial_gradients = True
+    directional_gradients = True
 
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
         part, near, Ybar, timings = bins_and_near(arrays, hyper, cfg)
         t0 = time.perf_counter()
-        rows = arrays.rows
-        alpha, diagnostics = global_alpha(arrays.X, Ybar, rows, hyper, arrays.dims, cfg, devices)
-        factors = local.precompute(
-            arrays.X, Ybar, hyper, arrays.dims, near, devices=devices, rows=rows
+        rows, bases = arrays.rows, arrays.bases
+        alpha, diagnostics = global_alpha(
+            arrays.X, Ybar, rows, hyper, arrays.dims, cfg, devices, bases
         )
-        model = _assemble(arrays.X, Ybar, rows, alpha, factors, near, part, hyper, arrays.dims, cfg)
+        factors = local.precompute(
+            arrays.X, Ybar, hyper, arrays.dims, near, devices=devices, rows=rows, bases=bases
+        )
+        model = _assemble(
+            arrays.X, Ybar, rows, alpha, factors, near, part, hyper, arrays.dims, cfg, bases
+        )
         timings["fit_s"] = time.perf_counter() - t0
         return Product(model, near, diagnostics, timings)
 
@@ -52,6 +66,12 @@ class Hybrid(Kind):
         whose near set changed factorised again (the others' factors are reused as stored).
         Equal to a rebuild with the same hyperparameters and partition."""
         rec = _record(model)
+        refuse_directional(new)
+        if rec.bases is not None:
+            raise ValueError(
+                "this hybrid was fitted on directional gradient rows (converted data); "
+                "conditioning such a model is not supported: refit it on all the cases"
+            )
         local_gp, dims, hyper = model.local, model.local.grad_dims, rec.hyper
         X_old, n_old = np.asarray(rec.X), rec.X.shape[0]
         X = np.concatenate([X_old, new.X])
@@ -85,8 +105,9 @@ class Hybrid(Kind):
         n, g = X.shape[0], len(dims)
         dY = Ybar[n:].reshape(g, n, -1).transpose(1, 2, 0) if g else None
         obs = None if rec.rows is None else np.asarray(rec.rows)[n:].reshape(g, n).T
+        bases = None if rec.bases is None else np.asarray(rec.bases)
         return ExactGP.fit(X, Ybar[:n], dY, grad_dims=dims or None, hyper=rec.hyper,
-                           observed=obs)  # fmt: skip
+                           observed=obs, bases=bases)  # fmt: skip
 
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
         if solver_method(cfg, n_points, n_grad) == "cg":
@@ -105,15 +126,23 @@ def _record(model: HybridGP) -> Record:
     return model.record
 
 
-def _assemble(X, Ybar, rows, alpha, factors, near, part, hyper, dims, cfg) -> HybridGP:
+def _assemble(X, Ybar, rows, alpha, factors, near, part, hyper, dims, cfg, bases=None):
     n_obs = Ybar.shape[0] if rows is None else int(rows.sum())
     scale = output_scale(np.sum(Ybar * alpha, axis=0), n_obs)
+    # The mean reads coordinate rows; α is over the directional ones (gpg.gp.gram.from_bases).
+    coord = alpha if bases is None else from_bases(alpha, bases, X.shape[0])
     return HybridGP(
-        mean=GlobalMean.from_alpha(X, alpha, hyper.variance, hyper.lengthscale, dims),
-        local=pack(X, factors, near, part, hyper, dims, dtype=cfg.variance_dtype, scale=scale),
+        mean=GlobalMean.from_alpha(X, coord, hyper.variance, hyper.lengthscale, dims),
+        local=pack(
+            X, factors, near, part, hyper, dims, dtype=cfg.variance_dtype, scale=scale, bases=bases
+        ),  # fmt: skip
         record=Record(
-            jnp.asarray(X), jnp.asarray(Ybar), hyper, None if rows is None else jnp.asarray(rows)
-        ),
+            jnp.asarray(X),
+            jnp.asarray(Ybar),
+            hyper,
+            None if rows is None else jnp.asarray(rows),
+            None if bases is None else jnp.asarray(bases),
+        ),  # fmt: skip
     )
 
 
@@ -126,16 +155,18 @@ def _stored_factors(gp, b: int, g: int) -> BinFactors:
     return BinFactors(coef, dense_f, True)
 
 
-def global_alpha(X, Ybar, rows, hyper, dims, cfg, devices) -> tuple[np.ndarray, dict]:
-    """The global ``α = K̄⁻¹ Ȳ`` by the configured solver, and its diagnostics."""
+def global_alpha(X, Ybar, rows, hyper, dims, cfg, devices, bases=None) -> tuple[np.ndarray, dict]:
+    """The global ``α = K̄⁻¹ Ȳ`` by the configured solver, and its diagnostics (over the
+    directional rows with ``bases``)."""
     if solver_method(cfg, X.shape[0], len(dims)) == "cg":
-        if rows is not None:
+        if rows is not None or bases is not None:
             raise ValueError(
-                "solver.method=cg needs every gradient at every case; with cases that lack "
-                "some, use solver.method=cholesky"
+                "solver.method=cg needs every gradient at every case along the inputs; with "
+                "cases that lack some, or converted (directional) gradients, use "
+                "solver.method=cholesky"
             )
         return cg_alpha(X, Ybar, hyper, dims, cfg.solver, devices)
-    return exact_alpha(X, Ybar, hyper, dims, rows), {}
+    return exact_alpha(X, Ybar, hyper, dims, rows, bases), {}
 
 
 def solver_method(cfg: ModelConfig, n_points: int, n_grad: int) -> str:
@@ -191,14 +222,15 @@ def cg_alpha(
 
 
 def exact_alpha(
-    X: np.ndarray, Ybar: np.ndarray, hyper: Hyper, dims: tuple[int, ...], rows=None
+    X: np.ndarray, Ybar: np.ndarray, hyper: Hyper, dims: tuple[int, ...], rows=None, bases=None
 ) -> np.ndarray:
     """``α = K̄⁻¹ Ȳ`` by one in-place Cholesky factorisation of ``K̄`` (no inverse kept);
-    ``rows`` the observed rows (:func:`gpg.gp.gram.observed_rows`)."""
+    ``rows`` the observed rows (:func:`gpg.gp.gram.observed_rows`), ``bases`` the directions
+    of the gradient rows (:func:`gpg.gp.gram.row_directions`)."""
     r = Ybar.shape[0]
     memory.require(f"the global α over {r} rows", int(r * r * 8 * 1.1))
     buf = memory.square_buffer(r)
-    gram = assemble_gram(jnp.asarray(X), hyper, dims, out=buf.array)
+    gram = assemble_gram(np.asarray(X), hyper, dims, out=buf.array, bases=bases)
     chol = dense.cholesky_inplace(mask_gram_inplace(gram, rows))
     alpha = dense.cho_solve(chol, Ybar)
     del chol, buf

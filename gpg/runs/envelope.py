@@ -1,10 +1,13 @@
 """The whole flight envelope: the body-frame formulation against the paper's airflow frame
 (``python -m experiments.envelope``).
 
-Three training sets of the same number of simulator runs (8 a case: the base point and 7
-forward differences): the paper's (``airflow_data``, airflow-frame inputs), **the same cases in
-the body frame** (``x_B = (rpm, R(θ)ᵀ V e_x)``, differences along ``u, v, w`` instead of the
-angles) and the whole envelope (``data``, :mod:`gpg.data.sampling`'s body-frame ball). Each
+Five training sets of the same number of simulator runs (8 a case: the base point and 7
+forward differences), chosen by ``trainings``: the paper's (``airflow_data``, airflow-frame
+inputs), **the same cases in the body frame** (``x_B = (rpm, R(θ)ᵀ V e_x)``, differences along
+``u, v, w`` instead of the angles), **the paper's data converted** (no new runs:
+:func:`gpg.data.convert.to_body`, its angle gradients as derivatives along two directions of
+``u, v, w``; ``converted_no_angles`` drops them, to show what they add) and the whole
+envelope (``data``, :mod:`gpg.data.sampling`'s body-frame ball). Each
 model of ``models`` is fitted on each, and every surrogate is asked through
 :meth:`gpg.Surrogate.predict_batch` (world-frame states, so both formulations answer the same
 question) at two test sets: the paper's box (the airflow test set) and the envelope (the body
@@ -34,7 +37,7 @@ import numpy as np
 from gpg._dtype import float64
 from gpg.data.bounds import Bounds
 from gpg.data.cache import build_generator, ensure_datasets
-from gpg.data.convert import body_inputs, body_meta
+from gpg.data.convert import body_inputs, body_meta, to_body
 from gpg.data.dataset import Dataset
 from gpg.data.sampling import FDSteps, fd_meta, forward_differences, raw_samples
 from gpg.quadrotor.frames import R_WB
@@ -49,6 +52,9 @@ from gpg.runs.common import (
     write_json,
 )
 
+# The training sets, in order (see the module docstring)
+TRAININGS = ("airflow", "same_cases", "converted", "converted_no_angles", "envelope")
+STEPS = ("accuracy", "jump", "env", "symmetry")  # what a run measures (accuracy: always)
 OPTIONS = {
     "cache_dir": "path",
     "airflow_data": "path",
@@ -256,6 +262,14 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
             f"airflow_data must be an airflow-frame data config, got {cfg['airflow_data']!r}"
         )
     progress = bool(cfg.get("progress", True))
+    chosen, steps = list(cfg["trainings"]), list(cfg["steps"])
+    if set(chosen) - set(TRAININGS) or set(steps) - set(STEPS):
+        raise ValueError(
+            f"trainings must be among {list(TRAININGS)} and steps among {list(STEPS)}, got "
+            f"{chosen} and {steps}"
+        )
+    if {"jump", "env"} & set(steps) and not {"airflow", "envelope"} <= set(chosen):
+        raise ValueError("steps jump and env compare trainings airflow and envelope: keep both")
     vehicle = Vehicle.from_config(cfg["vehicle"])
     air_train, air_test, _, _ = ensure_datasets(
         air_cfg, cfg["vehicle"], cfg["cache_dir"], progress=progress
@@ -271,13 +285,26 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         }
     )
     t0 = time.perf_counter()
-    same_body = same_cases_in_body_frame(gen, air_train, fd, progress=progress)
+    same_body = None
+    if "same_cases" in chosen:
+        same_body = same_cases_in_body_frame(gen, air_train, fd, progress=progress)
     gen_s = time.perf_counter() - t0
-    trainings = {
-        "airflow (paper box)": air_train,
-        "body (same cases)": same_body,
-        "body (envelope)": env_train,
+    sets = {
+        "airflow": ("airflow (paper box)", lambda: air_train),
+        "same_cases": ("body (same cases)", lambda: same_body),
+        "converted": ("body (paper data converted)", lambda: to_body(air_train)),
+        "converted_no_angles": (
+            "body (converted, angle gradients dropped)",
+            lambda: to_body(air_train, angle_gradients=False),
+        ),
+        "envelope": ("body (envelope)", lambda: env_train),
     }
+    trainings = {sets[k][0]: sets[k][1]() for k in TRAININGS if k in chosen}
+    # The converted cases keep the runs behind them: 8 a case, 3 angle runs giving 2 rows.
+    runs = {name: train.runs for name, train in trainings.items()}
+    for key in ("converted", "converted_no_angles"):
+        if key in chosen:
+            runs[sets[key][0]] = air_train.runs
     tests = {"paper box": air_test, "envelope": env_test}
     rows, surrogates = [], {}
     for model in cfg["models"]:
@@ -292,7 +319,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
                     {
                         "model": model,
                         "training": tname,
-                        "runs": train.runs,
+                        "runs": runs[tname],
                         "test": test_name,
                         "fit_s": fit_s,
                         **e,
@@ -303,23 +330,28 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
                     f"Mx {e['Mx_mae']:.5f} N*m, in domain {100 * e['in_domain']:.1f} %"
                 )
     jcfg = cfg["jump"]
-    states, group = jump_states(
-        int(jcfg["n_states"]),
-        int(jcfg["seed"]),
-        float(Bounds.from_config(cfg["data"]["bounds"]).airspeed[1]),
-    )
-    truth = generator_changes(gen, states, float(jcfg["step"]))
     ecfg = cfg["env"]
     jumps, envs = {}, {}
+    if "jump" in steps:
+        states, group = jump_states(
+            int(jcfg["n_states"]),
+            int(jcfg["seed"]),
+            float(Bounds.from_config(cfg["data"]["bounds"]).airspeed[1]),
+        )
+        truth = generator_changes(gen, states, float(jcfg["step"]))
     for tname in ("airflow (paper box)", "body (envelope)"):
-        sur = surrogates[(ecfg["model"], tname)]
-        jumps[tname] = jump(sur, states, group, float(jcfg["step"]), truth)
-        report(f"jump {tname}: {jumps[tname]}")
-        envs[tname] = env_in_domain(sur, vehicle, ecfg)
-        for r in envs[tname]:
-            share = 100 * r["in_domain"]
-            report(f"env {tname} {r['task']} wind {r['wind_max']:g}: in domain {share:.1f} %")
-    sym = symmetry_rows(cfg["symmetry"], env_train, env_test, vehicle)
+        if "jump" in steps:
+            sur = surrogates[(ecfg["model"], tname)]
+            jumps[tname] = jump(sur, states, group, float(jcfg["step"]), truth)
+            report(f"jump {tname}: {jumps[tname]}")
+        if "env" in steps:
+            envs[tname] = env_in_domain(surrogates[(ecfg["model"], tname)], vehicle, ecfg)
+            for r in envs[tname]:
+                share = 100 * r["in_domain"]
+                report(f"env {tname} {r['task']} wind {r['wind_max']:g}: in domain {share:.1f} %")
+    sym = None
+    if "symmetry" in steps:
+        sym = symmetry_rows(cfg["symmetry"], env_train, env_test, vehicle)
     vrs = {
         name: float(np.mean(vortex_ring_state(vehicle, ds.x, ds.y_aero[:, :3])))
         for name, ds in (("train", env_train), ("test", env_test))

@@ -77,3 +77,18 @@ def test_augment_and_what_has_no_mirror_symmetry(vehicle):
 
     with pytest.raises(ValueError, match="body-frame data"):
         mirror(synthetic_dataset(4, raw=False)[0], vehicle, "x")
+
+
+def test_mirrored_directional_gradients_turn_their_directions(vehicle):
+    """Derivatives along per-case directions (converted data's ``grad_dirs``) mirror to
+    derivatives along the mirrored directions: written back in coordinates they are the
+    coordinate data's mirror."""
+    ds, _ = synthetic_body_dataset(5, seed=2)
+    ds = ds.without("noise")
+    Q = np.linalg.qr(np.random.default_rng(0).normal(size=(ds.n, 7, 7)))[0]
+    turned = dataclasses.replace(ds, jac_aero=np.einsum("nmh,ngh->nmg", ds.jac_aero, Q),
+                                 grad_dirs=Q)  # fmt: skip
+    for axis in ("x", "y"):
+        a, b = mirror(ds, vehicle, axis), mirror(turned, vehicle, axis)
+        coord = np.einsum("nmg,ngh->nmh", b.jac_aero, np.linalg.inv(np.swapaxes(b.grad_dirs, 1, 2)))
+        np.testing.assert_allclose(coord, a.jac_aero, rtol=0, atol=1e-10)

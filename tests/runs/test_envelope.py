@@ -57,5 +57,7 @@ def test_envelope_run(smoke_cache, tmp_path):
     rows = {(r["training"], r["test"]): r for r in res["accuracy"]}
     assert rows[("body (envelope)", "envelope")]["in_domain"] == 1.0
     assert rows[("airflow (paper box)", "envelope")]["in_domain"] < 0.8
+    converted = rows[("body (paper data converted)", "paper box")]
+    assert converted["runs"] == rows[("airflow (paper box)", "paper box")]["runs"]
     assert saved["env"]["body (envelope)"][0]["in_domain"] == 1.0
     assert len(saved["symmetry"]) == 5 and saved["symmetry"][2]["points"] == 60
