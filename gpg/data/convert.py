@@ -31,12 +31,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Float
 
+from gpg._dtype import float64
 from gpg.data.dataset import Dataset
 from gpg.quadrotor.frames import R_WB
 
 RANK_TOL = 1e-9  # a direction shorter than this times the airspeed moves nothing
 
 
+@float64
 def body_inputs(x_air: np.ndarray) -> np.ndarray:
     """Airflow-frame cases ``(rpm, yaw, pitch, roll, V)`` (N, 8) as body-frame inputs
     ``(rpm, u, v, w)`` (N, 7): the air ``V e_x`` of the dataset frame seen from the body,
@@ -48,12 +50,13 @@ def body_inputs(x_air: np.ndarray) -> np.ndarray:
 
 def _rotation_and_derivatives(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``R_WB(θ)`` (N, 3, 3) and ``∂R/∂θ_k`` (N, 3, 3, 3), the last axis ``k``."""
-    th = jnp.asarray(theta, dtype=jnp.float64)
+    th = jnp.asarray(theta)
     R = np.asarray(jax.vmap(R_WB)(th))
     dR = np.asarray(jax.vmap(jax.jacfwd(R_WB))(th))
     return R, dR
 
 
+@float64
 def angle_directions(
     x_air: Float[np.ndarray, "N 8"],
     jac_air: Float[np.ndarray, "N 6 7"],
@@ -107,6 +110,7 @@ def _complete(T: np.ndarray, radial: np.ndarray) -> np.ndarray:
     return np.stack(cols, axis=1)
 
 
+@float64
 def to_body(ds: Dataset, *, angle_gradients: bool = True) -> Dataset:
     """The airflow-frame dataset ``ds`` in the body frame (see the module docstring): values
     and rotor-speed gradients exactly, the angle gradients as derivatives along two directions

@@ -190,7 +190,7 @@ def posterior(sur, dataset: Dataset | None = None, *, hyper: Hyper | None = None
         raise ValueError("rebuilding the posterior with other hyperparameters needs the dataset")
     arrays = training_arrays(sur, dataset)
     return ExactGP.fit(arrays.X, arrays.Y, arrays.dY, grad_dims=arrays.dims or None,
-                       hyper=hyper, observed=arrays.observed)  # fmt: skip
+                       hyper=hyper, observed=arrays.observed, bases=arrays.bases)  # fmt: skip
 
 
 @float64
@@ -233,7 +233,7 @@ def output_hyper(sur, dataset: Dataset, weights: Mapping[str, float]) -> Hyper:
         arrays.X, arrays.Y[:, sel] * r, dY, grad_dims=arrays.dims or None,
         init=training_cases(sur).hyper, ard=cfg.ard, fit_noise=cfg.fit_noise,
         noise_floor=cfg.noise_floor, noise_init=cfg.noise_init, subset_size=cfg.subset,
-        seed=cfg.seed, max_steps=cfg.max_steps, observed=arrays.observed,
+        seed=cfg.seed, max_steps=cfg.max_steps, observed=arrays.observed, bases=arrays.bases,
     )  # fmt: skip
     return res.hyper
 

@@ -78,11 +78,13 @@ def _whitened(gp: ExactGP, Xq: np.ndarray, dims: tuple[int, ...], chunk: int = 5
     alone: a values-only case of the model is one column, not ``1 + G``."""
     X = np.asarray(gp.X)
     order = np.arange(gp.alpha.shape[0]) if gp.order is None else np.asarray(gp.order)
+    bases = None if gp.bases is None else np.asarray(gp.bases)  # the model's rows' directions
     out = []
     for a in range(0, Xq.shape[0], chunk):
         Xc = np.asarray(Xq[a : a + chunk])
         q = Xc.shape[0]
-        K = rows_gram(Xc, np.arange(q * (1 + len(dims))), X, order, gp.hyper, gp.grad_dims)
+        rows = np.arange(q * (1 + len(dims)))
+        K = rows_gram(Xc, rows, X, order, gp.hyper, gp.grad_dims, bases2=bases)
         V = gp.chol_inv.rmatmul(jnp.asarray(K))
         # dimension-major rows of this chunk -> point-major
         out.append(

@@ -166,7 +166,7 @@ class ExactGP(Predictor):
             output_scale=jnp.asarray(scale),
             log_marginal_likelihood=jnp.asarray(lml),
             grad_dims=data.grad_dims,
-            order=None if index is None else jnp.asarray(index),
+            order=None if index is None else jnp.asarray(index, dtype=jnp.int32),
             observed=None if rows is None else jnp.asarray(rows),
             bases=None if bases is None else jnp.asarray(bases),
         )

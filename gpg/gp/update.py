@@ -104,7 +104,7 @@ def bordered(model, X, Y, dY, observed):
             GlobalMean.from_alpha(X_all, alpha, h.variance, h.lengthscale, dims),
             jnp.asarray(scale),
             jnp.asarray(lml),
-            jnp.asarray(new_order),
+            jnp.asarray(new_order, dtype=jnp.int32),  # int32: no warning in float32 programs
             None if observed_all is None else jnp.asarray(observed_all),
         ),
         is_leaf=lambda x: x is None,

@@ -202,3 +202,19 @@ def test_likelihood_is_invariant_under_orthogonal_bases(rng):
     np.testing.assert_allclose(lml(1.3, Q, turned), lml(1.3, None, dY), rtol=1e-10)
     np.testing.assert_allclose(jax.grad(lml)(1.3, Q, turned), jax.grad(lml)(1.3, None, dY),
                                rtol=1e-8)  # fmt: skip
+
+
+def test_the_acquisitions_whitened_rows_read_the_directions(rng):
+    """The active design's ``L⁻¹ K̄(A, ·)`` covers the directional rows: the variance it
+    implies at value queries is ``predict``'s and the NumPy posterior's."""
+    from gpg.design.acquisition import _whitened
+
+    X, Y, dY, B, dims, hyper = _problem(rng)
+    gp = ExactGP.fit(X, Y, dY, grad_dims=dims, hyper=hyper, bases=B)
+    Xq = rng.uniform(-1, 1, (4, 3))
+    V = _whitened(gp, Xq, ())
+    np.testing.assert_allclose(
+        float(hyper.variance) - np.sum(V * V, axis=1), gp.predict(Xq)[1], rtol=1e-10, atol=1e-12
+    )
+    _, ref_var = _np_posterior(X, Y, dY, B, dims, hyper, Xq)
+    np.testing.assert_allclose(float(hyper.variance) - np.sum(V * V, axis=1), ref_var, atol=1e-4)
