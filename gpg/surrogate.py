@@ -414,11 +414,17 @@ def _check_batch(rpm, euler, v_air, chunk):
 def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
     """The input box the training data were meant to cover: the sampling bounds recorded by
     the generator or given to :func:`gpg.data.from_csv` (so hover at exactly 0 m/s is inside),
-    else the data's own extent."""
+    else the data's own extent. In the body frame the extent of ``u, v, w`` is the ball of the
+    data's largest airspeed (``±V`` on each, as the bounds give it): the box of the cases'
+    own velocities need not hold hover, and the ball about hover inside it would be empty."""
     bounds = dataset.meta.get("bounds")
     if bounds:
         return Bounds.from_config(bounds).arrays(dataset.frame)
-    return dataset.x.min(0), dataset.x.max(0)
+    lo, hi = dataset.x.min(0), dataset.x.max(0)
+    if dataset.frame == "body":
+        speed = float(np.max(dataset.airspeed))
+        lo[4:], hi[4:] = -speed, speed
+    return lo, hi
 
 
 def dataset_vehicle(dataset: Dataset, vehicle: Vehicle | str | Path | None = None) -> Vehicle:

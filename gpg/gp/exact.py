@@ -75,9 +75,9 @@ class ExactGP(Predictor):
         bases: None when the gradient rows are coordinate derivatives, else (N, G, G): row
             ``g`` of case ``i`` observed the derivative along ``Σ_h bases[i, g, h] e_{d_h}``
             (``d = grad_dims``; the paper's remark on derivatives in arbitrary directions,
-            :func:`gpg.gp.gram.row_directions`). ``alpha`` and ``mean`` are then over the
-            coordinate layout (:func:`gpg.gp.gram.from_bases`), the factor over the
-            directional rows.
+            :func:`gpg.gp.gram.row_directions`). ``alpha`` and the factor are then over the
+            directional rows; ``mean`` reads their coordinate form
+            (:func:`gpg.gp.gram.from_bases`).
     """
 
     X: Float[Array, "N D"]
@@ -153,15 +153,15 @@ class ExactGP(Predictor):
         scale = output_scale(np.sum(Ybar * alpha, axis=0), r)
         if index is not None:  # α in the layout, 0 on the rows not observed
             alpha = _scatter(alpha, index, rows.size)
-        if bases is not None:  # the mean reads coordinate rows: k̄_dirᵀ α = k̄ᵀ (Pᵀ α)
-            alpha = from_bases(alpha, bases, data.X.shape[0])
+        # The mean reads coordinate rows: k̄_dirᵀ α = k̄ᵀ (Pᵀ α).
+        coord = alpha if bases is None else from_bases(alpha, bases, data.X.shape[0])
         return cls(
             X=Xj,
             alpha=jnp.asarray(alpha),
             chol_inv=bands,
             hyper=hyper,
             mean=GlobalMean.from_alpha(
-                data.X, alpha, hyper.variance, hyper.lengthscale, data.grad_dims
+                data.X, coord, hyper.variance, hyper.lengthscale, data.grad_dims
             ),
             output_scale=jnp.asarray(scale),
             log_marginal_likelihood=jnp.asarray(lml),
@@ -179,6 +179,7 @@ class ExactGP(Predictor):
         dY: Float[ArrayLike, "n M G"] | None = None,
         *,
         observed: Bool[ArrayLike, "n G"] | None = None,
+        bases: Float[ArrayLike, "n G G"] | None = None,
     ) -> ExactGP:
         """This GP conditioned on ``n`` more cases, hyperparameters kept: the same model as
         :meth:`fit` on all the points (to rounding), by a bordered Cholesky update.
@@ -204,12 +205,7 @@ class ExactGP(Predictor):
         """
         from gpg.gp.update import bordered
 
-        if self.bases is not None:
-            raise ValueError(
-                "this GP was fitted on directional gradient rows (bases); conditioning such a "
-                "model is not supported: refit it on all the cases with ExactGP.fit"
-            )
-        return bordered(self, X, Y, dY, observed)
+        return bordered(self, X, Y, dY, observed, bases)
 
     @property
     def n_outputs(self) -> int:

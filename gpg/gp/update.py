@@ -20,7 +20,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from gpg.gp.gram import Checked, assemble_rows_gram, check_training_data, rows_gram
+from gpg.gp.gram import (
+    Checked,
+    assemble_rows_gram,
+    check_bases,
+    check_training_data,
+    from_bases,
+    rows_gram,
+)
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.linalg import dense, memory
 from gpg.linalg.tri import BorderedTriangular
@@ -55,9 +62,12 @@ def layout_index(n_old: int, n_new: int, n_grad: int) -> tuple[np.ndarray, np.nd
     return old, new
 
 
-def bordered(model, X, Y, dY, observed):
+def bordered(model, X, Y, dY, observed, bases=None):
     """:meth:`gpg.gp.exact.ExactGP.condition` (see there)."""
     data = check_new_cases(model, X, Y, dY, observed)
+    bases = check_bases(bases, data.X.shape[0], data.grad_dims)
+    old_b, new_b, all_b = grown_bases(model.bases, bases, model.X.shape[0], data.X.shape[0],
+                                      len(data.grad_dims))  # fmt: skip
     h, dims, g = model.hyper, model.grad_dims, len(model.grad_dims)
     n_old, n_new = model.X.shape[0], data.X.shape[0]
     R, rows_new = model.alpha.shape[0], data.rows
@@ -70,11 +80,11 @@ def bordered(model, X, Y, dY, observed):
     # Peak: two r×Rf arrays at a time (B and S, then S and M) and two r×r.
     memory.require(f"conditioning on {n_new} cases ({r} rows)", int(8 * r * (2 * Rf + 2 * r)))
     X_old = np.asarray(model.X)
-    B = rows_gram(X_old, order, data.X, fresh, h, dims)  # (Rf, r), the factor's row order
+    B = rows_gram(X_old, order, data.X, fresh, h, dims, bases1=old_b, bases2=new_b)  # (Rf, r)
     if model.observed is not None:  # files of format <= 8 keep unobserved rows, decoupled
         B[~np.asarray(model.observed)[order]] = 0.0
     S = model.chol_inv.host_matmul(B).T  # (r, Rf) = (L⁻¹ B)ᵀ, the update's one O(Rf²r) product
-    L2 = _schur_factor(data.X, fresh, h, dims, S)
+    L2 = _schur_factor(data.X, fresh, h, dims, S, new_b)
     alpha_old = np.asarray(model.alpha)[order]
     resid = data.targets()[fresh] - B.T @ alpha_old
     del B
@@ -93,28 +103,30 @@ def bordered(model, X, Y, dY, observed):
     dq = np.sum(resid * alpha2, axis=0)
     lml, scale = _likelihood_and_scale(model, observed_all, size, dq, log_det2)
     X_all = np.concatenate([X_old, data.X])
+    coord = alpha if all_b is None else from_bases(alpha, all_b, X_all.shape[0])
     return eqx.tree_at(
         lambda t: (t.X, t.alpha, t.chol_inv, t.mean, t.output_scale, t.log_marginal_likelihood,
-                   t.order, t.observed),
+                   t.order, t.observed, t.bases),
         model,
         (
             jnp.asarray(X_all),
             jnp.asarray(alpha),
             BorderedTriangular(model.chol_inv, jnp.asarray(coupling), jnp.asarray(L2inv), Rf + r),
-            GlobalMean.from_alpha(X_all, alpha, h.variance, h.lengthscale, dims),
+            GlobalMean.from_alpha(X_all, coord, h.variance, h.lengthscale, dims),
             jnp.asarray(scale),
             jnp.asarray(lml),
             jnp.asarray(new_order, dtype=jnp.int32),  # int32: no warning in float32 programs
             None if observed_all is None else jnp.asarray(observed_all),
+            None if all_b is None else jnp.asarray(all_b),
         ),
         is_leaf=lambda x: x is None,
     )  # fmt: skip
 
 
-def _schur_factor(Xn, fresh, h, dims, S) -> np.ndarray:
+def _schur_factor(Xn, fresh, h, dims, S, bases=None) -> np.ndarray:
     """``L₂`` with ``L₂ L₂ᵀ = C − S Sᵀ`` over the new observed rows ``fresh``, or a
     ``ValueError`` when the new cases make ``K̄`` singular."""
-    C = assemble_rows_gram(Xn, fresh, h, dims)
+    C = assemble_rows_gram(Xn, fresh, h, dims, bases=bases)
     C -= dense.gram_t(np.ascontiguousarray(S.T))  # S Sᵀ
     try:
         return dense.cholesky_inplace(C, what="the Schur complement of the new cases")
@@ -139,6 +151,16 @@ def _likelihood_and_scale(model, observed_all, size, dq, log_det2):
     if not np.all(scale == 1.0):  # ones: the model keeps one shared scale
         scale = output_scale(scale * n_obs_old + dq, n_obs)
     return lml, scale
+
+
+def grown_bases(old, new, n_old: int, n_new: int, g: int):
+    """The directions of the old cases' gradient rows, of the new ones' and of all (None where
+    every row is along the inputs): a side without its own is along the inputs (identity)."""
+    if old is None and new is None:
+        return None, None, None
+    old = np.broadcast_to(np.eye(g), (n_old, g, g)) if old is None else np.asarray(old)
+    new = np.broadcast_to(np.eye(g), (n_new, g, g)) if new is None else np.asarray(new)
+    return old, new, np.concatenate([old, new])
 
 
 def _grown_rows(old, new, old_idx, new_idx, size) -> np.ndarray | None:

@@ -140,15 +140,6 @@ class Kind(abc.ABC):
             )
 
 
-def refuse_directional(new: Arrays) -> None:
-    """Conditioning takes new cases with gradients along the inputs only."""
-    if new.bases is not None:
-        raise ValueError(
-            "the new cases' gradients are along other directions than the inputs (grad_dirs, "
-            "converted data): conditioning on them is not supported; refit on all the cases"
-        )
-
-
 def build_partition(
     X: np.ndarray, cfg: ModelConfig, Y: np.ndarray | None = None
 ) -> partition.Partition:

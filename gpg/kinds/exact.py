@@ -10,7 +10,7 @@ import numpy as np
 from gpg.config import ModelConfig
 from gpg.gp.exact import ExactGP
 from gpg.gp.hyper import Hyper
-from gpg.kinds.base import Arrays, Cases, Kind, Product, gram_bytes, refuse_directional
+from gpg.kinds.base import Arrays, Cases, Kind, Product, gram_bytes
 
 
 @dataclass(frozen=True)
@@ -35,8 +35,7 @@ class Exact(Kind):
 
     def condition(self, model: ExactGP, new: Arrays, cfg: ModelConfig) -> ExactGP:
         """The bordered Cholesky update (:meth:`gpg.gp.exact.ExactGP.condition`)."""
-        refuse_directional(new)
-        return model.condition(new.X, new.Y, new.dY, observed=new.observed)
+        return model.condition(new.X, new.Y, new.dY, observed=new.observed, bases=new.bases)
 
     def cases(self, model: ExactGP) -> Cases:
         return Cases(np.asarray(model.X), model.hyper, model.grad_dims)

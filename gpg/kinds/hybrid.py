@@ -18,7 +18,7 @@ from gpg.gp.hybrid import HybridGP, Record
 from gpg.gp.hyper import Hyper
 from gpg.gp.matfree import gram_matvec, gram_matvec_devices
 from gpg.gp.mean import GlobalMean, output_scale
-from gpg.gp.update import _grown_rows, layout_index
+from gpg.gp.update import _grown_rows, grown_bases, layout_index
 from gpg.kinds.base import (
     Arrays,
     Cases,
@@ -27,7 +27,6 @@ from gpg.kinds.base import (
     bins_and_near,
     gram_bytes,
     near_set_bytes,
-    refuse_directional,
 )
 from gpg.linalg import dense, memory
 
@@ -66,33 +65,29 @@ class Hybrid(Kind):
         whose near set changed factorised again (the others' factors are reused as stored).
         Equal to a rebuild with the same hyperparameters and partition."""
         rec = _record(model)
-        refuse_directional(new)
-        if rec.bases is not None:
-            raise ValueError(
-                "this hybrid was fitted on directional gradient rows (converted data); "
-                "conditioning such a model is not supported: refit it on all the cases"
-            )
         local_gp, dims, hyper = model.local, model.local.grad_dims, rec.hyper
         X_old, n_old = np.asarray(rec.X), rec.X.shape[0]
+        *_, bases = grown_bases(rec.bases, new.bases, n_old, new.X.shape[0], len(dims))
         X = np.concatenate([X_old, new.X])
         old_idx, new_idx = layout_index(n_old, new.X.shape[0], len(dims))
         Ybar = np.empty((X.shape[0] * (1 + len(dims)), rec.Ybar.shape[1]))
         Ybar[old_idx], Ybar[new_idx] = np.asarray(rec.Ybar), new.targets()
         rows = _grown_rows(rec.rows, new.rows, old_idx, new_idx, Ybar.shape[0])
-        alpha, _ = global_alpha(X, Ybar, rows, hyper, dims, cfg, None)
+        alpha, _ = global_alpha(X, Ybar, rows, hyper, dims, cfg, None, bases)
         rule = cfg.near.rule()
         before = partition.near_sets(X_old, local_gp.partition, hyper.lengthscale, **rule)
         near = partition.near_sets(X, local_gp.partition, hyper.lengthscale, **rule)
         changed = [
             b for b in range(near.n_bins) if not np.array_equal(near.near[b], before.near[b])
         ]
-        fresh = dict(zip(changed, local.precompute(
-            X, Ybar, hyper, dims, near, rows=rows, bins=changed), strict=True))  # fmt: skip
+        redone = local.precompute(X, Ybar, hyper, dims, near, rows=rows, bins=changed, bases=bases)
+        fresh = dict(zip(changed, redone, strict=True))
         factors = [
             fresh[b] if b in fresh else _stored_factors(local_gp, b, len(dims))
             for b in range(near.n_bins)
         ]
-        return _assemble(X, Ybar, rows, alpha, factors, near, local_gp.partition, hyper, dims, cfg)
+        part = local_gp.partition
+        return _assemble(X, Ybar, rows, alpha, factors, near, part, hyper, dims, cfg, bases)
 
     def cases(self, model: HybridGP) -> Cases:
         rec = _record(model)

@@ -3,6 +3,8 @@ body frame at the converted inputs, values and gradients (the angle gradients as
 along directions of the air velocity) to rounding; against the chain rule of an analytic
 body-frame function and its finite differences; and a surrogate trains on the result."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -58,6 +60,9 @@ def test_a_surrogate_trains_on_converted_data_and_body_data_are_refused():
     assert sur.frame == "body"
     p = sur.predict(np.full(4, 3600.0), np.zeros(3), np.array([5.0, 0.0, 0.0]))
     assert np.all(np.isfinite(np.asarray(p.force)))
+    # Without recorded bounds the domain is the ball of the data's largest airspeed (the box
+    # of the cases' own velocities holds no hover: its ball about hover would be empty).
+    assert bool(p.in_domain) and float(sur.ball_radius) == pytest.approx(body.airspeed.max())
     with pytest.raises(ValueError, match="converts airflow-frame data"):
         to_body(synthetic_body_dataset(4)[0])
 
@@ -184,3 +189,35 @@ def test_converted_data_and_its_models_keep_their_directions(tmp_path):
     with pytest.raises(ValueError, match="directional"):
         export.to_c(Surrogate.fit(body, "gpg", {"hyper": {"fit": False, "lengthscale": 0.9}}),
                     tmp_path / "c")  # fmt: skip
+
+
+def test_a_converted_surrogate_conditions_on_more_cases():
+    """``Surrogate.condition`` on converted cases (directional rows) and on body-frame cases
+    with coordinate gradients: the rebuild on all the cases with the same hyperparameters,
+    normaliser and bins (:func:`gpg.design.rebuild`), for gpg and the hybrid."""
+    from gpg import design
+    from gpg.design import merge_datasets
+
+    air, _ = synthetic_dataset(36, seed=7, raw=False)
+    body = to_body(air)
+    # The six most central cases are the new ones: inside the others' box and ball.
+    centre = np.abs((body.x - body.x.mean(0)) / body.x.std(0)).max(1)
+    new, old = np.argsort(centre)[:6], np.argsort(centre)[6:]
+    extra, _ = synthetic_body_dataset(80, seed=8)
+    extra = extra.without("noise", "raw samples")
+    extra = dataclasses.replace(extra, meta={**extra.meta, "bounds": body.meta["bounds"]})
+    cfg = {"hyper": {"fit": False, "lengthscale": 0.9}, "variance_dtype": "float64",
+           "partition": {"scheme": "kdtree"}}  # fmt: skip
+    for model in ("gpg", "gpgs_hybrid"):
+        conf = {k: v for k, v in cfg.items() if model == "gpgs_hybrid" or k == "hyper"}
+        sur = Surrogate.fit(body.subset(old), model, conf)
+        inside = np.flatnonzero(~design._outside(sur, extra.x, 0.0).any(1))[:4]
+        assert inside.size == 4  # body-frame cases with coordinate gradients, in the domain
+        more = extra.subset(inside)
+        grown = sur.condition(body.subset(new)).condition(more)
+        ref = design.rebuild(
+            sur, merge_datasets(merge_datasets(body.subset(old), body.subset(new)), more)
+        )
+        q = np.asarray(sur.normalizer.x(0.5 * (body.x[old[:6]] + body.x[new])))
+        for u, v in zip(grown.model.predict(q), ref.predict(q), strict=True):
+            np.testing.assert_allclose(u, v, rtol=1e-7, atol=1e-9)

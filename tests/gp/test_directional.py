@@ -169,8 +169,28 @@ def test_bad_bases_are_refused(rng):
     with pytest.raises(ValueError, match="bases"):
         ExactGP.fit(X, Y, dY, grad_dims=dims, hyper=hyper, bases=bad)
     gp = ExactGP.fit(X, Y, dY, grad_dims=dims, hyper=hyper, bases=B)
-    with pytest.raises(ValueError, match="directional"):
-        gp.condition(X[:1] + 0.1, Y[:1], dY[:1])
+    with pytest.raises(ValueError, match="bases must have shape"):
+        gp.condition(X[:1] + 0.1, Y[:1], dY[:1], bases=B[:2])
+
+
+@pytest.mark.parametrize("sides", ["both", "old", "new"])
+def test_conditioning_on_directional_rows_is_the_refit(rng, sides):
+    """The bordered update with directions on either side (the other along the inputs) is
+    the fit on all the cases, to the rounding of two factorisations of a small K̄."""
+    X, Y, dY, B, dims, hyper = _problem(rng, n=9)
+    eye = np.broadcast_to(np.eye(2), B.shape).copy()
+    B = {"both": B, "old": np.concatenate([B[:6], eye[6:]]),
+         "new": np.concatenate([eye[:6], B[6:]])}[sides]  # fmt: skip
+    old_b = None if sides == "new" else B[:6]
+    new_b = None if sides == "old" else B[6:]
+    grown = ExactGP.fit(X[:6], Y[:6], dY[:6], grad_dims=dims, hyper=hyper, bases=old_b)
+    grown = grown.condition(X[6:], Y[6:], dY[6:], bases=new_b)
+    full = ExactGP.fit(X, Y, dY, grad_dims=dims, hyper=hyper, bases=B)
+    Xq = rng.uniform(-1, 1, (5, 3))
+    for u, v in zip(grown.predict(Xq), full.predict(Xq), strict=True):
+        np.testing.assert_allclose(u, v, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(grown.log_marginal_likelihood, full.log_marginal_likelihood,
+                               rtol=1e-9)  # fmt: skip
 
 
 def test_directional_predictions_differentiate(rng):
