@@ -268,17 +268,20 @@ def _check_exact_size(m: ExactGP, max_bytes: int | None) -> None:
 
 
 def _exact_bins(m: ExactGP) -> Bins:
-    if m.order is not None or m.observed is not None or m.bases is not None:
+    if m.order is not None or m.observed is not None:
         raise ValueError(
             "this exact model's variance factor covers rows in another order than its layout "
-            "(a model grown by condition, cases without some gradients, or directional "
-            "gradient rows of converted data): export it with variance=False, or refit it"
+            "(a model grown by condition, or cases without some gradients): export it with "
+            "variance=False, or refit it"
         )
+    F = m.chol_inv.to_dense()
+    if m.bases is not None:  # directional rows (all observed): F P over coordinate rows
+        F = (F.astype(np.float64) @ _turn(np.asarray(m.bases, float), 0)).astype(F.dtype)
     return Bins(
         points=[_f64(m.X)],
         shared=None,
         coef=None,
-        factor=[m.chol_inv.to_dense()],
+        factor=[F],
         factor_dtype=np.dtype(m.chol_inv.dtype),
         **_one_bin(),
     )
@@ -293,12 +296,6 @@ def _binned(m: BinnedGP, *, coef: bool, variance: bool) -> Bins | None:
     """The real rows of every bin of ``m`` (its padding dropped)."""
     if not coef and not (variance and m.factor):
         return None
-    if m.bases is not None:
-        raise ValueError(
-            "this model's near sets hold directional gradient rows (converted data, "
-            "gpg.data.convert.to_body), which the exports do not write: export it with "
-            "variance=False (the mean exports as it is)"
-        )
     g = len(m.grad_dims)
     P = m.Xn.shape[1]
     up = 0 if m.shared is None else m.shared.shape[0] * (1 + g)
@@ -311,7 +308,12 @@ def _binned(m: BinnedGP, *, coef: bool, variance: bool) -> Bins | None:
         if coef:
             coefs.append(np.asarray(m.coef[b], float)[:, pos])
         if variance and m.factor:
-            factors.append(m.factor[b].to_dense()[np.ix_(pos, pos)])
+            F = m.factor[b].to_dense()[np.ix_(pos, pos)]
+            if m.bases is not None:  # directional rows: F P_b reads coordinate kernel rows
+                F = (F.astype(np.float64) @ _turn(np.asarray(m.bases[b], float)[:p], up)).astype(
+                    F.dtype
+                )
+            factors.append(F)
     part = m.partition
     return Bins(
         points=points,
@@ -326,6 +328,21 @@ def _binned(m: BinnedGP, *, coef: bool, variance: bool) -> Bins | None:
         right=np.asarray(part.right, int),
         depth=int(part.depth),
     )
+
+
+def _turn(B: np.ndarray, up: int) -> np.ndarray:
+    """``P`` (r, r) over a bin's rows (``up`` shared rows, then its points' dimension-major
+    rows) with ``k̄_dir = P k̄``: gradient row ``g`` of point ``i`` is ``Σ_h B[i, g, h]`` times
+    its coordinate row ``h`` (:func:`gpg.gp.gram.to_bases`), so that a factor ``F`` over
+    directional rows is ``F P`` over the coordinate rows every writer emits. Only the rows of
+    one point mix: ``F P`` stays triangular but for the gradient blocks' trailing square."""
+    p, g = B.shape[0], B.shape[1]
+    P = np.eye(up + p * (1 + g))
+    i = np.arange(p)
+    for a in range(g):
+        for c in range(g):
+            P[up + (1 + a) * p + i, up + (1 + c) * p + i] = B[:, a, c]
+    return P
 
 
 def _arrays(s: Spec):

@@ -161,8 +161,9 @@ def test_converted_directions_train_gpg_and_the_hybrid():
 
 
 def test_converted_data_and_its_models_keep_their_directions(tmp_path):
-    """The directions survive the dataset file, a subset, the checkpoint; the exports write
-    the mean (folded over coordinate rows) and refuse the variance, naming why."""
+    """The directions survive the dataset file, a subset, the checkpoint and the exports (the
+    mean folded over coordinate rows, the hybrid's variance factors too: the layout's float64
+    evaluation is the model's)."""
     from gpg import checkpoint, export
     from gpg.data.dataset import Dataset
     from gpg.export import layout
@@ -175,18 +176,21 @@ def test_converted_data_and_its_models_keep_their_directions(tmp_path):
     np.testing.assert_array_equal(body.subset(np.array([3, 1])).grad_dirs, body.grad_dirs[[3, 1]])
     assert body.without("gradients").grad_dirs is None
     sur = Surrogate.fit(body, "gpgs_hybrid", {"hyper": {"fit": False, "lengthscale": 0.9},
-                                              "partition": {"scheme": "kdtree"}})  # fmt: skip
+                                              "partition": {"scheme": "kdtree"},
+                                              "variance_dtype": "float64"})  # fmt: skip
     checkpoint.save(tmp_path / "ck", sur)
     again = checkpoint.load(tmp_path / "ck")
     q = np.asarray(sur.normalizer.x(body.x[:4] * 0.97))
     for u, v in zip(sur.model.predict(q), again.model.predict(q), strict=True):
         np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
-    with pytest.raises(ValueError, match="directional gradient rows"):
-        layout.spec(sur)
-    s = layout.spec(sur, variance=False)
-    for xn, mean in zip(q, np.asarray(sur.model.predict_mean(q)), strict=True):
-        np.testing.assert_allclose(layout.reference(s, xn)[0], mean, rtol=0, atol=1e-12)
-    with pytest.raises(ValueError, match="directional"):
+    # The exports read coordinate kernel rows: the factor is folded with the directions.
+    s = layout.spec(sur)
+    mean, var = (np.asarray(a) for a in sur.model.predict_unclipped(q))
+    for xn, m, v in zip(q, mean, var, strict=True):
+        ref_mean, ref_var = layout.reference(s, xn)
+        np.testing.assert_allclose(ref_mean, m, rtol=0, atol=1e-12)
+        assert abs(ref_var - v) <= 1e-12 * float(s.sigma)  # float64 factors both
+    with pytest.raises(ValueError, match="cases without some gradients"):
         export.to_c(Surrogate.fit(body, "gpg", {"hyper": {"fit": False, "lengthscale": 0.9}}),
                     tmp_path / "c")  # fmt: skip
 

@@ -168,3 +168,27 @@ def test_what_cannot_be_exported_is_refused_before_writing(tmp_path):
         export.to_c(grown, tmp_path / "g")
     assert not any((tmp_path / s).exists() for s in "abcdefg")
     export.to_c(grown, tmp_path / "h", variance=False)  # its mean exports
+
+
+def test_converted_data_export_with_their_directions(tmp_path):
+    """A hybrid on converted paper-style data (directional gradient rows, :mod:`gpg.data.convert`)
+    exports mean and variance: the C code's variance is ``predict``'s to rounding (a double
+    export of float64 factors: 1e-9 of the variance), its mean likewise."""
+    from gpg import Surrogate
+    from gpg.data.convert import to_body
+    from tests.helpers import synthetic_dataset
+
+    air, _ = synthetic_dataset(40, seed=9, raw=False)
+    sur = Surrogate.fit(to_body(air), "gpgs_hybrid", {
+        "hyper": {"fit": False, "lengthscale": 0.9}, "partition": {"scheme": "kdtree"},
+        "variance_dtype": "float64"})  # fmt: skip
+    assert sur.model.local.bases is not None
+    _, call = compiled(sur, tmp_path, "double")
+    rpm, euler, v = states(20, 3, body=True)
+    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    for i in range(len(rpm)):
+        ok, f, t, _, var = call(rpm[i], euler[i], v[i])
+        assert rel_err(f, ref.force[i]) <= 1e-10 and rel_err(t, ref.torque[i]) <= 1e-10
+        want = np.asarray(ref.variance[i])
+        np.testing.assert_allclose(var, want, rtol=1e-9)
+        assert ok == bool(ref.in_domain[i])
