@@ -286,9 +286,11 @@ def box_samples(sur, n: int, seed: int) -> np.ndarray:
     input box, or in the body frame (n, 7) over its rotor box and ball of air velocities."""
     lo, hi = np.asarray(sur.box_lo), np.asarray(sur.box_hi)
     if sur.frame == "body":
-        box = Bounds(rpm=(float(np.min(lo[:4])), float(np.max(hi[:4]))),
-                     airspeed=(0.0, float(sur.ball_radius)))  # fmt: skip
-        return latin_hypercube(n, box, seed, "body")
+        box = Bounds(rpm=(0.0, 1.0), airspeed=(0.0, float(sur.ball_radius)))
+        x = latin_hypercube(n, box, seed, "body")
+        # Each rotor in its own range: a box from the data's extent differs per rotor.
+        x[:, :4] = lo[:4] + x[:, :4] * (hi[:4] - lo[:4])
+        return x
     return latin_hypercube(n, (lo, hi), seed)
 
 

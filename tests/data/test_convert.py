@@ -63,6 +63,9 @@ def test_a_surrogate_trains_on_converted_data_and_body_data_are_refused():
     # Without recorded bounds the domain is the ball of the data's largest airspeed (the box
     # of the cases' own velocities holds no hover: its ball about hover would be empty).
     assert bool(p.in_domain) and float(sur.ball_radius) == pytest.approx(body.airspeed.max())
+    from gpg import design  # its candidates: each rotor in its own range, inside the ball
+
+    assert not design._outside(sur, design.box_samples(sur, 300, 0), 0.0).any()
     with pytest.raises(ValueError, match="converts airflow-frame data"):
         to_body(synthetic_body_dataset(4)[0])
 
