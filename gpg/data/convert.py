@@ -48,26 +48,19 @@ def body_inputs(x_air: np.ndarray) -> np.ndarray:
     return np.concatenate([x_air[:, :4], v_b], axis=1)
 
 
-def _rotation_and_derivatives(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``R_WB(θ)`` (N, 3, 3) and ``∂R/∂θ_k`` (N, 3, 3, 3), the last axis ``k``."""
-    th = jnp.asarray(theta)
-    R = np.asarray(jax.vmap(R_WB)(th))
-    dR = np.asarray(jax.vmap(jax.jacfwd(R_WB))(th))
-    return R, dR
-
-
-@float64
-def angle_directions(
+def _angle_rows(
     x_air: Float[np.ndarray, "N 8"],
     jac_air: Float[np.ndarray, "N 6 7"],
     y_air: Float[np.ndarray, "N 6"],
+    R: Float[np.ndarray, "N 3 3"],
 ) -> tuple[np.ndarray, np.ndarray]:
     """The airflow-frame angle gradients as body-frame rows along ``u, v, w``: values
     (N, 6, 3) and directions (N, 3, 3) (rows ``t_1, t_2``, then the radial ``v/|v|``), with
     NaN values where there is no derivative (the radial row; every row at ``V = 0``; the
-    plane's rows when the angle gradients were not run). See the module docstring."""
+    plane's rows when the angle gradients were not run). ``R`` is ``R_WB(θ)`` of the cases.
+    See the module docstring."""
     n = x_air.shape[0]
-    R, dR = _rotation_and_derivatives(x_air[:, 4:7])
+    dR = np.asarray(jax.vmap(jax.jacfwd(R_WB))(jnp.asarray(x_air[:, 4:7])))  # k last
     V = x_air[:, 7]
     Rt, dRt = np.swapaxes(R, 1, 2), np.swapaxes(dR, 1, 2)  # dRt[n, i, j, k] = ∂R[j, i]/∂θ_k
     d = dR[:, 0, :, :] * V[:, None, None]  # d[n, :, k] = ∂(Rᵀ V e_x)/∂θ_k: R's first row
@@ -81,13 +74,12 @@ def angle_directions(
     dirs = np.zeros((n, 3, 3))
     run = ~np.isnan(jac_air[:, 0, 4:7])  # (N, 3) which angle perturbations were run
     for i in range(n):
-        radial = R[i, 0] if V[i] == 0 else R[i, 0] * np.sign(V[i])
         ks = np.flatnonzero(run[i])
-        U, s, _ = np.linalg.svd(d[i][:, ks], full_matrices=True) if ks.size else (None, [], None)
-        rank = int(np.sum(np.asarray(s) > RANK_TOL * max(abs(V[i]), 1e-300)))
+        U, s, _ = np.linalg.svd(d[i][:, ks])  # U (3, 3) even with no column
+        rank = int(np.sum(s > RANK_TOL * max(V[i], 1e-300)))
         # Rows t_1, t_2 of the tangent plane (or of the span of the run directions) first, then
-        # their complement: the radial direction when the plane is full.
-        basis = _complete(U[:, :rank] if rank else np.zeros((3, 0)), radial)
+        # their complement: the radial direction R[0] (V >= 0) when the plane is full.
+        basis = _complete(U[:, :rank], R[i, 0])
         dirs[i] = basis.T
         if rank:
             A = basis[:, :rank].T @ d[i][:, ks]  # (rank, m): d_k in the basis
@@ -139,7 +131,7 @@ def to_body(ds: Dataset, *, angle_gradients: bool = True) -> Dataset:
         for sl in (slice(0, 3), slice(3, 6)):
             jac[:, sl, :4] = np.einsum("nij,njk->nik", Rt, ds.jac_aero[:, sl, :4])
         if angle_gradients:
-            jac[:, :, 4:], turned = angle_directions(ds.x, ds.jac_aero, ds.y_aero)
+            jac[:, :, 4:], turned = _angle_rows(ds.x, ds.jac_aero, ds.y_aero, R)
             dirs = np.zeros((ds.n, 7, 7))
             dirs[:, np.arange(4), np.arange(4)] = 1.0
             dirs[:, 4:, 4:] = turned

@@ -69,9 +69,8 @@ def precompute(
 
 def _host(X, Ybar, hyper, dims, nb: np.ndarray, r: np.ndarray, rows=None, bases=None):
     seen = None if rows is None else rows[r]
-    Xb = np.asarray(X[nb]) if bases is not None else jnp.asarray(X[nb])
     sub = None if bases is None else bases[nb]
-    gram = mask_gram_inplace(assemble_gram(Xb, hyper, dims, bases=sub), seen)
+    gram = mask_gram_inplace(assemble_gram(X[nb], hyper, dims, bases=sub), seen)
     L = dense.cholesky_inplace(gram, what="K̄_nn")
     coef = dense.cho_solve(L, Ybar[r])
     inv = dense.triangular_inverse_inplace(L)

@@ -172,8 +172,10 @@ def test_what_cannot_be_exported_is_refused_before_writing(tmp_path):
 
 def test_converted_data_export_with_their_directions(tmp_path):
     """A hybrid on converted paper-style data (directional gradient rows, :mod:`gpg.data.convert`)
-    exports mean and variance: the C code's variance is ``predict``'s to rounding (a double
-    export of float64 factors: 1e-9 of the variance), its mean likewise."""
+    exports mean and variance: the C code's variance is ``predict``'s to rounding, its mean
+    likewise. A double export of float64 factors: ``variance_rtol``'s bound on the quadratic
+    form is at most 5e-11 at these states, and the folded factor ``F P`` sums at most three
+    terms more per entry; 1e-9 holds that with room."""
     from gpg import Surrogate
     from gpg.data.convert import to_body
     from tests.helpers import synthetic_dataset
