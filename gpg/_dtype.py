@@ -37,11 +37,12 @@ def _widen_arg(a):
 
 
 def float64(fn: Callable[P, R]) -> Callable[P, R]:
-    """``fn`` run with 64-bit JAX, its JAX float arguments (inside equinox modules too) widened."""
+    """``fn`` run with 64-bit JAX, its JAX float arguments (inside equinox modules too) widened,
+    and every matrix product it traces at full precision (:mod:`gpg._precision`)."""
 
     @functools.wraps(fn)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
-        with jax.enable_x64(True):
+        with jax.enable_x64(True), jax.default_matmul_precision("highest"):
             args = tuple(_widen_arg(a) for a in args)
             kwargs = {k: _widen_arg(v) for k, v in kwargs.items()}
             return fn(*args, **kwargs)

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from gpg._identity import ByIdentity
+from gpg._precision import highest
 from gpg.quadrotor.dynamics import AeroModel, Quadrotor, SimpleAero, State, Wind
 from gpg.quadrotor.frames import euler_from_R, matvec
 from gpg.quadrotor.simple_model import SimpleModel
@@ -105,6 +106,7 @@ class Dynamics(ByIdentity):
             quad=quad, wind=Wind.calm() if wind is None else wind, dt=float(dt), surrogate=sur
         )
 
+    @highest
     def __call__(
         self, x: Float[Array, " 17"], u: Float[Array, " 4"], t: Float[Array, ""]
     ) -> Float[Array, " 17"]:
@@ -113,6 +115,7 @@ class Dynamics(ByIdentity):
         new, _ = self.quad.step(unpack(x), u, jnp.asarray(t, x.dtype), self.dt, self.wind)
         return pack(new)
 
+    @highest
     def variance(self, x: Float[Array, " 17"], u: Float[Array, " 4"], t) -> Float[Array, " 6"]:
         """The surrogate's predictive variance of the aerodynamic force and moment (body frame)
         where the step from ``(x, u)`` evaluates it (the state's rotor speeds, attitude and
@@ -125,6 +128,7 @@ class Dynamics(ByIdentity):
         p = predict_state(self.surrogate, s.rpm, euler_from_R(s.R), v_air, True, body=True)
         return p.variance[:6]
 
+    @highest
     def linearize(
         self, x: Float[Array, " 17"], u: Float[Array, " 4"], t: Float[Array, ""]
     ) -> Linearization:
@@ -144,6 +148,7 @@ class Dynamics(ByIdentity):
         return Linearization(x_next, A, B, var, dvx, dvu, q.astype(x.dtype))
 
 
+@highest
 def propagate(
     lin: Linearization, sigma0: Float[Array, "17 17"] | None = None
 ) -> Float[Array, "H 17 17"]:
@@ -194,6 +199,7 @@ class MPPI(ByIdentity):
         if not self.temperature > 0:
             raise ValueError(f"temperature must be > 0, got {self.temperature}")
 
+    @highest
     def rollout(self, x0, us, t0):
         """States after each control of ``us`` (H, m) from ``x0`` at ``t0``: (H, n)."""
         ts = t0 + self.dt * jnp.arange(self.horizon, dtype=x0.dtype)
@@ -205,6 +211,7 @@ class MPPI(ByIdentity):
 
         return jax.lax.scan(step, x0, (us, ts))[1], ts
 
+    @highest
     def solve(
         self, key: PRNGKeyArray, x0: Float[Array, " n"], u_nominal: Float[Array, "H m"], t0
     ) -> tuple[Float[Array, "H m"], dict]:

@@ -48,6 +48,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from gpg import models, parallel
 from gpg._deprecated import deprecated
 from gpg._dtype import float64
+from gpg._precision import highest
 from gpg.config import ModelConfig
 from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
@@ -525,6 +526,7 @@ def _require_finite(name: str, a) -> None:
         )
 
 
+@highest
 def predict_state(
     sur: Surrogate, rpm: Array, euler: Array, v_air: Array, with_var: bool, *, body: bool = False
 ) -> Prediction:

@@ -60,6 +60,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from gpg._identity import ByIdentity
+from gpg._precision import highest
 from gpg.envs.wind import Dryden
 from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan, vee
 from gpg.quadrotor.dynamics import (
@@ -296,6 +297,7 @@ class QuadrotorEnv(ByIdentity):
     def action_space(self, params: EnvParams | None = None) -> Box:
         return Box(-1.0, 1.0, (4,), jnp.dtype(self.dtype))
 
+    @highest
     def reset(
         self, key: PRNGKeyArray, params: EnvParams | None = None
     ) -> tuple[Float[Array, " 25"], EnvState]:
@@ -303,6 +305,7 @@ class QuadrotorEnv(ByIdentity):
         params = self._params(params)
         return self.reset_env(key, params)
 
+    @highest
     def step(
         self,
         key: PRNGKeyArray,
@@ -321,6 +324,7 @@ class QuadrotorEnv(ByIdentity):
 
     # -- the environment itself ---------------------------------------------------------------
 
+    @highest
     def reset_env(self, key: PRNGKeyArray, params: EnvParams) -> tuple[Array, EnvState]:
         dt = jnp.dtype(self.dtype)
         ks = jax.random.split(key, 13)
@@ -376,6 +380,7 @@ class QuadrotorEnv(ByIdentity):
 
     # Long by design: one environment step in the order the physics happens (wind, actions,
     # dynamics, observation, reward, termination); the state threads through every line.
+    @highest
     def step_env(
         self, key: PRNGKeyArray, state: EnvState, action, params: EnvParams
     ) -> tuple[Array, EnvState, Array, Array, dict]:

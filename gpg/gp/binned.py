@@ -22,6 +22,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from gpg._precision import highest
 from gpg.gp import kernels, partition
 from gpg.gp.gram import to_bases
 from gpg.gp.hyper import Hyper
@@ -189,11 +190,13 @@ def _batched_args(axis_size, in_batched, b, k):
 
 
 @jax.custom_batching.custom_vmap
+@highest
 def _contract(coef: Float[Array, "B M R"], b: Int[Array, ""], k: Float[Array, " R"]):
     return jax.lax.dynamic_index_in_dim(coef, b, keepdims=False) @ k
 
 
 @_contract.def_vmap
+@highest
 def _contract_batched(axis_size, in_batched, coef, b, k):
     bins, K = _batched_args(axis_size, in_batched, b, k)
     if in_batched[0]:  # a batch of models: one pair at a time
@@ -210,11 +213,13 @@ def binned_contract(
     return _contract(coef, b, k)
 
 
+@highest
 def _every_bin(coef, k):
     """``C_i k`` for every bin ``i`` (B, M): linear in both, batches into one product."""
     return jnp.einsum("bmr,r->bm", coef, k)
 
 
+@highest
 def _binned_contract_jvp(primals, tangents):
     coef, b, k = primals
     dcoef, _, dk = tangents
@@ -231,11 +236,13 @@ binned_contract.defjvp(_binned_contract_jvp, symbolic_zeros=True)
 
 
 @jax.custom_batching.custom_vmap
+@highest
 def _quadratic_form(factor: tuple[BlockTriangular, ...], b: Int[Array, ""], k: Float[Array, " R"]):
     return jnp.sum(jnp.square(_apply(factor, b, k))).astype(k.dtype)
 
 
 @_quadratic_form.def_vmap
+@highest
 def _quadratic_form_batched(axis_size, in_batched, factor, b, k):
     bins, K = _batched_args(axis_size, in_batched, b, k)
     if any(jax.tree.leaves(in_batched[0])):
@@ -248,6 +255,7 @@ def _quadratic_form_batched(axis_size, in_batched, factor, b, k):
 
 
 @jax.custom_batching.custom_vmap
+@highest
 def _quadratic_form_grad(factor: tuple[BlockTriangular, ...], b: Int[Array, ""], k):
     """``‖F_b k‖²`` and its gradient in ``k``, ``2 F_bᵀ F_b k``."""
     branches = [lambda kk, f=f: f.rmatvec(f.matvec(kk)) for f in factor]
@@ -257,6 +265,7 @@ def _quadratic_form_grad(factor: tuple[BlockTriangular, ...], b: Int[Array, ""],
 
 
 @_quadratic_form_grad.def_vmap
+@highest
 def _quadratic_form_grad_batched(axis_size, in_batched, factor, b, k):
     bins, K = _batched_args(axis_size, in_batched, b, k)
     if any(jax.tree.leaves(in_batched[0])):
@@ -272,6 +281,7 @@ def _quadratic_form_grad_batched(axis_size, in_batched, factor, b, k):
     return (q, G), (True, True)
 
 
+@highest
 def _apply(factor: tuple[BlockTriangular, ...], b, k):
     """``F_b k`` (in the factor's dtype): a ``lax.switch`` reads bin ``b``'s bands only."""
     branches = [lambda kk, f=f: f.matvec(kk) for f in factor]
@@ -286,6 +296,7 @@ def binned_quadratic_form(
     return _quadratic_form(factor, b, k)
 
 
+@highest
 def _binned_quadratic_form_jvp(primals, tangents):
     # The tangent in k is g·dk with the gradient g = 2 F_bᵀ F_b k computed beside the value
     # (batched per bin like the value): a dot product, which JAX transposes and batches at the

@@ -26,6 +26,7 @@ import numpy as np
 from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
+from gpg._precision import highest
 from gpg.gp import kernels
 from gpg.gp.hyper import Hyper
 
@@ -57,6 +58,7 @@ class Nystrom(eqx.Module):
     chol: Float[Array, "P P"]
 
     @classmethod
+    @highest
     def create(
         cls,
         X: Float[Array, "N D"],
@@ -101,6 +103,7 @@ class Nystrom(eqx.Module):
         """``log|P̂| = log|D| + log|I + Vᵀ D⁻¹ V|`` (the matrix determinant lemma)."""
         return -jnp.sum(jnp.log(self.d_inv)) + 2.0 * jnp.sum(jnp.log(jnp.diag(self.chol)))
 
+    @highest
     def __call__(self, r: Float[Array, "R M"]) -> Float[Array, "R M"]:
         y = self.d_inv[:, None] * r
         t = jsl.cho_solve((self.chol, True), self.V.T @ y)
@@ -122,6 +125,7 @@ def _residual_diagonal(q, hyper: Hyper, grad_dims: tuple[int, ...], n: int, X) -
     return jnp.maximum(prior - q, 0.0) + hyper.noise_diagonal(n, len(grad_dims))
 
 
+@highest
 def _nystrom_rows(Xc, Z, Lu, hyper, *, grad_dims):
     """Rows of ``V = K̄_xu L_u⁻ᵀ`` for the points ``Xc`` (their own dimension-major order)."""
     K = kernels.gram(Xc, Z, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
@@ -129,12 +133,14 @@ def _nystrom_rows(Xc, Z, Lu, hyper, *, grad_dims):
 
 
 @eqx.filter_jit
+@highest
 def _first(precond, B):
     z = precond(B)
     return jnp.zeros_like(B), B, z, z, jnp.sum(B * z, 0)
 
 
 @eqx.filter_jit
+@highest
 def _step(matvec, precond, x, r, p, rz):
     q = matvec(p)
     pq = jnp.sum(p * q, 0)

@@ -27,6 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg._dtype import float64, in_model_dtype
+from gpg._precision import highest
 from gpg.gp import kernels, predictor
 from gpg.gp.gram import (
     assemble_gram,
@@ -243,6 +244,7 @@ class ExactGP(Predictor):
         :mod:`gpg.gp.mean` (plain kernel values times fixed coefficients)."""
         return self.mean(x)
 
+    @highest
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
         """Posterior mean (M,) and latent variance () at one query: Eqs. (GPGmean, GPGvariance).
 
@@ -287,6 +289,7 @@ def _cross(gp: ExactGP, Xq: Array) -> Float[Array, "Q R"]:
 
 
 @eqx.filter_jit
+@highest
 def _predict_gradient(gp: ExactGP, Xq: Array):
     predictor.check_query(Xq, gp.n_inputs)
     Xq = eqx.error_if(Xq, ~jnp.all(jnp.isfinite(Xq)), "Xq holds NaN or inf")

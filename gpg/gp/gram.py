@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg import _checks
+from gpg._precision import highest
 from gpg.gp import kernels
 from gpg.gp.hyper import Hyper
 
@@ -199,6 +200,7 @@ def row_directions(
     return p, E, value
 
 
+@highest
 def to_bases(k: Float[Array, "*Q R"], bases: Float[Array, "N G G"], n: int) -> Float[Array, "*Q R"]:
     """Kernel rows in the coordinate layout (values, then one block per gradient dim) turned
     into the rows a case with gradient ``bases`` observes: ``B_i ∂k`` per case (JAX)."""
@@ -291,6 +293,7 @@ def assemble_rows_gram(
     return out
 
 
+@highest
 def noisy_gram(
     X: Float[Array, "N D"],
     hyper: Hyper,
@@ -348,6 +351,7 @@ def mask_targets(Ybar: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
     return out
 
 
+@highest
 def log_marginal_likelihood(
     X: Float[Array, "N D"],
     Ybar: Float[Array, "R M"],

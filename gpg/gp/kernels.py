@@ -28,6 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from gpg._precision import highest
+
 
 class KernelBlocks(NamedTuple):
     """The four covariance blocks between ``(f(x), ∂f(x))`` and ``(f(x'), ∂f(x'))``."""
@@ -38,6 +40,7 @@ class KernelBlocks(NamedTuple):
     knm: Float[Array, "D D"]
 
 
+@highest
 def rbf(
     x1: Float[ArrayLike, " D"],
     x2: Float[ArrayLike, " D"],
@@ -53,6 +56,7 @@ def rbf(
     return variance * jnp.exp(-0.5 * jnp.dot(r, r))
 
 
+@highest
 def gradient_blocks(
     x1: Float[ArrayLike, " D"],
     x2: Float[ArrayLike, " D"],
@@ -91,6 +95,7 @@ def check_dims(dims: Sequence[int], n_inputs: int, name: str = "grad_dims") -> t
     return out
 
 
+@highest
 def pair_block(
     x1: Float[Array, " D"],
     x2: Float[Array, " D"],
@@ -131,6 +136,7 @@ def _selector(dims: tuple[int, ...]) -> slice | np.ndarray:
 
 
 @partial(jax.jit, static_argnames=("dims1", "dims2"))
+@highest
 def gram(
     X1: Float[Array, "N1 D"],
     X2: Float[Array, "N2 D"],
@@ -151,6 +157,7 @@ def gram(
     return blocks.reshape((1 + len(dims1)) * X1.shape[0], (1 + len(dims2)) * X2.shape[0])
 
 
+@highest
 def correlation(
     X1: Float[Array, "N1 D"], X2: Float[Array, "N2 D"], lengthscale: Float[ArrayLike, "*L"]
 ) -> Float[Array, "N1 N2"]:
@@ -160,6 +167,7 @@ def correlation(
     )
 
 
+@highest
 def query_rows(
     Xq: Float[Array, "Q D"],
     X: Float[Array, "N D"],
@@ -188,6 +196,7 @@ def query_rows(
 
 
 @jax.jit
+@highest
 def row_gram(
     X1: Float[Array, "R1 D"],
     a1: Int[Array, " R1"],
@@ -222,6 +231,7 @@ def row_gram(
 
 
 @jax.jit
+@highest
 def direction_gram(
     X1: Float[Array, "R1 D"],
     E1: Float[Array, "R1 D"],
@@ -254,6 +264,7 @@ def direction_gram(
     return K * (a1 * a2 + jnp.where(both, W1 @ E2.T, 0.0))
 
 
+@highest
 def rbf_matrix(A: Array, B: Array, variance) -> Array:
     """``σ exp(-½ |a − b|²)`` for the rows of ``A`` and ``B``, already divided by ``l``."""
     r2 = jnp.sum(A * A, 1)[:, None] + jnp.sum(B * B, 1)[None, :] - 2.0 * (A @ B.T)

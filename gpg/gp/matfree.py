@@ -24,9 +24,11 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from gpg import parallel
+from gpg._precision import highest
 from gpg.gp.hyper import Hyper
 
 
+@highest
 def _columns(Xg, il2, v0, Vg):
     """The right-hand sides of ``K`` for ``V`` (module docstring), (N, C, M) with ``C =
     (G+1)(G+2)``, and ``s``."""
@@ -44,6 +46,7 @@ def _columns(Xg, il2, v0, Vg):
     return jnp.concatenate(parts, axis=1)
 
 
+@highest
 def _tile_product(xt, X, Wflat, variance, lengthscale, il2, dims, m):
     """``K̄`` rows of the points ``xt`` (t, D) times ``V`` from the products ``K(xt, X) W``."""
     g = len(dims)
@@ -71,6 +74,7 @@ def _tile_product(xt, X, Wflat, variance, lengthscale, il2, dims, m):
 
 
 @partial(jax.jit, static_argnames=("grad_dims",))
+@highest
 def _prepare(X, hyper: Hyper, grad_dims: tuple[int, ...], V):
     """The columns ``W`` (N, C·M) that ``K`` multiplies, and the lengthscales as used."""
     n, d = X.shape
@@ -83,6 +87,7 @@ def _prepare(X, hyper: Hyper, grad_dims: tuple[int, ...], V):
     return _columns(Xg, il2, V[:n], Vg).reshape(n, -1), ls, il2
 
 
+@highest
 def _assemble(value, grad, V, hyper: Hyper, n: int, g: int):
     """Stacked rows (value rows, then each gradient dimension's) plus the noise diagonal."""
     m = V.shape[1]
@@ -100,6 +105,7 @@ def _tiles(X, tile: int):
 
 
 @partial(jax.jit, static_argnames=("grad_dims", "tile"))
+@highest
 def gram_matvec(
     X: Float[Array, "N D"],
     hyper: Hyper,

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg._precision import highest
 from gpg.gp import kernels
 
 
@@ -74,6 +75,7 @@ class GlobalMean(eqx.Module):
     def n_outputs(self) -> int:
         return self.coef.shape[1] // (1 + len(self.grad_dims))
 
+    @highest
     def __call__(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
         """Mean (M,) at one query ``x`` (D,)."""
         k = kernels.rbf_matrix((x * self.inv_ls)[None], self.Xs, self.variance)[0]

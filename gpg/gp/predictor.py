@@ -25,6 +25,7 @@ from equinox import AbstractVar
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg._dtype import in_model_dtype
+from gpg._precision import highest
 from gpg.gp.partition import Partition
 
 
@@ -116,6 +117,7 @@ def check_query(Xq: Array, n_inputs: int) -> None:
 
 
 @eqx.filter_jit
+@highest
 def _batch(model: "Predictor", Xq: Array, with_var: bool):
     check_query(Xq, model.n_inputs)
     Xq = eqx.error_if(Xq, ~jnp.all(jnp.isfinite(Xq)), "Xq holds NaN or inf")

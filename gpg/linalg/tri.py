@@ -16,6 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg._precision import highest
+
 
 class BlockTriangular(eqx.Module):
     """Row bands of a triangular ``n x n`` matrix (``lower`` or upper)."""
@@ -79,6 +81,7 @@ class BlockTriangular(eqx.Module):
     def dtype(self):
         return self.blocks[0].dtype
 
+    @highest
     def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
         """``F k``, in the factor's storage dtype (a float32 factor reads half the bytes)."""
         k = k.astype(self.dtype)
@@ -88,6 +91,7 @@ class BlockTriangular(eqx.Module):
             parts.append(blk @ (k[: blk.shape[1]] if self.lower else k[self.n - blk.shape[1] :]))
         return jnp.concatenate(parts)
 
+    @highest
     def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``K Fᵀ`` for a batch of rows ``K`` (each row's ``F k``)."""
         K = K.astype(self.dtype)
@@ -103,6 +107,7 @@ class BlockTriangular(eqx.Module):
         """``Fᵀ v``, in the factor's storage dtype."""
         return self.lmatmul(v[None])[0]
 
+    @highest
     def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``V F`` for a batch of rows ``V`` (each row's ``Fᵀ v``)."""
         V = V.astype(self.dtype)
@@ -172,12 +177,14 @@ class BorderedTriangular(eqx.Module):
         m = self.base.n
         return (A[:m], A[m:]) if axis == 0 else (A[:, :m], A[:, m:])
 
+    @highest
     def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
         """``F k`` (the factor's storage dtype)."""
         k1, k2 = self._split(k.astype(self.dtype), 0)
         v = self.base.matvec(k1)
         return jnp.concatenate([v, self.corner @ k2 - self.coupling @ v])
 
+    @highest
     def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``K Fᵀ`` (each row's ``F k``)."""
         K1, K2 = self._split(K.astype(self.dtype), 1)
@@ -189,6 +196,7 @@ class BorderedTriangular(eqx.Module):
         """``Fᵀ v``."""
         return self.lmatmul(v[None])[0]
 
+    @highest
     def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``V F`` (each row's ``Fᵀ v``): ``[(V₁ − V₂ M) L⁻¹, V₂ L₂⁻¹]``."""
         V1, V2 = self._split(V.astype(self.dtype), 1)
