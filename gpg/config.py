@@ -27,6 +27,7 @@ import yaml
 from gpg import conf
 from gpg.gp.partition import SCHEMES
 from gpg.gp.schur import check_options
+from gpg.linalg.device import PLACEMENTS
 
 DTYPES = ("float64", "float32")  # storage of the variance factors
 
@@ -194,7 +195,8 @@ SOLVERS = ("auto", "cholesky", "cg")
 
 @dataclass(frozen=True)
 class SolverConfig:
-    """How ``gpgs_hybrid`` solves ``K̄ α = Ȳ`` for its exact mean (:mod:`gpg.gp.cg`)."""
+    """How ``gpgs_hybrid`` solves ``K̄ α = Ȳ`` for its exact mean (:mod:`gpg.gp.cg`), and where
+    every kind's dense solves run (``device``; the one key the other kinds read)."""
 
     # cholesky: form and factorise K̄ | cg: matrix-free conjugate gradients, K̄ never formed |
     # auto: cholesky when K̄ fits in the available memory, else cg
@@ -204,6 +206,10 @@ class SolverConfig:
     points: int = 250  # cg: inducing inputs of the Nyström preconditioner (each 1+G rows)
     seed: int = 0  # cg: k-means start of those inputs
     tile: int = 256  # cg: points per tile of K in a product (memory: tile x N)
+    # where the dense solves run (K̄, the bins' near sets, PIC's blocks): host (LAPACK in
+    # place) | device (JAX's default device, float64) | auto: the accelerator when there is
+    # one and the solve fits in its free memory (gpg.linalg.device.place)
+    device: str = "auto"
 
     def __post_init__(self):
         _choice("solver.method", self.method, SOLVERS)
@@ -213,6 +219,7 @@ class SolverConfig:
         _int("solver.points", self.points, 1)
         _int("solver.seed", self.seed)
         _int("solver.tile", self.tile, 1)
+        _choice("solver.device", self.device, PLACEMENTS)
 
 
 _SECTIONS = {

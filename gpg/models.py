@@ -167,8 +167,16 @@ def resolve_config(name: str, cfg: Mapping[str, Any] | ModelConfig | None = None
     read = reads(name)
     base, got = own.to_dict(), out.to_dict()
     for key in got:
-        if key not in read and got[key] != base[key]:
-            where = _first_difference(key, base[key], got[key])
+        if key in read:
+            continue
+        # A kind may read single keys of a section ("solver.device"): the rest must stay.
+        sub = {r.split(".", 1)[1] for r in read if r.startswith(f"{key}.")}
+        a, b = base[key], got[key]
+        if sub and isinstance(a, dict):
+            a = {k: v for k, v in a.items() if k not in sub}
+            b = {k: v for k, v in b.items() if k not in sub}
+        if a != b:
+            where = _first_difference(key, a, b)
             raise ValueError(
                 f"model {name!r} does not read option {where!r} (its kind "
                 f"{SPECS[name].kind.name!r} reads: {', '.join(read)})"

@@ -247,11 +247,8 @@ def _quadratic_form_batched(axis_size, in_batched, factor, b, k):
     bins, K = _batched_args(axis_size, in_batched, b, k)
     if any(jax.tree.leaves(in_batched[0])):
         return jax.lax.map(lambda a: _quadratic_form(*a), (factor, bins, K)), True
-    out = jnp.zeros(axis_size, dtype=K.dtype)
-    for i, f in enumerate(factor):
-        V = f.rmatmul(K)
-        out = jnp.where(bins == i, jnp.sum(V * V, axis=1).astype(K.dtype), out)
-    return out, True
+    (q,) = by_bin(factor, bins, K, with_grad=False)
+    return q, True
 
 
 @jax.custom_batching.custom_vmap
@@ -271,17 +268,75 @@ def _quadratic_form_grad_batched(axis_size, in_batched, factor, b, k):
     if any(jax.tree.leaves(in_batched[0])):
         out = jax.lax.map(lambda a: _quadratic_form_grad(*a), (factor, bins, K))
         return out, (True, True)
-    q = jnp.zeros(axis_size, dtype=K.dtype)
-    G = jnp.zeros(K.shape, dtype=K.dtype)
-    for i, f in enumerate(factor):
-        V = f.rmatmul(K)
-        here = bins == i
-        q = jnp.where(here, jnp.sum(V * V, axis=1).astype(K.dtype), q)
-        G = jnp.where(here[:, None], 2.0 * f.lmatmul(V).astype(K.dtype), G)
-    return (q, G), (True, True)
+    return by_bin(factor, bins, K, with_grad=True), (True, True)
+
+
+def tile_rows(n_queries: int, n_bins: int) -> int:
+    """Queries per tile of :func:`by_bin`: about a quarter of a bin's share of the batch, so
+    that the tiles padded at the end of each bin's run add about an eighth to the work, and at
+    most :data:`MAX_TILE` (the product's rows; past that a tile only costs memory)."""
+    return int(min(MAX_TILE, max(1, n_queries // (4 * n_bins))))
+
+
+MAX_TILE = 256
 
 
 @highest
+def by_bin(
+    factor: tuple[BlockTriangular, ...],
+    bins: Int[Array, " Q"],
+    K: Float[Array, "Q R"],
+    *,
+    with_grad: bool,
+    tile: int | None = None,
+) -> tuple[Float[Array, " Q"]] | tuple[Float[Array, " Q"], Float[Array, "Q R"]]:
+    """``‖F_b k_q‖²`` for a batch of kernel rows ``K``, each with its own bin ``bins[q]``, and
+    with ``with_grad`` the gradients ``2 F_bᵀ F_b k_q``, by one matrix product per bin.
+
+    The queries are sorted by bin and each bin's run is padded to whole tiles of ``tile`` rows
+    (default :func:`tile_rows`), so every tile belongs to one bin: a loop over the tiles
+    multiplies each by its own bin's factor (``lax.switch`` reads only that bin's bands). At
+    most ``Q/tile + B`` tiles, so the work is that of the queries' own products plus at most
+    one padded tile per bin, where reading every bin's factor for every query costs ``B``
+    times the work (what a plain ``vmap`` of the one-query code does)."""
+    q_count, width = K.shape
+    n_bins = len(factor)
+    tile = tile_rows(q_count, n_bins) if tile is None else int(tile)
+    n_tiles = (q_count + n_bins * (tile - 1)) // tile  # Σ_b ⌈c_b / tile⌉ for any counts c_b
+    order = jnp.argsort(bins, stable=True)
+    sorted_bins = bins[order]
+    counts = jnp.bincount(bins, length=n_bins)
+    bin_tiles = (counts + tile - 1) // tile
+    tile_end = jnp.cumsum(bin_tiles)
+    first_tile = tile_end - bin_tiles
+    first_query = jnp.cumsum(counts) - counts
+    # Sorted query j of bin b sits at row (first tile of b)·tile + (its rank within b).
+    slot = first_tile[sorted_bins] * tile + jnp.arange(q_count) - first_query[sorted_bins]
+    padded = jnp.zeros((n_tiles * tile, width), K.dtype).at[slot].set(K[order])
+    # Tiles past the last bin's (empty) take the last bin: zero rows, never read back.
+    tile_bin = jnp.minimum(
+        jnp.searchsorted(tile_end, jnp.arange(n_tiles), side="right"), n_bins - 1
+    )
+
+    def one_tile(args):
+        Kt, b = args
+        branches = [lambda kt, f=f: _tile_terms(f, kt, with_grad) for f in factor]
+        return jax.lax.switch(b, branches, Kt)
+
+    out = jax.lax.map(one_tile, (padded.reshape(n_tiles, tile, width), tile_bin))
+    unsort = jnp.argsort(order)
+    back = slot[unsort]  # each query's row in the padded order
+    return tuple(o.reshape(n_tiles * tile, *o.shape[2:])[back] for o in out)
+
+
+def _tile_terms(f: BlockTriangular, Kt, with_grad: bool):
+    V = f.rmatmul(Kt)
+    q = jnp.sum(V * V, axis=1).astype(Kt.dtype)
+    if not with_grad:
+        return (q,)
+    return q, (2.0 * f.lmatmul(V)).astype(Kt.dtype)
+
+
 def _apply(factor: tuple[BlockTriangular, ...], b, k):
     """``F_b k`` (in the factor's dtype): a ``lax.switch`` reads bin ``b``'s bands only."""
     branches = [lambda kk, f=f: f.matvec(kk) for f in factor]

@@ -34,6 +34,7 @@ from gpg.gp.gram import (
     assemble_rows_gram,
     check_bases,
     check_training_data,
+    device_gram,
     from_bases,
     to_bases,
 )
@@ -41,6 +42,7 @@ from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor, plain
 from gpg.linalg import dense, memory
+from gpg.linalg import device as linalg_device
 from gpg.linalg.tri import BlockTriangular, BorderedTriangular
 
 
@@ -105,6 +107,7 @@ class ExactGP(Predictor):
         hyper: Hyper | None = None,
         observed: Bool[ArrayLike, "N G"] | None = None,
         bases: Float[ArrayLike, "N G G"] | None = None,
+        device: str = "auto",
     ) -> ExactGP:
         """Condition the GP on values ``Y`` and, optionally, gradients ``dY``.
 
@@ -119,6 +122,10 @@ class ExactGP(Predictor):
             bases: (N, G, G) when ``dY[i, :, g]`` is the derivative along the direction
                 ``Σ_h bases[i, g, h] e_{grad_dims[h]}`` rather than along ``grad_dims[g]``
                 (converted data, :func:`gpg.data.convert.to_body`); default coordinates.
+            device: where ``K̄`` is formed and factorised: ``host`` (LAPACK in place),
+                ``device`` (JAX's default device, float64) or ``auto``
+                (:func:`gpg.linalg.device.place`: the accelerator when there is one and
+                ``K̄`` fits in its free memory).
 
         Raises:
             ValueError: mismatched shapes, NaN/inf in an input, bad ``grad_dims`` or
@@ -134,23 +141,28 @@ class ExactGP(Predictor):
         # whose rows ``order`` names in the layout (a values-only case is one row, not 1 + G).
         index = None if rows is None else np.flatnonzero(rows)
         r = Ybar.shape[0] if index is None else index.size
-        # One dense r x r buffer, factorised and inverted in place, then moved into JAX band by
-        # band while its rows are released: the peak stays near one copy (12.8 GB at 40000 rows).
-        memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
-        buf = memory.square_buffer(r)
-        gram, sel = _gram(data, hyper, index, bases, buf.array)
-        Ybar = Ybar if sel is None else Ybar[sel]
-        chol = dense.cholesky_inplace(gram)
-        alpha = dense.cho_solve(chol, Ybar)
+        what = f"K̄ of an exact GP ({r} rows)"
+        if linalg_device.place(device, linalg_device.solve_bytes(r, True), what) == "device":
+            Ybar = Ybar if index is None else Ybar[index]
+            K = device_gram(data.X, hyper, data.grad_dims, index=index, bases=bases)
+            alpha, logdet, Linv = linalg_device.factor_solve(K, Ybar, inverse=True, what=what)
+            bands = BlockTriangular.from_device(Linv, n_blocks=8)
+            del K, Linv
+        else:
+            # One dense r x r buffer, factorised and inverted in place, then moved into JAX
+            # band by band while its rows are released: the peak stays near one copy.
+            memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
+            buf = memory.square_buffer(r)
+            gram, sel = _gram(data, hyper, index, bases, buf.array)
+            Ybar = Ybar if sel is None else Ybar[sel]
+            chol = dense.cholesky_inplace(gram)
+            alpha = dense.cho_solve(chol, Ybar)
+            logdet = float(np.sum(np.log(np.diag(chol))))
+            dense.triangular_inverse_inplace(chol)  # overwrites the factor: one buffer
+            bands = BlockTriangular.from_buffer(buf, lower=True, n_blocks=8)
+            del chol, buf
         m = Ybar.shape[1]
-        lml = (
-            -0.5 * float(np.sum(Ybar * alpha))
-            - m * float(np.sum(np.log(np.diag(chol))))
-            - 0.5 * m * r * math.log(2 * math.pi)
-        )
-        dense.triangular_inverse_inplace(chol)  # overwrites the factor: one buffer
-        bands = BlockTriangular.from_buffer(buf, lower=True, n_blocks=8)
-        del chol, buf
+        lml = -0.5 * float(np.sum(Ybar * alpha)) - m * logdet - 0.5 * m * r * math.log(2 * math.pi)
         scale = output_scale(np.sum(Ybar * alpha, axis=0), r)
         if index is not None:  # α in the layout, 0 on the rows not observed
             alpha = _scatter(alpha, index, rows.size)

@@ -9,7 +9,9 @@ form used on the hyperparameter-fit subset.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
+import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
@@ -387,3 +389,51 @@ def log_marginal_likelihood(
         - m * jnp.sum(jnp.log(jnp.diag(c)))
         - 0.5 * m * r * jnp.log(2 * jnp.pi)
     )
+
+
+def device_gram(
+    X: Float[ArrayLike, "N D"],
+    hyper: Hyper,
+    grad_dims: tuple[int, ...],
+    *,
+    index: Int[np.ndarray, " r"] | None = None,
+    bases: np.ndarray | None = None,
+    chunk_bytes: int = 1 << 28,
+) -> Float[Array, "r r"]:
+    """``K̄`` plus its noise diagonal over the layout rows ``index`` (default all), built on
+    JAX's default device in float64: the device twin of :func:`assemble_gram` and
+    :func:`assemble_rows_gram` (``bases``: directional rows, :func:`row_directions`), for
+    :mod:`gpg.linalg.device`. Rows are made a block at a time into one preallocated buffer
+    (the kernels' elementwise temporaries of a block stay under ``chunk_bytes``), so the peak
+    is the matrix itself."""
+    X = np.asarray(X, dtype=np.float64)
+    n, g = X.shape[0], len(grad_dims)
+    index = np.arange(n * (1 + g)) if index is None else np.asarray(index)
+    p, what, kernel = layout_rows(index, n, grad_dims, bases, bases is not None, X.shape[1])
+    r = index.size
+    # The row kernels hold a few (block x r) temporaries, (block x r x D) for directions.
+    per_row = 8 * r * (4 + (X.shape[1] if bases is not None else 0))
+    block = int(max(1, min(r, chunk_bytes // per_row)))
+    noise = np.asarray(hyper.noise_diagonal(n, g))[index]
+    return _device_gram(
+        jnp.asarray(X[p]), tuple(jnp.asarray(a) for a in what), jnp.asarray(noise),
+        hyper.variance, hyper.lengthscale, kernel=kernel, block=block,
+    )  # fmt: skip
+
+
+@partial(jax.jit, static_argnames=("kernel", "block"))
+@highest
+def _device_gram(Xr, what, noise, variance, lengthscale, *, kernel, block: int):
+    r = Xr.shape[0]
+    n_blocks = -(-r // block)
+
+    def fill(i, K):
+        # The last block starts early enough to end at r: its first rows are made twice.
+        start = jnp.minimum(i * block, r - block)
+        rows = (jax.lax.dynamic_slice_in_dim(a, start, block) for a in (Xr, *what))
+        part = kernel(*rows, Xr, *what, variance, lengthscale)
+        return jax.lax.dynamic_update_slice_in_dim(K, part, start, axis=0)
+
+    K = jax.lax.fori_loop(0, n_blocks, fill, jnp.zeros((r, r), Xr.dtype))
+    diag = jnp.arange(r)
+    return K.at[diag, diag].add(noise)  # in place: no second r x r array

@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
+import jax
 import numpy as np
 
 from gpg.config import ModelConfig
@@ -23,6 +24,7 @@ from gpg.gp import partition
 from gpg.gp.gram import mask_targets, observed_rows, stack_targets
 from gpg.gp.hyper import Hyper
 from gpg.gp.predictor import Predictor
+from gpg.linalg import device as linalg_device
 
 if TYPE_CHECKING:
     from gpg.gp.exact import ExactGP
@@ -190,3 +192,19 @@ def gram_bytes(n_points: int, n_grad: int, copies: float = 1.2) -> int:
     """Bytes of ``copies`` dense ``K̄`` over ``n_points`` points with ``n_grad`` gradient rows."""
     rows = n_points * (1 + n_grad)
     return int(rows * rows * 8 * copies)
+
+
+def bin_devices(devices, cfg: ModelConfig, rows: int, what: str, *, host_only: bool = False):
+    """The devices of a per-bin precompute (:mod:`gpg.parallel`): the caller's, else JAX's
+    default device where ``solver.device`` places a bin's solve of ``rows`` rows there
+    (:func:`gpg.linalg.device.place`), else None, the host path. ``host_only``: the data need
+    the host path (cases without some gradients, directional rows), which ``auto`` then takes;
+    ``device`` passes the device on, and the precompute refuses with its reason."""
+    if devices is not None:
+        return devices
+    mode = cfg.solver.device
+    if host_only and mode == "auto":
+        return None
+    if linalg_device.place(mode, linalg_device.solve_bytes(rows, True), what) == "device":
+        return jax.devices()[:1]
+    return None

@@ -18,7 +18,7 @@ class Exact(Kind):
     """``gp`` and ``gpg``: :class:`gpg.gp.exact.ExactGP`."""
 
     name = "exact"
-    reads = ()
+    reads = ("solver.device",)
     partitioned = False
     needs_gram = True
     partial_gradients = True
@@ -29,7 +29,7 @@ class Exact(Kind):
         dims = arrays.dims if arrays.dY is not None else None
         model = ExactGP.fit(
             arrays.X, arrays.Y, arrays.dY, grad_dims=dims, hyper=hyper, observed=arrays.observed,
-            bases=arrays.bases,
+            bases=arrays.bases, device=cfg.solver.device,
         )  # fmt: skip
         return Product(model, timings={"fit_s": time.perf_counter() - t0})
 

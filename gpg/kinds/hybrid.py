@@ -13,7 +13,7 @@ from gpg.config import ModelConfig
 from gpg.gp import cg, local, partition, pic
 from gpg.gp.binned import BinFactors, near_rows, pack
 from gpg.gp.exact import ExactGP
-from gpg.gp.gram import assemble_gram, from_bases, mask_gram_inplace
+from gpg.gp.gram import assemble_gram, device_gram, from_bases, mask_gram_inplace
 from gpg.gp.hybrid import HybridGP, Record
 from gpg.gp.hyper import Hyper
 from gpg.gp.matfree import gram_matvec, gram_matvec_devices
@@ -24,11 +24,13 @@ from gpg.kinds.base import (
     Cases,
     Kind,
     Product,
+    bin_devices,
     bins_and_near,
     gram_bytes,
     near_set_bytes,
 )
 from gpg.linalg import dense, memory
+from gpg.linalg import device as linalg_device
 
 
 @dataclass(frozen=True)
@@ -50,8 +52,13 @@ class Hybrid(Kind):
         alpha, diagnostics = global_alpha(
             arrays.X, Ybar, rows, hyper, arrays.dims, cfg, devices, bases
         )
+        width = max(nb.size for nb in near.near) * (1 + len(arrays.dims))
+        devs = bin_devices(
+            devices, cfg, width, f"the bins' near sets ({width} rows each)",
+            host_only=rows is not None or bases is not None,
+        )  # fmt: skip
         factors = local.precompute(
-            arrays.X, Ybar, hyper, arrays.dims, near, devices=devices, rows=rows, bases=bases
+            arrays.X, Ybar, hyper, arrays.dims, near, devices=devs, rows=rows, bases=bases
         )
         model = _assemble(
             arrays.X, Ybar, rows, alpha, factors, near, part, hyper, arrays.dims, cfg, bases
@@ -161,7 +168,7 @@ def global_alpha(X, Ybar, rows, hyper, dims, cfg, devices, bases=None) -> tuple[
                 "solver.method=cholesky"
             )
         return cg_alpha(X, Ybar, hyper, dims, cfg.solver, devices)
-    return exact_alpha(X, Ybar, hyper, dims, rows, bases), {}
+    return exact_alpha(X, Ybar, hyper, dims, rows, bases, cfg.solver.device), {}
 
 
 def solver_method(cfg: ModelConfig, n_points: int, n_grad: int) -> str:
@@ -217,13 +224,32 @@ def cg_alpha(
 
 
 def exact_alpha(
-    X: np.ndarray, Ybar: np.ndarray, hyper: Hyper, dims: tuple[int, ...], rows=None, bases=None
+    X: np.ndarray,
+    Ybar: np.ndarray,
+    hyper: Hyper,
+    dims: tuple[int, ...],
+    rows=None,
+    bases=None,
+    device: str = "auto",
 ) -> np.ndarray:
-    """``α = K̄⁻¹ Ȳ`` by one in-place Cholesky factorisation of ``K̄`` (no inverse kept);
-    ``rows`` the observed rows (:func:`gpg.gp.gram.observed_rows`), ``bases`` the directions
-    of the gradient rows (:func:`gpg.gp.gram.row_directions`)."""
+    """``α = K̄⁻¹ Ȳ`` by one Cholesky factorisation of ``K̄`` (no inverse kept), in place on
+    the host or on the accelerator (``device``, :func:`gpg.linalg.device.place`); ``rows``
+    the observed rows (:func:`gpg.gp.gram.observed_rows`), ``bases`` the directions of the
+    gradient rows (:func:`gpg.gp.gram.row_directions`)."""
     r = Ybar.shape[0]
-    memory.require(f"the global α over {r} rows", int(r * r * 8 * 1.1))
+    what = f"the global α over {r} rows"
+    if linalg_device.place(device, linalg_device.solve_bytes(r, False), what) == "device":
+        index = None if rows is None else np.flatnonzero(rows)
+        K = device_gram(X, hyper, dims, index=index, bases=bases)
+        part, _, _ = linalg_device.factor_solve(
+            K, Ybar if index is None else Ybar[index], inverse=False, what=what
+        )
+        if index is None:
+            return part
+        alpha = np.zeros_like(Ybar)  # the rows not observed are decoupled: α = 0 there
+        alpha[index] = part
+        return alpha
+    memory.require(what, int(r * r * 8 * 1.1))
     buf = memory.square_buffer(r)
     gram = assemble_gram(np.asarray(X), hyper, dims, out=buf.array, bases=bases)
     chol = dense.cholesky_inplace(mask_gram_inplace(gram, rows))

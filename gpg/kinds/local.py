@@ -9,7 +9,7 @@ from gpg.config import ModelConfig
 from gpg.gp import local
 from gpg.gp.binned import pack
 from gpg.gp.hyper import Hyper
-from gpg.kinds.base import Arrays, Kind, Product, bins_and_near, near_set_bytes
+from gpg.kinds.base import Arrays, Kind, Product, bin_devices, bins_and_near, near_set_bytes
 
 
 @dataclass(frozen=True)
@@ -18,13 +18,15 @@ class Local(Kind):
     :class:`gpg.gp.binned.BinnedGP`."""
 
     name = "local"
-    reads = ("partition", "near", "variance_dtype")
+    reads = ("partition", "near", "variance_dtype", "solver.device")
     partitioned = True
 
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
         part, near, Ybar, timings = bins_and_near(arrays, hyper, cfg)
         X, dims, t0 = arrays.X, arrays.dims, time.perf_counter()
-        factors = local.precompute(X, Ybar, hyper, dims, near, devices=devices)
+        width = max(nb.size for nb in near.near) * (1 + len(dims))
+        devs = bin_devices(devices, cfg, width, f"the bins' near sets ({width} rows each)")
+        factors = local.precompute(X, Ybar, hyper, dims, near, devices=devs)
         model = pack(X, factors, near, part, hyper, dims, dtype=cfg.variance_dtype)
         timings["fit_s"] = time.perf_counter() - t0
         return Product(model, near, timings=timings)

@@ -13,7 +13,7 @@ from gpg.gp import pic
 from gpg.gp.binned import pack_points
 from gpg.gp.gram import stack_targets
 from gpg.gp.hyper import Hyper
-from gpg.kinds.base import Arrays, Kind, Product
+from gpg.kinds.base import Arrays, Kind, Product, bin_devices
 
 
 @dataclass(frozen=True)
@@ -21,7 +21,7 @@ class Pic(Kind):
     """``gpg_pic``: :mod:`gpg.gp.pic`, trained bin by bin without ever forming ``K̄``."""
 
     name = "pic"
-    reads = ("partition", "inducing", "variance_dtype")
+    reads = ("partition", "inducing", "variance_dtype", "solver.device")
     partitioned = True
 
     def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
@@ -37,6 +37,8 @@ class Pic(Kind):
         if any(b.size == 0 for b in blocks):
             raise ValueError("a PIC bin holds no training point; use fewer bins")
         Ybar = stack_targets(arrays.Y, arrays.dY)
+        width = (max(b.size for b in blocks) + Z.shape[0]) * (1 + len(dims))
+        devices = bin_devices(devices, cfg, width, f"PIC's blocks ({width} rows each)")
         if devices is None:
             factors = pic.iter_precompute(X, Ybar, hyper, dims, blocks, Z, jitter=ic.jitter)
         else:

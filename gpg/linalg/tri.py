@@ -70,6 +70,15 @@ class BlockTriangular(eqx.Module):
             buf.release_rows(a, b)
         return cls(blocks=tuple(blocks), n=n, lower=True)
 
+    @classmethod
+    def from_device(cls, F: Float[Array, "n n"], *, n_blocks: int = 4) -> BlockTriangular:
+        """Bands of the lower-triangular JAX array ``F``, cut where it lives (an accelerator's
+        factor never visits the host); ``F`` itself is dropped by the caller."""
+        n = F.shape[0]
+        edges = np.linspace(0, n, min(n_blocks, max(n, 1)) + 1).astype(int)
+        blocks = tuple(F[a:b, :b] for a, b in zip(edges[:-1], edges[1:], strict=True))
+        return cls(blocks=blocks, n=n, lower=True)
+
     def _starts(self) -> list[int]:
         out, a = [], 0
         for blk in self.blocks:

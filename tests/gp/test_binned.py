@@ -1,0 +1,97 @@
+"""The batched variance by bins (gpg.gp.binned.by_bin): the queries sorted by bin, each bin's
+run padded to whole tiles, one product per tile with its bin's factor. Checked against a NumPy
+reference written here (``‖F_b k‖²`` and ``2 F_bᵀ F_b k`` query by query) for tiles of every
+size, empty bins, one bin holding every query, float32 factors, and through ``vmap``,
+``jacrev`` and ``jacfwd`` of the one-query function."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg.gp.binned import binned_quadratic_form, by_bin, tile_rows
+from gpg.linalg.tri import BlockTriangular
+
+N_BINS, WIDTH = 5, 24
+EPS64 = np.finfo(np.float64).eps
+EPS32 = np.finfo(np.float32).eps
+
+
+def _factors(rng, dtype="float64"):
+    dense = [np.tril(rng.normal(size=(WIDTH, WIDTH))) / np.sqrt(WIDTH) for _ in range(N_BINS)]
+    bands = tuple(
+        BlockTriangular.from_dense(F.astype(dtype), lower=True, n_blocks=3) for F in dense
+    )
+    return dense, bands
+
+
+def _reference(dense, bins, K):
+    V = np.stack([dense[b] @ k for b, k in zip(bins, K, strict=True)])
+    G = np.stack([2 * dense[b].T @ v for b, v in zip(bins, V, strict=True)])
+    return np.sum(V * V, axis=1), G
+
+
+def _bound(dense, K, eps):
+    """Rounding bound of ``‖F k‖²`` and of its gradient: each entry sums ``WIDTH`` products
+    twice over (``F k``, then its square or ``Fᵀ v``), so ``2·WIDTH·eps`` relative to the sum of
+    the magnitudes, with a factor 4 of room."""
+    mag = max(np.abs(F).max() for F in dense) * np.abs(K).max(axis=1)
+    return 8 * WIDTH * eps * (WIDTH * mag) ** 2
+
+
+@pytest.mark.parametrize(
+    "bins_kind, tile",
+    [("mixed", None), ("mixed", 1), ("mixed", 7), ("mixed", 64), ("one_bin", 4), ("two_empty", 3)],
+)
+def test_by_bin_equals_per_query_reference(rng, bins_kind, tile):
+    dense, bands = _factors(rng)
+    q = 37
+    bins = {
+        "mixed": rng.integers(0, N_BINS, q),
+        "one_bin": np.full(q, 3),
+        "two_empty": rng.choice([0, 2, 4], q),
+    }[bins_kind]
+    K = rng.normal(size=(q, WIDTH))
+    quad, grad = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=True, tile=tile)
+    (quad_only,) = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False, tile=tile)
+    ref_q, ref_g = _reference(dense, bins, K)
+    bound = _bound(dense, K, EPS64)
+    np.testing.assert_array_less(np.abs(np.asarray(quad) - ref_q), bound)
+    np.testing.assert_array_less(np.abs(np.asarray(quad_only) - ref_q), bound)
+    np.testing.assert_array_less(np.abs(np.asarray(grad) - ref_g).max(axis=1), bound)
+
+
+def test_float32_factors_within_their_rounding(rng):
+    dense, bands = _factors(rng, "float32")
+    bins = rng.integers(0, N_BINS, 50)
+    K = rng.normal(size=(50, WIDTH)).astype(np.float32)
+    (quad,) = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False)
+    dense64 = [np.asarray(b.to_dense()) for b in bands]  # the stored float32 values, exactly
+    ref, _ = _reference(dense64, bins, K.astype(np.float64))
+    assert quad.dtype == jnp.float32
+    err = np.abs(np.asarray(quad, np.float64) - ref)
+    np.testing.assert_array_less(err, _bound(dense, K, EPS32))
+
+
+def test_vmap_and_derivatives_of_the_one_query_form(rng):
+    dense, bands = _factors(rng)
+    bins = jnp.asarray(rng.integers(0, N_BINS, 9))
+    K = jnp.asarray(rng.normal(size=(9, WIDTH)))
+    one = lambda b, k: binned_quadratic_form(bands, b, k)  # noqa: E731
+    batched = jax.vmap(one)(bins, K)
+    looped = jnp.stack([one(b, k) for b, k in zip(bins, K, strict=True)])
+    ref_q, ref_g = _reference(dense, np.asarray(bins), np.asarray(K))
+    bound = _bound(dense, np.asarray(K), EPS64)
+    np.testing.assert_array_less(np.abs(np.asarray(batched) - ref_q), bound)
+    np.testing.assert_array_less(np.abs(np.asarray(looped) - ref_q), bound)
+    for jac in (jax.jacrev, jax.jacfwd):
+        G = jax.vmap(jac(one, argnums=1))(bins, K)
+        np.testing.assert_array_less(np.abs(np.asarray(G) - ref_g).max(axis=1), bound)
+
+
+def test_tile_rows():
+    assert tile_rows(1, 10) == 1
+    assert tile_rows(1024, 8) == 32
+    assert tile_rows(10**6, 4) == 256
