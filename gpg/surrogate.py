@@ -291,12 +291,16 @@ class Surrogate(eqx.Module):
         v_air: Float[ArrayLike, "N 3"],
         *,
         mean_only: bool = False,
-        chunk: int = 1024,
+        chunk: int | None = None,
     ) -> Prediction:
-        """Many states, vmapped in chunks of ``chunk`` (bounded memory for any N). A NaN or
-        inf in any state raises ``ValueError`` naming the input and its rows."""
+        """Many states, vmapped in chunks of ``chunk`` (bounded memory for any N; default
+        :func:`default_chunk`, per backend). A NaN or inf in any state raises ``ValueError``
+        naming the input and its rows. JAX arrays stay on their device; the variance of a
+        partitioned model is formed bin by bin within each chunk
+        (:func:`gpg.gp.binned.by_bin`)."""
         rpm, euler, v_air = _check_batch(rpm, euler, v_air, chunk)
-        return _predict_batch(self, rpm, euler, v_air, not mean_only, int(chunk))
+        chunk = default_chunk(not mean_only) if chunk is None else int(chunk)
+        return _predict_batch(self, rpm, euler, v_air, not mean_only, chunk)
 
     def replicate(self, devices: parallel.Devices = None) -> Replicated:
         """This surrogate copied onto several JAX devices, for batched prediction spread over
@@ -398,7 +402,7 @@ def _check_batch(rpm, euler, v_air, chunk):
     for name, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air)):
         _require_real(name, a)
     rpm, euler, v_air = (
-        jnp.asarray(_as_float(n, a)) for n, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air))
+        _batch_array(n, a) for n, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air))
     )
     for name, a, w in (("rpm", rpm, 4), ("euler", euler, 3), ("v_air", v_air, 3)):
         if a.ndim != 2 or a.shape[1] != w:
@@ -407,9 +411,32 @@ def _check_batch(rpm, euler, v_air, chunk):
         raise ValueError(f"batch sizes differ: {rpm.shape[0]}, {euler.shape[0]}, {v_air.shape[0]}")
     for name, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air)):
         _require_finite(name, a)
-    if isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1:
-        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    if chunk is not None and (isinstance(chunk, bool) or int(chunk) != chunk or chunk < 1):
+        raise ValueError(f"chunk must be a positive integer or None, got {chunk!r}")
     return rpm, euler, v_air
+
+
+def _batch_array(name: str, a):
+    """A batch input as a JAX array: a JAX float array stays where it is (a GPU's states are
+    not copied to the host to be checked), anything else is converted on the host."""
+    if isinstance(a, jax.Array) and jnp.issubdtype(a.dtype, jnp.floating):
+        return a
+    return jnp.asarray(_as_float(name, a))
+
+
+# Queries per vmapped block of predict_batch, per JAX backend, for the mean alone and with
+# the variance: a block's kernel rows and variance products are its working memory (about
+# 20 kB a query at data=default). On the CPU the mean is fastest in blocks that stay in
+# cache, the variance in blocks long enough to fill each bin's tiles
+# (gpg.gp.binned.by_bin); a GPU wants long blocks for both (one launch per block).
+# experiments.bench 'suites=[gpu]' times several (docs/measurements.md).
+CHUNKS = {"cpu": (1024, 4096), "gpu": (65536, 65536)}
+
+
+def default_chunk(with_var: bool = True) -> int:
+    """:data:`CHUNKS` for JAX's default backend (that of the CPU on a backend it does not
+    list)."""
+    return CHUNKS.get(jax.default_backend(), CHUNKS["cpu"])[int(with_var)]
 
 
 def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
@@ -511,6 +538,8 @@ def _require_finite(name: str, a) -> None:
     the prediction comes back with ``in_domain`` False instead."""
     if isinstance(a, jax.core.Tracer):
         return
+    if isinstance(a, jax.Array) and bool(jnp.all(jnp.isfinite(a))):
+        return  # checked where it lives; only a failing input comes to the host
     v = np.asarray(a)
     if np.isfinite(v).all():
         return

@@ -271,14 +271,25 @@ def _quadratic_form_grad_batched(axis_size, in_batched, factor, b, k):
     return by_bin(factor, bins, K, with_grad=True), (True, True)
 
 
-def tile_rows(n_queries: int, n_bins: int) -> int:
-    """Queries per tile of :func:`by_bin`: about a quarter of a bin's share of the batch, so
-    that the tiles padded at the end of each bin's run add about an eighth to the work, and at
-    most :data:`MAX_TILE` (the product's rows; past that a tile only costs memory)."""
-    return int(min(MAX_TILE, max(1, n_queries // (4 * n_bins))))
+# The two executions of by_bin and their largest tile. On a CPU a loop over the tiles, each
+# multiplied by its own bin's bands (lax.switch), keeps one tile's product in cache, and tiles
+# of 64 rows were fastest (experiments.bench). On a GPU a loop launches a dozen kernels per
+# tile; there every tile's bands are gathered instead and one batched product per band runs
+# over all tiles (the gathered copies cost memory traffic, not arithmetic).
+METHODS = ("loop", "gather")
+MAX_TILE = {"loop": 64, "gather": 1024}
 
 
-MAX_TILE = 256
+def default_method() -> str:
+    """``loop`` on the CPU backend, ``gather`` on an accelerator (:data:`METHODS`)."""
+    return "loop" if jax.default_backend() == "cpu" else "gather"
+
+
+def tile_rows(n_queries: int, n_bins: int, method: str = "loop") -> int:
+    """Queries per tile of :func:`by_bin`: half a bin's share of the batch, so that the tiles
+    padded at the end of each bin's run add at most a half (a quarter on average) to the
+    work, and at most ``MAX_TILE[method]``."""
+    return int(min(MAX_TILE[method], max(1, n_queries // (2 * n_bins))))
 
 
 @highest
@@ -289,19 +300,25 @@ def by_bin(
     *,
     with_grad: bool,
     tile: int | None = None,
+    method: str | None = None,
 ) -> tuple[Float[Array, " Q"]] | tuple[Float[Array, " Q"], Float[Array, "Q R"]]:
     """``‖F_b k_q‖²`` for a batch of kernel rows ``K``, each with its own bin ``bins[q]``, and
     with ``with_grad`` the gradients ``2 F_bᵀ F_b k_q``, by one matrix product per bin.
 
     The queries are sorted by bin and each bin's run is padded to whole tiles of ``tile`` rows
-    (default :func:`tile_rows`), so every tile belongs to one bin: a loop over the tiles
-    multiplies each by its own bin's factor (``lax.switch`` reads only that bin's bands). At
-    most ``Q/tile + B`` tiles, so the work is that of the queries' own products plus at most
-    one padded tile per bin, where reading every bin's factor for every query costs ``B``
-    times the work (what a plain ``vmap`` of the one-query code does)."""
+    (default :func:`tile_rows`), so every tile belongs to one bin, and each tile is multiplied
+    by its own bin's factor: ``method`` ``loop`` (a ``lax.map`` over the tiles, a
+    ``lax.switch`` reading only that bin's bands) or ``gather`` (the bands of every tile's bin
+    gathered, one batched product per band); default :func:`default_method`. At most
+    ``Q/tile + B`` tiles, so the work is that of the queries' own products plus at most one
+    padded tile per bin, where reading every bin's factor for every query costs ``B`` times
+    the work (what a plain ``vmap`` of the one-query code does)."""
     q_count, width = K.shape
     n_bins = len(factor)
-    tile = tile_rows(q_count, n_bins) if tile is None else int(tile)
+    method = default_method() if method is None else method
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    tile = tile_rows(q_count, n_bins, method) if tile is None else int(tile)
     n_tiles = (q_count + n_bins * (tile - 1)) // tile  # Σ_b ⌈c_b / tile⌉ for any counts c_b
     order = jnp.argsort(bins, stable=True)
     sorted_bins = bins[order]
@@ -313,19 +330,22 @@ def by_bin(
     # Sorted query j of bin b sits at row (first tile of b)·tile + (its rank within b).
     slot = first_tile[sorted_bins] * tile + jnp.arange(q_count) - first_query[sorted_bins]
     padded = jnp.zeros((n_tiles * tile, width), K.dtype).at[slot].set(K[order])
+    tiles = padded.reshape(n_tiles, tile, width)
     # Tiles past the last bin's (empty) take the last bin: zero rows, never read back.
     tile_bin = jnp.minimum(
         jnp.searchsorted(tile_end, jnp.arange(n_tiles), side="right"), n_bins - 1
     )
+    if method == "loop":
 
-    def one_tile(args):
-        Kt, b = args
-        branches = [lambda kt, f=f: _tile_terms(f, kt, with_grad) for f in factor]
-        return jax.lax.switch(b, branches, Kt)
+        def one_tile(args):
+            Kt, b = args
+            branches = [lambda kt, f=f: _tile_terms(f, kt, with_grad) for f in factor]
+            return jax.lax.switch(b, branches, Kt)
 
-    out = jax.lax.map(one_tile, (padded.reshape(n_tiles, tile, width), tile_bin))
-    unsort = jnp.argsort(order)
-    back = slot[unsort]  # each query's row in the padded order
+        out = jax.lax.map(one_tile, (tiles, tile_bin))
+    else:
+        out = _gathered_terms(factor, tiles, tile_bin, with_grad)
+    back = slot[jnp.argsort(order)]  # each query's row in the padded order
     return tuple(o.reshape(n_tiles * tile, *o.shape[2:])[back] for o in out)
 
 
@@ -335,6 +355,36 @@ def _tile_terms(f: BlockTriangular, Kt, with_grad: bool):
     if not with_grad:
         return (q,)
     return q, (2.0 * f.lmatmul(V)).astype(Kt.dtype)
+
+
+def _gathered_terms(factor: tuple[BlockTriangular, ...], tiles, tile_bin, with_grad: bool):
+    """:func:`_tile_terms` of every tile at once: band ``j`` of each tile's bin gathered
+    (tiles, rows_j, cols_j), one batched product per band. Every bin's bands have the same
+    shapes (the bins are padded to one width, :func:`pack_points`)."""
+    first = factor[0]
+    dt = first.dtype
+    Kt = tiles.astype(dt)
+    n = first.n
+    Vs = []
+    for j in range(len(first.blocks)):
+        band = jnp.stack([f.blocks[j] for f in factor])[tile_bin]  # (tiles, rows, cols)
+        cols = band.shape[2]
+        part = Kt[:, :, :cols] if first.lower else Kt[:, :, n - cols :]
+        Vs.append(jnp.einsum("tqc,trc->tqr", part, band))
+    V = jnp.concatenate(Vs, axis=2)
+    q = jnp.sum(V * V, axis=2).astype(tiles.dtype)
+    if not with_grad:
+        return (q,)
+    G = jnp.zeros(Kt.shape, dt)
+    a = 0
+    for j in range(len(first.blocks)):
+        band = jnp.stack([f.blocks[j] for f in factor])[tile_bin]
+        rows, cols = band.shape[1], band.shape[2]
+        part = jnp.einsum("tqr,trc->tqc", V[:, :, a : a + rows], band)
+        pad = (0, n - cols) if first.lower else (n - cols, 0)
+        G = G + jnp.pad(part, ((0, 0), (0, 0), pad))
+        a += rows
+    return q, (2.0 * G).astype(tiles.dtype)
 
 
 def _apply(factor: tuple[BlockTriangular, ...], b, k):

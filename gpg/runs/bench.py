@@ -21,6 +21,7 @@ Suites:
   states, and the time of a batched ``jacrev``.
 * ``envs``: environment steps per second of :class:`gpg.envs.QuadrotorEnv` (float32) on the
   surrogate and on ``M``, for several numbers of vmapped environments.
+* ``gpu``: gpg end to end on one accelerator (:mod:`gpg.runs.bench_gpu`; runs on the CPU too).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from gpg.gp.hyper import Hyper
 from gpg.linalg import dense
 from gpg.runs.bench_design import bench_design, design_table
 from gpg.runs.bench_export import bench_export, export_table
+from gpg.runs.bench_gpu import bench_gpu, gpu_table
 from gpg.runs.bench_solver import bench_solver, solver_table
 from gpg.runs.common import (
     conf,
@@ -593,6 +595,7 @@ SUITES = {
     "solver": bench_solver,
     "design": bench_design,
     "export": bench_export,
+    "gpu": bench_gpu,
 }
 
 
@@ -640,7 +643,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         # The models suite runs on the entry point's data and vehicle (data=..., vehicle=...).
         sub = (
             {**cfg[name], "data": cfg["data"], "vehicle": cfg["vehicle"]}
-            if name in ("models", "devices", "derivatives", "envs", "solver", "design")
+            if name in ("models", "devices", "derivatives", "envs", "solver", "design", "gpu")
             else cfg[name]
         )
         results[name] = SUITES[name](sub)
@@ -659,4 +662,5 @@ TABLES = {
     "solver": solver_table,
     "design": design_table,
     "export": export_table,
+    "gpu": gpu_table,
 }

@@ -41,11 +41,12 @@ def _bound(dense, K, eps):
     return 8 * WIDTH * eps * (WIDTH * mag) ** 2
 
 
+@pytest.mark.parametrize("method", ["loop", "gather"])
 @pytest.mark.parametrize(
     "bins_kind, tile",
     [("mixed", None), ("mixed", 1), ("mixed", 7), ("mixed", 64), ("one_bin", 4), ("two_empty", 3)],
 )
-def test_by_bin_equals_per_query_reference(rng, bins_kind, tile):
+def test_by_bin_equals_per_query_reference(rng, bins_kind, tile, method):
     dense, bands = _factors(rng)
     q = 37
     bins = {
@@ -54,8 +55,9 @@ def test_by_bin_equals_per_query_reference(rng, bins_kind, tile):
         "two_empty": rng.choice([0, 2, 4], q),
     }[bins_kind]
     K = rng.normal(size=(q, WIDTH))
-    quad, grad = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=True, tile=tile)
-    (quad_only,) = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False, tile=tile)
+    args = (bands, jnp.asarray(bins), jnp.asarray(K))
+    quad, grad = by_bin(*args, with_grad=True, tile=tile, method=method)
+    (quad_only,) = by_bin(*args, with_grad=False, tile=tile, method=method)
     ref_q, ref_g = _reference(dense, bins, K)
     bound = _bound(dense, K, EPS64)
     np.testing.assert_array_less(np.abs(np.asarray(quad) - ref_q), bound)
@@ -63,11 +65,12 @@ def test_by_bin_equals_per_query_reference(rng, bins_kind, tile):
     np.testing.assert_array_less(np.abs(np.asarray(grad) - ref_g).max(axis=1), bound)
 
 
-def test_float32_factors_within_their_rounding(rng):
+@pytest.mark.parametrize("method", ["loop", "gather"])
+def test_float32_factors_within_their_rounding(rng, method):
     dense, bands = _factors(rng, "float32")
     bins = rng.integers(0, N_BINS, 50)
     K = rng.normal(size=(50, WIDTH)).astype(np.float32)
-    (quad,) = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False)
+    (quad,) = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False, method=method)
     dense64 = [np.asarray(b.to_dense()) for b in bands]  # the stored float32 values, exactly
     ref, _ = _reference(dense64, bins, K.astype(np.float64))
     assert quad.dtype == jnp.float32
@@ -91,7 +94,28 @@ def test_vmap_and_derivatives_of_the_one_query_form(rng):
         np.testing.assert_array_less(np.abs(np.asarray(G) - ref_g).max(axis=1), bound)
 
 
+def test_upper_factors_with_a_dense_block(rng):
+    """PIC's factors: upper triangular below a dense block of inducing rows."""
+    dense = [np.triu(rng.normal(size=(WIDTH, WIDTH))) for _ in range(N_BINS)]
+    for F in dense:
+        F[:6] = rng.normal(size=(6, WIDTH))
+    bands = tuple(
+        BlockTriangular.from_dense(F, lower=False, n_blocks=3, dense_rows=6) for F in dense
+    )
+    bins = rng.integers(0, N_BINS, 20)
+    K = rng.normal(size=(20, WIDTH))
+    ref_q, ref_g = _reference(dense, bins, K)
+    for method in ("loop", "gather"):
+        q, g = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=True, method=method)
+        bound = _bound(dense, K, EPS64)
+        np.testing.assert_array_less(np.abs(np.asarray(q) - ref_q), bound)
+        np.testing.assert_array_less(np.abs(np.asarray(g) - ref_g).max(axis=1), bound)
+    with pytest.raises(ValueError, match="method"):
+        by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False, method="scan")
+
+
 def test_tile_rows():
     assert tile_rows(1, 10) == 1
-    assert tile_rows(1024, 8) == 32
-    assert tile_rows(10**6, 4) == 256
+    assert tile_rows(1024, 8) == 64
+    assert tile_rows(1024, 8, "gather") == 64
+    assert tile_rows(10**6, 4) == 64 and tile_rows(10**6, 4, "gather") == 1024

@@ -116,3 +116,43 @@ def test_bench_export_suite(tmp_path):
     assert row["realtime_over_c_double"] > 0
     assert row["casadi"]["generated_c"]["in_domain"] == 200
     assert row["casadi"]["python_call"]["median_s"] > 0
+
+
+def test_bench_gpu_suite_on_the_cpu(smoke_cache):
+    """The accelerator suite runs on whatever JAX's default device is (here the CPU): fits,
+    throughput in both dtypes, the float32 error in newtons, environment steps."""
+    from gpg.runs.bench_gpu import bench_gpu, gpu_table
+
+    cfg = compose_plain("bench", ["data=smoke"])
+    sub = {
+        **cfg["gpu"],
+        "data": cfg["data"],
+        "vehicle": cfg["vehicle"],
+        "cache_dir": str(smoke_cache),
+        "fits": [
+            {
+                "data": "smoke",
+                "model": "gpgs_hybrid",
+                "overrides": {
+                    "hyper": {"fit": False},
+                    "partition": {"points_per_bin": None, "bins": 2},
+                    "near": {"points": 20},
+                },
+            }
+        ],
+        "states": 40,
+        "error_states": 40,
+        "chunks": [16],
+        "repeats": 1,
+        "n_envs": [4],
+        "env_steps": 2,
+    }
+    res = bench_gpu(sub)
+    assert res["platform"] == "cpu" and finite_numbers(res["throughput"])
+    assert set(res["throughput"]) == {"float64", "float32"}
+    assert set(res["throughput"]["float32"]) == {"mean/chunk=16", "mean+var/chunk=16"}
+    # The float32 program's force within float32 rounding of forces of tens of newtons.
+    assert 0 <= res["float32_error"]["force_max"] < 1e-2
+    assert res["env"]["4"]["env_steps_per_s"] > 0
+    assert res["fits"]["gpgs_hybrid@smoke"]["fit_s"] > 0
+    assert "M states/s" in gpu_table(res)
