@@ -538,8 +538,10 @@ def _require_finite(name: str, a) -> None:
     the prediction comes back with ``in_domain`` False instead."""
     if isinstance(a, jax.core.Tracer):
         return
-    if isinstance(a, jax.Array) and bool(jnp.all(jnp.isfinite(a))):
-        return  # checked where it lives; only a failing input comes to the host
+    if isinstance(a, jax.Array):
+        with jax.ensure_compile_time_eval():  # a concrete array, also while a caller traces
+            if bool(jnp.all(jnp.isfinite(a))):
+                return  # checked where it lives; only a failing input comes to the host
     v = np.asarray(a)
     if np.isfinite(v).all():
         return

@@ -141,26 +141,7 @@ class ExactGP(Predictor):
         # whose rows ``order`` names in the layout (a values-only case is one row, not 1 + G).
         index = None if rows is None else np.flatnonzero(rows)
         r = Ybar.shape[0] if index is None else index.size
-        what = f"K̄ of an exact GP ({r} rows)"
-        if linalg_device.place(device, linalg_device.solve_bytes(r, True), what) == "device":
-            Ybar = Ybar if index is None else Ybar[index]
-            K = device_gram(data.X, hyper, data.grad_dims, index=index, bases=bases)
-            alpha, logdet, Linv = linalg_device.factor_solve(K, Ybar, inverse=True, what=what)
-            bands = BlockTriangular.from_device(Linv, n_blocks=8)
-            del K, Linv
-        else:
-            # One dense r x r buffer, factorised and inverted in place, then moved into JAX
-            # band by band while its rows are released: the peak stays near one copy.
-            memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
-            buf = memory.square_buffer(r)
-            gram, sel = _gram(data, hyper, index, bases, buf.array)
-            Ybar = Ybar if sel is None else Ybar[sel]
-            chol = dense.cholesky_inplace(gram)
-            alpha = dense.cho_solve(chol, Ybar)
-            logdet = float(np.sum(np.log(np.diag(chol))))
-            dense.triangular_inverse_inplace(chol)  # overwrites the factor: one buffer
-            bands = BlockTriangular.from_buffer(buf, lower=True, n_blocks=8)
-            del chol, buf
+        Ybar, alpha, logdet, bands = _factorise(data, hyper, index, bases, Ybar, r, device)
         m = Ybar.shape[1]
         lml = -0.5 * float(np.sum(Ybar * alpha)) - m * logdet - 0.5 * m * r * math.log(2 * math.pi)
         scale = output_scale(np.sum(Ybar * alpha, axis=0), r)
@@ -277,6 +258,30 @@ class ExactGP(Predictor):
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
         """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
         return in_model_dtype(self, lambda: _predict_gradient(self, jnp.asarray(Xq)), Xq)
+
+
+def _factorise(data, hyper: Hyper, index, bases, Ybar: np.ndarray, r: int, device: str):
+    """``K̄`` over the factor's rows formed and factorised where ``device`` places it
+    (:func:`gpg.linalg.device.place`): the targets of those rows, ``α``, ``log det L`` and
+    ``L⁻¹`` in bands."""
+    what = f"K̄ of an exact GP ({r} rows)"
+    if linalg_device.place(device, linalg_device.solve_bytes(r, True), what) == "device":
+        Ybar = Ybar if index is None else Ybar[index]
+        K = device_gram(data.X, hyper, data.grad_dims, index=index, bases=bases)
+        alpha, logdet, Linv = linalg_device.factor_solve(K, Ybar, inverse=True, what=what)
+        del K
+        return Ybar, alpha, logdet, BlockTriangular.from_device(Linv, n_blocks=8)
+    # One dense r x r buffer, factorised and inverted in place, then moved into JAX band by
+    # band while its rows are released: the peak stays near one copy (12.8 GB at 40000 rows).
+    memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
+    buf = memory.square_buffer(r)
+    gram, sel = _gram(data, hyper, index, bases, buf.array)
+    Ybar = Ybar if sel is None else Ybar[sel]
+    chol = dense.cholesky_inplace(gram)
+    alpha = dense.cho_solve(chol, Ybar)
+    logdet = float(np.sum(np.log(np.diag(chol))))
+    dense.triangular_inverse_inplace(chol)  # overwrites the factor: one buffer
+    return Ybar, alpha, logdet, BlockTriangular.from_buffer(buf, lower=True, n_blocks=8)
 
 
 def _gram(data, hyper: Hyper, index, bases, out: np.ndarray):

@@ -114,13 +114,12 @@ BINS = {"partition": {"bins": 3, "points_per_bin": None}}
     "name, cfg",
     [
         ("gpg", {}),
-        ("gpgs", {**BINS, "near": {"budget": 0.5}}),
         ("gpgs_hybrid", {**BINS, "near": {"budget": 0.5, "points": None}}),
         ("gpg_pic", {**BINS, "inducing": {"points": 8}}),
     ],
 )
 def test_every_kind_on_the_device_equals_the_host(name, cfg):
-    data = synthetic_dataset(36, seed=2, raw=False)[0]
+    data = synthetic_dataset(30, seed=2, raw=False)[0]
     host = Surrogate.fit(data, name, {**FIXED, **cfg, "solver": {"device": "host"}})
     dev = Surrogate.fit(data, name, {**FIXED, **cfg, "solver": {"device": "device"}})
     rng = np.random.default_rng(1)
