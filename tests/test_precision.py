@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from jax._src.lax import lax as lax_internal
 
+from gpg.gp.binned import METHODS, by_bin
 from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_dataset
 
@@ -75,13 +76,13 @@ def _states(n, dtype):
 
 
 def _check_surrogate(sur, dtype, what):
-    rpm, euler, v = _states(6, dtype)
+    rpm, euler, v = _states(40, dtype)  # more than a few per bin: the batch sorts by bin
     assert_highest(sur.predict, rpm[0], euler[0], v[0], what=f"{what} predict")
     assert_highest(sur.predict_mean, rpm[0], euler[0], v[0], what=f"{what} predict_mean")
     assert_highest(jax.vmap(sur.predict), rpm, euler, v, what=f"{what} vmap(predict)")
     for mean_only in (False, True):
         # Concrete states (the batch checks them on the host): the jitted call is traced inside.
-        batch = lambda m=mean_only: sur.predict_batch(rpm, euler, v, mean_only=m, chunk=4)  # noqa: E731
+        batch = lambda m=mean_only: sur.predict_batch(rpm, euler, v, mean_only=m, chunk=16)  # noqa: E731
         assert_highest(batch, what=f"{what} predict_batch(mean_only={mean_only})")
 
     def f(a):
@@ -92,10 +93,16 @@ def _check_surrogate(sur, dtype, what):
     assert_highest(jax.jacfwd(f), v[0], what=f"{what} jacfwd(predict)")
 
 
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_default_surrogate_products_are_highest(synthetic_surrogate, dtype):
-    sur = synthetic_surrogate if dtype == jnp.float64 else synthetic_surrogate.astype(dtype)
-    _check_surrogate(sur, dtype, f"gpgs_hybrid {jnp.dtype(dtype).name}")
+def test_default_surrogate_products_are_highest(synthetic_surrogate):
+    """float32, where TF32 would apply; a float64 program traces the same functions."""
+    sur = synthetic_surrogate.astype(jnp.float32)
+    _check_surrogate(sur, jnp.float32, "gpgs_hybrid")
+    factor = sur.model.local.factor
+    bins = jnp.arange(40) % len(factor)
+    K = jnp.zeros((40, factor[0].n), jnp.float32)
+    for method in METHODS:  # the GPU's execution too, which predict_batch takes there
+        fn = lambda b, k, m=method: by_bin(factor, b, k, with_grad=True, method=m)  # noqa: E731
+        assert_highest(fn, bins, K, what=f"by_bin({method})")
 
 
 @pytest.mark.parametrize("name", sorted(KIND_CFG))

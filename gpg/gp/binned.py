@@ -271,17 +271,23 @@ def _quadratic_form_grad_batched(axis_size, in_batched, factor, b, k):
     return by_bin(factor, bins, K, with_grad=True), (True, True)
 
 
-# The two executions of by_bin and their largest tile. On a CPU a loop over the tiles, each
+# The executions of by_bin and their largest tile. On a CPU a loop over the tiles, each
 # multiplied by its own bin's bands (lax.switch), keeps one tile's product in cache, and tiles
 # of 64 rows were fastest (experiments.bench). On a GPU a loop launches a dozen kernels per
 # tile; there every tile's bands are gathered instead and one batched product per band runs
-# over all tiles (the gathered copies cost memory traffic, not arithmetic).
-METHODS = ("loop", "gather")
-MAX_TILE = {"loop": 64, "gather": 1024}
+# over all tiles (the gathered copies cost memory traffic, not arithmetic). A batch of a few
+# queries per bin (a Jacobian's columns, a handful of states) is cheaper still as every bin's
+# product for every query: no sort, no loop, B times a small product.
+METHODS = ("every", "loop", "gather")
+MAX_TILE = {"every": 1, "loop": 64, "gather": 1024}
+FEW_PER_BIN = 4  # at most this many queries per bin on average: "every"
 
 
-def default_method() -> str:
-    """``loop`` on the CPU backend, ``gather`` on an accelerator (:data:`METHODS`)."""
+def default_method(n_queries: int, n_bins: int) -> str:
+    """``every`` for a batch of at most :data:`FEW_PER_BIN` queries per bin, else ``loop`` on
+    the CPU backend and ``gather`` on an accelerator (:data:`METHODS`)."""
+    if n_queries <= FEW_PER_BIN * n_bins:
+        return "every"
     return "loop" if jax.default_backend() == "cpu" else "gather"
 
 
@@ -309,15 +315,19 @@ def by_bin(
     (default :func:`tile_rows`), so every tile belongs to one bin, and each tile is multiplied
     by its own bin's factor: ``method`` ``loop`` (a ``lax.map`` over the tiles, a
     ``lax.switch`` reading only that bin's bands) or ``gather`` (the bands of every tile's bin
-    gathered, one batched product per band); default :func:`default_method`. At most
+    gathered, one batched product per band); ``every`` instead multiplies every query by every
+    bin's factor and keeps its own (for a few queries per bin); default
+    :func:`default_method`. At most
     ``Q/tile + B`` tiles, so the work is that of the queries' own products plus at most one
     padded tile per bin, where reading every bin's factor for every query costs ``B`` times
     the work (what a plain ``vmap`` of the one-query code does)."""
     q_count, width = K.shape
     n_bins = len(factor)
-    method = default_method() if method is None else method
+    method = default_method(q_count, n_bins) if method is None else method
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "every":
+        return _every_bin_terms(factor, bins, K, with_grad)
     tile = tile_rows(q_count, n_bins, method) if tile is None else int(tile)
     n_tiles = (q_count + n_bins * (tile - 1)) // tile  # Σ_b ⌈c_b / tile⌉ for any counts c_b
     order = jnp.argsort(bins, stable=True)
@@ -347,6 +357,18 @@ def by_bin(
         out = _gathered_terms(factor, tiles, tile_bin, with_grad)
     back = slot[jnp.argsort(order)]  # each query's row in the padded order
     return tuple(o.reshape(n_tiles * tile, *o.shape[2:])[back] for o in out)
+
+
+def _every_bin_terms(factor: tuple[BlockTriangular, ...], bins, K, with_grad: bool):
+    q = jnp.zeros(K.shape[0], dtype=K.dtype)
+    G = jnp.zeros(K.shape, dtype=K.dtype) if with_grad else None
+    for i, f in enumerate(factor):
+        here = bins == i
+        terms = _tile_terms(f, K, with_grad)
+        q = jnp.where(here, terms[0], q)
+        if with_grad:
+            G = jnp.where(here[:, None], terms[1], G)
+    return (q,) if not with_grad else (q, G)
 
 
 def _tile_terms(f: BlockTriangular, Kt, with_grad: bool):

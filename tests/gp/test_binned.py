@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg.gp.binned import binned_quadratic_form, by_bin, tile_rows
+from gpg.gp.binned import binned_quadratic_form, by_bin, default_method, tile_rows
 from gpg.linalg.tri import BlockTriangular
 
 N_BINS, WIDTH = 5, 24
@@ -41,10 +41,17 @@ def _bound(dense, K, eps):
     return 8 * WIDTH * eps * (WIDTH * mag) ** 2
 
 
-@pytest.mark.parametrize("method", ["loop", "gather"])
 @pytest.mark.parametrize(
-    "bins_kind, tile",
-    [("mixed", None), ("mixed", 1), ("mixed", 7), ("mixed", 64), ("one_bin", 4), ("two_empty", 3)],
+    "method, bins_kind, tile",
+    [
+        ("loop", "mixed", None),
+        ("loop", "mixed", 1),
+        ("loop", "one_bin", 4),
+        ("loop", "two_empty", 3),
+        ("gather", "mixed", 7),
+        ("gather", "two_empty", 64),
+        ("every", "mixed", None),
+    ],
 )
 def test_by_bin_equals_per_query_reference(rng, bins_kind, tile, method):
     dense, bands = _factors(rng)
@@ -66,7 +73,7 @@ def test_by_bin_equals_per_query_reference(rng, bins_kind, tile, method):
 
 
 @pytest.mark.parametrize("method", ["loop", "gather"])
-def test_float32_factors_within_their_rounding(rng, method):
+def test_float32_factors_within_their_rounding(rng, method):  # "every": the loop's products
     dense, bands = _factors(rng, "float32")
     bins = rng.integers(0, N_BINS, 50)
     K = rng.normal(size=(50, WIDTH)).astype(np.float32)
@@ -114,7 +121,8 @@ def test_upper_factors_with_a_dense_block(rng):
         by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False, method="scan")
 
 
-def test_tile_rows():
+def test_tile_rows_and_default_method():
+    assert default_method(20, 5) == "every" and default_method(21, 5) == "loop"  # CPU backend
     assert tile_rows(1, 10) == 1
     assert tile_rows(1024, 8) == 64
     assert tile_rows(1024, 8, "gather") == 64
