@@ -1,7 +1,7 @@
 """Matrix products at full precision, whatever the backend's default.
 
 On NVIDIA GPUs JAX runs a float32 ``dot_general`` without a stated precision in TF32 (a 10-bit
-mantissa): a float32 surrogate then differs from its float64 self by a hundred times more than
+mantissa): a float32 surrogate then differs from its float64 self by far more than
 on the CPU, and nothing says so. gpg does not depend on its caller's global setting
 (``JAX_DEFAULT_MATMUL_PRECISION``): every function of its numerics that contracts arrays is
 traced under :func:`highest`, so every ``dot_general`` it emits carries ``Precision.HIGHEST``

@@ -3,8 +3,8 @@
 The host path (:mod:`gpg.linalg.dense`) factorises ``K̄`` in place with LAPACK: on the CPU it is
 the faster of the two and the only one that fits ``data=paper``'s 12.8 GB ``K̄`` in one copy.
 With an accelerator, the same solve runs there in float64 (``K̄`` assembled on the device,
-``jax.lax.linalg`` Cholesky and triangular solves), where a GPU factorises a 40 000-row matrix
-in about a second against about a minute on the host's cores.
+``jax.lax.linalg`` Cholesky and triangular solves), many times faster than on the host's cores
+(docs/measurements.md, "One GPU").
 
 **The rule** (:func:`place`): ``solver.device`` ``host`` or ``device`` is obeyed (``device``
 on a CPU-only machine runs the device program on the CPU: how the tests check it); ``auto``

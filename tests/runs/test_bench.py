@@ -118,6 +118,8 @@ def test_bench_export_suite(tmp_path):
     assert row["casadi"]["python_call"]["median_s"] > 0
 
 
+@pytest.mark.slow  # a whole bench suite, like the others (its parts: tests/gp/test_binned.py,
+# tests/linalg/test_device.py, tests/test_precision.py)
 def test_bench_gpu_suite_on_the_cpu(smoke_cache):
     """The accelerator suite runs on whatever JAX's default device is (here the CPU): fits,
     throughput in both dtypes, the float32 error in newtons, environment steps."""
