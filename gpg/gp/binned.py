@@ -279,7 +279,7 @@ def _quadratic_form_grad_batched(axis_size, in_batched, factor, b, k):
 # queries per bin (a Jacobian's columns, a handful of states) is cheaper still as every bin's
 # product for every query: no sort, no loop, B times a small product.
 METHODS = ("every", "loop", "gather")
-MAX_TILE = {"every": 1, "loop": 64, "gather": 1024}
+MAX_TILE = {"loop": 64, "gather": 1024}  # queries per tile, at most
 FEW_PER_BIN = 4  # at most this many queries per bin on average: "every"
 
 
