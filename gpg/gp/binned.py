@@ -316,10 +316,9 @@ def by_bin(
     by its own bin's factor: ``method`` ``loop`` (a ``lax.map`` over the tiles, a
     ``lax.switch`` reading only that bin's bands) or ``gather`` (the bands of every tile's bin
     gathered, one batched product per band); ``every`` instead multiplies every query by every
-    bin's factor and keeps its own (for a few queries per bin); default
-    :func:`default_method`. At most
-    ``Q/tile + B`` tiles, so the work is that of the queries' own products plus at most one
-    padded tile per bin, where reading every bin's factor for every query costs ``B`` times
+    bin's factor and keeps its own (for a few queries per bin); default :func:`default_method`.
+    At most ``Q/tile + B`` tiles, so the work is that of the queries' own products plus at most
+    one padded tile per bin, where reading every bin's factor for every query costs ``B`` times
     the work (what a plain ``vmap`` of the one-query code does)."""
     q_count, width = K.shape
     n_bins = len(factor)
@@ -387,9 +386,10 @@ def _gathered_terms(factor: tuple[BlockTriangular, ...], tiles, tile_bin, with_g
     dt = first.dtype
     Kt = tiles.astype(dt)
     n = first.n
+    # Band j of every tile's bin (tiles, rows_j, cols_j), gathered once for both products.
+    bands = [jnp.stack([f.blocks[j] for f in factor])[tile_bin] for j in range(len(first.blocks))]
     Vs = []
-    for j in range(len(first.blocks)):
-        band = jnp.stack([f.blocks[j] for f in factor])[tile_bin]  # (tiles, rows, cols)
+    for band in bands:
         cols = band.shape[2]
         part = Kt[:, :, :cols] if first.lower else Kt[:, :, n - cols :]
         Vs.append(jnp.einsum("tqc,trc->tqr", part, band))
@@ -399,8 +399,7 @@ def _gathered_terms(factor: tuple[BlockTriangular, ...], tiles, tile_bin, with_g
         return (q,)
     G = jnp.zeros(Kt.shape, dt)
     a = 0
-    for j in range(len(first.blocks)):
-        band = jnp.stack([f.blocks[j] for f in factor])[tile_bin]
+    for band in bands:
         rows, cols = band.shape[1], band.shape[2]
         part = jnp.einsum("tqr,trc->tqc", V[:, :, a : a + rows], band)
         pad = (0, n - cols) if first.lower else (n - cols, 0)

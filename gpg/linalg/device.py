@@ -35,6 +35,7 @@ __all__ = [
     "factor_solve",
     "free_bytes",
     "place",
+    "solve_bytes",
 ]
 
 PLACEMENTS = ("auto", "host", "device")

@@ -48,7 +48,6 @@ def _bound(dense, K, eps):
         ("loop", "mixed", 1),
         ("loop", "one_bin", 4),
         ("loop", "two_empty", 3),
-        ("gather", "mixed", 7),
         ("gather", "two_empty", 64),
         ("every", "mixed", None),
     ],

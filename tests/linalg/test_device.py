@@ -113,12 +113,13 @@ BINS = {"partition": {"bins": 3, "points_per_bin": None}}
 @pytest.mark.parametrize(
     "name, cfg",
     [
-        ("gpg", {}),
         ("gpgs_hybrid", {**BINS, "near": {"budget": 0.5, "points": None}}),
         ("gpg_pic", {**BINS, "inducing": {"points": 8}}),
     ],
 )
 def test_every_kind_on_the_device_equals_the_host(name, cfg):
+    """The per-bin programs on the device (the hybrid's near sets and its global α, PIC's
+    blocks); the exact kind is ExactGP.fit's device path, tested above."""
     data = synthetic_dataset(30, seed=2, raw=False)[0]
     host = Surrogate.fit(data, name, {**FIXED, **cfg, "solver": {"device": "host"}})
     dev = Surrogate.fit(data, name, {**FIXED, **cfg, "solver": {"device": "device"}})
@@ -132,10 +133,16 @@ def test_every_kind_on_the_device_equals_the_host(name, cfg):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-7 * scale)
 
 
-def test_solver_device_is_read_by_every_factorising_kind():
+def test_solver_device_is_read_by_every_factorising_kind(monkeypatch):
     for name in ("gpg", "gp", "gpgs", "gps_1x", "gpgs_hybrid", "gpg_pic"):
         assert models.resolve_config(name, {"solver": {"device": "host"}}).solver.device == "host"
     with pytest.raises(ValueError, match="solver.method"):
         models.resolve_config("gpg", {"solver": {"method": "cg"}})
+    asked = []
+    place = device.place
+    monkeypatch.setattr(device, "place", lambda mode, *a: asked.append(mode) or place(mode, *a))
+    data = synthetic_dataset(12, seed=4, raw=False)[0]
+    Surrogate.fit(data, "gpg", {**FIXED, "solver": {"device": "device"}})
+    assert asked == ["device"]  # the exact kind passes its setting on
     with pytest.raises(ValueError, match="solver.device"):
         models.resolve_config("gpgs_hybrid", {"solver": {"device": "tpu"}})
