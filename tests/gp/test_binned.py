@@ -63,12 +63,13 @@ def test_by_bin_equals_per_query_reference(rng, bins_kind, tile, method):
     K = rng.normal(size=(q, WIDTH))
     args = (bands, jnp.asarray(bins), jnp.asarray(K))
     quad, grad = by_bin(*args, with_grad=True, tile=tile, method=method)
-    (quad_only,) = by_bin(*args, with_grad=False, tile=tile, method=method)
     ref_q, ref_g = _reference(dense, bins, K)
     bound = _bound(dense, K, EPS64)
     np.testing.assert_array_less(np.abs(np.asarray(quad) - ref_q), bound)
-    np.testing.assert_array_less(np.abs(np.asarray(quad_only) - ref_q), bound)
     np.testing.assert_array_less(np.abs(np.asarray(grad) - ref_g).max(axis=1), bound)
+    if tile is None:  # the value alone: the same tiles without the gradient's products
+        (quad_only,) = by_bin(*args, with_grad=False, tile=tile, method=method)
+        np.testing.assert_array_less(np.abs(np.asarray(quad_only) - ref_q), bound)
 
 
 @pytest.mark.parametrize("method", ["loop", "gather"])
