@@ -59,7 +59,7 @@ def _fit(spec: dict[str, Any], cfg: dict[str, Any]):
     err = np.abs(np.asarray(p.force) - test.y_aero[:, :3])
     return (
         sur,
-        train,
+        (train, test),
         {
             "data": spec["data"],
             "dataset": info["key"],
@@ -106,10 +106,17 @@ def _variance_methods(sur, cfg) -> dict[str, Any]:
     bins = jax.random.randint(key, (q,), 0, len(factor))
     K = jax.random.normal(jax.random.split(key)[0], (q, factor[0].n))
     out = {}
-    for method in METHODS[1:]:  # "every": B times the work, for a few queries only
-        fn = jax.jit(lambda b, k, m=method: by_bin(factor, b, k, with_grad=False, method=m)[0])
+    runs = [(m, None) for m in METHODS[1:]]  # "every": B times the work, for a few queries
+    runs += [("gather", int(t)) for t in cfg.get("tiles") or ()]
+    for method, tile in runs:
+        fn = jax.jit(
+            lambda b, k, m=method, t=tile: by_bin(factor, b, k, with_grad=False, method=m, tile=t)[
+                0
+            ]
+        )
         t = time_calls(lambda f=fn: f(bins, K), cfg["repeats"], warmup=1)
-        out[method] = {**stats(t), "states_per_s": q / float(np.median(t))}
+        key = method if tile is None else f"{method}/tile={tile}"
+        out[key] = {**stats(t), "states_per_s": q / float(np.median(t))}
     return out
 
 
@@ -161,9 +168,11 @@ def _env_steps(sur, train, cfg) -> dict[str, Any]:
 
 def bench_gpu(cfg: dict[str, Any]) -> dict[str, Any]:
     """See the module docstring. ``cfg``: ``fits`` (data scale, model and its overrides; the
-    first is the surrogate of the other figures), ``states`` and ``error_states`` (random
-    states of the throughput and of the float32 error), ``chunks``, ``repeats``, ``n_envs``,
-    ``env_steps``, ``seed``, ``cache_dir``."""
+    first is the surrogate of the other figures), ``checkpoint`` (a saved surrogate measured
+    instead, on the entry point's data), ``states`` and ``error_states`` (random states of the
+    throughput and of the float32 error; the test set's too), ``chunks``, ``tiles`` (more tile
+    sizes of the gathered variance), ``repeats``, ``n_envs``, ``env_steps``, ``seed``,
+    ``cache_dir``."""
     dev = jax.devices()[0]
     out: dict[str, Any] = {
         "device": str(dev),
@@ -171,19 +180,30 @@ def bench_gpu(cfg: dict[str, Any]) -> dict[str, Any]:
         "device_kind": getattr(dev, "device_kind", ""),
         "fits": {},
     }
-    sur = train = None
+    sur = data = None
     with memory.PeakRSS() as rss:
         for spec in cfg["fits"]:
-            s, t, res = _fit(spec, cfg)
+            s, d, res = _fit(spec, cfg)
             out["fits"][f"{spec['model']}@{spec['data']}"] = res
             report(f"gpu suite: fitted {spec['model']} at data={spec['data']}: {res}")
             if sur is None:
-                sur, train = s, t
+                sur, data = s, d
             del s
+        if cfg.get("checkpoint"):  # a saved model, the same on every machine
+            from gpg import checkpoint
+
+            sur = checkpoint.load(cfg["checkpoint"])
+            data = ensure_datasets(cfg["data"], cfg["vehicle"], cfg["cache_dir"])[:2]
+            out["checkpoint"] = str(cfg["checkpoint"])
+        if sur is None:
+            raise ValueError("gpu suite: no model to measure (fits is empty, no checkpoint)")
+        train, test = data
         states = _states(train, int(cfg["states"]), cfg["seed"], dev)
         errs = _states(train, int(cfg["error_states"]), cfg["seed"] + 1, dev)
         s32 = sur.astype(jnp.float32)
         out["float32_error"] = _float32_error(sur, s32, errs)
+        test_states = tuple(jax.device_put(jnp.asarray(a), dev) for a in world_arrays(test.x))
+        out["float32_error_test_set"] = _float32_error(sur, s32, test_states)
         report(f"gpu suite: float32 against float64: {out['float32_error']}")
         out["throughput"] = {"float64": _throughput(sur, states, cfg)}
         report(f"gpu suite: float64 throughput {out['throughput']['float64']}")

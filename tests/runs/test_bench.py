@@ -120,7 +120,7 @@ def test_bench_export_suite(tmp_path):
 
 @pytest.mark.slow  # a whole bench suite, like the others (its parts: tests/gp/test_binned.py,
 # tests/linalg/test_device.py, tests/test_precision.py)
-def test_bench_gpu_suite_on_the_cpu(smoke_cache):
+def test_bench_gpu_suite_on_the_cpu(smoke_cache, synthetic_surrogate, tmp_path):
     """The accelerator suite runs on whatever JAX's default device is (here the CPU): fits,
     throughput in both dtypes, the float32 error in newtons, environment steps."""
     from gpg.runs.bench_gpu import bench_gpu, gpu_table
@@ -158,3 +158,10 @@ def test_bench_gpu_suite_on_the_cpu(smoke_cache):
     assert res["env"]["4"]["env_steps_per_s"] > 0
     assert res["fits"]["gpgs_hybrid@smoke"]["fit_s"] > 0
     assert "M states/s" in gpu_table(res)
+    # A saved model instead of a fit (the same model on every machine), more gathered tiles.
+    from gpg import checkpoint
+
+    path = checkpoint.save(tmp_path / "sur", synthetic_surrogate)
+    res = bench_gpu({**sub, "fits": [], "checkpoint": str(path), "tiles": [8]})
+    assert res["checkpoint"] == str(path) and "gather/tile=8" in res["variance_methods"]
+    assert 0 <= res["float32_error_test_set"]["force_max"] < 1e-2
