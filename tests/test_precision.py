@@ -129,6 +129,9 @@ def test_environment_and_mpc_products_are_highest(synthetic_surrogate, vehicle):
     a = jax.ShapeDtypeStruct((3, 4), obs.dtype)
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
     assert_highest(step, keys, st, a, params, what="env.step")
+    # The geometric controller, which a user's own loop may call outside the step.
+    act = jax.vmap(env.geometric_action, in_axes=(0, None))
+    assert_highest(act, st, params, what="env.geometric_action")
 
     dyn = Dynamics.create(vehicle, synthetic_surrogate, 0.01)
     x = jnp.zeros(17).at[3].set(1.0)

@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from gpg._precision import highest
+
 FT = 0.3048  # m
 SQRT3 = math.sqrt(3.0)
 
@@ -98,6 +100,7 @@ class Dryden(eqx.Module):
             axes=jnp.stack([e_u, e_v, e_w], axis=1),
         )
 
+    @highest
     def velocity(self) -> Float[Array, " 3"]:
         """The turbulent wind (world frame, m/s) of the current state."""
         u = self.x[0]

@@ -37,6 +37,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from gpg._precision import highest
 from gpg.quadrotor.bemt import AeroResult, radial_elements
 from gpg.quadrotor.vehicle import Vehicle
 
@@ -90,6 +91,7 @@ def _observer_geometry(vehicle: Vehicle):
     return dist, cos_t, sin_t, phi
 
 
+@highest
 def harmonic_msq(
     vehicle: Vehicle, aero: AeroResult, cfg: AcousticsConfig = DEFAULT
 ) -> tuple[Float[Array, "4 K H"], Float[Array, "4 K H"]]:

@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg._precision import highest
 from gpg.quadrotor.vehicle import Airfoil, Rotor, Vehicle
 
 RPM_TO_RAD_S = 2.0 * jnp.pi / 60.0
@@ -361,6 +362,7 @@ def rotor_loads(
     )
 
 
+@highest
 def wake_overlap(
     vehicle: Vehicle, v_rel: Float[Array, " 3"], v0: Float[Array, " 4"]
 ) -> Float[Array, "4 4"]:
@@ -376,6 +378,7 @@ def wake_overlap(
     return w * (1.0 - jnp.eye(4))
 
 
+@highest
 def aero(
     vehicle: Vehicle,
     cfg: BEMTConfig,

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from gpg._precision import highest
 from gpg.quadrotor.dynamics import State
 from gpg.quadrotor.frames import matmul, matvec
 from gpg.quadrotor.simple_model import SimpleModel
@@ -173,6 +174,7 @@ class GeometricController(eqx.Module):
         tau = -self.kR * e_R - self.kw * e_w + jnp.cross(s.w, self.inertia * s.w)
         return self.mix(thrust[0], tau)
 
+    @highest
     def thrust_and_attitude(
         self, s: State, ref: Reference
     ) -> tuple[Float[Array, " 1"], Float[Array, "3 3"]]:

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg._precision import highest
 from gpg.quadrotor import acoustics
 from gpg.quadrotor.bemt import AeroResult, RotorLoads, radial_elements
 from gpg.quadrotor.frames import R_WB
@@ -89,6 +90,7 @@ class SimpleNoise(eqx.Module):
             )
         return cls(vehicle=vehicle, P_F=simple.P_F, T_z=simple.T_z)
 
+    @highest
     def load_shape(self, x: Float[Array, " D"]) -> Float[Array, "4 P"]:
         """``s_i(ψ)``: each rotor's blade load at the azimuths ``2πk/P`` over its mean, from the
         quasi-steady blade elements (module docstring) at the dataset input ``x`` (8 airflow-
