@@ -37,6 +37,7 @@ from gpg.gp.gram import (
     device_gram,
     from_bases,
     to_bases,
+    value_row_noise,
 )
 from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean, output_scale
@@ -108,6 +109,7 @@ class ExactGP(Predictor):
         observed: Bool[ArrayLike, "N G"] | None = None,
         bases: Float[ArrayLike, "N G G"] | None = None,
         device: str = "auto",
+        row_noise: Float[ArrayLike, " N"] | None = None,
     ) -> ExactGP:
         """Condition the GP on values ``Y`` and, optionally, gradients ``dY``.
 
@@ -126,6 +128,9 @@ class ExactGP(Predictor):
                 ``device`` (JAX's default device, float64) or ``auto``
                 (:func:`gpg.linalg.device.place`: the accelerator when there is one and
                 ``K̄`` fits in its free memory).
+            row_noise: (N,) each case's own value-noise variance (normalised units), added to
+                ``ν²`` on its value row: labels of known, unequal noise (measured flights).
+                Not stored: cases added by :meth:`condition` carry ``ν²`` alone.
 
         Raises:
             ValueError: mismatched shapes, NaN/inf in an input, bad ``grad_dims`` or
@@ -141,7 +146,8 @@ class ExactGP(Predictor):
         # whose rows ``order`` names in the layout (a values-only case is one row, not 1 + G).
         index = None if rows is None else np.flatnonzero(rows)
         r = Ybar.shape[0] if index is None else index.size
-        Ybar, alpha, logdet, bands = _factorise(data, hyper, index, bases, Ybar, r, device)
+        extra = _row_noise(row_noise, data.X.shape[0], len(data.grad_dims), index)
+        Ybar, alpha, logdet, bands = _factorise(data, hyper, index, bases, Ybar, r, device, extra)
         m = Ybar.shape[1]
         lml = -0.5 * float(np.sum(Ybar * alpha)) - m * logdet - 0.5 * m * r * math.log(2 * math.pi)
         scale = output_scale(np.sum(Ybar * alpha, axis=0), r)
@@ -260,14 +266,29 @@ class ExactGP(Predictor):
         return in_model_dtype(self, lambda: _predict_gradient(self, jnp.asarray(Xq)), Xq)
 
 
-def _factorise(data, hyper: Hyper, index, bases, Ybar: np.ndarray, r: int, device: str):
+def _row_noise(row_noise, n: int, g: int, index) -> np.ndarray | None:
+    """``row_noise`` (N,) checked and laid over the factor's rows (None without it)."""
+    if row_noise is None:
+        return None
+    rn = np.asarray(row_noise, dtype=np.float64)
+    if rn.shape != (n,):
+        raise ValueError(f"row_noise must have shape ({n},), got {rn.shape}")
+    if not np.all(np.isfinite(rn)) or np.any(rn < 0):
+        raise ValueError("row_noise must be finite and >= 0")
+    extra = np.asarray(value_row_noise(rn, n, g))
+    return extra if index is None else extra[index]
+
+
+def _factorise(data, hyper: Hyper, index, bases, Ybar: np.ndarray, r: int, device: str, extra=None):
     """``K̄`` over the factor's rows formed and factorised where ``device`` places it
     (:func:`gpg.linalg.device.place`): the targets of those rows, ``α``, ``log det L`` and
-    ``L⁻¹`` in bands."""
+    ``L⁻¹`` in bands. ``extra`` (r,): more noise on the factor's diagonal (``row_noise``)."""
     what = f"K̄ of an exact GP ({r} rows)"
     if linalg_device.place(device, linalg_device.solve_bytes(r, True), what) == "device":
         Ybar = Ybar if index is None else Ybar[index]
         K = device_gram(data.X, hyper, data.grad_dims, index=index, bases=bases)
+        if extra is not None:
+            K = K + jnp.diag(jnp.asarray(extra))
         alpha, logdet, Linv = linalg_device.factor_solve(K, Ybar, inverse=True, what=what)
         del K
         return Ybar, alpha, logdet, BlockTriangular.from_device(Linv, n_blocks=8)
@@ -276,6 +297,9 @@ def _factorise(data, hyper: Hyper, index, bases, Ybar: np.ndarray, r: int, devic
     memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
     buf = memory.square_buffer(r)
     gram, sel = _gram(data, hyper, index, bases, buf.array)
+    if extra is not None:
+        diag = np.arange(r)
+        gram[diag, diag] += extra
     Ybar = Ybar if sel is None else Ybar[sel]
     chol = dense.cholesky_inplace(gram)
     alpha = dense.cho_solve(chol, Ybar)

@@ -298,6 +298,7 @@ def fit_hyperparameters(
     stochastic: Stochastic | None = None,
     observed: Bool[ArrayLike, "N G"] | None = None,
     bases: Float[ArrayLike, "N G G"] | None = None,
+    row_noise: Float[ArrayLike, " N"] | None = None,
     **renamed: Any,
 ) -> HyperFitResult:
     """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
@@ -320,7 +321,8 @@ def fit_hyperparameters(
     all points at any N; it shows a progress bar per step. ``observed`` (N, G) marks the
     gradients a case has (:func:`gpg.gp.gram.observed_rows`; dense likelihood only), ``bases``
     (N, G, G) the directions of their gradient rows (:func:`gpg.gp.gram.row_directions`;
-    likewise dense only). The keywords
+    likewise dense only), ``row_noise`` (N,) each case's own value-noise variance on top of
+    ``ν²`` (:meth:`gpg.gp.exact.ExactGP.fit`; dense only). The keywords
     ``fit_jitter``, ``jitter_floor`` and ``jitter_init`` of earlier releases are read as the
     ``noise`` ones with a ``DeprecationWarning``.
     """
@@ -341,8 +343,18 @@ def fit_hyperparameters(
     bases = check_bases(bases, data.X.shape[0], data.grad_dims)
     if bases is not None and likelihood != "dense":
         raise ValueError("bases (directional gradient rows) needs likelihood='dense'")
+    if row_noise is not None:
+        if likelihood != "dense":
+            raise ValueError("row_noise (per-case value noise) needs likelihood='dense'")
+        row_noise = np.asarray(row_noise, dtype=np.float64)
+        n = data.X.shape[0]
+        if row_noise.shape != (n,):
+            raise ValueError(f"row_noise must have shape ({n},), got {row_noise.shape}")
+        if not np.all(np.isfinite(row_noise)) or np.any(row_noise < 0):
+            raise ValueError("row_noise must be finite and >= 0")
     init = _checked_init(data, init, ard, fit_grad_noise, subset_size)
     subset = _subset(data.X.shape[0], subset_size, seed)
+    sub_noise = None if row_noise is None else jnp.asarray(row_noise[subset])
     Xs = jnp.asarray(data.X[subset])
     pick = (None if a is None else a[subset] for a in (data.dY, data.observed))
     sub = Checked(data.X[subset], data.Y[subset], next(pick), data.grad_dims, next(pick))
@@ -357,7 +369,9 @@ def fit_hyperparameters(
     def loss(p, args):
         h = _unpack(p, init, grad_var, noise_floor)
         if likelihood == "dense":
-            lml = log_marginal_likelihood(Xs, Ybar, h, data.grad_dims, rows, sub_bases)
+            lml = log_marginal_likelihood(
+                Xs, Ybar, h, data.grad_dims, rows, sub_bases, row_noise=sub_noise
+            )
         else:
             lml = _stochastic_lml(Xs, Ybar, h, data.grad_dims, args, opts)
         nll = -lml / scale

@@ -353,6 +353,12 @@ def mask_targets(Ybar: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
     return out
 
 
+def value_row_noise(row_noise: Float[ArrayLike, " N"], n: int, g: int) -> Float[Array, " R"]:
+    """Per-case value noise (N,) spread over the layout's ``n(1+g)`` rows: on the value rows,
+    0 on the gradient rows (:mod:`gpg.gp.kernels`: the N value rows come first)."""
+    return jnp.concatenate([jnp.asarray(row_noise), jnp.zeros(n * g)])
+
+
 @highest
 def log_marginal_likelihood(
     X: Float[Array, "N D"],
@@ -361,24 +367,31 @@ def log_marginal_likelihood(
     grad_dims: tuple[int, ...] = (),
     rows: Bool[ArrayLike, " R"] | None = None,
     bases: Float[ArrayLike, "N G G"] | None = None,
+    row_noise: Float[ArrayLike, " N"] | None = None,
 ) -> Float[Array, ""]:
     """``Σ_m log N(Ȳ_m | 0, K̄)``: pure JAX, differentiable in ``hyper`` (small N only).
 
     ``Ybar`` is the stacked target of :func:`stack_targets` (0 on unobserved rows); ``rows``
     the observed rows (:func:`observed_rows`, a host array), which alone are formed and count:
     a values-only case adds one row to the factorisation, not ``1 + G``. ``bases`` (N, G, G):
-    directional gradient rows (:func:`row_directions`).
+    directional gradient rows (:func:`row_directions`). ``row_noise`` (N,): each case's own
+    value-noise variance, added to ``ν²`` on its value row (heteroscedastic labels).
     """
+    n, g = X.shape[0], len(grad_dims)
+    extra = None if row_noise is None else value_row_noise(row_noise, n, g)
     if rows is None and bases is None:
         K = noisy_gram(X, hyper, grad_dims)
+        if extra is not None:
+            K = K + jnp.diag(extra)
     else:
-        n, g = X.shape[0], len(grad_dims)
         index = np.arange(n * (1 + g)) if rows is None else np.flatnonzero(np.asarray(rows))
         p, what, kernel = layout_rows(index, n, grad_dims, bases, bases is not None, X.shape[1])
         Xr = jnp.asarray(X)[p]
         what = tuple(jnp.asarray(a) for a in what)
         K = kernel(Xr, *what, Xr, *what, hyper.variance, hyper.lengthscale)
         K = K + jnp.diag(hyper.noise_diagonal(n, g)[index])
+        if extra is not None:
+            K = K + jnp.diag(extra[index])
         Ybar = Ybar[index]
     c, lower = jsl.cho_factor(K, lower=True)
     alpha = jsl.cho_solve((c, lower), Ybar)

@@ -384,3 +384,51 @@ def test_bad_queries(problem):
         warnings.simplefilter("ignore")
         with pytest.raises(RuntimeError, match="Xq holds NaN or inf"):
             model.predict(np.array([[0.0, np.nan, 0.0]]))
+
+
+def test_row_noise_is_each_case_own_value_noise(problem, rng):
+    """``row_noise`` (heteroscedastic labels): the posterior and the likelihood of ``K + diag(ν²
+    + n_i)`` on values, against the dense NumPy reference; with gradients, only value rows
+    take it."""
+    X, Y, dY, dims, hyper, Xq = problem
+    n = X.shape[0]
+    rn = rng.uniform(0.01, 0.2, n)
+    gp = ExactGP.fit(X, Y, hyper=hyper, row_noise=rn)
+    var0, ls = float(hyper.variance), np.asarray(hyper.lengthscale)
+    K = np.array([[ref_cov(a, b, var0, ls, None, None) for b in X] for a in X])
+    K = K + np.diag(float(hyper.noise) + rn)
+    Kq = np.array([[ref_cov(xq, b, var0, ls, None, None) for b in X] for xq in Xq])
+    mean, var = gp.predict_unclipped(Xq)
+    np.testing.assert_allclose(mean, Kq @ np.linalg.solve(K, Y), rtol=1e-9, atol=1e-12)
+    ref_var = float(hyper.variance) - np.einsum("qr,rq->q", Kq, np.linalg.solve(K, Kq.T))
+    np.testing.assert_allclose(var, ref_var, rtol=1e-9, atol=1e-12)
+    sign, logdet = np.linalg.slogdet(K)
+    ref_lml = sum(
+        -0.5 * Y[:, m] @ np.linalg.solve(K, Y[:, m]) - 0.5 * logdet - 0.5 * n * np.log(2 * np.pi)
+        for m in range(Y.shape[1])
+    )
+    np.testing.assert_allclose(float(gp.log_marginal_likelihood), ref_lml, rtol=1e-10)
+    lml = gpmod.log_marginal_likelihood(
+        jnp.asarray(X), jnp.asarray(Y), hyper, (), row_noise=jnp.asarray(rn)
+    )
+    np.testing.assert_allclose(float(lml), ref_lml, rtol=1e-10)
+    # with gradient rows: the value rows take it, the gradient rows keep λ²
+    gpg_ = ExactGP.fit(X, Y, dY, grad_dims=dims, hyper=hyper, row_noise=rn)
+    _, _, Kg = ref_posterior(X, Y, dY, dims, hyper, Xq)
+    values = np.arange(Kg.shape[0]) % (1 + len(dims)) == 0  # point-major: value row first
+    Kg[np.flatnonzero(values), np.flatnonzero(values)] += rn
+    sign, logdet = np.linalg.slogdet(Kg)
+    T = np.concatenate([np.concatenate([Y[i][None], dY[i].T]) for i in range(n)])
+    ref_g = sum(
+        -0.5 * T[:, m] @ np.linalg.solve(Kg, T[:, m])
+        - 0.5 * logdet
+        - 0.5 * Kg.shape[0] * np.log(2 * np.pi)
+        for m in range(Y.shape[1])
+    )
+    np.testing.assert_allclose(float(gpg_.log_marginal_likelihood), ref_g, rtol=1e-9)
+    with pytest.raises(ValueError, match=r"row_noise must have shape \(25,\)"):
+        ExactGP.fit(X, Y, hyper=hyper, row_noise=rn[:3])
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        ExactGP.fit(X, Y, hyper=hyper, row_noise=-rn)
+    with pytest.raises(ValueError, match="row_noise"):
+        gpmod.fit_hyperparameters(X, Y, row_noise=rn[:3])
