@@ -38,6 +38,7 @@ RANKS = {
     "gpg.mpc": 7,
     "gpg.adapters": 7,
     "gpg.export": 7,
+    "gpg.flight": 7,
     "gpg": 8,
     "gpg.runs": 9,
 }

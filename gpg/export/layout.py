@@ -204,6 +204,13 @@ def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None)
     elif isinstance(m, BinnedGP):
         bins = _binned(m, coef=True, variance=variance)
         grad_dims, ls, sigma = m.grad_dims, m.lengthscale, m.variance
+    elif type(m).__name__ == "Corrected":  # gpg.flight: imported only where used
+        raise ValueError(
+            f"model {sur.model_name!r} is corrected by flights (gpg.flight): its mean adds "
+            "values-only discrepancy GPs and a scale to the prior's closed form, which the "
+            "export layouts do not carry yet; export the prior (gpg.flight.base(sur)) or "
+            "predict through JAX"
+        )
     else:
         raise ValueError(
             f"model {sur.model_name!r} ({type(m).__name__}) has no exportable closed form"

@@ -1,0 +1,51 @@
+"""Real flights: flight logs in, loads from measured motion, the simulator-trained surrogate
+corrected by flights, adaptation while flying (docs: "From flight logs").
+
+* :func:`read_csv` / :func:`read_ulog` read a flight into a :class:`FlightLog` (gpg's frames
+  and units, checked); :class:`CsvFormat` says how a CSV differs from them.
+* :func:`label` turns measured motion into force and torque labels with their noise
+  (:class:`Labels`); :class:`MotorCurve` and :func:`calibrate_simple` turn commands into rotor
+  speeds and fit ``M`` to a hover.
+* :func:`correct` corrects a fitted :class:`~gpg.Surrogate` by labels (a :class:`Corrected`
+  model: the prior's mean, scaled, plus values-only discrepancy GPs); :func:`adapt`,
+  :func:`update` and :func:`online_step` adapt it label by label at a fixed cost.
+* :mod:`gpg.flight.synthetic` flies a vehicle with known truth through realistic sensors.
+"""
+
+from gpg.flight.correction import (
+    Corrected,
+    Online,
+    adapt,
+    base,
+    correct,
+    online_step,
+    update,
+    update_jit,
+    with_online,
+)
+from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, hover_samples, label
+from gpg.flight.log import CsvFormat, FlightLog, FlightLogWarning, read_csv, write_csv
+from gpg.flight.ulog import read_ulog
+
+__all__ = [
+    "Corrected",
+    "CsvFormat",
+    "FlightLog",
+    "FlightLogWarning",
+    "Labels",
+    "MotorCurve",
+    "Online",
+    "adapt",
+    "base",
+    "calibrate_simple",
+    "correct",
+    "hover_samples",
+    "label",
+    "online_step",
+    "read_csv",
+    "read_ulog",
+    "update",
+    "update_jit",
+    "with_online",
+    "write_csv",
+]

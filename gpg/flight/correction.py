@@ -1,0 +1,574 @@
+"""The simulator-trained surrogate corrected by measured flights, and adapted while flying.
+
+A fitted surrogate is the prior mean; flights correct it (two-fidelity co-kriging, Kennedy and
+O'Hagan 2000, in the surrogate's normalised units):
+
+    y_real(x) = ρ ⊙ μ_sim(x) + δ(x) (+ ε, the labels' own noise),
+
+with ``μ_sim`` the surrogate's GP mean, ``ρ`` a fitted scale per output (or ones) and ``δ`` a
+GP on the discrepancy, one per force and torque component, fitted on values only (flights
+measure no gradients: :class:`gpg.gp.exact.ExactGP` with values-only cases) with its own
+hyperparameters and each label's noise on its diagonal (``row_noise``). The prediction's
+variance adds the parts: ``ρ² var_sim + var_δ``. The levels (dB) are not measured in flight and
+stay the prior's.
+
+While flying, :func:`adapt` adds an online term ``η`` to the corrected model and updates it
+label by label: ``η(x) = ψ(x)ᵀ w`` on ``m`` inducing inputs ``Z``, with ``ψ = L⁻¹ k_Z(x)``
+(``K_ZZ = L Lᵀ``, the whitened basis of a subset-of-regressors GP) and weights ``w`` whose
+Gaussian posterior is a Kalman filter: between labels they relax to their prior ``N(0, I)`` as
+an Ornstein-Uhlenbeck process with time constant ``τ`` (``μ ← aμ``, ``Σ ← a²Σ + (1 − a²)I``,
+``a = e^{−Δt/τ}``: exponential forgetting that stays a proper prior), and each label is one
+rank-one measurement update. Cost per label ``O(m²)`` per output and fixed memory, jittable,
+inside ``lax.scan``; the adapted surrogate is a :class:`~gpg.Surrogate` at every step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable, Sequence
+from functools import lru_cache
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from gpg._dtype import float64
+from gpg._precision import highest
+from gpg.flight.labels import Labels
+from gpg.gp import kernels
+from gpg.gp.exact import ExactGP
+from gpg.gp.fit import fit_hyperparameters
+from gpg.gp.hyper import Hyper
+from gpg.gp.predictor import Predictor, plain
+from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
+from gpg.surrogate import Surrogate
+
+N_LOADS = 6  # force and torque: what a flight measures
+
+
+class Online(eqx.Module):
+    """The online term ``η`` of an adapted model (module docstring), one per load output.
+
+    Attributes:
+        Z: (m, D) inducing inputs (normalised).
+        whiten: (6, m, m) ``L⁻¹`` of each output's ``K_ZZ`` (its own hyperparameters).
+        variance: (6,) signal variance of ``η`` per output (normalised units).
+        lengthscale: (6, D).
+        noise: (6,) value noise added to each label's own in an update.
+        mean: (6, m) posterior mean of the whitened weights.
+        cov: (6, m, m) their posterior covariance.
+        t: () time of the last update (s).
+        tau: () s, the forgetting time constant.
+    """
+
+    Z: Float[Array, "m D"]
+    whiten: Float[Array, "6 m m"]
+    variance: Float[Array, " 6"]
+    lengthscale: Float[Array, "6 D"]
+    noise: Float[Array, " 6"]
+    mean: Float[Array, "6 m"]
+    cov: Float[Array, "6 m m"]
+    t: Float[Array, ""]
+    tau: Float[Array, ""]
+
+    @highest
+    def features(self, x: Float[Array, " D"]) -> Float[Array, "6 m"]:
+        """``ψ(x) = L⁻¹ k_Z(x)`` per output."""
+
+        def one(L_inv, var, ls):
+            return L_inv @ _cross(x[None], self.Z, var, ls)[0]
+
+        return jax.vmap(one)(self.whiten, self.variance, self.lengthscale)
+
+    @highest
+    def mean_var(self, x: Float[Array, " D"]) -> tuple[Float[Array, " 6"], Float[Array, " 6"]]:
+        """``η``'s mean and variance per output at ``x``."""
+        psi = self.features(x)
+        mean = jnp.einsum("om,om->o", psi, self.mean)
+        var = jnp.einsum("om,omn,on->o", psi, self.cov, psi)
+        return mean, var
+
+    @highest
+    def relaxed(self, t: Float[ArrayLike, ""]) -> Online:
+        """The weights' law at time ``t``: relaxed toward the prior since :attr:`t`."""
+        dt = jnp.maximum(jnp.asarray(t, self.t.dtype) - self.t, 0.0)
+        a = jnp.exp(-dt / self.tau)
+        eye = jnp.eye(self.Z.shape[0], dtype=self.cov.dtype)
+        cov = a**2 * self.cov + (1.0 - a**2) * eye
+        return eqx.tree_at(lambda o: (o.mean, o.cov, o.t), self, (a * self.mean, cov, self.t + dt))
+
+    @highest
+    def measured(
+        self, x: Float[Array, " D"], y: Float[Array, " 6"], r: Float[Array, " 6"]
+    ) -> Online:
+        """One Kalman update per output with the label residual ``y`` of noise variance ``r``."""
+        psi = self.features(x)
+
+        def one(mu, S, p, yy, rr, nu):
+            Sp = S @ p
+            s = p @ Sp + rr + nu
+            k = Sp / s
+            return mu + k * (yy - p @ mu), S - jnp.outer(k, Sp)
+
+        mean, cov = jax.vmap(one)(self.mean, self.cov, psi, y, r, self.noise)
+        cov = 0.5 * (cov + jnp.swapaxes(cov, 1, 2))  # keep it symmetric under rounding
+        return eqx.tree_at(lambda o: (o.mean, o.cov), self, (mean, cov))
+
+
+class Corrected(Predictor):
+    """A prior predictor corrected by flights: ``ρ ⊙ μ_prior + δ (+ η)`` (module docstring).
+
+    Its latent "variance" is a vector: the prior's latent variance, then each ``δ``'s, then
+    ``η``'s per output; :meth:`predictive_variance` turns it into the per-output predictive
+    variance ``ρ² var_prior + var_δ + var_η``: the prior's latent variance (its value noise is
+    the simulator data's), each ``δ``'s with its own value noise (the flights'), ``η``'s.
+
+    Attributes:
+        prior: the simulator-trained predictor.
+        scale: (M,) ``ρ``, ones for the outputs not corrected.
+        delta: the discrepancy GPs, one per load output (values only, one output each).
+        online: the online term, or None.
+    """
+
+    prior: Predictor
+    scale: Float[Array, " M"]
+    delta: tuple[ExactGP, ...]
+    online: Online | None = None
+
+    @property
+    def output_scale(self) -> Float[Array, " M"]:
+        return self.prior.output_scale
+
+    @property
+    def partition(self):
+        return None
+
+    @property
+    def noise(self) -> Float[Array, ""]:
+        return self.prior.noise
+
+    @property
+    def n_inputs(self) -> int:
+        return self.prior.n_inputs
+
+    @property
+    def n_outputs(self) -> int:
+        return self.prior.n_outputs
+
+    def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> Corrected:
+        return eqx.tree_at(lambda c: c.prior, self, self.prior.with_output_scale(scale))
+
+    def describe(self) -> dict[str, Any]:
+        out = self.prior.describe()
+        out["flight_correction"] = {
+            "scale": plain(self.scale),
+            "discrepancy": [d.describe()["hyperparameters"] for d in self.delta],
+            "n_labels": int(self.delta[0].X.shape[0]) if self.delta else 0,
+            "online": None
+            if self.online is None
+            else {"inducing": int(self.online.Z.shape[0]), "tau": plain(self.online.tau)},
+        }
+        return out
+
+    def _pad(self, v: Float[Array, " L"]) -> Float[Array, " M"]:
+        return jnp.concatenate([v, jnp.zeros(self.n_outputs - v.shape[0], v.dtype)])
+
+    def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        out = self.scale * self.prior.mean_one(x)
+        if self.delta:
+            out = out + self._pad(jnp.concatenate([d.mean_one(x) for d in self.delta]))
+        if self.online is not None:
+            out = out + self._pad(self.online.mean_var(x)[0])
+        return out
+
+    def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, " V"]]:
+        mean, var = self.prior.mean_var_one(x)
+        mean = self.scale * mean
+        parts = [jnp.reshape(var, (1,))]
+        for d in self.delta:
+            m, v = d.mean_var_one(x)
+            mean = mean.at[len(parts) - 1].add(m[0])
+            parts.append(jnp.reshape(v, (1,)))
+        if self.online is not None:
+            m, v = self.online.mean_var(x)
+            mean = mean + self._pad(m)
+            parts.append(v)
+        return mean, jnp.concatenate(parts)
+
+    def predictive_variance(self, var: Float[ArrayLike, "*Q V"]) -> Float[Array, "*Q M"]:
+        var = jnp.asarray(var)
+        # The prior's latent part only: its value noise ν² is the simulator data's, while the
+        # flights' noise and whatever the prior misses are δ's (its own ν² is in its part).
+        out = jnp.maximum(var[..., 0], 0.0)[..., None] * self.prior.output_scale * self.scale**2
+        nd = len(self.delta)
+        if nd:
+            dv = jnp.stack(
+                [d.predictive_variance(var[..., 1 + j])[..., 0] for j, d in enumerate(self.delta)],
+                axis=-1,
+            )
+            out = out + jnp.concatenate(
+                [dv, jnp.zeros((*dv.shape[:-1], self.n_outputs - nd), dv.dtype)], axis=-1
+            )
+        if self.online is not None:
+            ov = jnp.maximum(var[..., 1 + nd :], 0.0)
+            out = out + jnp.concatenate(
+                [ov, jnp.zeros((*ov.shape[:-1], self.n_outputs - ov.shape[-1]), ov.dtype)],
+                axis=-1,
+            )
+        return out
+
+    def mean_view(self) -> Corrected:
+        return eqx.tree_at(
+            lambda c: (c.prior, c.delta),
+            self,
+            (self.prior.mean_view(), tuple(d.mean_view() for d in self.delta)),
+        )
+
+
+def base(sur: Surrogate) -> Surrogate:
+    """The simulator-trained surrogate under a corrected one (itself if not corrected)."""
+    m = sur.model
+    if not isinstance(m, Corrected):
+        return sur
+    return dataclasses.replace(sur, model=m.prior, model_name=_base_name(sur.model_name))
+
+
+def _base_name(name: str) -> str:
+    return name.split("+flight")[0]
+
+
+@highest
+def gp_rows(
+    sur: Surrogate,
+    rpm: Float[Array, " 4"],
+    euler: Float[Array, " 3"],
+    v_air: Float[Array, " 3"],
+    force: Float[Array, " 3"],
+    torque: Float[Array, " 3"],
+    force_var: Float[Array, " 3"],
+    torque_var: Float[Array, " 3"],
+) -> tuple[Float[Array, " D"], Float[Array, " 6"], Float[Array, " 6"]]:
+    """A world-frame label as the GP sees it: the normalised input ``x``, the normalised
+    load residual in the GP's frame (``R_WHᵀ (F_W − F_M)``, likewise the torque) and its noise
+    variance there (the world-frame variances rotated, divided by the output scales²)."""
+    if sur.frame == "body":
+        R = R_WB(euler)
+        x = jnp.concatenate([rpm, matvec(R.T, v_air)])
+    else:
+        euler_h, speed, R = to_airflow_frame(euler, v_air, sur.hover_speed)
+        x = jnp.concatenate([rpm, euler_h, speed[None]])
+    f, tau = force, torque
+    if sur.simple is not None:
+        y_m = sur.simple(jnp.concatenate([rpm, euler]))
+        f, tau = f - y_m[:3], tau - y_m[3:6]
+    y = jnp.concatenate([matvec(R.T, f), matvec(R.T, tau)])
+    var = jnp.concatenate([(R**2).T @ force_var, (R**2).T @ torque_var])
+    std = sur.normalizer.y_std[:N_LOADS]
+    yn = (y - sur.normalizer.y_mean[:N_LOADS]) / std
+    return sur.normalizer.x(x), yn, var / std**2
+
+
+_rows_batch = jax.jit(jax.vmap(gp_rows, in_axes=(None, 0, 0, 0, 0, 0, 0, 0)))
+
+
+def training_rows(sur: Surrogate, labels: Labels) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`gp_rows` of every label: ``X`` (N, D), ``Y`` (N, 6), noise variances (N, 6)."""
+    x, y, v = _rows_batch(
+        base(sur),
+        *(
+            jnp.asarray(a)
+            for a in (
+                labels.rpm,
+                labels.euler,
+                labels.v_air,
+                labels.force,
+                labels.torque,
+                labels.force_var,
+                labels.torque_var,
+            )
+        ),
+    )
+    return np.asarray(x), np.asarray(y), np.asarray(v)
+
+
+@float64
+def correct(
+    prior: Surrogate,
+    labels: Labels | Sequence[Labels],
+    *,
+    scale: bool = True,
+    use_prior: bool = True,
+    max_labels: int = 1500,
+    subset_size: int = 400,
+    max_steps: int = 200,
+    seed: int = 0,
+) -> Surrogate:
+    """The surrogate ``prior`` corrected by flight ``labels`` (module docstring).
+
+    Args:
+        prior: a fitted surrogate (its GP mean is ``μ_sim``; a corrected one is corrected
+            anew from its prior).
+        labels: :func:`gpg.flight.label` of one or more flights.
+        scale: fit ``ρ`` per load output (weighted least squares of the labels on the prior's
+            mean, then ``δ`` on what is left); False keeps ``ρ = 1``.
+        use_prior: False sets ``ρ = 0`` for the loads: a values-only GP on the flights
+            alone (residuals against ``M``), the baseline that has no simulator knowledge.
+        max_labels: at most this many labels enter ``δ`` (evenly thinned in time beyond: the
+            exact GP costs ``N³``).
+        subset_size: labels per likelihood evaluation of the hyperparameter fit.
+        max_steps: BFGS steps of each discrepancy's hyperparameter fit
+            (:func:`gpg.gp.fit.fit_hyperparameters`).
+        seed: the subsets' seed.
+
+    Returns:
+        A :class:`~gpg.Surrogate` whose model is :class:`Corrected`: ``predict`` gives the
+        corrected force and torque and the combined variance; the environment, the MPC and
+        checkpoints take it.
+
+    Raises:
+        ValueError: no labels, or labels with NaN (naming the array).
+    """
+    parts = [labels] if isinstance(labels, Labels) else list(labels)
+    if not parts:
+        raise ValueError("correct needs labels of at least one flight")
+    lab = Labels.concatenate(parts)
+    if len(lab) < 8:
+        raise ValueError(f"correct needs at least 8 labels, got {len(lab)}")
+    prior = base(prior)
+    X, Y, V = training_rows(prior, lab)
+    for name, a in (("X", X), ("Y", Y), ("noise", V)):
+        if not np.isfinite(a).all():
+            raise ValueError(f"labels give non-finite GP {name} rows: check the labels' arrays")
+    if X.shape[0] > max_labels:
+        keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
+        X, Y, V = X[keep], Y[keep], V[keep]
+    mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
+    rho = np.ones(prior.model.n_outputs)
+    if not use_prior:
+        rho[:N_LOADS] = 0.0
+    elif scale:
+        w = 1.0 / (V + 1e-3)
+        rho[:N_LOADS] = np.sum(w * mu * Y, 0) / np.maximum(np.sum(w * mu * mu, 0), 1e-12)
+    R = Y - rho[:N_LOADS] * mu
+    deltas = tuple(
+        _fit_delta(X, R[:, j], V[:, j], subset_size, max_steps, seed + j) for j in range(N_LOADS)
+    )
+    model = Corrected(prior=prior.model, scale=jnp.asarray(rho), delta=deltas)
+    cfg = dict(prior.config)
+    cfg["flight_correction"] = {
+        "scale": bool(scale),
+        "use_prior": bool(use_prior),
+        "n_labels": int(X.shape[0]),
+        "flights": [p.name for p in parts],
+    }
+    return dataclasses.replace(
+        prior,
+        model=model,
+        model_name=f"{prior.model_name}+flight",
+        config_json=json.dumps(cfg, sort_keys=True),
+    )
+
+
+def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int) -> ExactGP:
+    var = float(max(np.var(r), 1e-6))
+    init = Hyper(variance=var, lengthscale=np.full(X.shape[1], 0.7), noise=1e-2 * var)
+    fit = fit_hyperparameters(
+        X,
+        r[:, None],
+        init=init,
+        ard=True,
+        fit_noise=True,
+        noise_floor=1e-6,
+        noise_init=1e-2,
+        subset_size=subset_size,
+        seed=seed,
+        row_noise=noise,
+        max_steps=max_steps,
+        on_failure="ignore",
+    )
+    gp = ExactGP.fit(X, r[:, None], hyper=fit.hyper, row_noise=noise)
+    # The fitted σ is each discrepancy's own amplitude: no second, closed-form one.
+    return gp.with_output_scale(jnp.ones(1))
+
+
+@float64
+def adapt(
+    sur: Surrogate,
+    *,
+    inducing: int = 48,
+    tau: float = 5.0,
+    variance: float | None = None,
+    lengthscale: float | None = None,
+    inputs: ArrayLike | None = None,
+    t0: float = 0.0,
+    seed: int = 0,
+) -> Surrogate:
+    """``sur`` (corrected or not) with an online term ready to be updated (:func:`update`).
+
+    Args:
+        sur: the model to adapt.
+        inducing: ``m``, the inducing inputs (fixed cost ``O(m²)`` per label and output).
+        tau: s, the forgetting time constant (what was learnt ``τ`` seconds ago weighs
+            ``1/e``).
+        variance: ``η``'s signal variance (normalised units); default: each ``δ``'s own, else
+            0.1 (a tenth of the data's variance).
+        lengthscale: ``η``'s lengthscale (normalised inputs); default: each ``δ``'s own, else 1.
+        inputs: (n, D) normalised inputs to place ``Z`` among (k-means); default: ``δ``'s
+            training inputs, else the prior box's Latin hypercube.
+        t0: s, the time of the first update.
+        seed: k-means' seed.
+
+    Returns:
+        A :class:`~gpg.Surrogate` whose :class:`Corrected` model carries the online term.
+    """
+    from scipy.cluster.vq import kmeans2
+    from scipy.stats import qmc
+
+    if inducing < 1:
+        raise ValueError(f"inducing must be >= 1, got {inducing}")
+    if not tau > 0:
+        raise ValueError(f"tau must be > 0 s, got {tau}")
+    m = sur.model if isinstance(sur.model, Corrected) else None
+    if m is None:
+        ones = jnp.ones(sur.model.n_outputs)
+        m = Corrected(prior=sur.model, scale=ones, delta=())
+        sur = dataclasses.replace(sur, model=m, model_name=f"{sur.model_name}+flight")
+    d = m.n_inputs
+    if inputs is None:
+        if m.delta:
+            inputs = np.asarray(m.delta[0].X)
+        else:
+            inputs = 2 * qmc.LatinHypercube(d=d, seed=seed).random(max(4 * inducing, 256)) - 1
+    pts = np.asarray(inputs, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != d:
+        raise ValueError(f"inputs must be (n, {d}) normalised inputs, got {pts.shape}")
+    k = min(inducing, len(np.unique(pts, axis=0)))
+    Z, _ = kmeans2(pts, k, seed=seed, minit="++")
+    if m.delta:
+        var = np.array([float(g.hyper.variance) for g in m.delta])
+        ls = np.stack([np.broadcast_to(np.asarray(g.hyper.lengthscale), (d,)) for g in m.delta])
+        nu = np.array([float(g.hyper.noise) for g in m.delta])
+    else:
+        var, ls, nu = np.full(N_LOADS, 0.1), np.ones((N_LOADS, d)), np.full(N_LOADS, 1e-3)
+    if variance is not None:
+        var = np.full(N_LOADS, float(variance))
+    if lengthscale is not None:
+        ls = np.full((N_LOADS, d), float(lengthscale))
+    whiten = _whitening(Z, var, ls)
+    online = Online(
+        Z=jnp.asarray(Z),
+        whiten=jnp.asarray(whiten),
+        variance=jnp.asarray(var),
+        lengthscale=jnp.asarray(ls),
+        noise=jnp.asarray(nu),
+        mean=jnp.zeros((N_LOADS, k)),
+        cov=jnp.broadcast_to(jnp.eye(k), (N_LOADS, k, k)),
+        t=jnp.asarray(float(t0)),
+        tau=jnp.asarray(float(tau)),
+    )
+    return dataclasses.replace(
+        sur, model=eqx.tree_at(lambda c: c.online, m, online, is_leaf=lambda x: x is None)
+    )
+
+
+@highest
+def update(
+    sur: Surrogate,
+    t: Float[ArrayLike, ""],
+    rpm: Float[ArrayLike, " 4"],
+    euler: Float[ArrayLike, " 3"],
+    v_air: Float[ArrayLike, " 3"],
+    force: Float[ArrayLike, " 3"],
+    torque: Float[ArrayLike, " 3"],
+    force_var: Float[ArrayLike, " 3"],
+    torque_var: Float[ArrayLike, " 3"],
+) -> Surrogate:
+    """``sur`` (from :func:`adapt`) after one labelled sample at time ``t`` (s): the online
+    term relaxed since its last update and conditioned on the label (world frame, as
+    :class:`~gpg.flight.Labels` holds them). Pure and jittable: a ``lax.scan`` over labels
+    carries the surrogate; from Python, :func:`update_jit`."""
+    m = sur.model
+    if not isinstance(m, Corrected) or m.online is None:
+        raise ValueError("update needs a surrogate prepared by gpg.flight.adapt")
+    args = (jnp.asarray(a) for a in (rpm, euler, v_air, force, torque, force_var, torque_var))
+    x, y, r = gp_rows(sur, *args)
+    offline = eqx.tree_at(lambda c: c.online, m, None)
+    resid = y - offline.mean_one(x)[:N_LOADS]
+    online = m.online.relaxed(t).measured(x, resid, r)
+    return eqx.tree_at(lambda s: s.model.online, sur, online)
+
+
+update_jit = jax.jit(update)
+
+
+def with_online(sur: Surrogate, online: Online) -> Surrogate:
+    """``sur`` (from :func:`adapt`) carrying the online state ``online``."""
+    return eqx.tree_at(lambda s: s.model.online, sur, online)
+
+
+def online_step(sur: Surrogate) -> Callable[..., Online]:
+    """A compiled ``step(online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
+    -> Online`` for loops that update once a step from Python: :func:`update` on the online
+    state alone. The offline model's arrays are flattened once here (the mean's only), not at
+    every call, and only the small online state goes in and out; :func:`with_online` puts a
+    state back into the surrogate for predictions."""
+    m = sur.model
+    if not isinstance(m, Corrected) or m.online is None:
+        raise ValueError("online_step needs a surrogate prepared by gpg.flight.adapt")
+    offline = eqx.tree_at(lambda s: s.model, sur, eqx.tree_at(lambda c: c.online, m, None))
+    offline = eqx.tree_at(lambda s: s.model, offline, offline.model.mean_view())
+    leaves, treedef = jax.tree_util.tree_flatten(offline)
+    leaves = tuple(leaves)
+    fn = _online_step_fn(treedef)
+
+    def step(online: Online, t, rpm, euler, v_air, force, torque, force_var, torque_var):
+        return fn(leaves, online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
+
+    return step
+
+
+@lru_cache(maxsize=16)
+def _online_step_fn(treedef):
+    @jax.jit
+    @highest
+    def fn(leaves, online, t, rpm, euler, v_air, force, torque, force_var, torque_var):
+        sur = jax.tree_util.tree_unflatten(treedef, leaves)
+        x, y, r = gp_rows(sur, rpm, euler, v_air, force, torque, force_var, torque_var)
+        resid = y - sur.model.mean_one(x)[:N_LOADS]
+        return online.relaxed(t).measured(x, resid, r)
+
+    return fn
+
+
+def _whitening(Z: np.ndarray, var: np.ndarray, ls: np.ndarray) -> np.ndarray:
+    """``L⁻¹`` of each output's ``K_ZZ`` (6, m, m), a little jitter on the diagonal."""
+    out = []
+    for j in range(N_LOADS):
+        K = np.array(_cross(jnp.asarray(Z), jnp.asarray(Z), var[j], ls[j]))
+        K[np.diag_indices_from(K)] += 1e-8 * var[j]
+        out.append(np.linalg.solve(np.linalg.cholesky(K), np.eye(Z.shape[0])))
+    return np.stack(out)
+
+
+def _cross(A: Float[Array, "P D"], B: Float[Array, "Q D"], var, ls) -> Float[Array, "P Q"]:
+    """The RBF kernel (:func:`gpg.gp.kernels.rbf`) between every row of ``A`` and of ``B``."""
+    return jax.vmap(lambda a: jax.vmap(lambda b: kernels.rbf(a, b, var, ls))(B))(A)
+
+
+__all__ = [
+    "Corrected",
+    "Online",
+    "adapt",
+    "base",
+    "correct",
+    "gp_rows",
+    "online_step",
+    "training_rows",
+    "update",
+    "update_jit",
+    "with_online",
+]

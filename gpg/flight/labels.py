@@ -1,0 +1,681 @@
+"""Force and torque labels from measured motion, and motor commands turned into rotor speeds.
+
+The aerodynamic force is what the accelerometer measures, times the mass: the IMU's specific
+force ``f_B = F_aero,B / m`` (body FRD; gravity is no force on it), so ``F_W = m R_WB f_B``.
+Without an IMU it comes from the velocity: ``F_W = m (v̇_W − g e_z)`` (NED, z down), with
+``v̇`` the derivative of a smoothing spline of the velocity (:func:`scipy.interpolate.
+make_smoothing_spline`). The torque comes from the body rates: ``τ_B = J ω̇ + ω × J ω``
+(Euler's equation about the centre of mass, ``J`` the vehicle's principal inertia), ``ω̇``
+again the derivative of a smoothing spline; ``τ_W = R_WB τ_B``. Forces and torques are in the
+world frame, as :meth:`gpg.Surrogate.predict` returns them; a label's *residual* is the
+measurement minus a reference model at the same state: the simplified model ``M`` by default,
+or a fitted surrogate.
+
+Noise. Each raw signal's white-noise variance is estimated per sample from its second
+differences (``Var Δ²y = 6σ²`` for white noise on a signal smooth at the sampling rate; a
+rolling median of ``|Δ²y|`` over :data:`NOISE_WINDOW_S` keeps manoeuvres out of it), and
+carried through the spline: a smoothing spline is a linear filter, so the variance of its value
+(or derivative) at a sample is ``σ² Σ_k h_k²`` with ``h`` its impulse response, found once per
+signal by smoothing a unit impulse. Labels are then taken at ``rate`` Hz, each with its
+variance per component.
+
+Dropped segments, counted in :attr:`Labels.dropped`: samples on the ground (``M``'s thrust
+from the rotor speeds below :data:`GROUND_THRUST` of the weight: there the accelerometer also
+feels the ground), the first ``takeoff_s`` seconds after each take-off (ground effect) and the
+last before each landing, samples where a rotor is saturated (at ``saturation`` of its range,
+padded by :data:`SATURATION_PAD_S`), and samples near the ends of segments split at gaps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import ndimage, optimize
+from scipy.interpolate import make_smoothing_spline
+
+from gpg.flight.log import GAP_FACTOR, FlightLog, FlightLogWarning
+from gpg.quadrotor.frames import euler_from_R
+from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.vehicle import Vehicle
+
+GROUND_THRUST = 0.5  # M's thrust below this fraction of the weight: on the ground
+SATURATION_PAD_S = 0.1  # s dropped on each side of a saturated sample
+NOISE_WINDOW_S = 1.0  # s, window of the rolling noise estimate
+GCV_WINDOW = 300  # samples: the smoothing parameter is chosen by GCV on one such window
+DELAY_HIGHPASS_S = 0.2  # s, the high-pass window of the delay's cross-correlation
+EDGE_S = 0.1  # s dropped at each end of a segment, where the spline has one side only
+
+
+@dataclass(frozen=True)
+class MotorCurve:
+    """A static curve from motor command to rotor speed: ``rpm = c1 s + c2 s²`` with
+    ``s = u V / V_ref`` (command ``u`` in 0..1 scaled by the battery voltage ``V``, the
+    term that makes the same command spin faster on a full battery).
+
+    Attributes:
+        c1: rpm per unit scaled command.
+        c2: rpm per unit scaled command squared.
+        v_ref: V, the voltage at which ``s = u`` (ignored when the log has no voltage).
+        command_range: the commands the fit saw; others are extrapolation (warned, counted).
+        residual_rpm: RMS residual of the fit, rpm (rotor speeds against the curve, or the
+            thrust-balance residual converted to rpm for a fit from hover).
+        source: ``"speeds"`` (fitted to measured rotor speeds), ``"hover"`` (thrust balances
+            weight) or ``"given"``.
+    """
+
+    c1: float
+    c2: float = 0.0
+    v_ref: float = 1.0
+    command_range: tuple[float, float] = (0.0, 1.0)
+    residual_rpm: float = float("nan")
+    source: str = "given"
+
+    def rpm(self, command: np.ndarray, voltage: np.ndarray | None = None) -> np.ndarray:
+        """Rotor speeds (rpm) of ``command`` (T, 4) at ``voltage`` (T,) or the reference.
+        Commands outside :attr:`command_range` warn (:class:`FlightLogWarning`) with their
+        count: the curve is extrapolated there."""
+        u = np.asarray(command, dtype=float)
+        lo, hi = self.command_range
+        out = (u < lo - 1e-9) | (u > hi + 1e-9)
+        if out.any():
+            rows = np.flatnonzero(out.any(axis=-1))
+            warnings.warn(
+                f"{out.sum()} command(s) in {rows.size} row(s) (first rows {rows[:5].tolist()}) "
+                f"outside the calibration's range [{lo:.3g}, {hi:.3g}]: extrapolated",
+                FlightLogWarning,
+                stacklevel=2,
+            )
+        s = _scaled(u, voltage, self.v_ref)
+        return np.maximum(self.c1 * s + self.c2 * s * s, 0.0)
+
+    @classmethod
+    def fit_speeds(
+        cls, command: np.ndarray, rpm: np.ndarray, voltage: np.ndarray | None = None
+    ) -> MotorCurve:
+        """Least squares of measured rotor speeds ``rpm`` (T, 4) on commands (T, 4)."""
+        u, w = np.asarray(command, float).ravel(), np.asarray(rpm, float).ravel()
+        V = None if voltage is None else np.repeat(np.asarray(voltage, float), 4)
+        v_ref = 1.0 if V is None else float(np.median(V))
+        s = _scaled(u, V, v_ref)
+        keep = u > 0.02  # idle commands: the ESC's own floor, not the curve
+        A = np.stack([s[keep], s[keep] ** 2], 1)
+        (c1, c2), *_ = np.linalg.lstsq(A, w[keep], rcond=None)
+        res = float(np.sqrt(np.mean((A @ [c1, c2] - w[keep]) ** 2)))
+        rng = (float(u[keep].min()), float(u[keep].max()))
+        return cls(float(c1), float(c2), v_ref, rng, res, "speeds")
+
+    @classmethod
+    def fit_hover(cls, log: FlightLog, vehicle: Vehicle, simple: SimpleModel) -> MotorCurve:
+        """From the log's hover: ``M``'s thrust of the curve's rotor speeds balances the
+        measured thrust ``−m f_z`` (the accelerometer; the weight where the log has none) on
+        samples that hover (speed under 1 m/s, tilt under 10°, rotors turning); ``M``'s roll
+        and pitch moments balance too. Needs commands and a hover."""
+        if log.command is None:
+            raise ValueError(f"{log.name}: fit_hover needs motor commands in the log")
+        m, g = float(vehicle.mass), float(vehicle.gravity)
+        R = log.R_WB()
+        tilt = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
+        hover = (np.linalg.norm(log.velocity, axis=1) < 1.0) & (tilt < 10.0)
+        hover &= log.command.min(1) > 0.05
+        if hover.sum() < 20:
+            raise ValueError(
+                f"{log.name}: only {int(hover.sum())} hover samples (speed < 1 m/s, tilt < 10°, "
+                "rotors turning): give the curve in the vehicle file or log rotor speeds"
+            )
+        u = log.command[hover]
+        V = None if log.voltage is None else log.voltage[hover]
+        v_ref = 1.0 if V is None else float(np.median(V))
+        s = _scaled(u, None if V is None else V[:, None], v_ref)
+        thrust = m * (-log.specific_force[hover, 2] if log.specific_force is not None else g)
+        A = np.asarray(simple.allocation)
+
+        def resid(c):
+            w = c[0] * s + c[1] * s * s
+            load = (w * w) @ A.T  # (ΣT, τx, τy, τz)
+            return np.concatenate([(load[:, 0] - thrust) / (m * g), load[:, 1:3].ravel()])
+
+        hover_rpm = float(simple.hover_rpm(m * g))
+        c0 = np.array([hover_rpm / max(float(np.median(s)), 1e-3), 0.0])
+        sol = optimize.least_squares(resid, c0, x_scale=np.abs(c0) + 1.0)
+        r = sol.fun[: s.shape[0]]
+        # a relative thrust error e is a relative rotor-speed error e/2
+        res = float(np.sqrt(np.mean(r**2)) / 2 * hover_rpm)
+        rng = (float(u.min()), float(u.max()))
+        return cls(float(sol.x[0]), float(sol.x[1]), v_ref, rng, res, "hover")
+
+
+def hover_samples(log: FlightLog, rpm: np.ndarray, *, min_height: float = 0.3) -> np.ndarray:
+    """Which samples hover: rotors turning (every rotor above a quarter of the flight's median
+    turning speed), speed under 0.5 m/s, tilt under 10°, and, when the log has the vehicle on
+    the ground (rotors below that), at least ``min_height`` m above it (out of ground effect)."""
+    R = log.R_WB()
+    tilt = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
+    turning = rpm.min(1) > 0
+    floor = 0.25 * np.median(rpm[turning]) if turning.any() else np.inf
+    flying = rpm.min(1) > floor
+    up = np.ones(flying.size, bool)
+    if (~flying).any():
+        ground_z = float(np.median(log.position[~flying, 2]))
+        up = -(log.position[:, 2] - ground_z) > min_height
+    return flying & (np.linalg.norm(log.velocity, axis=1) < 0.5) & (tilt < 10) & up
+
+
+def calibrate_simple(
+    log: FlightLog,
+    vehicle: Vehicle,
+    *,
+    rpm: np.ndarray | None = None,
+    torque_ratio: float | None = None,
+    min_hover: int = 5,
+) -> SimpleModel:
+    """``M``'s coefficients from a flight: ``P_F`` so that ``M``'s thrust balances the measured
+    thrust ``−m f_z`` where the log hovers (:func:`hover_samples`; least squares), ``T_z`` so
+    that ``M``'s yaw moment matches ``J_z ω̇_z`` (least squares over the airborne samples;
+    ``T_z = torque_ratio · P_F`` where given (m: the rotor's drag torque per unit thrust),
+    else the vehicle file's ratio where it has one). For a vehicle whose file has no
+    ``simple_model`` section, or to check one against a flight; ``rpm`` overrides the log's
+    rotor speeds (e.g. from a :class:`MotorCurve`).
+
+    Raises:
+        ValueError: fewer than ``min_hover`` hover samples, a log without the specific force
+            or rotor speeds (naming what is missing), or yaw moments that do not determine
+            ``T_z`` (a flight without yaw manoeuvres: give ``torque_ratio``).
+    """
+    if log.specific_force is None:
+        raise ValueError(f"{log.name}: calibrate_simple needs the IMU's specific force")
+    rpm = log.rpm if rpm is None else rpm
+    if rpm is None:
+        raise ValueError(f"{log.name}: calibrate_simple needs rotor speeds (or rpm=)")
+    hover = hover_samples(log, rpm)
+    if hover.sum() < min_hover:
+        raise ValueError(
+            f"{log.name}: {int(hover.sum())} hover samples (speed < 0.5 m/s, tilt < 10°, above "
+            f"0.3 m), fewer than {min_hover}: cannot calibrate M's thrust"
+        )
+    m = float(vehicle.mass)
+    s = (rpm[hover] ** 2).sum(1)
+    thrust = -m * log.specific_force[hover, 2]
+    P_F = float(np.sum(thrust * s) / np.sum(s * s))
+    if torque_ratio is None and vehicle.thrust_coefficient is not None:
+        torque_ratio = float(vehicle.torque_coefficient) / float(vehicle.thrust_coefficient)
+    if torque_ratio is not None:
+        T_z = float(torque_ratio) * P_F
+    else:
+        w_dot, _ = _smooth(log.t, log.rates, deriv=True)
+        J = np.asarray(vehicle.inertia, float)
+        tau_z = J[2] * w_dot[:, 2] + (J[1] - J[0]) * log.rates[:, 0] * log.rates[:, 1]
+        air = rpm.min(1) > 0
+        d = (rpm[air] ** 2) @ np.asarray(vehicle.spin, float)
+        T_z = float(-np.sum(tau_z[air] * d) / max(np.sum(d * d), 1e-300))
+        if not T_z > 0:
+            raise ValueError(
+                f"{log.name}: the yaw moments do not determine T_z (got {T_z:.3g}): give "
+                "torque_ratio (T_z/P_F, m)"
+            )
+    return SimpleModel.from_vehicle(vehicle, P_F, T_z)
+
+
+def _scaled(u, voltage, v_ref):
+    if voltage is None:
+        return u
+    V = np.asarray(voltage, float)
+    if u.ndim == 2 and V.ndim == 1:  # one voltage per sample, four rotors
+        V = V[:, None]
+    return u * V / v_ref
+
+
+@dataclass(frozen=True)
+class Labels:
+    """Measured aerodynamic loads at the states of a flight (N labels), world frame.
+
+    Attributes:
+        t: (N,) s.
+        rpm: (N, 4) rotor speeds, aligned with the loads (:attr:`delay` applied).
+        euler: (N, 3) (yaw, pitch, roll) of the body in the world, rad.
+        v_air: (N, 3) velocity minus wind, world, m/s (the log's wind, else none).
+        force, torque: (N, 3) the measured aerodynamic force (N) and torque (N·m).
+        force_var, torque_var: (N, 3) their estimated noise variances.
+        model_force, model_torque: (N, 3) the reference model at the same states.
+        dropped: samples dropped, by reason (``ground``, ``takeoff_landing``, ``saturated``,
+            ``edges``), of ``total`` samples in the log.
+        delay: s, the rotor-speed channel's lag behind the IMU that was removed.
+        source: ``"imu"`` or ``"velocity"``: where the force came from.
+        name: the flight's name.
+    """
+
+    t: np.ndarray
+    rpm: np.ndarray
+    euler: np.ndarray
+    v_air: np.ndarray
+    force: np.ndarray
+    torque: np.ndarray
+    force_var: np.ndarray
+    torque_var: np.ndarray
+    model_force: np.ndarray
+    model_torque: np.ndarray
+    dropped: dict[str, int] = field(default_factory=dict)
+    delay: float = 0.0
+    source: str = "imu"
+    name: str = "flight"
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def residual_force(self) -> np.ndarray:
+        """(N, 3) measured minus reference force, N."""
+        return self.force - self.model_force
+
+    @property
+    def residual_torque(self) -> np.ndarray:
+        """(N, 3) measured minus reference torque, N·m."""
+        return self.torque - self.model_torque
+
+    def take(self, rows) -> Labels:
+        """The labels ``rows`` (slice, mask or indices)."""
+        arrays = {
+            f.name: getattr(self, f.name)[rows]
+            for f in dataclasses.fields(self)
+            if isinstance(getattr(self, f.name), np.ndarray)
+        }
+        return dataclasses.replace(self, **arrays)
+
+    def _steps(self) -> np.ndarray:
+        """Each label's share of labelled time: the step to the one before, at most the
+        median step (dropped stretches do not count); the first label one median step."""
+        if len(self) < 2:
+            return np.zeros(len(self))
+        dt = np.diff(self.t, prepend=-np.inf)
+        med = float(np.median(dt[1:]))
+        return np.minimum(dt, med)
+
+    @property
+    def seconds(self) -> float:
+        """Seconds of labelled flight (time in the air, not wall-clock)."""
+        return float(self._steps().sum())
+
+    def first(self, seconds: float) -> Labels:
+        """The labels of the first ``seconds`` of labelled flight (:attr:`seconds`)."""
+        return self.take(np.cumsum(self._steps()) <= seconds + 1e-9)
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[Labels]) -> Labels:
+        """Labels of several flights as one set (times kept; ``dropped`` summed)."""
+        if not parts:
+            raise ValueError("concatenate needs at least one Labels")
+        arrays = {
+            f.name: np.concatenate([getattr(p, f.name) for p in parts])
+            for f in dataclasses.fields(cls)
+            if isinstance(getattr(parts[0], f.name), np.ndarray)
+        }
+        dropped: dict[str, int] = {}
+        for p in parts:
+            for k, v in p.dropped.items():
+                dropped[k] = dropped.get(k, 0) + v
+        return dataclasses.replace(
+            parts[0], **arrays, dropped=dropped, name="+".join(p.name for p in parts)
+        )
+
+
+def label(
+    log: FlightLog,
+    vehicle: Vehicle,
+    *,
+    reference=None,
+    rate: float = 10.0,
+    source: str = "auto",
+    delay: float | str = "estimate",
+    max_delay: float = 0.1,
+    curve: MotorCurve | None = None,
+    takeoff_s: float = 2.0,
+    saturation: float = 0.98,
+) -> Labels:
+    """Aerodynamic force and torque labels of a flight, with their noise (module docstring).
+
+    Args:
+        log: the flight (:func:`gpg.flight.read_csv`, :func:`gpg.flight.read_ulog`).
+        vehicle: its mass, inertia, gravity, rotor range and layout.
+        reference: what the residuals are taken against: ``None`` for the simplified model
+            ``M`` of the vehicle file (its ``simple_model`` coefficients), a
+            :class:`~gpg.quadrotor.simple_model.SimpleModel`, or a fitted
+            :class:`~gpg.Surrogate` (its mean prediction).
+        rate: labels per second (Hz), at most the log's rate.
+        source: ``"imu"`` (the specific force), ``"velocity"`` (spline derivative) or
+            ``"auto"`` (the IMU when the log has it).
+        delay: the rotor-speed channel's lag behind the IMU (s), or ``"estimate"``: the lag in
+            ``[-max_delay, max_delay]`` that best correlates the fast parts (under
+            :data:`DELAY_HIGHPASS_S`) of ``M``'s thrust and the measured one (rotor speeds from
+            ESC telemetry lag the IMU); 0 for a log slower than 20 Hz, and 0 with a
+            :class:`~gpg.flight.log.FlightLogWarning` where the best lag is at the bound.
+        curve: motor commands to rotor speeds, for a log without rotor speeds (default: fitted
+            from the log's hover, :meth:`MotorCurve.fit_hover`).
+        takeoff_s: seconds dropped after each take-off and before each landing.
+        saturation: a rotor at this fraction of its speed range (or command) is saturated.
+
+    Returns:
+        :class:`Labels` at ``rate`` Hz over the labelled stretches of the flight.
+
+    Raises:
+        ValueError: ``source="imu"`` on a log without specific force; rotor speeds that look
+            like rad/s (their airborne median far below the vehicle's hover speed and near it
+            in rad/s); no sample left to label; a bad option.
+    """
+    if source not in ("auto", "imu", "velocity"):
+        raise ValueError(f"source must be 'auto', 'imu' or 'velocity', got {source!r}")
+    if source == "imu" and log.specific_force is None:
+        raise ValueError(f"{log.name}: source='imu' but the log has no specific force (ax..az)")
+    if not (0 < rate <= log.rate * 1.001):
+        raise ValueError(f"rate must be in (0, {log.rate:.4g}] Hz (the log's rate), got {rate}")
+    src = ("imu" if log.specific_force is not None else "velocity") if source == "auto" else source
+    simple = _simple(vehicle, reference)
+    m, g = float(vehicle.mass), float(vehicle.gravity)
+    rpm = log.rpm
+    if rpm is None:
+        curve = MotorCurve.fit_hover(log, vehicle, simple) if curve is None else curve
+        rpm = curve.rpm(log.command, log.voltage)
+    _check_rpm_unit(log.name, rpm, simple, m * g)
+    thrust_M = (rpm**2).sum(1) * float(simple.P_F)
+    R = log.R_WB()
+
+    dt = float(np.median(np.diff(log.t)))
+    keep, drop = _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation)
+    F_B, F_var_B, tau_B, tau_var_B, edges = _measured_loads(log, vehicle, R, src, dt)
+    drop["edges"] = int((keep & edges).sum())
+    keep &= ~edges
+
+    # The rotor-speed channel's lag, removed by reading it that much later.
+    if delay == "estimate":
+        lag = _estimate_delay(log.t, thrust_M, -F_B[:, 2], keep, max_delay)
+    else:
+        lag = float(delay)
+    if lag != 0.0:
+        rpm = np.stack([np.interp(log.t + lag, log.t, rpm[:, i]) for i in range(4)], 1)
+
+    # Decimate to the label rate.
+    step = max(1, int(round(1.0 / (rate * dt))))
+    rows = np.flatnonzero(keep)
+    rows = rows[(np.round((log.t[rows] - log.t[0]) / dt).astype(np.int64) % step) == 0]
+    if rows.size == 0:
+        raise ValueError(
+            f"{log.name}: no sample left to label ({_dropped_text(drop)}); is the vehicle "
+            "airborne in this log, and are the rotor speeds in rpm?"
+        )
+    loads = (F_B[rows], F_var_B[rows], tau_B[rows], tau_var_B[rows])
+    return _labels(log, rows, R[rows], rpm[rows], loads, reference, simple, drop, lag, src)
+
+
+def _labels(log, rows, Rk, rpm, loads, reference, simple, drop, lag, src) -> Labels:
+    """The labels at ``rows``: the body-frame loads and variances rotated into the world, the
+    state, the reference model there."""
+    F_B, F_var_B, tau_B, tau_var_B = loads
+    euler = np.asarray(jax.vmap(euler_from_R)(jnp.asarray(Rk)))
+    wind = np.zeros((rows.size, 3)) if log.wind is None else log.wind[rows]
+    v_air = log.velocity[rows] - wind
+    model_force, model_torque = _reference(reference, simple, rpm, euler, v_air)
+    return Labels(
+        t=log.t[rows],
+        rpm=rpm,
+        euler=euler,
+        v_air=v_air,
+        force=np.einsum("nij,nj->ni", Rk, F_B),
+        torque=np.einsum("nij,nj->ni", Rk, tau_B),
+        force_var=_rotate_var(Rk, F_var_B),
+        torque_var=_rotate_var(Rk, tau_var_B),
+        model_force=model_force,
+        model_torque=model_torque,
+        dropped=drop,
+        delay=lag,
+        source=src,
+        name=log.name,
+    )
+
+
+def _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation):
+    """Samples airborne, away from take-off and landing, unsaturated; and the counts dropped."""
+    m, g = float(vehicle.mass), float(vehicle.gravity)
+    n = log.t.size
+    ground = thrust_M < GROUND_THRUST * m * g
+    drop = {"total": n, "ground": int(ground.sum())}
+    air = ~ground
+    near = _near_transitions(air, int(round(takeoff_s / dt)))
+    drop["takeoff_landing"] = int((near & air).sum())
+    sat = rpm >= vehicle.rpm_min + saturation * (vehicle.rpm_max - vehicle.rpm_min)
+    if log.command is not None:
+        sat |= (log.command >= saturation) | (air[:, None] & (log.command <= 1 - saturation))
+    sat = ndimage.binary_dilation(sat.any(1), iterations=max(1, int(SATURATION_PAD_S / dt)))
+    keep = air & ~near
+    drop["saturated"] = int((keep & sat).sum())
+    return keep & ~sat, drop
+
+
+def _measured_loads(log, vehicle, R, src: str, dt: float):
+    """Body-frame force and torque from the motion, with their noise variances, per segment
+    (split at gaps), and the samples at the segments' ends (one-sided splines)."""
+    m, g = float(vehicle.mass), float(vehicle.gravity)
+    J = np.asarray(vehicle.inertia, float)
+    n = log.t.size
+    F_B, F_var_B = np.zeros((n, 3)), np.zeros((n, 3))
+    tau_B, tau_var_B = np.zeros((n, 3)), np.zeros((n, 3))
+    edges = np.zeros(n, bool)
+    for seg in _segments(log.t, dt):
+        ts = log.t[seg]
+        e = max(1, int(round(EDGE_S / dt)))
+        edges[seg.start : seg.start + e] = True
+        edges[seg.stop - e : seg.stop] = True
+        if ts.size < 8:
+            edges[seg] = True
+            continue
+        wdot, wdot_var = _smooth(ts, log.rates[seg], deriv=True)
+        w = log.rates[seg]
+        tau_B[seg] = J * wdot + np.cross(w, J * w)
+        tau_var_B[seg] = J**2 * wdot_var
+        if src == "imu":
+            f, f_var = _smooth(ts, log.specific_force[seg], deriv=False)
+            # The attitude's own noise turns the force: δF = R (δθ × F_B), |δF|² ≤ |F|²σ_θ².
+            att = _attitude_noise_var(R[seg], max(3, int(round(NOISE_WINDOW_S / dt))))
+            F_B[seg] = m * f
+            F_var_B[seg] = m * m * (f_var + att[:, None] * np.sum(f * f, 1, keepdims=True))
+        else:
+            a, a_var = _smooth(ts, log.velocity[seg], deriv=True)
+            F_W = m * (a - np.array([0.0, 0.0, g]))
+            F_B[seg] = np.einsum("nji,nj->ni", R[seg], F_W)
+            F_var_B[seg] = _rotate_var(np.swapaxes(R[seg], 1, 2), m * m * a_var)
+    return F_B, F_var_B, tau_B, tau_var_B, edges
+
+
+def _simple(vehicle: Vehicle, reference) -> SimpleModel:
+    from gpg.surrogate import Surrogate
+
+    if isinstance(reference, SimpleModel):
+        return reference
+    if isinstance(reference, Surrogate) and reference.simple is not None:
+        return reference.simple
+    if vehicle.thrust_coefficient is None:
+        raise ValueError(
+            f"vehicle {vehicle.name!r} has no simple_model coefficients: pass reference= a "
+            "SimpleModel or a fitted Surrogate (its M)"
+        )
+    return SimpleModel.from_vehicle(vehicle, vehicle.thrust_coefficient, vehicle.torque_coefficient)
+
+
+def _reference(reference, simple: SimpleModel, rpm, euler, v_air):
+    from gpg.surrogate import Surrogate
+
+    if isinstance(reference, Surrogate):
+        p = reference.predict_batch(rpm, euler, v_air, mean_only=True)
+        return np.asarray(p.force), np.asarray(p.torque)
+    y = np.asarray(simple.values(np.concatenate([rpm, euler], 1)))
+    return y[:, :3], y[:, 3:6]
+
+
+def _check_rpm_unit(name: str, rpm: np.ndarray, simple: SimpleModel, weight: float) -> None:
+    hover = float(simple.hover_rpm(weight))
+    turning = rpm[rpm.max(1) > 0]
+    if turning.size == 0:
+        return
+    med = float(np.median(turning))
+    rad_s = hover * 2 * np.pi / 60
+    if med < 0.3 * hover and abs(np.log(med / rad_s)) < np.log(3.0):
+        raise ValueError(
+            f"{name}: rotor speeds look like rad/s, not rpm: their median while turning is "
+            f"{med:.4g}, the vehicle hovers near {hover:.4g} rpm = {rad_s:.4g} rad/s (read the "
+            "log with rotor_speed='rad/s')"
+        )
+
+
+def _segments(t: np.ndarray, dt: float) -> list[slice]:
+    cut = np.flatnonzero(np.diff(t) > GAP_FACTOR * dt) + 1
+    bounds = np.concatenate([[0], cut, [t.size]])
+    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def _near_transitions(air: np.ndarray, k: int) -> np.ndarray:
+    """Samples within ``k`` of a ground/air change (take-off, landing)."""
+    change = np.flatnonzero(np.diff(air.astype(np.int8)) != 0)
+    near = np.zeros(air.size, bool)
+    for c in change:
+        near[max(0, c - k + 1) : c + k + 1] = True
+    return near
+
+
+def _noise_var(y: np.ndarray, window: int) -> np.ndarray:
+    """Per-sample white-noise variance of ``y`` (T,) from its second differences."""
+    d2 = np.zeros_like(y)
+    d2[1:-1] = y[2:] - 2 * y[1:-1] + y[:-2]
+    d2[0], d2[-1] = d2[1], d2[-2]
+    # MAD → σ for a Gaussian; Var Δ²y = 6σ²
+    mad = ndimage.median_filter(np.abs(d2), size=max(3, window), mode="nearest")
+    return (1.4826 * mad) ** 2 / 6.0
+
+
+def _attitude_noise_var(R: np.ndarray, window: int) -> np.ndarray:
+    """Per-sample variance (rad²) of the attitude's white noise, per axis: the second
+    differences of the increments ``log(R_kᵀ R_{k+1})`` (the rotation itself is smooth)."""
+    from scipy.spatial.transform import Rotation
+
+    if R.shape[0] < 4:
+        return np.zeros(R.shape[0])
+    inc = Rotation.from_matrix(np.einsum("nji,njk->nik", R[:-1], R[1:])).as_rotvec()
+    d = np.diff(inc, axis=0)  # n_{k+2} − 2 n_{k+1} + n_k: variance 6σ² per axis
+    mad = ndimage.median_filter(np.abs(d).mean(1), size=window, mode="nearest")
+    var = (1.4826 * mad) ** 2 / 6.0
+    return np.concatenate([var[:1], var, var[-1:]])
+
+
+def _lam(t: np.ndarray, y: np.ndarray) -> float:
+    """The smoothing parameter of one signal ``y`` (T,) by generalised cross-validation,
+    ``GCV(λ) = RSS(λ) / (1 − tr H(λ)/n)²``, on the window of :data:`GCV_WINDOW` samples where
+    the signal varies most (a manoeuvre: a calm window would choose a smoothing that flattens
+    the manoeuvres). ``tr H/n`` is the smoother's weight on a sample's own value, from its
+    frequency response on a uniform grid (:func:`_self_weight`)."""
+    n = t.size
+    w = min(n, GCV_WINDOW)
+    a = 0
+    if n > w:
+        c = np.concatenate([[0.0], np.cumsum(y - y.mean())])
+        c2 = np.concatenate([[0.0], np.cumsum((y - y.mean()) ** 2)])
+        var = (c2[w:] - c2[:-w]) / w - ((c[w:] - c[:-w]) / w) ** 2
+        a = int(np.argmax(var))
+    ts, ys = t[a : a + w], y[a : a + w]
+    dt = float(np.median(np.diff(ts)))
+
+    def gcv(log_lam: float) -> float:
+        lam = 10.0**log_lam
+        rss = float(np.mean((make_smoothing_spline(ts, ys, lam=lam)(ts) - ys) ** 2))
+        return rss / (1.0 - _self_weight(dt, lam)) ** 2
+
+    # λ from a time scale (λ dt)^¼ of one sample to a tenth of the window: a window cannot
+    # tell a slow signal from a polynomial, and would smooth it away over the whole flight.
+    h_max = max(0.1 * (ts[-1] - ts[0]), 2 * dt)
+    lo, hi = np.log10(dt**3), np.log10(h_max**4 / dt)
+    res = optimize.minimize_scalar(gcv, bounds=(lo, hi), method="bounded", options={"xatol": 0.1})
+    return float(10.0**res.x)
+
+
+def _self_weight(dt: float, lam: float) -> float:
+    """A uniform-grid smoothing spline's weight on each sample's own value: its transfer
+    function ``1/(1 + λ dt ω⁴)`` (Reinsch's, per unit time) averaged up to the Nyquist rate."""
+    w = np.linspace(0.0, np.pi / dt, 2049)
+    return float(np.trapezoid(1.0 / (1.0 + lam * dt * w**4), w) * dt / np.pi)
+
+
+def _gain(dt: float, lam: float, deriv: bool) -> float:
+    """``Σ_k h_k²`` of the spline's impulse response at an interior sample (value or
+    derivative), on a uniform grid of step ``dt``."""
+    k = 801
+    t = np.arange(k) * dt
+    e = np.zeros(k)
+    e[k // 2] = 1.0
+    spl = make_smoothing_spline(t, e, lam=lam)
+    h = spl.derivative()(t) if deriv else spl(t)
+    return float(np.sum(h**2))
+
+
+def _smooth(t: np.ndarray, y: np.ndarray, deriv: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothing-spline value or derivative of ``y`` (T, C) and its noise variance (T, C),
+    each component with its own smoothing parameter."""
+    dt = float(np.median(np.diff(t)))
+    window = max(3, int(round(NOISE_WINDOW_S / dt)))
+    out = np.empty_like(y)
+    var = np.empty_like(y)
+    for j in range(y.shape[1]):
+        lam = _lam(t, y[:, j])
+        spl = make_smoothing_spline(t, y[:, j], lam=lam)
+        out[:, j] = spl.derivative()(t) if deriv else spl(t)
+        var[:, j] = _noise_var(y[:, j], window) * _gain(dt, lam, deriv)
+    return out, var
+
+
+def _rotate_var(R: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """``diag(R diag(var) Rᵀ)`` per row: independent components' variances, rotated."""
+    return np.einsum("nij,nj->ni", R**2, var)
+
+
+def _estimate_delay(t, model, measured, keep, max_delay: float) -> float:
+    dt = float(np.median(np.diff(t)))
+    k = max(1, int(round(max_delay / dt)))
+    if keep.sum() < 4 * k + 8:
+        return 0.0
+    # Only the fast part carries the lag: slower changes of the measured thrust also follow
+    # drag and attitude, which lead or lag the rotor speeds in closed loop.
+    hp = int(round(DELAY_HIGHPASS_S / dt))
+    if hp < 4:
+        return 0.0  # a log too slow to see a lag of this size
+
+    def highpass(x):
+        return x - ndimage.uniform_filter1d(x, hp, mode="nearest")
+
+    a, b = highpass(model), highpass(measured)
+    idx = np.flatnonzero(keep)
+    idx = idx[(idx >= k) & (idx < t.size - k)]
+    lags = np.arange(-k, k + 1)
+    # model read at i + lag against the measurement at i
+    c = np.array([np.dot(a[idx + lag], b[idx]) for lag in lags])
+    j = int(np.argmax(c))
+    if j in (0, lags.size - 1):
+        warnings.warn(
+            f"the rotor speeds' lag behind the IMU is not within ±{max_delay:g} s (the best "
+            "alignment is at the bound): none removed; give delay= if it is known",
+            FlightLogWarning,
+            stacklevel=3,
+        )
+        return 0.0
+    shift = float(lags[j])
+    if 0 < j < lags.size - 1:  # parabolic refinement between samples
+        den = c[j - 1] - 2 * c[j] + c[j + 1]
+        if den < 0:
+            shift += 0.5 * (c[j - 1] - c[j + 1]) / den
+    return shift * dt
+
+
+def _dropped_text(drop: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in drop.items())
+
+
+__all__ = ["Labels", "MotorCurve", "calibrate_simple", "hover_samples", "label"]

@@ -1,0 +1,268 @@
+"""Flights with known truth: a vehicle flown by gpg's closed-loop simulator and logged through
+realistic sensors, for the sim-to-real benchmark and for tests.
+
+The "real" vehicle's aerodynamics are the built-in blade-element-momentum physics
+(:func:`gpg.quadrotor.bemt.aero`, what the generator runs) evaluated at every step for a
+vehicle that may differ from the one a prior was trained on (:func:`perturbed`). The geometric
+controller flies it through waypoints; the log records what sensors would: position,
+velocity, attitude and body rates with noise, the accelerometer's specific force with noise and
+a bias, rotor speeds from ESC telemetry with noise and a delay, the motor commands through a
+static curve with a sagging battery (:class:`Sensors`). The true aerodynamic wrench at each
+sample is kept beside the log, so that every error can be measured against the truth rather
+than against noisy labels.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from gpg._dtype import float64
+from gpg._precision import highest
+from gpg.flight.labels import MotorCurve
+from gpg.flight.log import FlightLog, matrix_to_quat, quat_to_matrix
+from gpg.quadrotor import bemt
+from gpg.quadrotor.control import GeometricController, WaypointPlan
+from gpg.quadrotor.dynamics import AeroModel, Quadrotor, State, Wind, Wrench
+from gpg.quadrotor.frames import euler_from_R
+from gpg.quadrotor.vehicle import Vehicle, vehicle_config
+
+
+class BEMTAero(AeroModel):
+    """The blade-element-momentum physics as a flight simulator's aerodynamics (the truth of a
+    synthetic flight): rotor loads with body-rate hub velocities, wake interference, airframe
+    drag. Some milliseconds per call: a simulator, not a real-time model."""
+
+    vehicle: Vehicle
+    config: bemt.BEMTConfig = bemt.BEMTConfig()
+
+    @highest
+    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
+        r = bemt.aero(self.vehicle, self.config, rpm, R_WB, v_air, omega)
+        return Wrench(r.force_W, r.torque_W, jnp.zeros(0, r.force_W.dtype), jnp.asarray(True))
+
+
+def perturbed(
+    vehicle: str | Mapping[str, Any] = "sui_endurance", changes: Mapping[str, Any] | None = None
+) -> Vehicle:
+    """A vehicle with some of its file's values changed: ``vehicle`` is a name in
+    ``conf/vehicle``, a YAML path or the file's mapping; ``changes`` maps dotted keys of the
+    file (``airfoil.cd0``, ``mass``, ``motor.time_constant``) to a new value, or to
+    ``{"scale": s}`` for ``s`` times the file's (element-wise for lists)."""
+    cfg = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
+    name = cfg.get("name", "vehicle")
+    for key, value in (changes or {}).items():
+        *path, last = key.split(".")
+        node = cfg
+        for p in path:
+            if not isinstance(node, dict) or p not in node:
+                raise ValueError(f"vehicle {name!r} has no {key!r} to change")
+            node = node[p]
+        if last not in node:
+            raise ValueError(f"vehicle {name!r} has no {key!r} to change")
+        if isinstance(value, Mapping):
+            if set(value) != {"scale"}:
+                raise ValueError(f"change of {key!r} must be a value or {{scale: s}}, got {value}")
+            old = node[last]
+            s = float(value["scale"])
+            node[last] = [s * float(v) for v in old] if isinstance(old, list) else s * float(old)
+        else:
+            node[last] = value
+    cfg["name"] = f"{cfg['name']}_real"
+    return Vehicle.from_config(cfg)
+
+
+@dataclass(frozen=True)
+class Sensors:
+    """What the log records and how badly (σ of white noise unless said).
+
+    Attributes:
+        rate: Hz, the log's (and the simulation's) rate.
+        accel_noise: m/s², the accelerometer.
+        accel_bias: m/s², σ of a constant bias per axis and flight.
+        gyro_noise: rad/s.
+        gyro_bias: rad/s, σ of a constant bias per axis and flight.
+        position_noise: m.
+        velocity_noise: m/s.
+        attitude_noise_deg: deg, per axis of a small rotation.
+        rpm_noise: rpm, ESC telemetry.
+        rpm_delay: s, the ESC telemetry's lag.
+        voltage: V at the start and the end of a 10-minute flight (linear sag).
+        curve: the motors' static curve (commands from rotor speeds).
+    """
+
+    rate: float = 200.0
+    accel_noise: float = 0.08
+    accel_bias: float = 0.03
+    gyro_noise: float = 0.004
+    gyro_bias: float = 0.002
+    position_noise: float = 0.02
+    velocity_noise: float = 0.03
+    attitude_noise_deg: float = 0.2
+    rpm_noise: float = 15.0
+    rpm_delay: float = 0.02
+    voltage: tuple[float, float] = (16.6, 15.2)
+    curve: MotorCurve = MotorCurve(c1=5200.0, c2=2100.0, v_ref=16.0, command_range=(0.0, 1.0))
+
+
+@dataclass(frozen=True)
+class Flight:
+    """A synthetic flight: its log (what sensors saw) and the truth at every sample.
+
+    Attributes:
+        log: the :class:`~gpg.flight.log.FlightLog`.
+        force, torque: (T, 3) the true aerodynamic force and torque, world frame.
+        rpm: (T, 4) true rotor speeds.
+        euler: (T, 3) true attitude (yaw, pitch, roll).
+        v_air: (T, 3) true air velocity (velocity minus wind), world.
+    """
+
+    log: FlightLog
+    force: np.ndarray
+    torque: np.ndarray
+    rpm: np.ndarray
+    euler: np.ndarray
+    v_air: np.ndarray
+
+
+def random_plan(
+    rng: np.random.Generator,
+    duration: float,
+    *,
+    start=(0.0, 0.0, -10.0),
+    box: float = 25.0,
+    leg_time: tuple[float, float] = (3.0, 6.0),
+) -> WaypointPlan:
+    """Waypoints drawn in a box of ±``box`` m horizontally and 5 to 15 m up, one leg per
+    ``leg_time`` seconds (drawn once per flight), the nose along each leg."""
+    lt = float(rng.uniform(*leg_time))
+    n = int(np.ceil(duration / lt)) + 2
+    w = np.column_stack(
+        [rng.uniform(-box, box, n), rng.uniform(-box, box, n), rng.uniform(-15.0, -5.0, n)]
+    )
+    w[0] = start
+    return WaypointPlan.create(w, start_time=0.5, leg_time=lt, yaw="travel")
+
+
+_PHYSICS = bemt.BEMTConfig()  # the generator's own settings
+
+
+@float64
+def fly(
+    real: Vehicle,
+    ctrl: GeometricController,
+    plan: WaypointPlan,
+    wind: Wind,
+    duration: float,
+    *,
+    sensors: Sensors = Sensors(),
+    seed: int = 0,
+    wind_in_log: bool = True,
+    bemt_config: bemt.BEMTConfig = _PHYSICS,
+    name: str = "flight",
+) -> Flight:
+    """Fly ``real`` for ``duration`` seconds from hover at the plan's first waypoint.
+
+    Args:
+        real: the vehicle flown (its mass, inertia, motors and BEMT physics are the truth).
+        ctrl: the controller (it knows only the simplified model of the nominal vehicle).
+        plan: the reference trajectory.
+        wind: the wind (world, m/s).
+        duration: seconds.
+        sensors: the sensor model.
+        seed: the noise and biases.
+        wind_in_log: write the wind as a column (a measured wind) or leave it unknown.
+        bemt_config: the physics' settings (wake gain, interference).
+        name: the log's name.
+
+    Returns:
+        The :class:`Flight`: its log and the truth.
+    """
+    dt = 1.0 / sensors.rate
+    n = int(round(duration * sensors.rate))
+    quad = Quadrotor.from_vehicle(real, BEMTAero(real, bemt_config))
+    rpm0 = float(np.sqrt(float(real.weight) / (4 * float(ctrl_thrust_coefficient(ctrl)))))
+    s0 = State.hover(plan.waypoints[0], jnp.full(4, rpm0))
+    states, wrenches, t = _simulate(quad, ctrl, plan, wind, s0, dt, n)
+    truth = jax.tree.map(np.asarray, (states, wrenches))
+    (st, wr), t = truth, np.asarray(t)
+    rng = np.random.default_rng(seed)
+    R = quat_to_matrix(st.q / np.linalg.norm(st.q, axis=1, keepdims=True))
+    f_B = np.einsum("nji,nj->ni", R, wr.force) / float(real.mass)
+    f_B += rng.normal(0, sensors.accel_bias, 3) + rng.normal(0, sensors.accel_noise, (n, 3))
+    gyro = st.w + rng.normal(0, sensors.gyro_bias, 3) + rng.normal(0, sensors.gyro_noise, (n, 3))
+    small = np.radians(sensors.attitude_noise_deg) * rng.normal(size=(n, 3))
+    R_meas = R @ _exp_so3(small)
+    k = int(round(sensors.rpm_delay * sensors.rate))
+    rpm_tel = np.concatenate([np.repeat(st.rpm[:1], k, 0), st.rpm[: n - k]]) if k else st.rpm
+    rpm_tel = np.maximum(rpm_tel + rng.normal(0, sensors.rpm_noise, (n, 4)), 0.0)
+    v0, v1 = sensors.voltage
+    volt = v0 + (v1 - v0) * t / 600.0 + rng.normal(0, 0.02, n)
+    cmd = _commands(sensors.curve, np.asarray(st.rpm_cmd), volt)
+    v_wind = np.asarray(jax.vmap(wind)(jnp.asarray(t)))
+    log = FlightLog(
+        t=t,
+        position=st.p + rng.normal(0, sensors.position_noise, (n, 3)),
+        velocity=st.v + rng.normal(0, sensors.velocity_noise, (n, 3)),
+        quaternion=matrix_to_quat(R_meas),
+        rates=gyro,
+        rpm=rpm_tel,
+        command=cmd,
+        specific_force=f_B,
+        wind=v_wind if wind_in_log else None,
+        voltage=volt,
+        name=name,
+    )
+    euler = np.asarray(jax.vmap(euler_from_R)(jnp.asarray(R)))
+    return Flight(log, wr.force, wr.torque, st.rpm, euler, st.v - v_wind)
+
+
+def ctrl_thrust_coefficient(ctrl: GeometricController) -> Float[Array, ""]:
+    """``P_F`` of the simplified model the controller inverts (its allocation's first row)."""
+    return 1.0 / jnp.sum(ctrl.alloc_inv[:, 0])
+
+
+class _Record(eqx.Module):
+    p: Array
+    v: Array
+    q: Array
+    w: Array
+    rpm: Array
+    rpm_cmd: Array
+
+
+@eqx.filter_jit
+def _simulate(quad: Quadrotor, ctrl, plan, wind, s0: State, dt: float, n: int):
+    def step(s: State, k):
+        t = k * dt
+        cmd = ctrl(s, plan(t))
+        new, wr = quad.step(s, cmd, t, dt, wind)
+        rec = _Record(p=s.p, v=s.v, q=s.q, w=s.w, rpm=s.rpm, rpm_cmd=cmd)
+        return new, (rec, Wrench(wr.force, wr.torque, wr.levels, wr.in_domain), t)
+
+    _, (rec, wr, t) = jax.lax.scan(step, s0, jnp.arange(n, dtype=float))
+    return rec, wr, t
+
+
+def _exp_so3(v: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(v).as_matrix()
+
+
+def _commands(curve: MotorCurve, rpm_cmd: np.ndarray, volt: np.ndarray) -> np.ndarray:
+    """The commands ``u`` whose curve speed at ``volt`` is ``rpm_cmd`` (the quadratic's root)."""
+    a, b = curve.c2, curve.c1
+    s = (-b + np.sqrt(b * b + 4 * a * rpm_cmd)) / (2 * a) if a > 0 else rpm_cmd / b
+    return np.clip(s * curve.v_ref / volt[:, None], 0.0, 1.0)
+
+
+__all__ = ["BEMTAero", "Flight", "Sensors", "fly", "perturbed", "random_plan"]

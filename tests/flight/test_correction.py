@@ -1,0 +1,330 @@
+"""gpg.flight.correction: the prior corrected by flights (co-kriging), and adaptation while flying,
+against NumPy references written here."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg import checkpoint
+from gpg.flight import correction as fc
+from gpg.flight.labels import Labels
+
+N_LABELS = 60
+FIT = {"subset_size": N_LABELS, "max_steps": 40}  # a short fit: these tests check the algebra
+
+
+def _states(rng, n):
+    """In-box states: rotors near hover, small angles, flying along the nose at 3-12 m/s."""
+    rpm = rng.uniform(2500, 5500, (n, 4))
+    euler = np.column_stack(
+        [rng.uniform(-0.5, 0.5, n), rng.uniform(-0.3, 0.1, n), rng.uniform(-0.2, 0.2, n)]
+    )
+    speed = rng.uniform(3, 12, n)
+    v_air = np.column_stack([speed * np.cos(euler[:, 0]), speed * np.sin(euler[:, 0]), np.zeros(n)])
+    return rpm, euler, v_air
+
+
+@pytest.fixture(scope="module")
+def flights(synthetic_surrogate):
+    """Labels of a 'real' vehicle whose loads are the prior's times 1.2 plus a drag-like
+    term, with known noise."""
+    sur = synthetic_surrogate
+    rng = np.random.default_rng(0)
+    rpm, euler, v_air = _states(rng, N_LABELS)
+    p = sur.predict_batch(rpm, euler, v_air, mean_only=True)
+    M = np.asarray(sur.simple.values(np.concatenate([rpm, euler], 1)))
+    drag = -0.05 * np.linalg.norm(v_air, axis=1, keepdims=True) * v_air
+    force = M[:, :3] + 1.2 * (np.asarray(p.force) - M[:, :3]) + drag
+    torque = np.asarray(p.torque) + 0.02
+    fvar, tvar = np.full((N_LABELS, 3), 0.05**2), np.full((N_LABELS, 3), 0.005**2)
+    force = force + 0.05 * rng.normal(size=force.shape)
+    torque = torque + 0.005 * rng.normal(size=torque.shape)
+    return Labels(
+        t=np.arange(N_LABELS) * 0.1,
+        rpm=rpm,
+        euler=euler,
+        v_air=v_air,
+        force=force,
+        torque=torque,
+        force_var=fvar,
+        torque_var=tvar,
+        model_force=M[:, :3],
+        model_torque=M[:, 3:],
+        dropped={"total": N_LABELS},
+        name="synthetic",
+    )
+
+
+@pytest.fixture(scope="module")
+def corrected(synthetic_surrogate, flights):
+    return fc.correct(synthetic_surrogate, flights, **FIT)
+
+
+def _rbf(A, B, var, ls):
+    d = (A[:, None, :] - B[None, :, :]) / ls
+    return var * np.exp(-0.5 * np.sum(d * d, -1))
+
+
+def test_training_rows_are_the_gp_frame_residuals(synthetic_surrogate, flights):
+    """A world-frame label read as the GP's target: the prior's own mean prediction at a
+    state, given as a label, comes back as the prior's normalised GP mean there."""
+    sur = synthetic_surrogate
+    p = sur.predict_batch(flights.rpm, flights.euler, flights.v_air, mean_only=True)
+    own = dataclasses.replace(flights, force=np.asarray(p.force), torque=np.asarray(p.torque))
+    X, Y, V = fc.training_rows(sur, own)
+    np.testing.assert_allclose(Y, np.asarray(sur.model.predict_mean(X))[:, :6], atol=1e-9)
+    # isotropic noise stays isotropic under the rotation into the GP's frame
+    np.testing.assert_allclose(
+        V[:, :3] * np.asarray(sur.normalizer.y_std[:3]) ** 2, 0.05**2, rtol=1e-12
+    )
+
+
+def test_corrected_mean_and_variance_compose(corrected, flights):
+    """``ρ ⊙ μ_prior + δ`` and ``ρ² c var_prior + c_δ (var_δ + ν_δ²)``: each δ evaluated here in
+    NumPy from its training inputs, α and hyperparameters."""
+    m = corrected.model
+    assert isinstance(m, fc.Corrected) and len(m.delta) == 6
+    X, _, _ = fc.training_rows(corrected, flights)
+    Xq = X[:7] + 0.01
+    mean, var = m.predict_unclipped(Xq)
+    p_mean, p_var = m.prior.predict_unclipped(Xq)
+    dm = []
+    for d in m.delta:
+        h = d.hyper
+        kq = _rbf(Xq, np.asarray(d.X), float(h.variance), np.asarray(h.lengthscale))
+        dm.append(kq @ np.asarray(d.alpha)[:, 0])
+    expect = np.asarray(m.scale) * np.asarray(p_mean)
+    expect[:, :6] += np.stack(dm, 1)
+    np.testing.assert_allclose(mean, expect, atol=1e-9)
+    pv = np.asarray(m.predictive_variance(var))
+    prior_part = np.maximum(np.asarray(p_var), 0)[:, None] * np.asarray(m.prior.output_scale)
+    prior_part = prior_part * np.asarray(m.scale) ** 2
+    delta_part = np.stack(
+        [
+            (np.maximum(np.asarray(var)[:, 1 + j], 0) + float(d.hyper.noise))
+            for j, d in enumerate(m.delta)
+        ],
+        1,
+    )
+    np.testing.assert_allclose(pv[:, :6], prior_part[:, :6] + delta_part, rtol=1e-10)
+    np.testing.assert_allclose(pv[:, 6:], prior_part[:, 6:], rtol=1e-10)
+
+
+def test_correction_fits_the_real_vehicle(synthetic_surrogate, corrected, flights):
+    """At the labels' states the corrected model is much closer
+    to the 'real' loads than the prior, and its 95 % band covers them."""
+    rpm, euler, v_air = flights.rpm, flights.euler, flights.v_air
+    truth = flights.force  # noisy, σ = 0.05 N
+    e0 = synthetic_surrogate.predict_batch(rpm, euler, v_air).force - truth
+    p = corrected.predict_batch(rpm, euler, v_air)
+    e1 = np.asarray(p.force) - truth
+    assert np.sqrt(np.mean(e1**2)) < 0.25 * np.sqrt(np.mean(np.asarray(e0) ** 2))
+    assert np.mean(np.abs(e1) <= 1.96 * np.sqrt(np.asarray(p.variance)[:, :3] + 0.05**2)) > 0.85
+    # the scale: across the airflow (the GP frame's y) the real residual is 1.2 times the
+    # prior's exactly; along it the drag adds (a least-squares scale takes some of it)
+    rho = np.asarray(corrected.model.scale)
+    assert abs(rho[1] - 1.2) < 0.05 and rho[0] > 1.2
+    np.testing.assert_array_equal(np.asarray(corrected.model.scale[6:]), 1.0)
+
+
+def test_values_only_baseline_has_no_prior(synthetic_surrogate, corrected, flights):
+    # corrected again from a corrected one: from its prior, not on top of it
+    vo = fc.correct(corrected, flights, use_prior=False, **FIT)
+    np.testing.assert_array_equal(np.asarray(vo.model.scale[:6]), 0.0)
+    assert vo.config["flight_correction"]["use_prior"] is False
+    assert vo.model_name == "gpgs_hybrid+flight"
+    assert not isinstance(vo.model.prior, fc.Corrected)
+    assert fc.base(vo).model_name == "gpgs_hybrid"
+    assert type(fc.base(vo).model) is type(synthetic_surrogate.model)
+
+
+def test_corrected_is_a_jax_function(corrected, flights):
+    """jit, vmap, forward and reverse derivatives through the corrected prediction."""
+    r, e, v = (jnp.asarray(a[:5]) for a in (flights.rpm, flights.euler, flights.v_air))
+
+    def fx(vv):
+        return corrected.predict(r[0], e[0], vv).force[0]
+
+    g_rev = jax.grad(fx)(v[0])
+    g_fwd = jax.jacfwd(fx)(v[0])
+    h = 1e-5
+    fd = np.array(
+        [(fx(v[0] + h * np.eye(3)[i]) - fx(v[0] - h * np.eye(3)[i])) / (2 * h) for i in range(3)]
+    )
+    np.testing.assert_allclose(g_rev, fd, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-10, atol=1e-12)
+    batch = jax.jit(jax.vmap(lambda a, b, c: corrected.predict(a, b, c).force))(r, e, v)
+    np.testing.assert_allclose(batch, corrected.predict_batch(r, e, v).force, rtol=1e-10)
+    # float32: as accurate as the stored float32 arrays allow (relative 1e-4 of the loads)
+    f32 = corrected.astype(jnp.float32)
+    p32 = f32.predict_batch(
+        np.float32(flights.rpm), np.float32(flights.euler), np.float32(flights.v_air)
+    )
+    p64 = corrected.predict_batch(flights.rpm, flights.euler, flights.v_air)
+    scale = np.abs(np.asarray(p64.force)).max()
+    np.testing.assert_allclose(p32.force, p64.force, atol=1e-4 * scale)
+
+
+def test_corrected_checkpoint_and_export(corrected, flights, tmp_path):
+    from gpg.export import to_c
+
+    path = checkpoint.save(tmp_path / "c", corrected)
+    back = checkpoint.load(path)
+    a = corrected.predict_batch(flights.rpm[:9], flights.euler[:9], flights.v_air[:9])
+    b = back.predict_batch(flights.rpm[:9], flights.euler[:9], flights.v_air[:9])
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert "flight_correction" in checkpoint.read_metadata(path)
+    with pytest.raises(ValueError, match="corrected by flights"):
+        to_c(corrected, tmp_path / "c_src")
+
+
+@pytest.mark.slow
+def test_corrected_flies_in_env_and_mpc(corrected, vehicle):
+    """The RL environment and the MPC's dynamics take a corrected surrogate like any other
+    (slow: both compile the six discrepancy GPs with the prior)."""
+    from gpg.envs.quadrotor import QuadrotorEnv
+    from gpg.mpc import Dynamics
+
+    env = QuadrotorEnv.create(vehicle, corrected)
+    obs, state = env.reset(jax.random.PRNGKey(0))
+    obs, state, reward, done, _ = env.step(jax.random.PRNGKey(1), state, jnp.zeros(4))
+    assert np.all(np.isfinite(np.asarray(obs)))
+    dyn = Dynamics.create(vehicle, corrected, 0.01)
+    x = jnp.concatenate(
+        [
+            jnp.zeros(3),
+            jnp.array([5.0, 0, 0]),
+            jnp.array([1.0, 0, 0, 0]),
+            jnp.zeros(3),
+            jnp.full(4, 3600.0),
+        ]
+    )
+    lin = dyn.linearize(x, jnp.full(4, 3600.0), 0.0)
+    assert np.all(np.isfinite(np.asarray(lin.A))) and np.all(np.asarray(lin.variance) > 0)
+
+
+def test_correct_refuses_bad_labels(synthetic_surrogate, flights):
+    with pytest.raises(ValueError, match="at least one flight"):
+        fc.correct(synthetic_surrogate, [])
+    with pytest.raises(ValueError, match="at least 8 labels"):
+        fc.correct(synthetic_surrogate, flights.take(slice(0, 5)))
+    bad = dataclasses.replace(flights, force=flights.force.copy())
+    bad.force[3, 1] = np.nan
+    with pytest.raises(ValueError, match="non-finite GP Y rows"):
+        fc.correct(synthetic_surrogate, bad)
+
+
+def _online_reference(adapted, flights, n):
+    """The batch posterior of the whitened weights given the first ``n`` labels, in NumPy:
+    ``w | y ~ N(A⁻¹ Ψᵀ R⁻¹ y, A⁻¹)``, ``A = Ψᵀ R⁻¹ Ψ + I``, per output."""
+    on = adapted.model.online
+    offline = eqx.tree_at(lambda s: s.model.online, adapted, None, is_leaf=lambda x: x is None)
+    X, Y, V = fc.training_rows(adapted, flights.take(slice(0, n)))
+    resid = Y - np.asarray(offline.model.predict_mean(X))[:, :6]
+    Z = np.asarray(on.Z)
+    means, covs = [], []
+    for j in range(6):
+        ls, var = np.asarray(on.lengthscale[j]), float(on.variance[j])
+        K = _rbf(Z, Z, var, ls) + 1e-8 * var * np.eye(Z.shape[0])
+        L = np.linalg.cholesky(K)
+        Psi = np.linalg.solve(L, _rbf(Z, X, var, ls)).T  # (n, m)
+        r = V[:, j] + float(on.noise[j])
+        A = Psi.T @ (Psi / r[:, None]) + np.eye(Z.shape[0])
+        means.append(np.linalg.solve(A, Psi.T @ (resid[:, j] / r)))
+        covs.append(np.linalg.inv(A))
+    return np.stack(means), np.stack(covs)
+
+
+def test_online_filter_is_the_batch_posterior(corrected, flights):
+    """Without forgetting (τ far beyond the flight), label-by-label updates give the batch
+    posterior; inside lax.scan and once a step from Python alike."""
+    adapted = fc.adapt(corrected, inducing=12, tau=1e12, t0=0.0)
+    cols = [
+        jnp.asarray(c)
+        for c in (
+            flights.t,
+            flights.rpm,
+            flights.euler,
+            flights.v_air,
+            flights.force,
+            flights.torque,
+            flights.force_var,
+            flights.torque_var,
+        )
+    ]
+    n = 25
+    scanned, _ = jax.lax.scan(
+        lambda s, x: (fc.update(s, *x), None), adapted, tuple(c[:n] for c in cols)
+    )
+    mean, cov = _online_reference(adapted, flights, n)
+    np.testing.assert_allclose(scanned.model.online.mean, mean, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(scanned.model.online.cov, cov, rtol=1e-6, atol=1e-9)
+    step = fc.online_step(adapted)
+    on = adapted.model.online
+    for i in range(n):
+        on = step(on, *(c[i] for c in cols))
+    np.testing.assert_allclose(on.mean, scanned.model.online.mean, rtol=1e-10, atol=1e-12)
+    # fixed memory: the state's arrays keep their shapes
+    for a, b in zip(jax.tree.leaves(on), jax.tree.leaves(adapted.model.online), strict=True):
+        assert a.shape == b.shape and a.dtype == b.dtype
+    # the adapted surrogate predicts with the online term
+    p0 = corrected.predict(flights.rpm[0], flights.euler[0], flights.v_air[0])
+    p1 = fc.with_online(adapted, on).predict(flights.rpm[0], flights.euler[0], flights.v_air[0])
+    assert not np.allclose(p0.force, p1.force)
+
+
+def test_forgetting_relaxes_to_the_prior(corrected, flights):
+    adapted = fc.adapt(corrected, inducing=8, tau=2.0, t0=0.0)
+    cols = [
+        np.asarray(c)
+        for c in (
+            flights.t,
+            flights.rpm,
+            flights.euler,
+            flights.v_air,
+            flights.force,
+            flights.torque,
+            flights.force_var,
+            flights.torque_var,
+        )
+    ]
+    s = adapted
+    for i in range(10):
+        s = fc.update_jit(s, *(c[i] for c in cols))
+    on = s.model.online
+    assert np.abs(np.asarray(on.mean)).max() > 1e-3
+    # after 10 τ without labels: the mean shrinks by e^-10, the covariance returns to I
+    later = on.relaxed(float(on.t) + 20.0)
+    np.testing.assert_allclose(later.mean, np.exp(-10.0) * np.asarray(on.mean), rtol=1e-9)
+    eye = np.broadcast_to(np.eye(on.Z.shape[0]), later.cov.shape)
+    np.testing.assert_allclose(later.cov, eye, atol=1e-8)
+    # time never runs backwards: an older label does not un-forget
+    same = on.relaxed(float(on.t) - 5.0)
+    np.testing.assert_allclose(same.cov, on.cov, rtol=0, atol=0)
+
+
+def test_adapt_checks(synthetic_surrogate, corrected, flights):
+    with pytest.raises(ValueError, match="prepared by gpg.flight.adapt"):
+        fc.update(
+            corrected,
+            0.0,
+            flights.rpm[0],
+            flights.euler[0],
+            flights.v_air[0],
+            flights.force[0],
+            flights.torque[0],
+            flights.force_var[0],
+            flights.torque_var[0],
+        )
+    with pytest.raises(ValueError, match="tau must be > 0"):
+        fc.adapt(corrected, tau=0.0)
+    with pytest.raises(ValueError, match="inputs must be"):
+        fc.adapt(corrected, inputs=np.zeros((5, 3)))
+    # a prior without a correction adapts too (δ = 0, the online term alone)
+    plain = fc.adapt(synthetic_surrogate, inducing=6)
+    assert plain.model.delta == () and plain.model.online.Z.shape == (6, 8)

@@ -1,0 +1,247 @@
+"""gpg.flight.labels: loads from measured motion against closed forms, noise, dropped segments,
+delays, motor curves and calibration."""
+
+import numpy as np
+import pytest
+
+from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, label
+from gpg.flight.log import FlightLog, FlightLogWarning, matrix_to_quat
+from gpg.quadrotor.simple_model import SimpleModel
+from gpg.quadrotor.vehicle import load_vehicle
+
+RATE = 200.0
+P_F, T_Z = 5.3e-7, 8.4e-9
+
+
+@pytest.fixture(scope="module")
+def veh():
+    return load_vehicle("sui_endurance")
+
+
+@pytest.fixture(scope="module")
+def M(veh):
+    return SimpleModel.from_vehicle(veh, P_F, T_Z)
+
+
+def _yaw_quat(yaw):
+    return np.stack([np.cos(yaw / 2), 0 * yaw, 0 * yaw, np.sin(yaw / 2)], 1)
+
+
+def _hover_rpm(veh, M):
+    return float(M.hover_rpm(float(veh.weight)))
+
+
+def _log(veh, M, T=10.0, *, v=None, f_B=None, w=None, yaw=None, rpm=None, **kw):
+    t = np.arange(int(T * RATE)) / RATE
+    n = t.size
+    zeros = np.zeros((n, 3))
+    return FlightLog(
+        t=t,
+        position=np.tile([0.0, 0.0, -10.0], (n, 1)),
+        velocity=zeros if v is None else v,
+        quaternion=_yaw_quat(np.zeros(n) if yaw is None else yaw),
+        rates=zeros if w is None else w,
+        rpm=np.full((n, 4), _hover_rpm(veh, M)) if rpm is None else rpm,
+        specific_force=f_B,
+        **kw,
+    )
+
+
+def test_force_from_velocity_closed_form(veh, M):
+    """``F_W = m (v̇ − g e_z)`` by the spline derivative, level attitude: against ``v̇`` written
+    out. The tolerance is the cubic smoothing spline's bias on these slow signals (at most
+    1e-3 m/s² for periods of seconds sampled at 200 Hz, seen with a 20x margin) times m."""
+    t = np.arange(int(10 * RATE)) / RATE
+    v = np.stack([np.sin(t), 0.5 * np.cos(2 * t), 0.2 * np.sin(0.5 * t)], 1)
+    a = np.stack([np.cos(t), -np.sin(2 * t), 0.1 * np.cos(0.5 * t)], 1)
+    v = v + 1e-7 * np.random.default_rng(0).normal(size=v.shape)
+    lab = label(_log(veh, M, v=v), veh, reference=M, delay=0.0)
+    assert lab.source == "velocity" and len(lab) > 80
+    i = np.searchsorted(t, lab.t)
+    m, g = float(veh.mass), float(veh.gravity)
+    expect = m * (a[i] - np.array([0.0, 0.0, g]))
+    np.testing.assert_allclose(lab.force, expect, atol=m * 1e-3)
+    # the residual is the measurement minus M at the same state (M: thrust along −z_B)
+    thrust = P_F * 4 * _hover_rpm(veh, M) ** 2
+    np.testing.assert_allclose(lab.model_force, np.tile([0, 0, -thrust], (len(lab), 1)), rtol=1e-12)
+    np.testing.assert_allclose(lab.residual_force, lab.force - lab.model_force)
+
+
+def test_torque_from_rates_closed_form(veh, M):
+    """``τ_B = J ω̇ + ω × J ω`` by the spline derivative against ``ω̇`` written out; the body
+    turns about z (yaw = 0.3 t), so ``τ_W = R_z(yaw) τ_B``."""
+    t = np.arange(int(10 * RATE)) / RATE
+    w = np.stack([0.3 * np.sin(2 * t), 0.2 * np.cos(t), 0.1 * np.sin(3 * t)], 1)
+    wd = np.stack([0.6 * np.cos(2 * t), -0.2 * np.sin(t), 0.3 * np.cos(3 * t)], 1)
+    yaw = 0.3 * t
+    f_B = np.tile([0.0, 0.0, -float(veh.gravity)], (t.size, 1))
+    lab = label(_log(veh, M, w=w + 1e-8, yaw=yaw, f_B=f_B), veh, reference=M, delay=0.0)
+    assert lab.source == "imu"
+    i = np.searchsorted(t, lab.t)
+    J = np.asarray(veh.inertia)
+    tau_B = J * wd[i] + np.cross(w[i], J * w[i])
+    c, s = np.cos(yaw[i]), np.sin(yaw[i])
+    tau_W = np.stack(
+        [c * tau_B[:, 0] - s * tau_B[:, 1], s * tau_B[:, 0] + c * tau_B[:, 1], tau_B[:, 2]], 1
+    )
+    np.testing.assert_allclose(lab.torque, tau_W, atol=float(J.max()) * 1e-3)
+    # hovering with the accelerometer reading −g: the force is −m g along z, rotated nowhere
+    np.testing.assert_allclose(
+        lab.force, np.tile([0, 0, -float(veh.weight)], (len(lab), 1)), atol=1e-9
+    )
+    np.testing.assert_allclose(lab.euler[:, 0], np.angle(np.exp(1j * yaw[i])), atol=1e-9)
+
+
+def test_noise_estimate_matches_the_scatter(veh, M):
+    """White noise of known σ on the accelerometer: the labels' estimated variance against
+    their actual scatter about the truth (100 labels: the ratio of standard deviations is
+    known to about 10 %; the upper end of the band also holds the smoothing's own bias, which
+    the estimate leaves out: up to half the noise again where the smoothing is longest)."""
+    rng = np.random.default_rng(1)
+    t = np.arange(int(10 * RATE)) / RATE
+    truth = np.stack([0.5 * np.sin(t), 0.3 * np.cos(1.5 * t), -9.81 + 0.4 * np.sin(0.7 * t)], 1)
+    sigma = 0.05
+    lab = label(
+        _log(veh, M, f_B=truth + sigma * rng.normal(size=truth.shape)), veh, reference=M, delay=0.0
+    )
+    i = np.searchsorted(t, lab.t)
+    z = (lab.force - float(veh.mass) * truth[i]) / np.sqrt(lab.force_var)
+    assert np.all((z.std(0) > 0.75) & (z.std(0) < 1.8)), z.std(0)
+    # the estimate is of the smoothed label, far below the raw noise
+    assert np.all(np.sqrt(lab.force_var) < float(veh.mass) * sigma)
+
+
+def test_dropped_segments_counted(veh, M):
+    n = int(20 * RATE)
+    rpm = np.full((n, 4), _hover_rpm(veh, M))
+    rpm[:400] = 0.0  # on the ground for 2 s
+    rpm[2000:2010, 1] = float(veh.rpm_max)  # a rotor saturated for 10 samples
+    f_B = np.tile([0.0, 0.0, -9.81], (n, 1))
+    lab = label(_log(veh, M, T=20.0, f_B=f_B, rpm=rpm), veh, reference=M, delay=0.0, takeoff_s=1.0)
+    d = lab.dropped
+    assert d["total"] == n and d["ground"] == 400
+    assert d["takeoff_landing"] == 200  # the first second in the air
+    assert 10 <= d["saturated"] <= 10 + 2 * 20 + 2  # padded by 0.1 s on each side
+    assert d["edges"] == 20  # the segment's last 0.1 s (its first is on the ground)
+    assert not np.any((lab.t > 9.89) & (lab.t < 10.16))
+
+
+def test_rotor_speed_units_and_rate_checked(veh, M):
+    rpm = np.full((2000, 4), _hover_rpm(veh, M) * 2 * np.pi / 60)
+    with pytest.raises(ValueError, match="look like rad/s"):
+        label(_log(veh, M, rpm=rpm, f_B=np.tile([0, 0, -9.81], (2000, 1))), veh, reference=M)
+    with pytest.raises(ValueError, match="rate must be in"):
+        label(_log(veh, M), veh, reference=M, rate=500.0)
+    with pytest.raises(ValueError, match="no specific force"):
+        label(_log(veh, M), veh, reference=M, source="imu")
+    with pytest.raises(ValueError, match="no simple_model coefficients"):
+        label(_log(veh, M), veh)
+
+
+def test_delay_estimated(veh, M):
+    """Rotor speeds logged 30 ms late: the lag that best aligns M's thrust with the measured one
+    is found to within a sample, and removed."""
+    rng = np.random.default_rng(2)
+    n = int(20 * RATE)
+    hover = _hover_rpm(veh, M)
+    # band-limited rotor-speed changes (a few Hz), as a controller makes them
+    wiggle = np.convolve(rng.normal(size=n + 200), np.hanning(41), "same")[100:-100]
+    rpm_true = hover * (1 + 0.05 * wiggle / np.abs(wiggle).max())[:, None] * np.ones(4)
+    thrust = P_F * (rpm_true**2).sum(1)
+    f_B = np.stack([np.zeros(n), np.zeros(n), -thrust / float(veh.mass)], 1)
+    lag = 6  # samples: 30 ms
+    rpm_log = np.concatenate([np.repeat(rpm_true[:1], lag, 0), rpm_true[:-lag]])
+    lab = label(_log(veh, M, T=20.0, f_B=f_B, rpm=rpm_log), veh, reference=M)
+    assert abs(lab.delay - lag / RATE) < 1 / RATE
+    # aligned, M now explains the thrust
+    assert np.sqrt(np.mean(lab.residual_force[:, 2] ** 2)) < 0.02 * float(veh.weight)
+
+
+def test_motor_curve_fits(veh, M):
+    rng = np.random.default_rng(3)
+    true = MotorCurve(c1=5000.0, c2=2500.0, v_ref=16.0)
+    u = rng.uniform(0.1, 0.9, (300, 4))
+    V = rng.uniform(14.5, 16.8, 300)
+    rpm = true.rpm(u, V[:, None])
+    fit = MotorCurve.fit_speeds(u, rpm, V)
+    assert fit.source == "speeds" and fit.residual_rpm < 1e-6
+    np.testing.assert_allclose(fit.rpm(u, V[:, None]), rpm, rtol=1e-9)
+    with pytest.warns(FlightLogWarning, match="outside the calibration's range"):
+        fit.rpm(np.full((2, 4), 0.99), np.full((2, 1), 16.0))
+
+
+def test_calibration_from_hover_labels_zero_within_noise(veh, M):
+    """A hovering log whose thrust coefficient is 8 % above M's and whose rotor speeds are only
+    commands: the motor curve fitted from the hover, M calibrated on it, and the hover's
+    labels are then zero to within their estimated noise."""
+    rng = np.random.default_rng(4)
+    n = int(15 * RATE)
+    curve = MotorCurve(c1=5200.0, c2=2100.0, v_ref=16.0)
+    V = np.linspace(16.5, 15.8, n)
+    P_true = 1.08 * P_F
+    # a hover with small collective changes, so that the curve is seen at more than one point
+    level = 1 + 0.03 * np.sin(2 * np.pi * 0.3 * np.arange(n) / RATE)
+    rpm_true = np.sqrt(float(veh.weight) * level / (4 * P_true))[:, None] * np.ones(4)
+    a = curve.c2
+    s = (-curve.c1 + np.sqrt(curve.c1**2 + 4 * a * rpm_true)) / (2 * a)
+    u = s * curve.v_ref / V[:, None]
+    f_B = np.stack([np.zeros(n), np.zeros(n), -P_true * (rpm_true**2).sum(1) / float(veh.mass)], 1)
+    f_B += 0.03 * rng.normal(size=f_B.shape)
+    log = FlightLog(
+        t=np.arange(n) / RATE,
+        position=np.tile([0.0, 0, -5], (n, 1)),
+        velocity=np.zeros((n, 3)),
+        quaternion=_yaw_quat(np.zeros(n)),
+        rates=np.zeros((n, 3)) + 1e-9 * rng.normal(size=(n, 3)),
+        command=u,
+        specific_force=f_B,
+        voltage=V,
+    )
+    fitted = MotorCurve.fit_hover(log, veh, M)
+    assert fitted.source == "hover"
+    # the curve absorbs the thrust coefficient's error: M's thrust of its speeds is the truth
+    thrust_fit = P_F * (fitted.rpm(u, V[:, None]) ** 2).sum(1)
+    np.testing.assert_allclose(thrust_fit, P_true * (rpm_true**2).sum(1), rtol=2e-3)
+    # with the true rotor speeds logged instead, calibrating M itself
+    log_rpm = log.replace(rpm=rpm_true, command=None)
+    with pytest.raises(ValueError, match="give torque_ratio"):
+        calibrate_simple(log_rpm, veh)  # a hover has no yaw manoeuvre to read T_z from
+    M_cal = calibrate_simple(log_rpm, veh, torque_ratio=T_Z / P_F)
+    np.testing.assert_allclose(float(M_cal.P_F), P_true, rtol=1e-3)
+    lab = label(log_rpm, veh, reference=M_cal, delay=0.0)
+    z = lab.residual_force / np.sqrt(lab.force_var)
+    assert np.sqrt(np.mean(z**2)) < 2.0, np.sqrt(np.mean(z**2, 0))
+    # with commands only, the curve fitted inside label does the same
+    lab_c = label(log, veh, reference=M, delay=0.0)
+    z = lab_c.residual_force[:, 2] / np.sqrt(lab_c.force_var[:, 2])
+    assert np.sqrt(np.mean(z**2)) < 2.0
+
+
+def test_labels_first_and_concatenate(veh, M):
+    f_B = np.tile([0.0, 0.0, -9.81], (2000, 1))
+    lab = label(_log(veh, M, f_B=f_B), veh, reference=M, delay=0.0)
+    assert isinstance(lab, Labels)
+    assert abs(lab.seconds - 0.1 * len(lab)) < 1e-9
+    part = lab.first(3.0)
+    assert abs(part.seconds - 3.0) < 0.1 + 1e-9 and len(part) == 30
+    both = Labels.concatenate([part, lab.first(2.0)])
+    assert len(both) == 50 and both.dropped["total"] == 4000
+    with pytest.raises(ValueError, match="at least one"):
+        Labels.concatenate([])
+
+
+def test_attitude_noise_enters_the_force_variance(veh, M):
+    """A noisy attitude turns a large force: its share (|F|² σ_θ²) is in the variance."""
+    rng = np.random.default_rng(5)
+    n = 2000
+    from scipy.spatial.transform import Rotation
+
+    sig = np.radians(0.3)
+    R = Rotation.from_rotvec(sig * rng.normal(size=(n, 3))).as_matrix()
+    f_B = np.tile([0.0, 0.0, -9.81], (n, 1))
+    log = _log(veh, M, f_B=f_B).replace(quaternion=matrix_to_quat(R))
+    lab = label(log, veh, reference=M, delay=0.0)
+    sd = np.sqrt(lab.force_var[:, :2])
+    # the horizontal force scatters by m g σ_θ; the estimate bounds it from above within 2x
+    assert np.all(sd > 0.5 * float(veh.weight) * sig)
+    assert np.all(sd < 3.0 * float(veh.weight) * sig)
