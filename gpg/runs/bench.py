@@ -22,6 +22,8 @@ Suites:
 * ``envs``: environment steps per second of :class:`gpg.envs.QuadrotorEnv` (float32) on the
   surrogate and on ``M``, for several numbers of vmapped environments.
 * ``gpu``: gpg end to end on one accelerator (:mod:`gpg.runs.bench_gpu`; runs on the CPU too).
+* ``flight``: a PX4 log read and labelled against the time it flew, and the cost of one
+  adaptation update (:mod:`gpg.runs.bench_flight`).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from gpg.gp.hyper import Hyper
 from gpg.linalg import dense
 from gpg.runs.bench_design import bench_design, design_table
 from gpg.runs.bench_export import bench_export, export_table
+from gpg.runs.bench_flight import bench_flight, flight_table
 from gpg.runs.bench_gpu import bench_gpu, gpu_table
 from gpg.runs.bench_solver import bench_solver, solver_table
 from gpg.runs.common import (
@@ -596,6 +599,7 @@ SUITES = {
     "design": bench_design,
     "export": bench_export,
     "gpu": bench_gpu,
+    "flight": bench_flight,
 }
 
 
@@ -663,4 +667,5 @@ TABLES = {
     "design": design_table,
     "export": export_table,
     "gpu": gpu_table,
+    "flight": flight_table,
 }

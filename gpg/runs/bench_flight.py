@@ -1,0 +1,130 @@
+"""Bench suite ``flight``: how fast a PX4 log is read and labelled against how long it flew,
+and what one adaptation update costs (:mod:`gpg.flight`).
+
+* ``log``: :func:`gpg.flight.read_ulog` plus :func:`gpg.flight.label` of a ULog file (the test
+  fixture by default: a real PX4 log), timed together, median of ``repeats`` after a warm-up
+  (the one-off calibration of ``M`` to the log's hover timed apart), as seconds flown per
+  second of work.
+* ``update``: :func:`gpg.flight.online_step` from Python, once per label, on a model of the
+  sizes a user has: a ``gpgs_hybrid`` prior of ``n_points`` (data=default's 1000 by default, on
+  synthetic data with fixed hyperparameters: the cost depends on the sizes only) corrected by
+  ``labels`` labels (60 s at 10 Hz), with ``inducing`` inducing inputs; median and spread of
+  ``updates`` calls, and the online state's bytes before and after them.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any
+
+import jax
+import numpy as np
+
+from gpg.runs.common import stats, table
+
+
+def bench_flight(cfg: dict[str, Any]) -> dict[str, Any]:
+    """Both measurements of the module docstring."""
+    return {"log": _log(cfg["log"]), "update": _update(cfg["update"])}
+
+
+def _log(cfg: dict[str, Any]) -> dict[str, Any]:
+    from gpg.flight import FlightLogWarning, calibrate_simple, label, read_ulog
+    from gpg.quadrotor.vehicle import load_vehicle
+
+    veh = load_vehicle(cfg["vehicle"])
+    rate = cfg["rate"]
+    # The log's own warnings (the estimator's resets) once, not once a repetition.
+    log = read_ulog(cfg["path"], rate=rate)
+    warnings.simplefilter("ignore", FlightLogWarning)
+    t0 = time.perf_counter()
+    M = calibrate_simple(log, veh, torque_ratio=cfg["torque_ratio"])
+    calibrate_s = time.perf_counter() - t0
+    label(log, veh, reference=M)  # warm-up: the compiled pieces
+    seconds = []
+    for _ in range(int(cfg["repeats"])):
+        t0 = time.perf_counter()
+        lab = label(read_ulog(cfg["path"], rate=rate), veh, reference=M)
+        seconds.append(time.perf_counter() - t0)
+    s = stats(np.asarray(seconds))
+    return {
+        "path": str(cfg["path"]),
+        "flown_s": log.duration,
+        "rate_hz": log.rate,
+        "samples": int(log.t.size),
+        "labels": len(lab),
+        "dropped": lab.dropped,
+        "read_and_label_s": s,
+        "calibrate_s": calibrate_s,
+        "times_faster_than_flown": log.duration / s["median_s"],
+    }
+
+
+def _update(cfg: dict[str, Any]) -> dict[str, Any]:
+    from gpg import flight
+    from gpg.runs.bench_export import _smooth_dataset
+    from gpg.surrogate import Surrogate
+
+    prior = Surrogate.fit(
+        _smooth_dataset(int(cfg["n_points"]), 0),
+        "gpgs_hybrid",
+        {"hyper": {"fit": False, "lengthscale": 0.8}},
+    )
+    rng = np.random.default_rng(0)
+    n = int(cfg["labels"])
+    rpm = rng.uniform(3000, 4000, (n, 4))
+    euler = np.column_stack([rng.uniform(-0.3, 0.3, n), rng.uniform(-0.3, 0.1, n),
+                             rng.uniform(-0.2, 0.2, n)])  # fmt: skip
+    speed = rng.uniform(3, 12, n)
+    v_air = np.column_stack([speed * np.cos(euler[:, 0]), speed * np.sin(euler[:, 0]), 0 * speed])
+    p = prior.predict_batch(rpm, euler, v_air, mean_only=True)
+    labels = flight.Labels(
+        t=np.arange(n) / 10.0, rpm=rpm, euler=euler, v_air=v_air,
+        force=np.asarray(p.force) * 1.1 + 0.05 * rng.normal(size=(n, 3)),
+        torque=np.asarray(p.torque) + 0.005 * rng.normal(size=(n, 3)),
+        force_var=np.full((n, 3), 0.05**2), torque_var=np.full((n, 3), 0.005**2),
+        model_force=np.zeros((n, 3)), model_torque=np.zeros((n, 3)),
+    )  # fmt: skip
+    corrected = flight.correct(prior, labels, subset_size=min(n, 400))
+    adapted = flight.adapt(corrected, inducing=int(cfg["inducing"]), t0=0.0)
+    step = flight.online_step(adapted)
+    online = adapted.model.online
+    cols = [np.asarray(c) for c in (labels.t, labels.rpm, labels.euler, labels.v_air,
+                                    labels.force, labels.torque, labels.force_var,
+                                    labels.torque_var)]  # fmt: skip
+    before = sum(x.nbytes for x in jax.tree.leaves(online))
+    seconds = []
+    for k in range(int(cfg["updates"]) + 10):
+        i = k % n
+        args = [c[i] for c in cols]
+        args[0] = args[0] + (k // n) * n / 10.0
+        t0 = time.perf_counter()
+        online = step(online, *args)
+        jax.block_until_ready(online.mean)
+        seconds.append(time.perf_counter() - t0)
+    after = sum(x.nbytes for x in jax.tree.leaves(online))
+    return {
+        "n_points": int(cfg["n_points"]),
+        "labels": n,
+        "inducing": int(cfg["inducing"]),
+        "update_s": stats(np.asarray(seconds[10:])),  # the first calls compile
+        "online_bytes": {"before": int(before), "after": int(after)},
+    }
+
+
+def flight_table(res: dict[str, Any]) -> str:
+    """The suite's two figures."""
+    lg, up = res["log"], res["update"]
+    rows = [
+        {"what": f"read_ulog + label, {lg['flown_s']:.1f} s flown at {lg['rate_hz']:.0f} Hz",
+         "median": lg["read_and_label_s"]["median_s"] * 1e3,
+         "note": f"{lg['times_faster_than_flown']:.0f}x faster than flown"},
+        {"what": f"online update, prior of {up['n_points']} points, {up['labels']} labels, "
+                 f"{up['inducing']} inducing", "median": up["update_s"]["median_s"] * 1e3,
+         "note": f"state {up['online_bytes']['before']} -> {up['online_bytes']['after']} bytes"},
+    ]  # fmt: skip
+    return table(rows, [("what", "flight", ""), ("median", "ms (median)", ".3f"), ("note", "", "")])
+
+
+__all__ = ["bench_flight", "flight_table"]

@@ -1,0 +1,429 @@
+"""The sim-to-real benchmark with known truth (``python -m experiments.flight_logs``).
+
+The prior is the surrogate of the nominal vehicle (``model``, fitted on the configured data, or
+``surrogate_checkpoint``). The "real" vehicle differs from it (``real.changes`` to the vehicle
+file: airfoil, drag areas, mass, motor lag; ``real.wake_gain`` and ``real.interference`` of the
+physics) and is flown by the closed-loop simulator through the sensors of ``sensors``
+(:mod:`gpg.flight.synthetic`): training flights, held-out test flights on other trajectories and
+winds, each written as a CSV log and read back (:func:`gpg.flight.read_csv`), then labelled
+(:func:`gpg.flight.label`).
+
+Measured, against the truth (the wrench the simulator applied, at the test flights' label
+instants): the residual-force RMSE (the norm's RMS, N) and residual-torque RMSE of the
+simulator-only prior, the prior corrected by ``seconds`` of flight (:func:`gpg.flight.correct`)
+and a values-only GP on the same seconds without the prior (``use_prior=False``), the
+corrected model's 95 % coverage (per component), for each number of seconds (the curve);
+then adaptation (:func:`gpg.flight.adapt`): a flight into a wind none of the training flights
+had, the model corrected on calm flights updated label by label, each label predicted before it
+is used, against an offline correction fitted on another flight in that wind; its update cost
+and the online state's size over a 10-minute stream. ``results.json`` holds everything with the
+resolved config; ``figures/`` the curve and a flight's force against the prediction with its
+95 % band.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from gpg import checkpoint
+from gpg._dtype import float64
+from gpg.flight import correction as fc
+from gpg.flight.labels import Labels, label
+from gpg.flight.log import read_csv, write_csv
+from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
+from gpg.quadrotor.bemt import BEMTConfig
+from gpg.quadrotor.control import GeometricController
+from gpg.quadrotor.dynamics import Wind
+from gpg.runs.common import check_options, flight_setup, machine, report, table, write_json
+
+OPTIONS = {
+    "cache_dir": "path",
+    "surrogate_checkpoint": "path?",
+    "default_seconds": "count",
+    "figures": "bool",
+    "progress": "bool",
+    "keep_logs": "bool",
+}
+
+
+@dataclasses.dataclass
+class Truth:
+    """A test flight at its label instants: the states and the true loads."""
+
+    rpm: np.ndarray
+    euler: np.ndarray
+    v_air: np.ndarray
+    force: np.ndarray
+    torque: np.ndarray
+    t: np.ndarray
+
+
+@dataclasses.dataclass
+class _Bench:
+    """What every flight of a run shares: the real vehicle and its physics, the controller,
+    the sensors, the prior (its ``M`` is the labels' reference), the options, the draws."""
+
+    cfg: dict[str, Any]
+    prior: Any
+    real: Any
+    physics: BEMTConfig
+    sensors: Sensors
+    ctrl: GeometricController
+    rng: np.random.Generator
+    logs: Path
+
+    @classmethod
+    def create(cls, cfg: dict[str, Any], out: Path) -> _Bench:
+        nominal, prior = flight_setup(cfg, OPTIONS)
+        r = cfg["real"]
+        sensors = {k: (tuple(v) if isinstance(v, list) else v) for k, v in cfg["sensors"].items()}
+        return cls(
+            cfg=cfg,
+            prior=prior,
+            real=perturbed(cfg["vehicle"], r.get("changes") or {}),
+            physics=BEMTConfig(
+                wake_gain=float(r["wake_gain"]), interference=bool(r["interference"])
+            ),
+            sensors=Sensors(**sensors),
+            ctrl=GeometricController.create(nominal, prior.simple),
+            rng=np.random.default_rng(int(cfg["flights"]["seed"])),
+            logs=out / "logs",
+        )
+
+    def flight(self, name: str, duration: float, wind) -> Flight:
+        """A flight written as a CSV log and read back (what a user's CSV would give)."""
+        seed = int(self.rng.integers(2**31))
+        box = float(self.cfg["flights"]["box"])
+        plan = random_plan(np.random.default_rng(seed), duration, box=box)
+        f = fly(self.real, self.ctrl, plan, Wind.constant(wind), duration, sensors=self.sensors,
+                seed=seed, bemt_config=self.physics, name=name)  # fmt: skip
+        path = write_csv(f.log, self.logs / f"{name}.csv")
+        return dataclasses.replace(f, log=read_csv(path))
+
+    def calm_wind(self) -> list[float]:
+        """A horizontal wind up to ``flights.wind_max`` from any direction."""
+        a, speed = self.rng.uniform(0, 2 * np.pi), self.rng.uniform()
+        w = float(self.cfg["flights"]["wind_max"]) * speed
+        return [w * np.cos(a), w * np.sin(a), 0.0]
+
+    def labelled(self, f: Flight) -> Labels:
+        opts = self.cfg["label"]
+        return label(f.log, self.real, reference=self.prior.simple, rate=float(opts["rate"]),
+                     source=opts["source"])  # fmt: skip
+
+    def correct(self, labels, **kw):
+        c = self.cfg["correct"]
+        return fc.correct(self.prior, labels, max_labels=int(c["max_labels"]),
+                          subset_size=int(c["subset_size"]), **kw)  # fmt: skip
+
+    @property
+    def progress(self) -> bool:
+        return bool(self.cfg.get("progress", True))
+
+
+@float64
+def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
+    """The benchmark (module docstring); returns what ``results.json`` holds."""
+    check_options(cfg, OPTIONS)
+    fl = cfg["flights"]
+    seconds = sorted(float(s) for s in cfg["seconds"])
+    base_s = float(cfg["default_seconds"])
+    if base_s not in seconds:
+        raise ValueError(f"default_seconds {cfg['default_seconds']} must be one of seconds")
+    if seconds[-1] > fl["train_s"]:
+        raise ValueError(f"seconds go to {seconds[-1]} s but flights.train_s is {fl['train_s']}")
+    t_start = time.perf_counter()
+    bench = _Bench.create(cfg, out)
+    train_labels, tests, label_s = _fly_all(bench)
+    curve, corrected = _curve(bench, train_labels, tests, seconds, base_s)
+    checkpoint.save(out / "corrected", corrected, overwrite=True)
+    default = next(r for r in curve if r["seconds"] == base_s)
+    adapt = _adaptation(bench, corrected, _first(train_labels, base_s))
+    targets = {
+        "corrected_vs_sim_only": default["corrected_force_rmse"] / default["sim_only_force_rmse"],
+        "corrected_vs_values_only": default["corrected_force_rmse"]
+        / default["values_only_force_rmse"],
+        "coverage95": default["corrected_coverage95"],
+        "adaptation_vs_offline": adapt["ratio"],
+        "label_speed": float(sum(d for _, d in label_s) / sum(s for s, _ in label_s)),
+    }
+    train_all = Labels.concatenate(train_labels)
+    results = {
+        "config": cfg,
+        "machine": machine(),
+        "labels": {
+            "train": len(train_all),
+            "dropped": train_all.dropped,
+            "delay_s": [lb.delay for lb in train_labels],
+        },
+        "curve": curve,
+        "default": default,
+        "adaptation": adapt,
+        "targets": targets,
+        "seconds_total": time.perf_counter() - t_start,
+    }
+    write_json(out / "results.json", results)
+    report(_report(curve, default, adapt, targets))
+    if cfg.get("figures", True):
+        _figures(out / "figures", curve, corrected, bench.prior, tests[0])
+    if not cfg.get("keep_logs", True):
+        for p in bench.logs.glob("*.csv"):
+            p.unlink()
+    return results
+
+
+def _fly_all(bench: _Bench):
+    """The training flights' labels, the test flights with their truth, and for each
+    training flight the seconds its labelling took and the seconds it lasted."""
+    fl = bench.cfg["flights"]
+    n_train = int(np.ceil(fl["train_s"] / fl["flight_s"]))
+    bar = tqdm(total=n_train + int(fl["test"]), desc="flying", disable=not bench.progress)
+    train_labels, label_s = [], []
+    for i in range(n_train):
+        f = bench.flight(f"train{i:02d}", float(fl["flight_s"]), bench.calm_wind())
+        t0 = time.perf_counter()
+        train_labels.append(bench.labelled(f))
+        label_s.append((time.perf_counter() - t0, f.log.duration))
+        bar.update()
+    tests = []
+    for i in range(int(fl["test"])):
+        f = bench.flight(f"test{i:02d}", float(fl["test_s"]), bench.calm_wind())
+        tests.append((f, _truth(f, bench.labelled(f))))
+        bar.update()
+    bar.close()
+    return train_labels, tests, label_s
+
+
+def _curve(bench: _Bench, train_labels, tests, seconds, base_s):
+    """The error against seconds of flight for the three models; the corrected model at
+    ``base_s``."""
+    curve, corrected = [], None
+    unscaled = bench.cfg["correct"].get("compare_unscaled", True)
+    for s in tqdm(seconds, desc="corrections", disable=not bench.progress):
+        lab = _first(train_labels, s)
+        row: dict[str, Any] = {"seconds": s, "labels": len(lab)}
+        scale = bool(bench.cfg["correct"]["scale"])
+        models = {
+            "corrected": bench.correct(lab, scale=scale),
+            "values_only": bench.correct(lab, use_prior=False),
+        }
+        if unscaled and s == base_s:
+            models["corrected_unscaled"] = bench.correct(lab, scale=False)
+        for name, sur in (("sim_only", bench.prior), *models.items()):
+            row.update({f"{name}_{k}": v for k, v in _scores(sur, tests).items()})
+        curve.append(row)
+        if s == base_s:
+            corrected = models["corrected"]
+    return curve, corrected
+
+
+def _first(parts: list[Labels], seconds: float) -> Labels:
+    """The first ``seconds`` of labelled flight over the training flights in order."""
+    out, left = [], seconds
+    for p in parts:
+        if left <= 0:
+            break
+        take = p.first(left)
+        out.append(take)
+        left -= take.seconds
+    return Labels.concatenate(out)
+
+
+def _truth(f: Flight, lab: Labels) -> Truth:
+    i = np.searchsorted(f.log.t, lab.t)
+    return Truth(f.rpm[i], f.euler[i], f.v_air[i], f.force[i], f.torque[i], lab.t)
+
+
+def _scores(sur, tests) -> dict[str, float]:
+    e_f, e_t, inside = [], [], []
+    for _, tr in tests:
+        p = sur.predict_batch(tr.rpm, tr.euler, tr.v_air)
+        ef = np.asarray(p.force) - tr.force
+        e_f.append(ef)
+        e_t.append(np.asarray(p.torque) - tr.torque)
+        sd = np.sqrt(np.asarray(p.variance)[:, :3])
+        inside.append(np.abs(ef) <= 1.959964 * sd)
+    ef, et = np.concatenate(e_f), np.concatenate(e_t)
+    return {
+        "force_rmse": float(np.sqrt(np.mean(np.sum(ef**2, 1)))),
+        "torque_rmse": float(np.sqrt(np.mean(np.sum(et**2, 1)))),
+        "coverage95": float(np.mean(np.concatenate(inside))),
+    }
+
+
+def _adaptation(bench: _Bench, corrected, base_labels: Labels) -> dict[str, Any]:
+    """Into a wind no training flight had: the corrected model adapted label by label (each
+    label predicted before it is used) against an offline correction fitted on another
+    flight in that wind; then updates timed over a long stream."""
+    a = bench.cfg["adapt"]
+    wind = [float(v) for v in a["wind"]]
+    f_off = bench.flight("windy_offline", float(a["offline_s"]), wind)
+    f_ad = bench.flight("windy_adapt", float(a["flight_s"]), wind)
+    l_off, l_ad = bench.labelled(f_off), bench.labelled(f_ad)
+    offline = bench.correct([base_labels, l_off])
+    adapted = fc.adapt(corrected, inducing=int(a["inducing"]), tau=float(a["tau"]),
+                       t0=float(l_ad.t[0]))  # fmt: skip
+    step = fc.online_step(adapted)
+    truth = _truth(f_ad, l_ad)
+    cols = _columns(l_ad)
+    online = adapted.model.online
+    err = np.empty(len(l_ad))
+    for i in range(len(l_ad)):
+        p = fc.with_online(adapted, online).predict(truth.rpm[i], truth.euler[i], truth.v_air[i])
+        err[i] = float(np.sum((np.asarray(p.force) - truth.force[i]) ** 2))
+        online = step(online, *(c[i] for c in cols))
+    tt = l_ad.t - l_ad.t[0]
+    after = tt >= float(a["check_s"])
+
+    def rmse(sur):
+        p = sur.predict_batch(truth.rpm[after], truth.euler[after], truth.v_air[after])
+        return float(np.sqrt(np.mean(np.sum((np.asarray(p.force) - truth.force[after]) ** 2, 1))))
+
+    adapted_rmse, off_rmse = float(np.sqrt(np.mean(err[after]))), rmse(offline)
+    windows = [
+        {
+            "from_s": float(lo),
+            "adapted_rmse": float(np.sqrt(err[(tt >= lo) & (tt < lo + 5)].mean())),
+        }
+        for lo in np.arange(0.0, tt[-1], 5.0)
+        if ((tt >= lo) & (tt < lo + 5)).any()
+    ]
+    return {
+        "wind": wind,
+        "check_s": float(a["check_s"]),
+        "adapted_rmse": adapted_rmse,
+        "offline_rmse": off_rmse,
+        "corrected_rmse": rmse(corrected),
+        "sim_only_rmse": rmse(bench.prior),
+        "ratio": adapted_rmse / off_rmse,
+        "windows": windows,
+        **_stream(bench, adapted, l_ad),
+    }
+
+
+def _columns(lab: Labels) -> list[np.ndarray]:
+    """A label's arguments of :func:`gpg.flight.update`, as columns."""
+    return [np.asarray(v) for v in (lab.t, lab.rpm, lab.euler, lab.v_air, lab.force, lab.torque,
+                                    lab.force_var, lab.torque_var)]  # fmt: skip
+
+
+def _stream(bench: _Bench, adapted, lab: Labels) -> dict[str, Any]:
+    """Updates once a step from Python over ``adapt.stream_s`` seconds of labels (the flight's
+    replayed, time moving on): their cost, and the online state's bytes before and after."""
+    rate = float(bench.cfg["label"]["rate"])
+    n = int(round(float(bench.cfg["adapt"]["stream_s"]) * rate))
+    step = fc.online_step(adapted)
+    cols = _columns(lab)
+    online = adapted.model.online
+    nbytes0 = sum(x.nbytes for x in jax.tree.leaves(online))
+    period = float(lab.t[-1] - lab.t[0]) + 1.0 / rate
+    per = []
+    for k in tqdm(range(n), desc="stream", disable=not bench.progress):
+        i = k % len(lab)
+        args = [c[i] for c in cols]
+        args[0] = args[0] + (k // len(lab)) * period
+        t0 = time.perf_counter()
+        online = step(online, *args)
+        jax.block_until_ready(online.mean)
+        per.append(time.perf_counter() - t0)
+    nbytes1 = sum(x.nbytes for x in jax.tree.leaves(online))
+    ms = np.asarray(per[10:]) * 1e3  # the first calls compile
+    return {
+        "update_ms": {
+            "median": float(np.median(ms)),
+            "p10": float(np.percentile(ms, 10)),
+            "p90": float(np.percentile(ms, 90)),
+            "n": int(ms.size),
+        },
+        "online_bytes": {"start": int(nbytes0), "end": int(nbytes1), "updates": n},
+    }
+
+
+def _report(curve, default, adapt, targets) -> str:
+    cols = [("seconds", "flight s", ".0f"), ("labels", "labels", "d")]
+    for name, head in (
+        ("sim_only", "sim only"),
+        ("corrected", "corrected"),
+        ("values_only", "values only"),
+    ):
+        cols.append((f"{name}_force_rmse", f"{head} F (N)", ".3f"))
+    cols += [
+        ("corrected_torque_rmse", "corrected τ (N·m)", ".4f"),
+        ("sim_only_torque_rmse", "sim only τ (N·m)", ".4f"),
+        ("corrected_coverage95", "coverage 95 %", ".3f"),
+    ]
+    lines = ["residual-force RMSE on held-out flights against the truth:", table(curve, cols)]
+    lines.append(
+        f"adaptation into a {adapt['wind']} m/s wind, after {adapt['check_s']:.0f} s: "
+        f"{adapt['adapted_rmse']:.3f} N against {adapt['offline_rmse']:.3f} N offline on that "
+        f"wind (x{adapt['ratio']:.2f}), corrected on calm flights {adapt['corrected_rmse']:.3f}"
+        f" N; update {adapt['update_ms']['median']:.3f} ms (median of "
+        f"{adapt['update_ms']['n']}); online state {adapt['online_bytes']['start']} -> "
+        f"{adapt['online_bytes']['end']} bytes over {adapt['online_bytes']['updates']} updates"
+    )
+    lines.append("targets: " + ", ".join(f"{k} {v:.3g}" for k, v in targets.items()))
+    return "\n".join(lines)
+
+
+def _figures(where: Path, curve, corrected, prior, test) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    where.mkdir(parents=True, exist_ok=True)
+    s = [r["seconds"] for r in curve]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    lines = (
+        ("sim_only", "simulator only", "k--"),
+        ("values_only", "values-only GP (flights only)", "C1o-"),
+        ("corrected", "simulator prior + flight correction", "C0o-"),
+    )
+    for name, label_, style in lines:
+        ax.plot(s, [r[f"{name}_force_rmse"] for r in curve], style, label=label_)
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds of flight data")
+    ax.set_ylabel("residual-force RMSE on held-out flights (N)")
+    ax.legend()
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    for ext in ("png", "pdf"):
+        fig.savefig(where / f"error_vs_seconds.{ext}", dpi=150)
+    plt.close(fig)
+
+    f, tr = test
+    p = corrected.predict_batch(tr.rpm, tr.euler, tr.v_air)
+    p0 = prior.predict_batch(tr.rpm, tr.euler, tr.v_air, mean_only=True)
+    simple = prior.simple.values(np.concatenate([tr.rpm, tr.euler], 1))
+    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    t = tr.t - tr.t[0]
+    for j, ax in enumerate(axes):
+        m = np.asarray(p.force)[:, j] - np.asarray(simple)[:, j]
+        sd = np.sqrt(np.asarray(p.variance)[:, j])
+        ax.fill_between(t, m - 1.96 * sd, m + 1.96 * sd, color="C0", alpha=0.25, label="95 %")
+        ax.plot(t, tr.force[:, j] - np.asarray(simple)[:, j], "k", lw=1, label="truth")
+        ax.plot(
+            t,
+            np.asarray(p0.force)[:, j] - np.asarray(simple)[:, j],
+            "C3--",
+            lw=1,
+            label="simulator only",
+        )
+        ax.plot(t, m, "C0", lw=1, label="corrected")
+        ax.set_ylabel(f"F{'xyz'[j]} − M (N)")
+    axes[0].legend(ncol=4, fontsize=8)
+    axes[-1].set_xlabel(f"time along {f.log.name} (s)")
+    fig.tight_layout()
+    for ext in ("png", "pdf"):
+        fig.savefig(where / f"force_along_flight.{ext}", dpi=150)
+    plt.close(fig)
+
+
+__all__ = ["run"]

@@ -1,0 +1,64 @@
+"""``experiments.flight_logs``, the sim-to-real benchmark, composed with Hydra: its options
+checked before any work (fast), the whole run at a smoke size (slow; its pieces have fast tests
+in tests/flight)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from gpg import checkpoint
+from gpg.runs import flight_logs
+from tests.helpers import compose_plain, finite_numbers
+
+SMOKE = [
+    "data=smoke",
+    "data.chunk=32",
+    "flights.flight_s=10",
+    "flights.train_s=20",
+    "flights.test=1",
+    "flights.test_s=10",
+    "seconds=[5,10,20]",
+    "default_seconds=10",
+    "adapt.flight_s=15",
+    "adapt.offline_s=10",
+    "adapt.check_s=5",
+    "adapt.stream_s=20",
+    "progress=false",
+]
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (["default_seconds=7"], "default_seconds 7 must be one of seconds"),
+        (["seconds=[5,10,60]", "default_seconds=10"], "seconds go to 60.0 s"),
+        (["progress=maybe"], "progress must be true or false"),
+    ],
+)
+def test_options_checked_before_any_work(bad, message, tmp_path):
+    cfg = compose_plain("flight_logs", SMOKE + bad)
+    with pytest.raises(ValueError, match=message):
+        flight_logs.run(cfg, tmp_path)
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.slow
+def test_flight_logs_run(smoke_cache, tmp_path):
+    cfg = compose_plain("flight_logs", [*SMOKE, f"cache_dir={smoke_cache}"])
+    res = flight_logs.run(cfg, tmp_path)
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert finite_numbers(saved) and saved["config"]["default_seconds"] == 10
+    assert [r["seconds"] for r in saved["curve"]] == [5.0, 10.0, 20.0]
+    d = saved["default"]
+    for key in ("sim_only", "corrected", "values_only", "corrected_unscaled"):
+        assert d[f"{key}_force_rmse"] > 0
+    a = saved["adaptation"]
+    assert a["online_bytes"]["start"] == a["online_bytes"]["end"]  # fixed memory
+    assert a["update_ms"]["median"] > 0 and len(a["windows"]) >= 2
+    for fig in ("error_vs_seconds", "force_along_flight"):
+        assert (tmp_path / "figures" / f"{fig}.png").is_file()
+    assert sorted(p.name for p in (tmp_path / "logs").glob("*.csv"))[0] == "test00.csv"
+    sur = checkpoint.load(tmp_path / "corrected")
+    assert sur.model_name.endswith("+flight")
+    assert np.isfinite(res["targets"]["corrected_vs_sim_only"])
