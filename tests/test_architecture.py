@@ -219,3 +219,19 @@ def test_no_repeated_block_of_six_lines():
                 repeats.append(f"{seen[block]} and {where}")
             seen.setdefault(block, where)
     assert not repeats, repeats[:10]
+
+
+def test_no_private_name_crosses_packages():
+    """A name with a leading underscore is its package's own: no other package imports it
+    (gpg's private top-level modules, ``gpg._checks`` and the like, serve the whole package)."""
+    crossing = []
+    mods = _modules()
+    for name, path in mods.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.ImportFrom) and (node.module or "").startswith("gpg.")):
+                continue
+            for a in node.names:
+                private = a.name.startswith("_") and not a.name.startswith("__")
+                if private and _group(node.module) != _group(name):
+                    crossing.append(f"{path.relative_to(ROOT)}:{node.lineno} {a.name}")
+    assert not crossing, crossing

@@ -14,9 +14,18 @@ factor is the dense ``(N(1+G))²`` triangle (256 MB at data=default), so it pass
 ``condition`` when its variance is asked for.
 """
 
+from gpg._deprecated import deprecated
 from gpg.export.c_source import to_c
 from gpg.export.casadi_function import to_casadi
-from gpg.export.layout import Spec, spec
+from gpg.export.layout import Layout, spec
 from gpg.export.onnx_model import to_onnx
 
-__all__ = ["Spec", "spec", "to_c", "to_casadi", "to_onnx"]
+__all__ = ["Layout", "spec", "to_c", "to_casadi", "to_onnx"]
+
+
+def __getattr__(name: str):
+    # gpg.export.Spec, the name before gpg 0.3 (gpg.models.Spec is the registry's): one release
+    if name == "Spec":
+        deprecated("gpg.export.Spec", "gpg.export.Layout")
+        return Layout
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

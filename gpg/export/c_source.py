@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.export.layout import MAX_BYTES, Spec, row_spans, spec
+from gpg.export.layout import MAX_BYTES, Layout, row_spans, spec
 from gpg.names import inputs
-from gpg.quadrotor.frames import _TINY_SPEED
+from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
 DTYPES = {"double": (np.float64, "double"), "float": (np.float32, "float")}
@@ -117,7 +117,7 @@ def _ints(a) -> str:
     return "{" + ", ".join(str(int(v)) for v in np.asarray(a).ravel()) + "}" if len(a) else "{0}"
 
 
-def _domain_doc(s: Spec) -> str:
+def _domain_doc(s: Layout) -> str:
     """The header's paragraph on ``in_domain``, for the surrogate's frame."""
     if s.frame == "body":
         return (
@@ -137,7 +137,7 @@ def _domain_doc(s: Spec) -> str:
     )
 
 
-def _header(name: str, s: Spec, record: dict[str, Any]) -> str:
+def _header(name: str, s: Layout, record: dict[str, Any]) -> str:
     guard = name.upper() + "_H"
     n_levels = len(s.level_names)
     meta = json.dumps(record, indent=1, sort_keys=True).replace("*/", "* /")
@@ -290,7 +290,7 @@ static double frame_rate(const double euler[3], const double v[3]) {
 
 # Long by design: one declaration per array the C code reads, in the order it reads them;
 # split, the dtype choices would be made in several places.
-def _constants(name: str, dtype: str, s: Spec) -> list[str]:
+def _constants(name: str, dtype: str, s: Layout) -> list[str]:
     """The arrays as C constants: the GP's in ``real`` (the dtype asked for), the variance
     factor in ``freal`` (never wider than it is stored), the rest in double."""
     np_type = DTYPES[dtype][0]
@@ -301,7 +301,7 @@ def _constants(name: str, dtype: str, s: Spec) -> list[str]:
         else np.float64
     )
     out = [
-        f"#define TINY_SPEED {_TINY_SPEED!r}",
+        f"#define TINY_SPEED {TINY_SPEED!r}",
         f"#define HOVER_SPEED {s.hover_speed!r}",
         f"#define MAX_FRAME_RATE {MAX_FRAME_RATE!r}",
         f"#define N_OUT {m}",
@@ -705,7 +705,7 @@ _CLONES = """#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11 && \
 """
 
 
-def _source(name: str, dtype: str, s: Spec, record: dict[str, Any]) -> str:
+def _source(name: str, dtype: str, s: Layout, record: dict[str, Any]) -> str:
     flags = {
         "HAS_BINS": s.bins is not None,
         "HAS_VAR": s.has_variance,

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpg.export.layout import Spec, spec
-from gpg.quadrotor.frames import _TINY_SPEED
+from gpg.export.layout import Layout, spec
+from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
 
@@ -43,7 +43,7 @@ def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", varian
         d_frame = ca.jacobian(ca.vec(rwh), v)
         rate = ca.fmax(ca.norm_fro(d_euler), ca.norm_fro(d_frame) / np.sqrt(2.0))
         if s.hover_speed <= 0.0:
-            rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= _TINY_SPEED**2, ca.inf, rate)
+            rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= TINY_SPEED**2, ca.inf, rate)
         x = ca.vertcat(rpm, euler_h, _ca_norm(ca, v))
         steady = rate <= MAX_FRAME_RATE
         n_box = 8
@@ -80,7 +80,7 @@ def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", varian
     )
 
 
-def _ca_gp(ca, s: Spec, xn):
+def _ca_gp(ca, s: Layout, xn):
     """Normalised mean (M,) and latent variance (or None) at ``xn`` (D,), MX."""
     bins = s.bins
     b = None if bins is None else _ca_lookup(ca, bins, xn)
@@ -122,7 +122,7 @@ def _ca_lookup(ca, bins, xn):
     return out
 
 
-def _ca_rows(ca, s: Spec, xn, X: np.ndarray):
+def _ca_rows(ca, s: Layout, xn, X: np.ndarray):
     p = X.shape[0]
     diff = ca.repmat(xn.T, p, 1) - ca.DM(X)  # (p, D)
     k = s.sigma * ca.exp(-0.5 * ca.sum2((diff / ca.repmat(ca.DM(s.lengthscale).T, p, 1)) ** 2))
@@ -130,13 +130,13 @@ def _ca_rows(ca, s: Spec, xn, X: np.ndarray):
     return ca.vertcat(k, *grads)
 
 
-def _ca_kernel_row(ca, s: Spec, xn, b: int):
+def _ca_kernel_row(ca, s: Layout, xn, b: int):
     """``k̄(x̂, X_b)``: shared rows, then bin ``b``'s own (:func:`gpg.export.layout.kernel_row`)."""
     own = _ca_rows(ca, s, xn, s.bins.points[b])
     return own if s.bins.shared is None else ca.vertcat(_ca_rows(ca, s, xn, s.bins.shared), own)
 
 
-def _ca_global_mean(ca, s: Spec, xn):
+def _ca_global_mean(ca, s: Layout, xn):
     """The folded global mean of :mod:`gpg.gp.mean` (normalised), in MX with DM constants."""
     gm = s.global_mean
     inv_ls = gm["inv_ls"]
@@ -174,8 +174,8 @@ def _ca_rot(ca, yaw, pitch, roll):
 
 
 def _ca_wind_axes(ca, d):
-    heading = _ca_safe_atan2(ca, d[1], d[0], _TINY_SPEED)
-    climb = _ca_safe_atan2(ca, -d[2], _ca_norm(ca, d[0:2]), _TINY_SPEED)
+    heading = _ca_safe_atan2(ca, d[1], d[0], TINY_SPEED)
+    climb = _ca_safe_atan2(ca, -d[2], _ca_norm(ca, d[0:2]), TINY_SPEED)
     return _ca_rot(ca, heading, climb, 0)
 
 

@@ -102,8 +102,9 @@ class Bins:
 
 
 @dataclass(frozen=True)
-class Spec:
-    """Everything an export writes, as float64 NumPy (the factor also in its stored dtype)."""
+class Layout:
+    """Everything an export writes, as float64 NumPy (the factor also in its stored dtype).
+    Called ``Spec`` before gpg 0.3 (that name still reads, with a warning, for one release)."""
 
     model: str
     frame: str  # the GP's inputs: "airflow" (x_H, 8) or "body" (rpm and R_WBᵀ v_air, 7)
@@ -174,7 +175,7 @@ def row_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, last
 
 
-def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None) -> Spec:
+def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None) -> Layout:
     """The export layout of ``sur`` (``variance``: keep the variance factors), or ``ValueError``
     saying why it cannot be exported: not a Surrogate, a noise model ``M_noise`` (its acoustic
     model is not exported), a model kind without a closed form here, an exact model whose
@@ -216,7 +217,7 @@ def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None)
             f"model {sur.model_name!r} ({type(m).__name__}) has no exportable closed form"
         )
     norm = sur.normalizer
-    out = Spec(
+    out = Layout(
         model=sur.model_name,
         frame=sur.frame,
         hover_speed=float(sur.hover_speed),
@@ -352,7 +353,7 @@ def _turn(B: np.ndarray, up: int) -> np.ndarray:
     return P
 
 
-def _arrays(s: Spec):
+def _arrays(s: Layout):
     yield from ((k, getattr(s, k)) for k in ("x_lo", "half", "y_mean", "y_std", "box_lo", "box_hi"))
     yield "lengthscale", s.lengthscale
     yield "output_scale", s.output_scale
@@ -374,13 +375,13 @@ def _arrays(s: Spec):
         yield "split_value", b.split_value
 
 
-def _require_finite(s: Spec) -> None:
+def _require_finite(s: Layout) -> None:
     bad = sorted(k for k, a in _arrays(s) if not np.all(np.isfinite(a)))
     if bad:
         raise ValueError(f"the surrogate holds non-finite arrays {bad}: nothing exported")
 
 
-def _with_record(s: Spec) -> Spec:
+def _with_record(s: Layout) -> Layout:
     h = hashlib.sha256()
     for k, a in _arrays(s):
         h.update(k.encode())
@@ -405,7 +406,7 @@ def _with_record(s: Spec) -> Spec:
     return s
 
 
-def reference(s: Spec, xn: np.ndarray, b: int | None = None) -> tuple[np.ndarray, float | None]:
+def reference(s: Layout, xn: np.ndarray, b: int | None = None) -> tuple[np.ndarray, float | None]:
     """Normalised mean (M,) and latent variance at one normalised query ``xn`` (D,) in float64
     NumPy from the spec's arrays: the computation every writer emits, for their tests."""
     bins = s.bins
@@ -421,7 +422,7 @@ def reference(s: Spec, xn: np.ndarray, b: int | None = None) -> tuple[np.ndarray
     return mean, s.sigma - float(fk @ fk)
 
 
-def global_mean(s: Spec, xn: np.ndarray) -> np.ndarray:
+def global_mean(s: Layout, xn: np.ndarray) -> np.ndarray:
     """The folded global mean of :mod:`gpg.gp.mean` at ``xn``, normalised units."""
     gm = s.global_mean
     inv_ls = gm["inv_ls"]
@@ -431,15 +432,25 @@ def global_mean(s: Spec, xn: np.ndarray) -> np.ndarray:
     return out[0] + (xn[g] * inv_ls[g] ** 2) @ out[1:] if g else out[0]
 
 
-def kernel_row(s: Spec, xn: np.ndarray, b: int) -> np.ndarray:
+def kernel_row(s: Layout, xn: np.ndarray, b: int) -> np.ndarray:
     """``k̄(x̂, X_b)`` (R_b,): the shared rows, then bin ``b``'s own."""
     bins = s.bins
     blocks = [] if bins.shared is None else [_rows(s, xn, bins.shared)]
     return np.concatenate(blocks + [_rows(s, xn, bins.points[b])])
 
 
-def _rows(s: Spec, xn: np.ndarray, X: np.ndarray) -> np.ndarray:
+def _rows(s: Layout, xn: np.ndarray, X: np.ndarray) -> np.ndarray:
     k = s.sigma * np.exp(-0.5 * np.sum(((xn - X) / s.lengthscale) ** 2, axis=1))
     g = list(s.grad_dims)
     diff = (xn[g] - X[:, g]).T / (s.lengthscale[g] ** 2)[:, None]  # (G, p)
     return np.concatenate([k, (k[None] * diff).ravel()])
+
+
+def __getattr__(name: str):
+    # gpg.export.layout.Spec, the name before gpg 0.3: one release
+    if name == "Spec":
+        from gpg._deprecated import deprecated
+
+        deprecated("gpg.export.layout.Spec", "gpg.export.layout.Layout")
+        return Layout
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.export.layout import MAX_BYTES, Spec, spec
-from gpg.quadrotor.frames import _TINY_SPEED
+from gpg.export.layout import MAX_BYTES, Layout, spec
+from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
 FLOAT, DOUBLE = 1, 11  # onnx.TensorProto's element types
@@ -70,7 +70,7 @@ def to_onnx(
             "record": _record(s, batch)}  # fmt: skip
 
 
-def _record(s: Spec, batch: bool) -> dict[str, Any]:
+def _record(s: Layout, batch: bool) -> dict[str, Any]:
     return {**s.record, "dtype": "float", "batch": bool(batch)}
 
 
@@ -173,8 +173,8 @@ def _rot(g: _Graph, yaw, pitch, roll):
 
 
 def _wind_axes(g: _Graph, d):
-    heading = g.atan2(d[1], d[0], _TINY_SPEED)
-    climb = g.atan2(g.op("Neg", d[2]), g.sqrt0(g.add(g.sq(d[0]), g.sq(d[1]))), _TINY_SPEED)
+    heading = g.atan2(d[1], d[0], TINY_SPEED)
+    climb = g.atan2(g.op("Neg", d[2]), g.sqrt0(g.add(g.sq(d[0]), g.sq(d[1]))), TINY_SPEED)
     return _rot(g, heading, climb, g.mul(d[0], g.num(0.0)))
 
 
@@ -269,12 +269,12 @@ def _frame_rate(g: _Graph, euler, v, h: float):
     sr = g.div(g.sqrt0(g.div(sr, g.num(2.0))), g.num(2 * step))
     rate = g.op("Max", se, sr)
     if h <= 0.0:
-        vertical = g.op("LessOrEqual", g.add(g.sq(v[0]), g.sq(v[1])), g.num(_TINY_SPEED**2))
+        vertical = g.op("LessOrEqual", g.add(g.sq(v[0]), g.sq(v[1])), g.num(TINY_SPEED**2))
         rate = g.where(vertical, g.num(np.inf), rate)
     return rate
 
 
-def _rows(g: _Graph, s: Spec, xn, X: np.ndarray):
+def _rows(g: _Graph, s: Layout, xn, X: np.ndarray):
     """``k̄(x̂, X)`` (N, p(1+G)) in float64: values then one block per gradient dimension."""
     f64 = np.float64
     x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
@@ -289,7 +289,7 @@ def _rows(g: _Graph, s: Spec, xn, X: np.ndarray):
     return g.cat(blocks)
 
 
-def _onehot(g: _Graph, s: Spec, xn):
+def _onehot(g: _Graph, s: Layout, xn):
     """(N, B) 1.0 in each state's bin (:meth:`gpg.export.layout.Bins.boxes`), float64."""
     if s.bins.n_bins == 1:
         return None
@@ -303,7 +303,7 @@ def _onehot(g: _Graph, s: Spec, xn):
     return g.op("ReduceProd", inside, axes=[2], keepdims=0)  # (N, B)
 
 
-def _bin(g: _Graph, s: Spec, xn, b: int) -> list[str]:
+def _bin(g: _Graph, s: Layout, xn, b: int) -> list[str]:
     """Bin ``b``'s binned mean (N, M) (kinds without a global mean) and its ``‖F_b k̄‖²``
     (N, 1) (with the variance), float64, in that order."""
     bins = s.bins
@@ -319,7 +319,7 @@ def _bin(g: _Graph, s: Spec, xn, b: int) -> list[str]:
     return out
 
 
-def _tree(g: _Graph, s: Spec, xn) -> list[str]:
+def _tree(g: _Graph, s: Layout, xn) -> list[str]:
     """One state's bin outputs (:func:`_bin`) through ``If`` nodes that walk the partition
     as :meth:`gpg.export.layout.Bins.lookup` does (a slab's cuts as a balanced tree): only the
     state's own bin is evaluated."""
@@ -367,7 +367,7 @@ def _tree(g: _Graph, s: Spec, xn) -> list[str]:
     return node(0)
 
 
-def _gp(g: _Graph, s: Spec, xn, single: bool = False):
+def _gp(g: _Graph, s: Layout, xn, single: bool = False):
     """Normalised mean (N, M) and latent variance (N, 1) or None; ``single``: N = 1, the bin
     found by ``If`` nodes (:func:`_tree`) instead of every bin kept by a one-hot."""
     m = s.n_outputs
@@ -424,7 +424,7 @@ def _gp(g: _Graph, s: Spec, xn, single: bool = False):
 
 # Long by design: the graph from inputs to outputs in the order of Surrogate.predict's
 # pipeline (clean inputs, frame, domain, GP, rotation, M, variance, outputs).
-def _build(onnx, s: Spec, batch: bool = True):
+def _build(onnx, s: Layout, batch: bool = True):
     g = _Graph(onnx)
     n = "N" if batch else 1
     h = onnx.helper

@@ -99,7 +99,7 @@ def bordered(model, X, Y, dY, observed, bases=None):
     new_order = np.concatenate([old_idx[order], new_idx[fresh]])
     alpha = np.zeros((size, alpha1.shape[1]))
     alpha[new_order] = np.concatenate([alpha1, alpha2])
-    observed_all = _grown_rows(model.observed, rows_new, old_idx, new_idx, size)
+    observed_all = grown_rows(model.observed, rows_new, old_idx, new_idx, size)
     dq = np.sum(resid * alpha2, axis=0)
     lml, scale = _likelihood_and_scale(model, observed_all, size, dq, log_det2)
     X_all = np.concatenate([X_old, data.X])
@@ -163,7 +163,7 @@ def grown_bases(old, new, n_old: int, n_new: int, g: int):
     return old, new, np.concatenate([old, new])
 
 
-def _grown_rows(old, new, old_idx, new_idx, size) -> np.ndarray | None:
+def grown_rows(old, new, old_idx, new_idx, size) -> np.ndarray | None:
     """The observed-row mask of the grown model in its layout, None when all are observed."""
     if old is None and new is None:
         return None

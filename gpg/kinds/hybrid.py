@@ -18,7 +18,7 @@ from gpg.gp.hybrid import HybridGP, Record
 from gpg.gp.hyper import Hyper
 from gpg.gp.matfree import gram_matvec, gram_matvec_devices
 from gpg.gp.mean import GlobalMean, output_scale
-from gpg.gp.update import _grown_rows, grown_bases, layout_index
+from gpg.gp.update import grown_bases, grown_rows, layout_index
 from gpg.kinds.base import (
     Arrays,
     Cases,
@@ -79,7 +79,7 @@ class Hybrid(Kind):
         old_idx, new_idx = layout_index(n_old, new.X.shape[0], len(dims))
         Ybar = np.empty((X.shape[0] * (1 + len(dims)), rec.Ybar.shape[1]))
         Ybar[old_idx], Ybar[new_idx] = np.asarray(rec.Ybar), new.targets()
-        rows = _grown_rows(rec.rows, new.rows, old_idx, new_idx, Ybar.shape[0])
+        rows = grown_rows(rec.rows, new.rows, old_idx, new_idx, Ybar.shape[0])
         alpha, _ = global_alpha(X, Ybar, rows, hyper, dims, cfg, None, bases)
         rule = cfg.near.rule()
         before = partition.near_sets(X_old, local_gp.partition, hyper.lengthscale, **rule)

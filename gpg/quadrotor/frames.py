@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 # Below this horizontal speed (m/s) the heading is taken as zero. Far below any physical
 # airspeed; only there to keep atan2 and its gradient defined at the origin.
-_TINY_SPEED = 1e-9
+TINY_SPEED = 1e-9  # also the exports' (C, CasADi, ONNX): the same frame everywhere
 
 
 def rot_x(a: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
@@ -121,8 +121,8 @@ def euler_from_R(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
 def R_WH(v_air: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
     """Airflow frame: a proper rotation with ``R_WH @ e_x = v̂_air`` (wind axes, see module doc)."""
     v = jnp.asarray(v_air)
-    heading = safe_atan2(v[1], v[0], _TINY_SPEED)
-    climb = safe_atan2(-v[2], safe_norm(v[:2]), _TINY_SPEED)
+    heading = safe_atan2(v[1], v[0], TINY_SPEED)
+    climb = safe_atan2(-v[2], safe_norm(v[:2]), TINY_SPEED)
     return R_WB(jnp.stack([heading, climb, jnp.zeros_like(climb)]))  # Rz(χ) Ry(γ)
 
 
@@ -231,5 +231,5 @@ def airflow_frame_rate(
     d_euler, d_frame = jax.jacfwd(coords)(v)
     rate = jnp.maximum(jnp.sqrt(jnp.sum(d_euler**2)), jnp.sqrt(jnp.sum(d_frame**2) / 2.0))
     if hover_speed <= 0.0:
-        rate = jnp.where(v[0] ** 2 + v[1] ** 2 <= _TINY_SPEED**2, jnp.inf, rate)
+        rate = jnp.where(v[0] ** 2 + v[1] ** 2 <= TINY_SPEED**2, jnp.inf, rate)
     return rate

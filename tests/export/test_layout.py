@@ -60,3 +60,16 @@ def test_exact_variance_over_max_bytes_is_refused_before_the_factor_is_made_dens
     assert layout.spec(sur, variance=False, max_bytes=least - 1).bins is None
     with pytest.raises(AssertionError, match="made dense"):  # under the limit it goes on
         layout.spec(sur, max_bytes=least)
+
+
+def test_old_name_spec_reads_with_a_warning():
+    """``Spec`` was the export layout's name (``gpg.models.Spec`` is the registry's): it still
+    reads, for one release, with the new name in the warning."""
+    import gpg.export
+
+    with pytest.warns(DeprecationWarning, match="gpg.export.Layout"):
+        assert gpg.export.Spec is layout.Layout
+    with pytest.warns(DeprecationWarning, match="layout.Layout"):
+        assert layout.Spec is layout.Layout
+    with pytest.raises(AttributeError):
+        gpg.export.Nothing  # noqa: B018
