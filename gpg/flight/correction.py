@@ -38,6 +38,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from gpg._dtype import float64
 from gpg._precision import highest
+from gpg.data.preprocess import Normalizer
 from gpg.flight.labels import Labels
 from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
@@ -45,6 +46,7 @@ from gpg.gp.fit import fit_hyperparameters
 from gpg.gp.hyper import Hyper
 from gpg.gp.predictor import Predictor, plain
 from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
+from gpg.quadrotor.simple_model import SimpleModel
 from gpg.surrogate import Surrogate
 
 N_LOADS = 6  # force and torque: what a flight measures
@@ -119,8 +121,36 @@ class Online(eqx.Module):
         return eqx.tree_at(lambda o: (o.mean, o.cov), self, (mean, cov))
 
 
+class SimpleBasis(eqx.Module):
+    """``M``'s own loads in the GP's frame and normalised units at a normalised input: the
+    regressor whose coefficient ``κ`` corrects ``M`` itself (a thrust or drag-torque
+    coefficient that is off on the real vehicle, which the prior's GP, a residual over ``M``,
+    cannot scale). In the airflow frame the body's attitude to the air is the input's angles
+    (``R_HB = R_WB(ψ_H, θ_H, φ_H)``); in the body frame it is the identity.
+
+    Attributes:
+        simple: ``M``.
+        normalizer: the surrogate's (inputs back to physical units, the outputs' scales).
+        frame: ``"airflow"`` or ``"body"``.
+    """
+
+    simple: SimpleModel
+    normalizer: Normalizer
+    frame: str = eqx.field(static=True, default="airflow")
+
+    @highest
+    def __call__(self, xn: Float[Array, " D"]) -> Float[Array, " 6"]:
+        x = self.normalizer.x_inv(xn)
+        F, tau = self.simple.wrench_body(x[:4])
+        if self.frame != "body":
+            R = R_WB(x[4:7])
+            F, tau = matvec(R, F), matvec(R, tau)
+        return jnp.concatenate([F, tau]) / self.normalizer.y_std[:N_LOADS]
+
+
 class Corrected(Predictor):
-    """A prior predictor corrected by flights: ``ρ ⊙ μ_prior + δ (+ η)`` (module docstring).
+    """A prior predictor corrected by flights: ``ρ ⊙ μ_prior + κ ⊙ m + δ (+ η)`` (module
+    docstring; ``m`` is :class:`SimpleBasis`).
 
     Its latent "variance" is a vector: the prior's latent variance, then each ``δ``'s, then
     ``η``'s per output; :meth:`predictive_variance` turns it into the per-output predictive
@@ -132,12 +162,22 @@ class Corrected(Predictor):
         scale: (M,) ``ρ``, ones for the outputs not corrected.
         delta: the discrepancy GPs, one per load output (values only, one output each).
         online: the online term, or None.
+        kappa: (6,) ``κ``, the coefficients of ``M``'s own loads, or None.
+        basis: ``m`` (:class:`SimpleBasis`) where ``kappa`` is given.
     """
 
     prior: Predictor
     scale: Float[Array, " M"]
     delta: tuple[ExactGP, ...]
     online: Online | None = None
+    kappa: Float[Array, " 6"] | None = None
+    basis: SimpleBasis | None = None
+
+    def _mean_terms(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        """``κ ⊙ m(x)``, padded to the outputs (zeros without a basis)."""
+        if self.basis is None:
+            return jnp.zeros(self.n_outputs, x.dtype)
+        return self._pad(self.kappa * self.basis(x))
 
     @property
     def output_scale(self) -> Float[Array, " M"]:
@@ -166,6 +206,7 @@ class Corrected(Predictor):
         out = self.prior.describe()
         out["flight_correction"] = {
             "scale": plain(self.scale),
+            "kappa": None if self.kappa is None else plain(self.kappa),
             "discrepancy": [d.describe()["hyperparameters"] for d in self.delta],
             "n_labels": int(self.delta[0].X.shape[0]) if self.delta else 0,
             "online": None
@@ -178,7 +219,7 @@ class Corrected(Predictor):
         return jnp.concatenate([v, jnp.zeros(self.n_outputs - v.shape[0], v.dtype)])
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
-        out = self.scale * self.prior.mean_one(x)
+        out = self.scale * self.prior.mean_one(x) + self._mean_terms(x)
         if self.delta:
             out = out + self._pad(jnp.concatenate([d.mean_one(x) for d in self.delta]))
         if self.online is not None:
@@ -187,7 +228,7 @@ class Corrected(Predictor):
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, " V"]]:
         mean, var = self.prior.mean_var_one(x)
-        mean = self.scale * mean
+        mean = self.scale * mean + self._mean_terms(x)
         parts = [jnp.reshape(var, (1,))]
         for d in self.delta:
             m, v = d.mean_var_one(x)
@@ -302,6 +343,7 @@ def correct(
     *,
     scale: bool = True,
     use_prior: bool = True,
+    simple_term: bool = True,
     max_labels: int = 1500,
     subset_size: int = 400,
     max_steps: int = 200,
@@ -317,6 +359,10 @@ def correct(
             mean, then ``δ`` on what is left); False keeps ``ρ = 1``.
         use_prior: False sets ``ρ = 0`` for the loads: a values-only GP on the flights
             alone (residuals against ``M``), the baseline that has no simulator knowledge.
+        simple_term: also fit ``κ``, the coefficient of ``M``'s own loads
+            (:class:`SimpleBasis`; jointly with ``ρ``): a thrust or drag-torque coefficient
+            that differs on the real vehicle is one number, where ``δ`` would have to learn
+            it state by state. Needs a prior with ``M``.
         max_labels: at most this many labels enter ``δ`` (evenly thinned in time beyond: the
             exact GP costs ``N³``).
         subset_size: labels per likelihood evaluation of the hyperparameter fit.
@@ -347,21 +393,30 @@ def correct(
         keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
         X, Y, V = X[keep], Y[keep], V[keep]
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
-    rho = np.ones(prior.model.n_outputs)
-    if not use_prior:
-        rho[:N_LOADS] = 0.0
-    elif scale:
-        w = 1.0 / (V + 1e-3)
-        rho[:N_LOADS] = np.sum(w * mu * Y, 0) / np.maximum(np.sum(w * mu * mu, 0), 1e-12)
-    R = Y - rho[:N_LOADS] * mu
+    basis = None
+    if simple_term and prior.simple is not None:
+        basis = SimpleBasis(prior.simple, prior.normalizer, prior.frame)
+    rho6, kappa = _regression(X, Y, V, mu, basis, fit_rho=use_prior and scale, use_prior=use_prior)
+    rho = np.ones(prior.model.n_outputs)  # the levels keep ρ = 1
+    rho[:N_LOADS] = rho6
+    R = Y - rho6 * mu
+    if basis is not None:
+        R = R - kappa * np.asarray(jax.vmap(basis)(jnp.asarray(X)))
     deltas = tuple(
         _fit_delta(X, R[:, j], V[:, j], subset_size, max_steps, seed + j) for j in range(N_LOADS)
     )
-    model = Corrected(prior=prior.model, scale=jnp.asarray(rho), delta=deltas)
+    model = Corrected(
+        prior=prior.model,
+        scale=jnp.asarray(rho),
+        delta=deltas,
+        kappa=None if basis is None else jnp.asarray(kappa),
+        basis=basis,
+    )
     cfg = dict(prior.config)
     cfg["flight_correction"] = {
         "scale": bool(scale),
         "use_prior": bool(use_prior),
+        "simple_term": basis is not None,
         "n_labels": int(X.shape[0]),
         "flights": [p.name for p in parts],
     }
@@ -371,6 +426,29 @@ def correct(
         model_name=f"{prior.model_name}+flight",
         config_json=json.dumps(cfg, sort_keys=True),
     )
+
+
+def _regression(X, Y, V, mu, basis, *, fit_rho: bool, use_prior: bool):
+    """``ρ`` (M,) and ``κ`` (6,) by weighted least squares per load output, of the labels
+    ``Y`` on the prior's mean ``μ`` (where ``fit_rho``; else ``ρ`` is 1, or 0 without the
+    prior) and on ``M``'s own loads (where ``basis``); weights: the labels' noise plus a
+    floor of 1e-3 (a label's variance is not known to better than that)."""
+    rho = np.full(N_LOADS, 1.0 if use_prior else 0.0)
+    kappa = np.zeros(N_LOADS)
+    m = None if basis is None else np.asarray(jax.vmap(basis)(jnp.asarray(X)))
+    sw = np.sqrt(1.0 / (V + 1e-3))
+    for j in range(N_LOADS):
+        cols = ([mu[:, j]] if fit_rho else []) + ([m[:, j]] if m is not None else [])
+        if not cols:
+            continue
+        target = Y[:, j] - (0.0 if fit_rho else rho[j] * mu[:, j])
+        A = np.stack(cols, 1) * sw[:, j, None]
+        coef, *_ = np.linalg.lstsq(A, target * sw[:, j], rcond=None)
+        if fit_rho:
+            rho[j], coef = coef[0], coef[1:]
+        if m is not None:
+            kappa[j] = coef[0]
+    return rho, kappa
 
 
 def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int) -> ExactGP:

@@ -20,10 +20,11 @@ signal by smoothing a unit impulse. Labels are then taken at ``rate`` Hz, each w
 variance per component.
 
 Dropped segments, counted in :attr:`Labels.dropped`: samples on the ground (``M``'s thrust
-from the rotor speeds below :data:`GROUND_THRUST` of the weight: there the accelerometer also
-feels the ground), the first ``takeoff_s`` seconds after each take-off (ground effect) and the
-last before each landing, samples where a rotor is saturated (at ``saturation`` of its range,
-padded by :data:`SATURATION_PAD_S`), and samples near the ends of segments split at gaps.
+from the rotor speeds below :data:`GROUND_THRUST` of the weight and the speed under 1 m/s, for
+:data:`GROUND_MIN_S` at least: there the accelerometer also feels the ground), the first
+``takeoff_s`` seconds after each take-off (ground effect) and the last before each landing,
+samples where a rotor is saturated (at ``saturation`` of its range, padded by
+:data:`SATURATION_PAD_S`), and samples near the ends of segments split at gaps.
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 
-GROUND_THRUST = 0.5  # M's thrust below this fraction of the weight: on the ground
+GROUND_THRUST = 0.5  # M's thrust below this fraction of the weight: on the ground (if still)
+GROUND_MIN_S = 0.5  # s: on the ground only for at least this long
 SATURATION_PAD_S = 0.1  # s dropped on each side of a saturated sample
 NOISE_WINDOW_S = 1.0  # s, window of the rolling noise estimate
 GCV_WINDOW = 300  # samples: the smoothing parameter is chosen by GCV on one such window
@@ -267,6 +269,12 @@ class Labels:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
+    def columns(self) -> tuple[np.ndarray, ...]:
+        """``(t, rpm, euler, v_air, force, torque, force_var, torque_var)``: each label's
+        arguments of :func:`gpg.flight.update`, as columns (a ``lax.scan``'s ``xs``)."""
+        return (self.t, self.rpm, self.euler, self.v_air, self.force, self.torque,
+                self.force_var, self.torque_var)  # fmt: skip
+
     @property
     def residual_force(self) -> np.ndarray:
         """(N, 3) measured minus reference force, N."""
@@ -440,7 +448,11 @@ def _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation):
     """Samples airborne, away from take-off and landing, unsaturated; and the counts dropped."""
     m, g = float(vehicle.mass), float(vehicle.gravity)
     n = log.t.size
-    ground = thrust_M < GROUND_THRUST * m * g
+    # On the ground: little thrust, no motion, for a while (a brief low-thrust moment in the
+    # air, a fast descent, is flight).
+    still = (thrust_M < GROUND_THRUST * m * g) & (np.linalg.norm(log.velocity, axis=1) < 1.0)
+    k = max(1, int(round(GROUND_MIN_S / dt)))
+    ground = ndimage.binary_opening(still, structure=np.ones(k, bool)) if n > k else still
     drop = {"total": n, "ground": int(ground.sum())}
     air = ~ground
     near = _near_transitions(air, int(round(takeoff_s / dt)))

@@ -139,16 +139,21 @@ def random_plan(
     *,
     start=(0.0, 0.0, -10.0),
     box: float = 25.0,
-    leg_time: tuple[float, float] = (3.0, 6.0),
+    step: tuple[float, float] = (5.0, 20.0),
+    leg_time: tuple[float, float] = (4.0, 7.0),
 ) -> WaypointPlan:
-    """Waypoints drawn in a box of ±``box`` m horizontally and 5 to 15 m up, one leg per
-    ``leg_time`` seconds (drawn once per flight), the nose along each leg."""
+    """A random walk of waypoints: each leg ``step`` m long (drawn) in a random horizontal
+    direction, kept within ±``box`` m of the origin and 5 to 15 m up, flown in ``leg_time``
+    seconds (drawn once per flight), the nose along each leg. The defaults peak near
+    ``1.9 · 20 / 4 ≈ 9`` m/s (a minimum-jerk leg's peak speed is 1.875 times its mean)."""
     lt = float(rng.uniform(*leg_time))
     n = int(np.ceil(duration / lt)) + 2
-    w = np.column_stack(
-        [rng.uniform(-box, box, n), rng.uniform(-box, box, n), rng.uniform(-15.0, -5.0, n)]
-    )
+    w = np.empty((n, 3))
     w[0] = start
+    for i in range(1, n):
+        a, d = rng.uniform(0, 2 * np.pi), rng.uniform(*step)
+        xy = np.clip(w[i - 1, :2] + d * np.array([np.cos(a), np.sin(a)]), -box, box)
+        w[i] = [xy[0], xy[1], rng.uniform(-15.0, -5.0)]
     return WaypointPlan.create(w, start_time=0.5, leg_time=lt, yaw="travel")
 
 

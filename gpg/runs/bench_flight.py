@@ -90,9 +90,7 @@ def _update(cfg: dict[str, Any]) -> dict[str, Any]:
     adapted = flight.adapt(corrected, inducing=int(cfg["inducing"]), t0=0.0)
     step = flight.online_step(adapted)
     online = adapted.model.online
-    cols = [np.asarray(c) for c in (labels.t, labels.rpm, labels.euler, labels.v_air,
-                                    labels.force, labels.torque, labels.force_var,
-                                    labels.torque_var)]  # fmt: skip
+    cols = labels.columns()
     before = sum(x.nbytes for x in jax.tree.leaves(online))
     seconds = []
     for k in range(int(cfg["updates"]) + 10):

@@ -100,8 +100,9 @@ class _Bench:
     def flight(self, name: str, duration: float, wind) -> Flight:
         """A flight written as a CSV log and read back (what a user's CSV would give)."""
         seed = int(self.rng.integers(2**31))
-        box = float(self.cfg["flights"]["box"])
-        plan = random_plan(np.random.default_rng(seed), duration, box=box)
+        fl = self.cfg["flights"]
+        plan = random_plan(np.random.default_rng(seed), duration, box=float(fl["box"]),
+                           step=tuple(fl["step"]), leg_time=tuple(fl["leg_time"]))  # fmt: skip
         f = fly(self.real, self.ctrl, plan, Wind.constant(wind), duration, sensors=self.sensors,
                 seed=seed, bemt_config=self.physics, name=name)  # fmt: skip
         path = write_csv(f.log, self.logs / f"{name}.csv")
@@ -272,7 +273,7 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels) -> dict[str, Any]
                        t0=float(l_ad.t[0]))  # fmt: skip
     step = fc.online_step(adapted)
     truth = _truth(f_ad, l_ad)
-    cols = _columns(l_ad)
+    cols = l_ad.columns()
     online = adapted.model.online
     err = np.empty(len(l_ad))
     for i in range(len(l_ad)):
@@ -308,19 +309,13 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels) -> dict[str, Any]
     }
 
 
-def _columns(lab: Labels) -> list[np.ndarray]:
-    """A label's arguments of :func:`gpg.flight.update`, as columns."""
-    return [np.asarray(v) for v in (lab.t, lab.rpm, lab.euler, lab.v_air, lab.force, lab.torque,
-                                    lab.force_var, lab.torque_var)]  # fmt: skip
-
-
 def _stream(bench: _Bench, adapted, lab: Labels) -> dict[str, Any]:
     """Updates once a step from Python over ``adapt.stream_s`` seconds of labels (the flight's
     replayed, time moving on): their cost, and the online state's bytes before and after."""
     rate = float(bench.cfg["label"]["rate"])
     n = int(round(float(bench.cfg["adapt"]["stream_s"]) * rate))
     step = fc.online_step(adapted)
-    cols = _columns(lab)
+    cols = lab.columns()
     online = adapted.model.online
     nbytes0 = sum(x.nbytes for x in jax.tree.leaves(online))
     period = float(lab.t[-1] - lab.t[0]) + 1.0 / rate

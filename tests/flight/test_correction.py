@@ -84,8 +84,9 @@ def test_training_rows_are_the_gp_frame_residuals(synthetic_surrogate, flights):
 
 
 def test_corrected_mean_and_variance_compose(corrected, flights):
-    """``ρ ⊙ μ_prior + δ`` and ``ρ² c var_prior + c_δ (var_δ + ν_δ²)``: each δ evaluated here in
-    NumPy from its training inputs, α and hyperparameters."""
+    """``ρ ⊙ μ_prior + κ ⊙ m + δ`` and ``ρ² c var_prior + c_δ (var_δ + ν_δ²)``: each δ
+    evaluated here in NumPy from its training inputs, α and hyperparameters (``m`` has a test
+    of its own below)."""
     m = corrected.model
     assert isinstance(m, fc.Corrected) and len(m.delta) == 6
     X, _, _ = fc.training_rows(corrected, flights)
@@ -98,7 +99,7 @@ def test_corrected_mean_and_variance_compose(corrected, flights):
         kq = _rbf(Xq, np.asarray(d.X), float(h.variance), np.asarray(h.lengthscale))
         dm.append(kq @ np.asarray(d.alpha)[:, 0])
     expect = np.asarray(m.scale) * np.asarray(p_mean)
-    expect[:, :6] += np.stack(dm, 1)
+    expect[:, :6] += np.stack(dm, 1) + np.asarray(m.kappa) * np.asarray(jax.vmap(m.basis)(Xq))
     np.testing.assert_allclose(mean, expect, atol=1e-9)
     pv = np.asarray(m.predictive_variance(var))
     prior_part = np.maximum(np.asarray(p_var), 0)[:, None] * np.asarray(m.prior.output_scale)
@@ -125,16 +126,17 @@ def test_correction_fits_the_real_vehicle(synthetic_surrogate, corrected, flight
     assert np.sqrt(np.mean(e1**2)) < 0.25 * np.sqrt(np.mean(np.asarray(e0) ** 2))
     assert np.mean(np.abs(e1) <= 1.96 * np.sqrt(np.asarray(p.variance)[:, :3] + 0.05**2)) > 0.85
     # the scale: across the airflow (the GP frame's y) the real residual is 1.2 times the
-    # prior's exactly; along it the drag adds (a least-squares scale takes some of it)
+    # prior's exactly; along it the drag adds (the scale and κ take some of it)
     rho = np.asarray(corrected.model.scale)
-    assert abs(rho[1] - 1.2) < 0.05 and rho[0] > 1.2
+    assert abs(rho[1] - 1.2) < 0.05 and rho[0] > 1.0
     np.testing.assert_array_equal(np.asarray(corrected.model.scale[6:]), 1.0)
 
 
 def test_values_only_baseline_has_no_prior(synthetic_surrogate, corrected, flights):
     # corrected again from a corrected one: from its prior, not on top of it
-    vo = fc.correct(corrected, flights, use_prior=False, **FIT)
+    vo = fc.correct(corrected, flights, use_prior=False, simple_term=False, **FIT)
     np.testing.assert_array_equal(np.asarray(vo.model.scale[:6]), 0.0)
+    assert vo.model.kappa is None and vo.model.basis is None  # δ carries it all
     assert vo.config["flight_correction"]["use_prior"] is False
     assert vo.model_name == "gpgs_hybrid+flight"
     assert not isinstance(vo.model.prior, fc.Corrected)
@@ -143,7 +145,8 @@ def test_values_only_baseline_has_no_prior(synthetic_surrogate, corrected, fligh
 
 
 def test_corrected_is_a_jax_function(corrected, flights):
-    """jit, vmap, forward and reverse derivatives through the corrected prediction."""
+    """Forward and reverse derivatives through the corrected prediction, and its float32 copy
+    (jit and vmap: predict_batch, in the test above)."""
     r, e, v = (jnp.asarray(a[:5]) for a in (flights.rpm, flights.euler, flights.v_air))
 
     def fx(vv):
@@ -157,8 +160,6 @@ def test_corrected_is_a_jax_function(corrected, flights):
     )
     np.testing.assert_allclose(g_rev, fd, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-10, atol=1e-12)
-    batch = jax.jit(jax.vmap(lambda a, b, c: corrected.predict(a, b, c).force))(r, e, v)
-    np.testing.assert_allclose(batch, corrected.predict_batch(r, e, v).force, rtol=1e-10)
     # float32: as accurate as the stored float32 arrays allow (relative 1e-4 of the loads)
     f32 = corrected.astype(jnp.float32)
     p32 = f32.predict_batch(
@@ -244,19 +245,7 @@ def test_online_filter_is_the_batch_posterior(corrected, flights):
     """Without forgetting (τ far beyond the flight), label-by-label updates give the batch
     posterior; inside lax.scan and once a step from Python alike."""
     adapted = fc.adapt(corrected, inducing=12, tau=1e12, t0=0.0)
-    cols = [
-        jnp.asarray(c)
-        for c in (
-            flights.t,
-            flights.rpm,
-            flights.euler,
-            flights.v_air,
-            flights.force,
-            flights.torque,
-            flights.force_var,
-            flights.torque_var,
-        )
-    ]
+    cols = [jnp.asarray(c) for c in flights.columns()]
     n = 25
     scanned, _ = jax.lax.scan(
         lambda s, x: (fc.update(s, *x), None), adapted, tuple(c[:n] for c in cols)
@@ -280,19 +269,7 @@ def test_online_filter_is_the_batch_posterior(corrected, flights):
 
 def test_forgetting_relaxes_to_the_prior(corrected, flights):
     adapted = fc.adapt(corrected, inducing=8, tau=2.0, t0=0.0)
-    cols = [
-        np.asarray(c)
-        for c in (
-            flights.t,
-            flights.rpm,
-            flights.euler,
-            flights.v_air,
-            flights.force,
-            flights.torque,
-            flights.force_var,
-            flights.torque_var,
-        )
-    ]
+    cols = [np.asarray(c) for c in flights.columns()]
     s = adapted
     for i in range(10):
         s = fc.update_jit(s, *(c[i] for c in cols))
@@ -328,3 +305,39 @@ def test_adapt_checks(synthetic_surrogate, corrected, flights):
     # a prior without a correction adapts too (δ = 0, the online term alone)
     plain = fc.adapt(synthetic_surrogate, inducing=6)
     assert plain.model.delta == () and plain.model.online.Z.shape == (6, 8)
+
+
+def test_products_are_highest(corrected, flights):
+    """The corrected and adapted model's predictions and the update run every product at
+    Precision.HIGHEST (tests/test_precision.py's walk), in float32 where TF32 would apply."""
+    from tests.test_precision import _check_surrogate, assert_highest
+
+    adapted = fc.adapt(corrected, inducing=6).astype(jnp.float32)
+    _check_surrogate(adapted, jnp.float32, "corrected + online")
+    cols = [jnp.asarray(c[0], jnp.float32) for c in flights.columns()]
+    assert_highest(fc.update, adapted, *cols, what="gpg.flight.update")
+
+
+def test_simple_term_recovers_a_thrust_coefficient(synthetic_surrogate, flights):
+    """A real vehicle whose rotors make 10 % less thrust and drag torque than ``M`` says, and
+    otherwise the prior's loads: ``κ`` (the coefficient of ``M``'s own loads, in the GP's
+    frame) comes out as −0.1 on every load output, ``ρ`` as 1, and ``m(x)`` is ``M``'s wrench
+    rotated by the input's own angles (written out here)."""
+    from gpg.quadrotor.frames import R_WB
+
+    sur = synthetic_surrogate
+    p = sur.predict_batch(flights.rpm, flights.euler, flights.v_air, mean_only=True)
+    real = dataclasses.replace(
+        flights,
+        force=np.asarray(p.force) - 0.1 * flights.model_force,
+        torque=np.asarray(p.torque) - 0.1 * flights.model_torque,
+    )
+    c = fc.correct(sur, real, **FIT)
+    np.testing.assert_allclose(np.asarray(c.model.kappa), -0.1, atol=2e-3)
+    np.testing.assert_allclose(np.asarray(c.model.scale[:6]), 1.0, atol=2e-2)
+    X, _, _ = fc.training_rows(sur, real)
+    x = np.asarray(sur.normalizer.x_inv(X[0]))
+    F_B, tau_B = (np.asarray(a) for a in sur.simple.wrench_body(x[:4]))
+    R = np.asarray(R_WB(x[4:7]))
+    expect = np.concatenate([R @ F_B, R @ tau_B]) / np.asarray(sur.normalizer.y_std[:6])
+    np.testing.assert_allclose(c.model.basis(jnp.asarray(X[0])), expect, rtol=1e-12)
