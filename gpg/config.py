@@ -25,6 +25,7 @@ from typing import Any
 import yaml
 
 from gpg import conf
+from gpg.gp.fit import FitOptions, Stochastic
 from gpg.gp.partition import SCHEMES
 from gpg.gp.schur import check_options
 from gpg.linalg.device import PLACEMENTS
@@ -78,6 +79,38 @@ class HyperConfig:
     cg_tol: float = 1e-5  # relative residual of its CG solves of K̄ α = Ȳ
     cg_probe_tol: float = 1e-3  # relative residual of its probe solves (log|K̄| and its gradient)
     cg_max_iter: int = 500  # iteration budget of each of those solves
+
+    def fit_options(self) -> FitOptions:
+        """The likelihood fit on the subset, as :func:`gpg.gp.fit.fit_hyperparameters` takes
+        it (:class:`gpg.gp.fit.FitOptions`)."""
+        return FitOptions(
+            ard=self.ard,
+            fit_grad_noise=self.fit_grad_noise,
+            fit_noise=self.fit_noise,
+            noise_floor=self.noise_floor,
+            noise_init=self.noise_init,
+            subset_size=self.subset,
+            seed=self.seed,
+            max_steps=self.max_steps,
+        )
+
+    def full_options(self, noise_init: float) -> FitOptions:
+        """The refit on all points by the stochastic likelihood (``full``), started at the
+        ``ν²/σ`` ``noise_init``."""
+        return dataclasses.replace(
+            self.fit_options(),
+            noise_init=noise_init,
+            subset_size=None,
+            max_steps=self.full_max_steps,
+            likelihood="stochastic",
+            stochastic=Stochastic(
+                probes=self.probes,
+                tol=self.cg_tol,
+                max_iter=self.cg_max_iter,
+                probe_tol=self.cg_probe_tol,
+                ftol=self.full_ftol,
+            ),
+        )
 
     def __post_init__(self):
         w = "hyper."

@@ -40,7 +40,7 @@ from gpg.config import ModelConfig, package_defaults
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Training, prepare
 from gpg.gp import partition
-from gpg.gp.fit import HyperFitResult, Stochastic, fit_hyperparameters
+from gpg.gp.fit import HyperFitResult, fit_hyperparameters
 from gpg.gp.hyper import Hyper, gradient_noise
 from gpg.gp.predictor import Predictor
 from gpg.kinds import KINDS, Arrays, Kind, base
@@ -284,30 +284,16 @@ def fit_hyper(
         hyper = init.validate(X.shape[1], len(dims))
     else:
         t0 = time.perf_counter()
-        common = {
+        data = {
             "grad_dims": dims if dY is not None else None,
-            "ard": h.ard,
-            "fit_grad_noise": h.fit_grad_noise,
-            "fit_noise": h.fit_noise,
-            "noise_floor": h.noise_floor,
             "observed": arrays.observed,
             "bases": arrays.bases,
         }
-        res = fit_hyperparameters(
-            X, Y, dY, init=init, noise_init=h.noise_init, subset_size=h.subset, seed=h.seed,
-            max_steps=h.max_steps, **common,
-        )  # fmt: skip
+        res = fit_hyperparameters(X, Y, dY, init=init, options=h.fit_options(), **data)
         if h.full:
             # From the subset's optimum: the refit on all points then needs few of its steps.
-            res = fit_hyperparameters(
-                X, Y, dY, init=res.hyper, noise_init=_noise_ratio(res, h), subset_size=None,
-                max_steps=h.full_max_steps, likelihood="stochastic",
-                stochastic=Stochastic(
-                    probes=h.probes, tol=h.cg_tol, max_iter=h.cg_max_iter,
-                    probe_tol=h.cg_probe_tol, ftol=h.full_ftol,
-                ),
-                **common,
-            )  # fmt: skip
+            opts = h.full_options(_noise_ratio(res, h))
+            res = fit_hyperparameters(X, Y, dY, init=res.hyper, options=opts, **data)
         hyper, seconds = res.hyper, time.perf_counter() - t0
     if h.lengthscale_scale != 1.0:
         scaled = hyper.lengthscale * h.lengthscale_scale

@@ -8,16 +8,25 @@ partitioned predictor and its per-bin format), local (near-set GPs, the far set 
 """
 
 from gpg.gp.exact import ExactGP
-from gpg.gp.fit import FitError, FitWarning, HyperFitResult, fit_hyperparameters
+from gpg.gp.fit import (
+    FitError,
+    FitOptions,
+    FitWarning,
+    HyperFitResult,
+    Stochastic,
+    fit_hyperparameters,
+)
 from gpg.gp.gram import assemble_gram, log_marginal_likelihood, stack_targets
 from gpg.gp.hyper import Hyper, gradient_noise
 
 __all__ = [
     "ExactGP",
     "FitError",
+    "FitOptions",
     "FitWarning",
     "Hyper",
     "HyperFitResult",
+    "Stochastic",
     "assemble_gram",
     "fit_hyperparameters",
     "gradient_noise",

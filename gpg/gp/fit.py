@@ -6,6 +6,7 @@ The value-noise nugget ``ν²`` is fitted by default, bounded below by a reparam
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -70,6 +71,57 @@ class Stochastic:
         Z = inducing_inputs(np.asarray(X), min(self.points, X.shape[0]), seed=self.seed)
         Z = jnp.asarray(Z)
         return Z, slq.Probes.draw(rows, Z.shape[0] * (1 + n_grad), self.probes, self.seed)
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How :func:`fit_hyperparameters` fits, in one object (every field is also a keyword of
+    that function, which overrides it).
+
+    Attributes:
+        ard: one lengthscale per input (else one for all).
+        fit_grad_noise: also fit the scale ``s`` of the gradient noise ``λ_i² = s·Var(∂_i Ỹ)``.
+        fit_noise: fit the value-noise nugget ``ν²`` (else it stays as in ``init``).
+        noise_floor: the fitted ``ν²/σ`` stays above this.
+        noise_init: ``ν²/σ`` where the fit starts.
+        subset_size: points per likelihood evaluation (a random subset beyond; None: all).
+        seed: the subset's draw.
+        max_steps: BFGS steps.
+        rtol: BFGS's relative tolerance.
+        atol: BFGS's absolute tolerance.
+        on_failure: ``"warn"`` (a :class:`FitWarning`, the last iterate returned),
+            ``"raise"`` (:class:`FitError`) or ``"ignore"``.
+        likelihood: ``"dense"`` (``K̄`` factorised at every step) or ``"stochastic"``
+            (:mod:`gpg.gp.slq`, options in ``stochastic``).
+        stochastic: the stochastic likelihood's options (None: :class:`Stochastic`'s defaults).
+    """
+
+    ard: bool = True
+    fit_grad_noise: bool = False
+    fit_noise: bool = True
+    noise_floor: float = 1e-6
+    noise_init: float = 1e-2
+    subset_size: int | None = 400
+    seed: int = 0
+    max_steps: int = 200
+    rtol: float = 1e-6
+    atol: float = 1e-6
+    on_failure: str = "warn"
+    likelihood: str = "dense"
+    stochastic: Stochastic | None = None
+
+    def __post_init__(self):
+        if self.likelihood not in ("dense", "stochastic"):
+            raise ValueError(f"likelihood must be 'dense' or 'stochastic', got {self.likelihood!r}")
+        if self.on_failure not in ("warn", "raise", "ignore"):
+            raise ValueError(
+                f"on_failure must be 'warn', 'raise' or 'ignore', got {self.on_failure!r}"
+            )
+        if self.fit_noise and not (0 < self.noise_floor < self.noise_init):
+            raise ValueError(
+                "noise_floor and noise_init (ν²/σ) must satisfy 0 < noise_floor < noise_init, "
+                f"got {self.noise_floor} and {self.noise_init}"
+            )
 
 
 def _stochastic(X, Ybar, hyper, grad_dims, args, opts: Stochastic) -> slq.StochasticLML:
@@ -264,14 +316,18 @@ def _outcome(status, hyper: Hyper, nll: float) -> tuple[bool, str]:
     return ok, message
 
 
-def _renamed_keywords(kw: dict[str, Any]) -> dict[str, Any]:
+def _options(options: FitOptions | None, keywords: dict[str, Any]) -> FitOptions:
+    """``options`` with ``keywords`` (its fields, or the renamed ones of earlier releases)."""
+    fields = {f.name for f in dataclasses.fields(FitOptions)}
     out = {}
-    for old, value in kw.items():
-        if old not in _RENAMED:
-            raise TypeError(f"fit_hyperparameters() got an unexpected keyword argument {old!r}")
-        deprecated(f"fit_hyperparameters({old}=...)", f"{_RENAMED[old]}=...")
-        out[_RENAMED[old]] = value
-    return out
+    for name, value in keywords.items():
+        if name in _RENAMED:
+            deprecated(f"fit_hyperparameters({name}=...)", f"{_RENAMED[name]}=...")
+            name = _RENAMED[name]
+        elif name not in fields:
+            raise TypeError(f"fit_hyperparameters() got an unexpected keyword argument {name!r}")
+        out[name] = value
+    return dataclasses.replace(FitOptions() if options is None else options, **out)
 
 
 # Long by design: its signature, one documented keyword per option of the fit, is a third of it.
@@ -283,23 +339,11 @@ def fit_hyperparameters(
     *,
     grad_dims: Sequence[int] | None = None,
     init: Hyper | None = None,
-    ard: bool = True,
-    fit_grad_noise: bool = False,
-    fit_noise: bool = True,
-    noise_floor: float = 1e-6,
-    noise_init: float = 1e-2,
-    subset_size: int | None = 400,
-    seed: int = 0,
-    max_steps: int = 200,
-    rtol: float = 1e-6,
-    atol: float = 1e-6,
-    on_failure: str = "warn",
-    likelihood: str = "dense",
-    stochastic: Stochastic | None = None,
+    options: FitOptions | None = None,
     observed: Bool[ArrayLike, "N G"] | None = None,
     bases: Float[ArrayLike, "N G G"] | None = None,
     row_noise: Float[ArrayLike, " N"] | None = None,
-    **renamed: Any,
+    **keywords: Any,
 ) -> HyperFitResult:
     """Maximise the log marginal likelihood over log-parameters with optimistix BFGS.
 
@@ -310,33 +354,38 @@ def fit_hyperparameters(
     overconfident on data that no smooth function fits exactly (finite-difference gradients,
     a simulator's own discretisation): the nugget is what absorbs that misfit. When N exceeds
     ``subset_size`` the likelihood is evaluated on a random subset of that many points (drawn
-    with ``seed``), since each step factorises K̄.
+    with ``seed``), since each step factorises K̄. ``"stochastic"`` likelihood never forms it
+    (CG solves and stochastic Lanczos quadrature), so ``subset_size=None`` fits on all points
+    at any N, with a progress bar per step.
 
-    ``on_failure``: ``"warn"`` (a :class:`FitWarning`, result returned with
-    ``converged=False``), ``"raise"`` (:class:`FitError`) or ``"ignore"``.
+    Args:
+        X: inputs (N, D).
+        Y: values (N, M).
+        dY: gradients (N, M, G) or None.
+        grad_dims: the G input dimensions of ``dY`` (default: all when ``dY`` is given).
+        init: where the fit starts (default ``Hyper()``); the fields not fitted stay.
+        options: how to fit (:class:`FitOptions`; default its defaults).
+        observed: (N, G) the gradients each case has (:func:`gpg.gp.gram.observed_rows`;
+            dense likelihood only).
+        bases: (N, G, G) the directions of the gradient rows
+            (:func:`gpg.gp.gram.row_directions`; dense only).
+        row_noise: (N,) each case's own value-noise variance on top of ``ν²``
+            (:meth:`gpg.gp.exact.ExactGP.fit`; dense only).
+        **keywords: fields of :class:`FitOptions`, overriding ``options`` (the keywords
+            ``fit_jitter``, ``jitter_floor`` and ``jitter_init`` of earlier releases are read
+            as the ``noise`` ones with a ``DeprecationWarning``).
 
-    ``likelihood``: ``"dense"`` factorises ``K̄`` of the (subset's) points at every step;
-    ``"stochastic"`` never forms it (:mod:`gpg.gp.slq`: CG solves and stochastic Lanczos
-    quadrature with fixed probes, options in ``stochastic``), so ``subset_size=None`` fits on
-    all points at any N; it shows a progress bar per step. ``observed`` (N, G) marks the
-    gradients a case has (:func:`gpg.gp.gram.observed_rows`; dense likelihood only), ``bases``
-    (N, G, G) the directions of their gradient rows (:func:`gpg.gp.gram.row_directions`;
-    likewise dense only), ``row_noise`` (N,) each case's own value-noise variance on top of
-    ``ν²`` (:meth:`gpg.gp.exact.ExactGP.fit`; dense only). The keywords
-    ``fit_jitter``, ``jitter_floor`` and ``jitter_init`` of earlier releases are read as the
-    ``noise`` ones with a ``DeprecationWarning``.
+    Returns:
+        The fitted hyperparameters and how the fit went (:class:`HyperFitResult`).
+
+    Raises:
+        ValueError: bad data or options (the message names them).
+        TypeError: a keyword that is not an option.
+        FitError: a failed fit with ``on_failure="raise"``.
     """
-    new = {"fit_noise": fit_noise, "noise_floor": noise_floor, "noise_init": noise_init}
-    fit_noise, noise_floor, noise_init = {**new, **_renamed_keywords(renamed)}.values()
-    if likelihood not in ("dense", "stochastic"):
-        raise ValueError(f"likelihood must be 'dense' or 'stochastic', got {likelihood!r}")
-    if on_failure not in ("warn", "raise", "ignore"):
-        raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
-    if fit_noise and not (0 < noise_floor < noise_init):
-        raise ValueError(
-            "noise_floor and noise_init (ν²/σ) must satisfy 0 < noise_floor < noise_init, "
-            f"got {noise_floor} and {noise_init}"
-        )
+    opts = _options(options, keywords)
+    ard, fit_grad_noise, fit_noise = opts.ard, opts.fit_grad_noise, opts.fit_noise
+    noise_floor, noise_init, likelihood = opts.noise_floor, opts.noise_init, opts.likelihood
     data = check_training_data(X, Y, dY, grad_dims, observed)
     if data.observed is not None and likelihood != "dense":
         raise ValueError("observed (cases without some gradients) needs likelihood='dense'")
@@ -352,8 +401,8 @@ def fit_hyperparameters(
             raise ValueError(f"row_noise must have shape ({n},), got {row_noise.shape}")
         if not np.all(np.isfinite(row_noise)) or np.any(row_noise < 0):
             raise ValueError("row_noise must be finite and >= 0")
-    init = _checked_init(data, init, ard, fit_grad_noise, subset_size)
-    subset = _subset(data.X.shape[0], subset_size, seed)
+    init = _checked_init(data, init, ard, fit_grad_noise, opts.subset_size)
+    subset = _subset(data.X.shape[0], opts.subset_size, opts.seed)
     sub_noise = None if row_noise is None else jnp.asarray(row_noise[subset])
     Xs = jnp.asarray(data.X[subset])
     pick = (None if a is None else a[subset] for a in (data.dY, data.observed))
@@ -373,24 +422,25 @@ def fit_hyperparameters(
                 Xs, Ybar, h, data.grad_dims, rows, sub_bases, row_noise=sub_noise
             )
         else:
-            lml = _stochastic_lml(Xs, Ybar, h, data.grad_dims, args, opts)
+            lml = _stochastic_lml(Xs, Ybar, h, data.grad_dims, args, sto)
         nll = -lml / scale
         # A non-PD trial point gives NaN: report it as a bad step so the line search backs off.
         return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
 
-    solver = optx.BFGS(rtol=rtol, atol=atol)
+    solver = optx.BFGS(rtol=opts.rtol, atol=opts.atol)
+    max_steps = opts.max_steps
     if likelihood == "dense":
         nll0 = float(loss(params, None))
         sol = optx.minimise(loss, solver, params, max_steps=max_steps, throw=False)
         value, status, steps = sol.value, sol.result, int(sol.stats["num_steps"])
         nll1 = float(loss(value, None))
     else:
-        opts = Stochastic() if stochastic is None else stochastic
-        args = opts.arguments(Xs, len(data.grad_dims), Ybar.shape[0])
+        sto = Stochastic() if opts.stochastic is None else opts.stochastic
+        args = sto.arguments(Xs, len(data.grad_dims), Ybar.shape[0])
         h0 = _unpack(params, init, grad_var, noise_floor)
-        nll0 = -_check_solves(Xs, Ybar, h0, data, args, opts) / scale
+        nll0 = -_check_solves(Xs, Ybar, h0, data, args, sto) / scale
         value, status, steps = _minimise_with_progress(
-            loss, solver, params, args, max_steps, opts.progress, ftol=opts.ftol
+            loss, solver, params, args, max_steps, sto.progress, ftol=sto.ftol
         )
         nll1 = float(eqx.filter_jit(loss)(value, args))
     hyper = _unpack(value, init, grad_var, noise_floor)
@@ -407,7 +457,7 @@ def fit_hyperparameters(
         noise_fitted=fit_noise,
     )
     if not ok:
-        _failed(result, on_failure)
+        _failed(result, opts.on_failure)
     return result
 
 
