@@ -42,7 +42,7 @@ from gpg.data.preprocess import Normalizer
 from gpg.flight.labels import Labels
 from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
-from gpg.gp.fit import fit_hyperparameters
+from gpg.gp.fit import FitOptions, fit_hyperparameters
 from gpg.gp.hyper import Hyper
 from gpg.gp.predictor import Predictor, plain
 from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
@@ -50,6 +50,8 @@ from gpg.quadrotor.simple_model import SimpleModel
 from gpg.surrogate import Surrogate
 
 N_LOADS = 6  # force and torque: what a flight measures
+# The discrepancy GPs' lengthscales on normalised inputs (span 2) are kept in this range.
+LENGTHSCALE_MIN, LENGTHSCALE_MAX = 1e-2, 1e2
 
 
 class Online(eqx.Module):
@@ -454,21 +456,16 @@ def _regression(X, Y, V, mu, basis, *, fit_rho: bool, use_prior: bool):
 def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int) -> ExactGP:
     var = float(max(np.var(r), 1e-6))
     init = Hyper(variance=var, lengthscale=np.full(X.shape[1], 0.7), noise=1e-2 * var)
-    fit = fit_hyperparameters(
-        X,
-        r[:, None],
-        init=init,
-        ard=True,
-        fit_noise=True,
-        noise_floor=1e-6,
-        noise_init=1e-2,
-        subset_size=subset_size,
-        seed=seed,
-        row_noise=noise,
-        max_steps=max_steps,
-        on_failure="ignore",
-    )
-    gp = ExactGP.fit(X, r[:, None], hyper=fit.hyper, row_noise=noise)
+    opts = FitOptions(subset_size=subset_size, seed=seed, max_steps=max_steps, on_failure="ignore")
+    fit = fit_hyperparameters(X, r[:, None], init=init, options=opts, row_noise=noise)
+    h = fit.hyper
+    # An input the discrepancy does not vary along drives its lengthscale toward infinity: at
+    # LENGTHSCALE_MAX (normalised inputs span 2) the kernel is already flat along it.
+    ls = np.nan_to_num(np.asarray(h.lengthscale), nan=LENGTHSCALE_MAX, posinf=LENGTHSCALE_MAX)
+    ls = np.clip(ls, LENGTHSCALE_MIN, LENGTHSCALE_MAX)
+    ok = all(np.isfinite(float(v)) and float(v) > 0 for v in (h.variance, h.noise))
+    hyper = Hyper(variance=h.variance, lengthscale=ls, noise=h.noise) if ok else init
+    gp = ExactGP.fit(X, r[:, None], hyper=hyper, row_noise=noise)
     # The fitted σ is each discrepancy's own amplitude: no second, closed-form one.
     return gp.with_output_scale(jnp.ones(1))
 
