@@ -49,6 +49,8 @@ def test_wheel_installs_and_runs_the_quick_start_outside_the_repository(tmp_path
         "assert 'site-packages' in gpg.__file__, gpg.__file__\n"
         "assert {'sui_endurance', 'minimal_example'} <= set(q.vehicle.known_vehicles())\n"
         "assert conf('smoke', 'data')['n_train'] > 0 and conf('gpgs_hybrid', 'model')\n"
+        "from gpg.export.c_source import fragment\n"
+        "assert '#define N_LEVELS' in fragment('body.c') and 'rot_wb' in fragment('frames.c')\n"
     )
     subprocess.run([str(py), "-c", check], cwd=work, check=True)
     out = subprocess.run(
