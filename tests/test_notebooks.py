@@ -9,7 +9,7 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
 
 
-# All five run with `make test-slow`: their steps are covered in the fast set elsewhere (the
+# All six run with `make test-slow`: their steps are covered in the fast set elsewhere (the
 # tutorial's by tests/data/test_dataset.py's CSV import, tests/quadrotor/test_vehicle.py's
 # minimal vehicle, tests/test_checkpoint.py and tests/quadrotor/test_dynamics.py; the analysis
 # notebooks' by the compare and simulate runs), and each costs tens of seconds.
@@ -38,4 +38,5 @@ def test_notebooks_present():
         "03_closed_loop",
         "04_your_own_vehicle",
         "05_learning_a_policy",
+        "06_real_flights",
     }

@@ -51,7 +51,7 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     assert finite_numbers(saved) and saved["config"]["default_seconds"] == 10
     assert [r["seconds"] for r in saved["curve"]] == [5.0, 10.0, 20.0]
     d = saved["default"]
-    for key in ("sim_only", "corrected", "values_only", "corrected_unscaled"):
+    for key in ("sim_only", "corrected", "values_only", "values_only_m", "corrected_unscaled"):
         assert d[f"{key}_force_rmse"] > 0
     a = saved["adaptation"]
     assert a["online_bytes"]["start"] == a["online_bytes"]["end"]  # fixed memory
