@@ -395,15 +395,15 @@ def correct(
         keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
         X, Y, V = X[keep], Y[keep], V[keep]
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
-    basis = None
-    if simple_term and prior.simple is not None:
-        basis = SimpleBasis(prior.simple, prior.normalizer, prior.frame)
-    rho6, kappa = _regression(X, Y, V, mu, basis, fit_rho=use_prior and scale, use_prior=use_prior)
+    with_m = simple_term and prior.simple is not None
+    basis = SimpleBasis(prior.simple, prior.normalizer, prior.frame) if with_m else None
+    m = None if basis is None else np.asarray(jax.vmap(basis)(jnp.asarray(X)))
+    rho6, kappa = _regression(Y, V, mu, m, fit_rho=use_prior and scale, use_prior=use_prior)
     rho = np.ones(prior.model.n_outputs)  # the levels keep ρ = 1
     rho[:N_LOADS] = rho6
     R = Y - rho6 * mu
     if basis is not None:
-        R = R - kappa * np.asarray(jax.vmap(basis)(jnp.asarray(X)))
+        R = R - kappa * m
     deltas = tuple(
         _fit_delta(X, R[:, j], V[:, j], subset_size, max_steps, seed + j) for j in range(N_LOADS)
     )
@@ -430,14 +430,13 @@ def correct(
     )
 
 
-def _regression(X, Y, V, mu, basis, *, fit_rho: bool, use_prior: bool):
-    """``ρ`` (M,) and ``κ`` (6,) by weighted least squares per load output, of the labels
+def _regression(Y, V, mu, m, *, fit_rho: bool, use_prior: bool):
+    """``ρ`` (6,) and ``κ`` (6,) by weighted least squares per load output, of the labels
     ``Y`` on the prior's mean ``μ`` (where ``fit_rho``; else ``ρ`` is 1, or 0 without the
-    prior) and on ``M``'s own loads (where ``basis``); weights: the labels' noise plus a
+    prior) and on ``M``'s own loads ``m`` (N, 6; None: no ``κ``); weights: the labels' noise plus a
     floor of 1e-3 (a label's variance is not known to better than that)."""
     rho = np.full(N_LOADS, 1.0 if use_prior else 0.0)
     kappa = np.zeros(N_LOADS)
-    m = None if basis is None else np.asarray(jax.vmap(basis)(jnp.asarray(X)))
     sw = np.sqrt(1.0 / (V + 1e-3))
     for j in range(N_LOADS):
         cols = ([mu[:, j]] if fit_rho else []) + ([m[:, j]] if m is not None else [])
