@@ -4,6 +4,7 @@
 #   make test-xla   the fast set under another XLA CPU configuration (XLA_ALT), optimised
 #   make compare    create .venv, install gpg, run every model on data=default
 #   make docs       the documentation site into site/ (warnings are errors; notebooks executed)
+#   make api        docs/api.md written again from the packages' __all__ (a test checks it)
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -15,7 +16,7 @@ DOCS_STAMP := $(VENV)/.installed-docs
 # they find (what made a float32 variance differ between two machines of the same kind).
 XLA_ALT ?= --xla_cpu_max_isa=SSE4_2 --xla_cpu_experimental_ynn_fusion_type=
 
-.PHONY: test test-slow test-xla compare docs lint clean
+.PHONY: test test-slow test-xla compare docs api lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -54,6 +55,9 @@ compare: $(STAMP)
 # does not exist, a docstring that does not parse.
 docs: $(DOCS_STAMP)
 	$(VENV)/bin/mkdocs build --strict
+
+api: $(STAMP)
+	$(PY) docs/_site/hooks.py
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache .ruff_cache site build/docs

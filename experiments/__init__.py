@@ -1,1 +1,3 @@
-"""Thin Hydra entry points; the work is done by ``gpg.runs``."""
+"""The repository's experiments, outside the installed library: the thin Hydra entry points
+(``python -m experiments.<name>``) and, in ``experiments.runs``, the work they do. Neither is
+installed by ``pip install gpg``; both use only gpg's public API (docs/design.md, "Layout")."""

@@ -20,9 +20,9 @@ import jax
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from gpg import _interrupt
 from gpg.checkpoint import CheckpointError
 from gpg.linalg.memory import InsufficientMemory
+from gpg.runtime import deferred_interrupt
 
 jax.config.update("jax_enable_x64", True)
 
@@ -49,13 +49,14 @@ def run_dir() -> Path:
 
 
 def guarded(work: Callable[[], Any]) -> None:
-    """Run an entry point's ``work`` with Ctrl-C taken at safe points (:mod:`gpg._interrupt`):
-    a bad input or too little memory prints ``error: ...`` and exits 2, a Ctrl-C prints that
-    nothing was kept and exits 130. A failed run removes its run directory when it holds
-    nothing but Hydra's own files (its config and a log of the failure)."""
+    """Run an entry point's ``work`` with Ctrl-C taken at safe points
+    (:func:`gpg.runtime.deferred_interrupt`): a bad input or too little memory prints
+    ``error: ...`` and exits 2, a Ctrl-C prints that nothing was kept and exits 130. A failed
+    run removes its run directory when it holds nothing but Hydra's own files (its config and
+    a log of the failure)."""
     out = run_dir()
     try:
-        with _interrupt.deferred():
+        with deferred_interrupt():
             work()
     except KeyboardInterrupt:
         print(

@@ -4,7 +4,7 @@ import hydra
 from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
-from gpg.runs import bench
+from experiments.runs import bench
 
 
 @hydra.main(config_path="../conf", config_name="bench", version_base="1.3")

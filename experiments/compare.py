@@ -4,10 +4,10 @@ import hydra
 from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
+from experiments.runs import compare
+from experiments.runs.common import conf
 from gpg import conf as gpg_conf
 from gpg import models
-from gpg.runs import compare
-from gpg.runs.common import conf
 
 
 def model_configs(cfg: dict) -> dict[str, dict]:

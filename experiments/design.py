@@ -5,7 +5,7 @@ import hydra
 from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
-from gpg.runs import design
+from experiments.runs import design
 
 
 @hydra.main(config_path="../conf", config_name="design", version_base="1.3")

@@ -4,7 +4,7 @@ import hydra
 from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
-from gpg.runs import flight_logs
+from experiments.runs import flight_logs
 
 
 @hydra.main(config_path="../conf", config_name="flight_logs", version_base="1.3")

@@ -4,7 +4,7 @@ import hydra
 from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
-from gpg.runs import generate_data
+from experiments.runs import generate_data
 
 
 @hydra.main(config_path="../conf", config_name="generate_data", version_base="1.3")

@@ -4,7 +4,7 @@ import hydra
 from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
-from gpg.runs import simulate
+from experiments.runs import simulate
 
 
 @hydra.main(config_path="../conf", config_name="simulate", version_base="1.3")

@@ -48,16 +48,22 @@ import threading
 import uuid
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 
 from gpg import models
 from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
+
+if TYPE_CHECKING:
+    from gpg.surrogate import Surrogate
+
+__all__ = ["FORMAT_VERSION", "CheckpointError", "load", "read_metadata", "save", "version_dir"]
 
 FORMAT = "gpg-surrogate"
 FORMAT_VERSION = 11  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
@@ -239,10 +245,26 @@ def _summary(sur) -> dict[str, Any]:
     return out
 
 
-def save(path: str | Path, surrogate, *, overwrite: bool = False) -> Path:
-    """Write ``surrogate`` to the directory ``path`` (atomically; see the module docstring);
-    returns the path. ``overwrite=False`` fails if ``path`` exists, also when another process
-    creates it while this one writes."""
+def save(path: str | Path, surrogate: Surrogate, *, overwrite: bool = False) -> Path:
+    """Write ``surrogate`` to the directory ``path``, atomically (see the module docstring).
+
+    A failed save leaves nothing behind, and a reader never sees a half-written checkpoint.
+
+    Args:
+        path: the checkpoint directory; its parent is created if needed.
+        surrogate: the surrogate to save.
+        overwrite: replace a checkpoint at ``path`` (a new version, then ``CURRENT`` switched);
+            False fails if ``path`` exists, also when another process creates it while this
+            one writes.
+
+    Returns:
+        The absolute path of the checkpoint.
+
+    Raises:
+        ValueError: if ``surrogate`` is not a :class:`gpg.Surrogate`.
+        CheckpointError: if ``path`` exists and is not a directory, exists without
+            ``overwrite``, or its directory is not writable.
+    """
     from gpg.surrogate import Surrogate
 
     if not isinstance(surrogate, Surrogate):
@@ -366,7 +388,18 @@ def _current(path: Path) -> str | None:
 
 
 def version_dir(path: str | Path) -> Path:
-    """The directory of the checkpoint's current version (``path`` itself for version 4)."""
+    """The directory of the checkpoint's current version.
+
+    Args:
+        path: the checkpoint directory.
+
+    Returns:
+        ``<path>/v-<id>`` as ``CURRENT`` names it; ``path`` itself for format version 4.
+
+    Raises:
+        CheckpointError: if ``CURRENT`` is missing beside versions, damaged, or names a
+            version the checkpoint does not hold.
+    """
     path = Path(path).absolute()
     return _version_path(path, _current(path))
 
@@ -384,8 +417,19 @@ def _version_path(path: Path, name: str | None) -> Path:
 
 
 def read_metadata(path: str | Path) -> dict[str, Any]:
-    """The checkpoint's metadata (of its current version), after checking format and
-    version."""
+    """The metadata of the checkpoint's current version, without loading its arrays.
+
+    Args:
+        path: the checkpoint directory.
+
+    Returns:
+        The contents of ``metadata.json``: format and version, model name and config, output
+            names, normalisation, hyperparameters, partition, and the arrays' shapes and checksums.
+
+    Raises:
+        CheckpointError: if there is no checkpoint at ``path``, the metadata are missing or
+            fail their checksum, or the format or its version is not one this gpg reads.
+    """
     path = Path(path).absolute()
     if not path.is_dir():
         raise CheckpointError(f"no checkpoint at {path}")
@@ -414,10 +458,24 @@ def _read_metadata(where: Path) -> dict[str, Any]:
     return meta
 
 
-def load(path: str | Path, *, dtype=None):
-    """Read a :class:`~gpg.surrogate.Surrogate` written by :func:`save`: bit for bit as saved,
-    or converted to ``dtype`` when given (e.g. ``jnp.float32``, :meth:`Surrogate.astype`).
-    Safe against a concurrent ``save(..., overwrite=True)`` of the same path."""
+def load(path: str | Path, *, dtype: DTypeLike | None = None) -> Surrogate:
+    """Read a :class:`~gpg.surrogate.Surrogate` written by :func:`save`.
+
+    Every checksum is checked before orbax reads anything. Safe against a concurrent
+    ``save(..., overwrite=True)`` of the same path: the reader then loads the new version.
+
+    Args:
+        path: the checkpoint directory.
+        dtype: convert every float array to it (e.g. ``jnp.float32``,
+            :meth:`Surrogate.astype`); None loads them bit for bit as saved.
+
+    Returns:
+        The surrogate, which predicts exactly what the saved one did (without ``dtype``).
+
+    Raises:
+        CheckpointError: if there is no checkpoint at ``path``, or it is damaged,
+            incomplete or of a format version this gpg does not read, naming the file.
+    """
     path = Path(path).absolute()
     if not path.is_dir():
         raise CheckpointError(f"no checkpoint at {path}")

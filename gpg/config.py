@@ -30,6 +30,16 @@ from gpg.gp.partition import SCHEMES
 from gpg.gp.schur import check_options
 from gpg.linalg.device import PLACEMENTS
 
+__all__ = [
+    "HyperConfig",
+    "InducingConfig",
+    "ModelConfig",
+    "NearConfig",
+    "PartitionConfig",
+    "SolverConfig",
+    "package_defaults",
+]
+
 DTYPES = ("float64", "float32")  # storage of the variance factors
 
 
@@ -81,8 +91,13 @@ class HyperConfig:
     cg_max_iter: int = 500  # iteration budget of each of those solves
 
     def fit_options(self) -> FitOptions:
-        """The likelihood fit on the subset, as :func:`gpg.gp.fit.fit_hyperparameters` takes
-        it (:class:`gpg.gp.fit.FitOptions`)."""
+        """The likelihood fit on the subset, as :func:`gpg.gp.fit.fit_hyperparameters` takes it.
+
+        Returns:
+            The fit's options (:class:`gpg.gp.fit.FitOptions`) of this config: ARD, which
+                noises are fitted (``ν²`` with its start and floor, the gradient-noise scale
+                ``s``), the subset size and seed, and the BFGS steps.
+        """
         return FitOptions(
             ard=self.ard,
             fit_grad_noise=self.fit_grad_noise,
@@ -95,8 +110,17 @@ class HyperConfig:
         )
 
     def full_options(self, noise_init: float) -> FitOptions:
-        """The refit on all points by the stochastic likelihood (``full``), started at the
-        ``ν²/σ`` ``noise_init``."""
+        """The refit on all points by the stochastic likelihood (``full``).
+
+        Args:
+            noise_init: the ``ν²/σ`` it starts from (the subset fit's, in
+                :func:`gpg.models.fit_hyper`).
+
+        Returns:
+            :meth:`fit_options` on every point (no subset), with ``full_max_steps`` BFGS steps
+                and the :class:`gpg.gp.fit.Stochastic` settings (probes, CG tolerances and budget,
+                ``full_ftol``).
+        """
         return dataclasses.replace(
             self.fit_options(),
             noise_init=noise_init,
@@ -171,7 +195,15 @@ class PartitionConfig:
         _int("partition.dim", self.dim)
 
     def n_bins(self, n_points: int) -> int:
-        """Bins for ``n_points`` training points: ``points_per_bin`` when set, else ``bins``."""
+        """The number of bins for a training set.
+
+        Args:
+            n_points: the training points.
+
+        Returns:
+            About ``n_points / points_per_bin`` (at least 1, at most ``n_points``) when
+                ``points_per_bin`` is set, else ``bins``.
+        """
         if self.points_per_bin is not None:
             return int(min(max(1, round(n_points / self.points_per_bin)), n_points))
         return self.bins
@@ -200,7 +232,12 @@ class NearConfig:
             raise ValueError("near needs one of epsilon, points and budget")
 
     def rule(self) -> dict[str, Any]:
-        """The keyword of :func:`gpg.gp.partition.near_sets` this config selects."""
+        """The keyword of :func:`gpg.gp.partition.near_sets` this config selects.
+
+        Returns:
+            One of ``{"epsilon": ...}``, ``{"points": ...}`` or ``{"budget": ...}``, in that
+                order of precedence.
+        """
         if self.epsilon is not None:
             return {"epsilon": self.epsilon}
         if self.points is not None:
@@ -288,10 +325,21 @@ class ModelConfig:
         overrides: Mapping[str, Any] | ModelConfig | None = None,
         defaults: Mapping[str, Any] | None = None,
     ) -> ModelConfig:
-        """Shared defaults, then model ``name``'s own ``defaults`` (by default its
-        ``gpg/conf/model/<name>.yaml``, :func:`package_defaults`), then ``overrides``; unknown
-        keys and bad values raise ``ValueError`` naming them. A :class:`ModelConfig` is taken
-        as it is (already resolved)."""
+        """Shared defaults, then model ``name``'s own defaults, then ``overrides``.
+
+        Args:
+            name: the model name, whose ``gpg/conf/model/<name>.yaml`` holds its defaults.
+            overrides: nested keys to change, e.g. ``{"hyper": {"subset": 60}}`` (a ``name``
+                key is ignored), or a :class:`ModelConfig`, taken as it is (already resolved).
+            defaults: the model's own defaults; None reads them with :func:`package_defaults`.
+
+        Returns:
+            The resolved, checked config.
+
+        Raises:
+            ValueError: if ``overrides`` is not a mapping, or a key is unknown or a value bad
+                (the message names it).
+        """
         if isinstance(overrides, ModelConfig):
             return overrides
         if overrides is not None and not isinstance(overrides, Mapping):
@@ -307,14 +355,26 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> ModelConfig:
-        """From a complete mapping (as :meth:`to_dict` writes it, old key names included)."""
+        """From a complete mapping, as :meth:`to_dict` writes it.
+
+        Args:
+            d: every section and switch; the old key names of :data:`RENAMED_KEYS` are read
+                with a ``DeprecationWarning``.
+
+        Returns:
+            The config, every field checked.
+        """
         kw = {}
         for k, v in renamed_keys(d).items():
             kw[k] = _SECTIONS[k](**v) if k in _SECTIONS else v
         return cls(**kw)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain values (JSON-ready): lengthscale tuples become lists."""
+        """Plain values, JSON-ready.
+
+        Returns:
+            A nested dict of every field; a lengthscale tuple becomes a list.
+        """
         out = dataclasses.asdict(self)
         ls = out["hyper"]["lengthscale"]
         if isinstance(ls, tuple):
@@ -368,8 +428,16 @@ def merge(base: Mapping[str, Any], over: Mapping[str, Any] | None, where: str) -
 
 
 def package_defaults(name: str) -> dict[str, Any]:
-    """Model ``name``'s own defaults as its ``gpg/conf/model/<name>.yaml`` states them (the file
-    Hydra composes over ``_base.yaml``), or none for a name without a file."""
+    """Model ``name``'s own defaults as its ``gpg/conf/model/<name>.yaml`` states them.
+
+    That file is the one Hydra composes over ``_base.yaml``.
+
+    Args:
+        name: the model name.
+
+    Returns:
+        The file's keys other than ``defaults`` and ``name``; empty for a name without a file.
+    """
     text = conf.read_text("model", name)
     if text is None:
         return {}

@@ -46,8 +46,31 @@ from gpg.gp.predictor import Predictor
 from gpg.kinds import KINDS, Arrays, Kind, base
 from gpg.linalg import memory
 from gpg.names import GRAD_DIMS
+from gpg.parallel import Devices
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
+
+__all__ = [
+    "NAMES",
+    "SPECS",
+    "Built",
+    "Spec",
+    "build",
+    "build_partition",
+    "check_feasible",
+    "check_finite_model",
+    "fit_hyper",
+    "gradient_arrays",
+    "model_defaults",
+    "reads",
+    "register",
+    "required_bytes",
+    "resolve_config",
+    "restrict",
+    "train",
+    "training_arrays",
+    "unregister",
+]
 
 DATA = ("values", "gradients", "raw")  # what a model trains on (see Spec.data)
 
@@ -70,18 +93,22 @@ class Spec:
 
     @property
     def gradients(self) -> bool:
+        """Whether the model trains on the base points with their gradients."""
         return self.data == "gradients"
 
     @property
     def raw(self) -> bool:
+        """Whether the model trains on every raw 8X sample."""
         return self.data == "raw"
 
     @property
     def partitioned(self) -> bool:
+        """Whether the model's kind cuts the inputs into bins."""
         return self.kind.partitioned
 
     @property
     def schur(self) -> bool:
+        """Whether the model is built by the paper's Schur complement (``gpgs_schur``)."""
         return self.kind.name == "schur"
 
 
@@ -103,9 +130,22 @@ _DEFAULTS: dict[str, dict[str, Any]] = {}  # defaults of models registered in co
 def register(
     name: str, kind: Kind, data: str, title: str, defaults: Mapping[str, Any] | None = None
 ) -> None:
-    """Add model ``name``: ``kind`` on ``data`` (see :class:`Spec`), with its own ``defaults``
-    over the shared ones (a built-in model keeps them in ``gpg/conf/model/<name>.yaml``).
-    It then builds, checkpoints and compares like the built-in ones (docs/design.md)."""
+    """Add model ``name``, which then builds, checkpoints and compares like the built-in ones.
+
+    See docs/design.md, "Kinds of model, and adding one".
+
+    Args:
+        name: the new model's name, a Python identifier not yet in :data:`SPECS`.
+        kind: the :class:`~gpg.kinds.Kind` that builds it.
+        data: what it trains on, ``"values"``, ``"gradients"`` or ``"raw"`` (:class:`Spec`).
+        title: its name in tables and figures.
+        defaults: its own defaults over the shared ones, as a built-in model keeps them in
+            ``gpg/conf/model/<name>.yaml``; None for none.
+
+    Raises:
+        ValueError: if ``name`` is not an identifier or is already registered, or ``data``,
+            ``kind`` or ``defaults`` are not valid (checked before anything is registered).
+    """
     global NAMES
     if not name.isidentifier():
         raise ValueError(f"model name must be an identifier, got {name!r}")
@@ -119,7 +159,14 @@ def register(
 
 
 def unregister(name: str) -> None:
-    """Remove a model added by :func:`register` (the built-in ones stay)."""
+    """Remove a model added by :func:`register`.
+
+    Args:
+        name: the model's name.
+
+    Raises:
+        ValueError: if ``name`` was not added by :func:`register` (a built-in model stays).
+    """
     global NAMES
     if name not in _DEFAULTS:
         raise ValueError(f"model {name!r} was not added by register()")
@@ -128,21 +175,51 @@ def unregister(name: str) -> None:
 
 
 def reads(name: str) -> tuple[str, ...]:
-    """The top-level config keys model ``name`` reads (``hyper`` and its kind's options)."""
+    """The top-level config keys model ``name`` reads.
+
+    Args:
+        name: a model name of :data:`NAMES`.
+
+    Returns:
+        ``"hyper"`` and the options of the model's kind (:attr:`gpg.kinds.Kind.reads`).
+
+    Raises:
+        ValueError: if ``name`` is not a known model.
+    """
     return ("hyper", *SPECS[_known(name)].kind.reads)
 
 
 def restrict(name: str, overrides: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The top-level keys of ``overrides`` that model ``name`` reads (:func:`reads`): one
-    mapping of options for several models, each given what applies to it (the comparison's
-    ``model_overrides``)."""
+    """The top-level keys of ``overrides`` that model ``name`` reads (:func:`reads`).
+
+    One mapping of options serves several models, each given what applies to it (the
+    comparison's ``model_overrides``).
+
+    Args:
+        name: a model name of :data:`NAMES`.
+        overrides: options for several models; None for none.
+
+    Returns:
+        The entries of ``overrides`` whose key the model reads.
+
+    Raises:
+        ValueError: if ``name`` is not a known model.
+    """
     read = reads(name)
     return {k: v for k, v in (overrides or {}).items() if k in read}
 
 
 def model_defaults(name: str) -> dict[str, Any]:
-    """Model ``name``'s own defaults over the shared ones: its ``gpg/conf/model/<name>.yaml``
-    (:func:`gpg.config.package_defaults`) or what :func:`register` was given."""
+    """Model ``name``'s own defaults over the shared ones.
+
+    Args:
+        name: a model name.
+
+    Returns:
+        The defaults given to :func:`register` for the model, else its
+            ``gpg/conf/model/<name>.yaml`` (:func:`gpg.config.package_defaults`; empty without
+            a file).
+    """
     if name in _DEFAULTS:
         return dict(_DEFAULTS[name])
     return package_defaults(name)
@@ -155,11 +232,25 @@ def _known(name: str) -> str:
 
 
 def resolve_config(name: str, cfg: Mapping[str, Any] | ModelConfig | None = None) -> ModelConfig:
-    """Model ``name``'s :class:`~gpg.config.ModelConfig`: the shared defaults, the model's own
-    (:func:`model_defaults`), then ``cfg``; unknown names, keys and values raise ``ValueError``
-    naming them (before any data is touched), and so does a key the model's kind does not read
-    set away from its default (``gpg`` with a partition, ``gpgs_schur`` with another route than
-    its own). A :class:`ModelConfig` is taken as it is, and checked the same way."""
+    """Model ``name``'s :class:`~gpg.config.ModelConfig`, checked before any data is touched.
+
+    The shared defaults, then the model's own (:func:`model_defaults`), then ``cfg``. A key the
+    model's kind does not read may not be set away from the model's default: ``gpg`` with a
+    partition, or ``gpgs_schur`` with another route than its own, is refused rather than
+    silently ignored.
+
+    Args:
+        name: a model name of :data:`NAMES`.
+        cfg: overrides such as ``{"hyper": {"subset": 60}}``, or a :class:`ModelConfig`,
+            taken as it is and checked the same way; None for the model's defaults.
+
+    Returns:
+        The resolved config.
+
+    Raises:
+        ValueError: for an unknown name, key or value, or a key the model's kind does not
+            read set away from its default, naming it.
+    """
     _known(name)
     defaults = model_defaults(name)
     own = ModelConfig.resolve(name, None, defaults)
@@ -195,13 +286,25 @@ def _first_difference(where: str, a: Any, b: Any) -> str:
 def build_partition(
     X: np.ndarray, cfg: ModelConfig, Y: np.ndarray | None = None
 ) -> partition.Partition:
-    """The partition a resolved config asks for (:func:`gpg.kinds.base.build_partition`)."""
+    """The partition a resolved config asks for (:func:`gpg.kinds.base.build_partition`).
+
+    Args:
+        X: (N, D) normalised training inputs.
+        cfg: the resolved config; its ``partition`` section (scheme, bins, dim) is read.
+        Y: (N, M) normalised targets, which the ``adaptive`` scheme needs; None otherwise.
+
+    Returns:
+        The bins of the training points.
+    """
     return base.build_partition(X, cfg, Y)
 
 
 @dataclass
 class Built:
     """A built model and how it was built (timings in seconds, resolved config).
+
+    ``timings`` holds the seconds of each build step (``hyper_s`` for the fit, then the
+    kind's); ``near`` the near sets of a partitioned kind (None otherwise).
 
     ``diagnostics`` holds what was measured at build time: for ``gpgs_schur`` the far-set
     correlations that its ``k_qf ≈ 0`` assumption needs small (:func:`schur.far_correlation`),
@@ -219,12 +322,25 @@ class Built:
 
     @property
     def train_s(self) -> float:
+        """The build's seconds, all steps together."""
         return sum(self.timings.values())
 
 
 def training_arrays(name: str, training: Training) -> Arrays:
-    """The :class:`~gpg.kinds.Arrays` model ``name`` trains on, or a ``ValueError`` saying what
-    the dataset lacks."""
+    """The :class:`~gpg.kinds.Arrays` model ``name`` trains on.
+
+    Args:
+        name: a model name of :data:`NAMES`.
+        training: the prepared data (:func:`gpg.data.prepare`).
+
+    Returns:
+        The raw 8X samples, the base points with their gradients, or the base points alone,
+            as the model's :class:`Spec` says.
+
+    Raises:
+        ValueError: if ``name`` is unknown, or the data lack what the model trains on (the raw
+            samples, or the gradients), saying which.
+    """
     spec = SPECS[_known(name)]
     if spec.raw:
         if training.X_raw is None:
@@ -242,9 +358,20 @@ def training_arrays(name: str, training: Training) -> Arrays:
 def gradient_arrays(
     X: np.ndarray, Y: np.ndarray, dY: np.ndarray, bases: np.ndarray | None = None
 ) -> Arrays:
-    """Arrays with gradients; NaN in ``dY`` marks a gradient dim a case was not run for (all
-    outputs alike, :attr:`gpg.data.Dataset.gradient_mask`), which becomes ``observed``;
-    ``bases`` the directions of the gradient columns (:attr:`gpg.data.Dataset.grad_dirs`)."""
+    """Training arrays with gradients along :data:`gpg.names.GRAD_DIMS`.
+
+    Args:
+        X: (N, D) normalised inputs.
+        Y: (N, M) normalised targets.
+        dY: (N, M, G) their gradients; NaN marks a gradient dim a case was not run for (all
+            outputs alike, :attr:`gpg.data.Dataset.gradient_mask`).
+        bases: (N, G, G) the directions of the gradient columns
+            (:attr:`gpg.data.Dataset.grad_dirs`); None for the coordinate directions.
+
+    Returns:
+        The training arrays (:class:`~gpg.kinds.Arrays`); where ``dY`` has NaN, those
+            entries are zeroed and ``observed`` marks the gradients each case has.
+    """
     missing = np.isnan(dY)
     if not missing.any():
         return Arrays(X, Y, dY, GRAD_DIMS, bases=bases)
@@ -252,6 +379,7 @@ def gradient_arrays(
 
 
 def initial_hyper(cfg: ModelConfig, n_inputs: int, dY: np.ndarray | None) -> Hyper:
+    """The configured hyperparameters: the fit's start, or the values used without a fit."""
     h = cfg.hyper
     ls = np.asarray(h.lengthscale, float)
     if ls.shape not in ((), (n_inputs,)):
@@ -271,8 +399,21 @@ def initial_hyper(cfg: ModelConfig, n_inputs: int, dY: np.ndarray | None) -> Hyp
 def fit_hyper(
     name: str, training: Training, cfg: Mapping[str, Any] | ModelConfig | None = None
 ) -> tuple[Hyper, HyperFitResult | None, float]:
-    """Hyperparameters for ``name``: fitted by marginal likelihood or the configured values,
-    then the lengthscales multiplied by ``hyper.lengthscale_scale``."""
+    """Hyperparameters for model ``name``: fitted, or the configured values.
+
+    The fit maximises the marginal likelihood on a subset (``hyper.subset``), then, with
+    ``hyper.full``, refits on every point by the stochastic likelihood from the subset's
+    optimum. Either way the lengthscales are then multiplied by ``hyper.lengthscale_scale``.
+
+    Args:
+        name: a model name of :data:`NAMES`; it decides the training arrays.
+        training: the prepared data (:func:`gpg.data.prepare`).
+        cfg: the model's options (:func:`resolve_config`).
+
+    Returns:
+        The hyperparameters (σ², l, ν², λ_i²), the fit's result (None without a fit), and
+            the fit's seconds (0 without one).
+    """
     cfg = resolve_config(name, cfg)
     arrays = training_arrays(name, training)
     X, Y, dY, dims = arrays.X, arrays.Y, arrays.dY, arrays.dims
@@ -308,8 +449,10 @@ def _noise_ratio(res: HyperFitResult, h) -> float:
 
 
 def check_scaled_inputs(X: np.ndarray, hyper: Hyper) -> None:
-    """The kernel divides the inputs by the lengthscales: a lengthscale so small that ``x/l``
-    overflows (1e-300 on inputs in [−1, 1]) would give a model that answers NaN everywhere."""
+    """Refuse a lengthscale so small that ``x/l`` overflows (1e-300 on inputs in [−1, 1]).
+
+    The kernel divides the inputs by the lengthscales: such a model would answer NaN
+    everywhere."""
     ls = np.asarray(hyper.lengthscale, dtype=float)
     with np.errstate(all="ignore"):
         r2 = np.sum((np.asarray(X) / ls) ** 2, axis=1)
@@ -321,8 +464,17 @@ def check_scaled_inputs(X: np.ndarray, hyper: Hyper) -> None:
 
 
 def check_finite_model(name: str, model: Predictor) -> None:
-    """Every array a built model holds is finite (else ``ValueError`` naming where): a fit
-    never returns a model that answers NaN for finite queries."""
+    """Check that every array a built model holds is finite.
+
+    A fit never returns a model that answers NaN for finite queries.
+
+    Args:
+        name: the model's name, for the message.
+        model: the built predictor.
+
+    Raises:
+        ValueError: naming the first array that holds NaN or inf.
+    """
     leaves = jax.tree_util.tree_leaves_with_path(eqx.filter(model, eqx.is_inexact_array))
     for path, leaf in leaves:
         if not np.all(np.isfinite(np.asarray(leaf))):
@@ -337,7 +489,19 @@ def check_finite_model(name: str, model: Predictor) -> None:
 def required_bytes(
     name: str, cfg: Mapping[str, Any] | ModelConfig | None, n_points: int, n_grad: int
 ) -> int:
-    """Peak bytes the build of ``name`` needs beyond the data, estimated from sizes alone."""
+    """The peak bytes the build of model ``name`` needs beyond the data.
+
+    Estimated from the sizes alone, before any data exist (:meth:`gpg.kinds.Kind.required_bytes`).
+
+    Args:
+        name: a model name of :data:`NAMES`.
+        cfg: the model's options (:func:`resolve_config`).
+        n_points: the training points N.
+        n_grad: the gradient dims G per point.
+
+    Returns:
+        The estimate, in bytes.
+    """
     cfg = resolve_config(name, cfg)
     return SPECS[name].kind.required_bytes(cfg, n_points, n_grad)
 
@@ -345,9 +509,21 @@ def required_bytes(
 def check_feasible(
     name: str, cfg: Mapping[str, Any] | ModelConfig | None, training: Training
 ) -> None:
-    """Everything that can be checked before any heavy work: the data the model needs, sizes
-    against the data (bins, inducing points), and memory. Raises ``ValueError`` or
-    :class:`gpg.linalg.memory.InsufficientMemory` with one clear message."""
+    """Check everything that can be checked before any heavy work, with one clear message.
+
+    The data the model needs, its sizes against the data (bins, inducing points), and memory.
+
+    Args:
+        name: a model name of :data:`NAMES`.
+        cfg: the model's options (:func:`resolve_config`).
+        training: the prepared data (:func:`gpg.data.prepare`).
+
+    Raises:
+        ValueError: if the data lack what the model trains on, its sizes do not fit the data,
+            or it cannot train on directional or partial gradients the data have.
+        gpg.linalg.memory.InsufficientMemory: if the build would not fit in the memory
+            available.
+    """
     cfg = resolve_config(name, cfg)
     arrays = training_arrays(name, training)
     n = arrays.X.shape[0]
@@ -377,12 +553,31 @@ def build(
     cfg: Mapping[str, Any] | ModelConfig | None = None,
     *,
     hyper: Hyper | None = None,
-    devices=None,
+    devices: Devices = None,
 ) -> Built:
-    """Build model ``name`` on ``training`` (see the module table): check, fit the
-    hyperparameters (``hyper`` skips the fit), then the kind's build (:mod:`gpg.kinds`).
-    ``devices`` spreads the kinds' per-bin precompute (``gps_*``, ``gpgs``, the hybrid's
-    variance, ``gpg_pic``) over JAX devices (:mod:`gpg.parallel`; None: one process, LAPACK)."""
+    """Build model ``name`` on ``training`` (see the module table).
+
+    Checks first (:func:`check_feasible`), then fits the hyperparameters (:func:`fit_hyper`),
+    then the kind's build (:mod:`gpg.kinds`); the built model is refused if any of its arrays
+    is not finite.
+
+    Args:
+        name: a model name of :data:`NAMES`.
+        training: the prepared data (:func:`gpg.data.prepare`).
+        cfg: the model's options (:func:`resolve_config`).
+        hyper: hyperparameters to use instead of fitting them.
+        devices: a count or a list of JAX devices over which the kinds' per-bin precompute
+            (``gps_*``, ``gpgs``, the hybrid's variance, ``gpg_pic``) is spread
+            (:mod:`gpg.parallel`); None for one process, LAPACK.
+
+    Returns:
+        The model with its config, hyperparameters, fit result and timings.
+
+    Raises:
+        ValueError: as :func:`resolve_config`, :func:`check_feasible` and
+            :func:`check_finite_model` raise it.
+        gpg.linalg.memory.InsufficientMemory: if the build would not fit in memory.
+    """
     cfg = resolve_config(name, cfg)
     check_feasible(name, cfg, training)
     arrays = training_arrays(name, training)
@@ -410,15 +605,28 @@ def train(
     *,
     noise_model: SimpleNoise | None = None,
     hyper_cache: dict | None = None,
-    devices=None,
+    devices: Devices = None,
 ) -> tuple[Training, Built]:
-    """The one path from a dataset to a built model: :func:`gpg.data.prepare` (residuals
-    against ``simple`` and, if given, ``noise_model`` = ``M_noise``; normalisation), then
-    :func:`build`. With ``hyper_cache`` (a dict kept
-    by the caller) the hyperparameters are fitted once per training arrays (raw samples or
-    not, gradients or not) and hyperparameter config, and shared by every model that matches:
-    the paper's comparison fits them once for all models on the same points. ``devices`` as
-    for :func:`build`."""
+    """The one path from a dataset to a built model: :func:`gpg.data.prepare`, then :func:`build`.
+
+    The paper's comparison fits the hyperparameters once for all models on the same points:
+    that is what ``hyper_cache`` is for.
+
+    Args:
+        name: a model name of :data:`NAMES`.
+        dataset: the training data.
+        simple: the simplified model ``M`` the residuals are taken against; None fits the raw
+            outputs.
+        cfg: the model's options (:func:`resolve_config`).
+        noise_model: ``M_noise``, subtracted from the levels too; None for none.
+        hyper_cache: a dict kept by the caller; the hyperparameters are then fitted once per
+            kind of training arrays (raw samples or not, gradients or not) and hyperparameter
+            config, and shared by every model that matches.
+        devices: as for :func:`build`.
+
+    Returns:
+        The prepared data and the built model.
+    """
     cfg = resolve_config(name, cfg)
     training = prepare(dataset, simple, noise_model)
     hyper = fit_res = None

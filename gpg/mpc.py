@@ -19,7 +19,7 @@ diagonal approximation): what cautious MPC propagates, ``Σ_{k+1} = A Σ_k Aᵀ 
 rolled out with any flat dynamics, weighted by ``exp(−cost/temperature)``, and averaged into
 the next nominal sequence; one jitted call per control step, warm-started from the previous
 solution. The cost is any function of the rolled-out states and controls, so a variance term
-(caution) enters through the cost (see :mod:`gpg.runs.mpc` for the example).
+(caution) enters through the cost (see ``experiments.runs.mpc`` for the example).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from gpg._identity import ByIdentity
 from gpg._precision import highest
@@ -39,16 +39,38 @@ from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.surrogate import Surrogate, SurrogateAero, predict_state
 
+__all__ = ["STATE_SIZE", "MPPI", "Dynamics", "Linearization", "pack", "propagate", "unpack"]
+
 STATE_SIZE = 17
 
 
 def pack(s: State) -> Float[Array, " 17"]:
-    """A :class:`State` as the flat vector ``[p, v, q, ω, rpm]``."""
+    """A :class:`State` as the flat vector ``[p, v, q, ω, rpm]``.
+
+    Args:
+        s: the vehicle's state.
+
+    Returns:
+        The (17,) flat state.
+    """
     return jnp.concatenate([s.p, s.v, s.q, s.w, s.rpm])
 
 
 def unpack(x: Float[Array, " 17"]) -> State:
-    """The flat vector ``[p, v, q, ω, rpm]`` as a :class:`State` (``q`` normalised)."""
+    """The flat vector ``[p, v, q, ω, rpm]`` as a :class:`State`.
+
+    The quaternion is normalised, so that a state moved by an optimiser off the unit sphere
+    still reads as a rotation.
+
+    Args:
+        x: the (17,) flat state.
+
+    Returns:
+        The vehicle's state, ``q`` normalised.
+
+    Raises:
+        ValueError: if the last axis of ``x`` is not of size 17.
+    """
     x = jnp.asarray(x)
     if x.shape[-1:] != (STATE_SIZE,):
         raise ValueError(f"a flat state has {STATE_SIZE} entries, got shape {x.shape}")
@@ -90,8 +112,21 @@ class Dynamics(ByIdentity):
         *,
         wind: Wind | None = None,
     ) -> Dynamics:
-        """Dynamics of ``vehicle`` on ``aero`` (a :class:`gpg.Surrogate`, ``M`` or any
-        ``AeroModel``) with steps of ``dt`` s in ``wind`` (default calm)."""
+        """Dynamics of ``vehicle`` flown on ``aero``, one RK4 step of ``dt`` per call.
+
+        Args:
+            vehicle: the rigid body and motors.
+            aero: a :class:`gpg.Surrogate` (its mean; its variance for :meth:`variance`),
+                ``M`` or any ``AeroModel`` (variance zero).
+            dt: the step (s), a positive number.
+            wind: the wind the vehicle flies in, known to the model; None for calm air.
+
+        Returns:
+            The flat dynamics.
+
+        Raises:
+            ValueError: if ``dt`` is not a positive number or ``aero`` is of another type.
+        """
         if not (isinstance(dt, int | float) and dt > 0):
             raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
         sur = aero if isinstance(aero, Surrogate) else None
@@ -110,16 +145,44 @@ class Dynamics(ByIdentity):
     def __call__(
         self, x: Float[Array, " 17"], u: Float[Array, " 4"], t: Float[Array, ""]
     ) -> Float[Array, " 17"]:
-        """``x_next`` after one step of ``dt`` from ``x`` under rotor commands ``u`` at ``t``."""
+        """``x_next`` after one step of ``dt`` from ``x`` under rotor commands ``u`` at ``t``.
+
+        Args:
+            x: the (17,) flat state.
+            u: (4,) rotor-speed commands (rpm).
+            t: the time (s) at the start of the step.
+
+        Returns:
+            The (17,) flat state one step later.
+
+        Raises:
+            ValueError: if ``x`` or ``u`` is not a float array of its shape.
+        """
         x, u = _check(x, u)
         new, _ = self.quad.step(unpack(x), u, jnp.asarray(t, x.dtype), self.dt, self.wind)
         return pack(new)
 
     @highest
-    def variance(self, x: Float[Array, " 17"], u: Float[Array, " 4"], t) -> Float[Array, " 6"]:
-        """The surrogate's predictive variance of the aerodynamic force and moment (body frame)
-        where the step from ``(x, u)`` evaluates it (the state's rotor speeds, attitude and
-        airspeed); zeros without a surrogate."""
+    def variance(
+        self, x: Float[Array, " 17"], u: Float[Array, " 4"], t: Float[ArrayLike, ""]
+    ) -> Float[Array, " 6"]:
+        """The surrogate's predictive variance of the aerodynamic force and moment.
+
+        Evaluated where the step from ``(x, u)`` starts: the state's rotor speeds, attitude
+        and airspeed (``u`` is checked but not read: the motors lag the command).
+
+        Args:
+            x: the (17,) flat state.
+            u: (4,) rotor-speed commands (rpm).
+            t: the time (s), for the wind.
+
+        Returns:
+            (6,) the variance of force (N²) and moment (N²·m²), body frame; zeros without a
+            surrogate.
+
+        Raises:
+            ValueError: if ``x`` or ``u`` is not a float array of its shape.
+        """
         x, u = _check(x, u)
         if self.surrogate is None:
             return jnp.zeros(6, x.dtype)
@@ -132,8 +195,24 @@ class Dynamics(ByIdentity):
     def linearize(
         self, x: Float[Array, " 17"], u: Float[Array, " 4"], t: Float[Array, ""]
     ) -> Linearization:
-        """Next state, ``A``, ``B``, the variance and its Jacobians at ``(x, u, t)`` (forward
-        mode; jit, vmap over a horizon)."""
+        """The step linearised at ``(x, u, t)``, with the model's variance and its Jacobians.
+
+        Forward-mode autodiff (jit it, vmap it over a horizon). The variance added to the next
+        state is a diagonal approximation: the velocity's is the world-frame diagonal of
+        ``R diag(σ_F²) Rᵀ`` over ``m²``, the body rates' ``σ_τ²/J²``, each times ``dt²``.
+
+        Args:
+            x: the (17,) flat state.
+            u: (4,) rotor-speed commands (rpm).
+            t: the time (s).
+
+        Returns:
+            The next state, ``A``, ``B``, the variance, its Jacobians in ``x`` and ``u`` and
+            the state variance it adds.
+
+        Raises:
+            ValueError: if ``x`` or ``u`` is not a float array of its shape.
+        """
         x, u = _check(x, u)
         x_next, (A, B) = _value_and_jacfwd(lambda a, b: self(a, b, t), x, u)
         var, (dvx, dvu) = _value_and_jacfwd(lambda a, b: self.variance(a, b, t), x, u)
@@ -152,9 +231,18 @@ class Dynamics(ByIdentity):
 def propagate(
     lin: Linearization, sigma0: Float[Array, "17 17"] | None = None
 ) -> Float[Array, "H 17 17"]:
-    """State covariances along a horizon of linearisations (``lin`` with a leading axis H):
-    ``Σ_{k+1} = A_k Σ_k A_kᵀ + diag(q_k)`` from ``sigma0`` (default zero): the tube that
-    cautious MPC tightens its constraints with (Hewing et al. 2020)."""
+    """State covariances along a horizon: ``Σ_{k+1} = A_k Σ_k A_kᵀ + diag(q_k)``.
+
+    The tube that cautious MPC tightens its constraints with (Hewing et al. 2020).
+
+    Args:
+        lin: linearisations with a leading axis H (:meth:`Dynamics.linearize` vmapped over
+            the horizon); ``q_k`` is their ``state_variance``.
+        sigma0: the (17, 17) initial covariance; None for zero.
+
+    Returns:
+        (H, 17, 17) the covariances after each step.
+    """
     n = lin.A.shape[-1]
     s0 = jnp.zeros((n, n), lin.A.dtype) if sigma0 is None else sigma0
 
@@ -200,8 +288,19 @@ class MPPI(ByIdentity):
             raise ValueError(f"temperature must be > 0, got {self.temperature}")
 
     @highest
-    def rollout(self, x0, us, t0):
-        """States after each control of ``us`` (H, m) from ``x0`` at ``t0``: (H, n)."""
+    def rollout(
+        self, x0: Float[Array, " n"], us: Float[Array, "H m"], t0: Float[ArrayLike, ""]
+    ) -> tuple[Float[Array, "H n"], Float[Array, " H"]]:
+        """One control sequence rolled out through the dynamics.
+
+        Args:
+            x0: (n,) the initial state.
+            us: (H, m) the controls, one per ``dt``.
+            t0: the initial time (s).
+
+        Returns:
+            The states after each control (H, n) and the times of the controls (H,).
+        """
         ts = t0 + self.dt * jnp.arange(self.horizon, dtype=x0.dtype)
 
         def step(x, ut):
@@ -213,11 +312,27 @@ class MPPI(ByIdentity):
 
     @highest
     def solve(
-        self, key: PRNGKeyArray, x0: Float[Array, " n"], u_nominal: Float[Array, "H m"], t0
+        self,
+        key: PRNGKeyArray,
+        x0: Float[Array, " n"],
+        u_nominal: Float[Array, "H m"],
+        t0: Float[ArrayLike, ""],
     ) -> tuple[Float[Array, "H m"], dict]:
-        """One MPPI update of ``u_nominal`` from state ``x0`` at time ``t0``: the new sequence
-        (apply its first control, then :meth:`shift` it to warm-start the next step) and the
-        sampled costs' summary."""
+        """One MPPI update of ``u_nominal``: apply the first control, :meth:`shift` the rest.
+
+        The first sample is the nominal itself, unperturbed; non-finite costs get weight
+        zero; the perturbed sequences are clipped to the control box.
+
+        Args:
+            key: the perturbations' randomness.
+            x0: (n,) the state.
+            u_nominal: (H, m) the nominal sequence (the previous solution, shifted).
+            t0: the time (s) of ``x0``.
+
+        Returns:
+            The new sequence (H, m) and the sampled costs' summary: ``cost_min``,
+            ``cost_nominal`` and ``effective_samples`` (``1/Σ w²``).
+        """
         m = u_nominal.shape[-1]
         eps = self._noise(key, m, x0.dtype)
         eps = eps.at[0].set(0.0)  # the nominal itself is always a candidate
@@ -251,7 +366,14 @@ class MPPI(ByIdentity):
 
     @staticmethod
     def shift(us: Float[Array, "H m"]) -> Float[Array, "H m"]:
-        """The sequence one control later, its last control repeated (the warm start)."""
+        """The sequence one control later, its last control repeated (the warm start).
+
+        Args:
+            us: (H, m) the controls.
+
+        Returns:
+            (H, m) the controls from the second on, the last one repeated.
+        """
         return jnp.concatenate([us[1:], us[-1:]])
 
 

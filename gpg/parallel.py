@@ -26,20 +26,41 @@ from typing import Any
 import jax
 import numpy as np
 
+__all__ = ["Devices", "chunks", "devices", "initialize", "map_units", "replicate"]
+
 Devices = int | Sequence[jax.Device] | None
 
 
-def initialize(**kwargs) -> None:
-    """Join a multi-host run: :func:`jax.distributed.initialize` with the cluster's environment
-    (SLURM, Open MPI and Kubernetes are detected; otherwise pass ``coordinator_address``,
-    ``num_processes`` and ``process_id``). Call it before anything else uses JAX."""
+def initialize(**kwargs: Any) -> None:
+    """Join a multi-host run: :func:`jax.distributed.initialize` with the cluster's environment.
+
+    SLURM, Open MPI and Kubernetes are detected from the environment; elsewhere the cluster is
+    described by the keywords. Call it before anything else uses JAX.
+
+    Args:
+        **kwargs: passed to :func:`jax.distributed.initialize`, e.g. ``coordinator_address``,
+            ``num_processes`` and ``process_id`` where the cluster is not detected.
+    """
     jax.distributed.initialize(**kwargs)
 
 
 def devices(spec: Devices) -> list[jax.Device]:
-    """The devices to spread work over: None or 1, the first device only (the single-device
-    path); an int n, the first n; or the given devices. Across hosts, the count is global and
-    each process uses its own (addressable) share of them."""
+    """The devices to spread work over.
+
+    Across hosts the count is global, and each process uses its own (addressable) share of
+    the devices.
+
+    Args:
+        spec: None or 1, the first device only (the single-device path); an int n, the first n
+            of ``jax.devices()``; or a sequence of devices, taken as given.
+
+    Returns:
+        The chosen devices, in order.
+
+    Raises:
+        ValueError: if ``spec`` is a bool, a count outside 1 to the number of devices, or an
+            empty sequence.
+    """
     avail = jax.devices()
     if spec is None:
         return avail[:1]
@@ -56,7 +77,15 @@ def devices(spec: Devices) -> list[jax.Device]:
 
 
 def replicate(tree: Any, devs: Sequence[jax.Device]) -> dict[jax.Device, Any]:
-    """One copy of ``tree`` (a pytree of arrays, e.g. a model) on each addressable device."""
+    """One copy of ``tree`` on each addressable device.
+
+    Args:
+        tree: a pytree of arrays, e.g. a model.
+        devs: the devices; those of other processes get no copy here.
+
+    Returns:
+        The copies, keyed by the devices of this process among ``devs``.
+    """
     return {d: jax.device_put(tree, d) for d in devs if d.process_index == jax.process_index()}
 
 
@@ -68,13 +97,26 @@ def map_units(
     *,
     replicas: dict[jax.Device, Any] | None = None,
 ) -> list[Any]:
-    """``fn(shared, *unit)`` for every unit, unit ``i`` on device ``devs[i % len(devs)]``;
-    returns every unit's output, as NumPy pytrees in order, on every process.
+    """``fn(shared, *unit)`` for every unit, unit ``i`` on device ``devs[i % len(devs)]``.
 
-    ``fn`` should be jitted: one compiled program per device, the same for every unit of equal
-    shapes. Units run in waves of one per device (asynchronous dispatch overlaps them; waiting
-    for each wave bounds the memory at one unit per device). The last wave is filled up with
+    Units run in waves of one per device (asynchronous dispatch overlaps them; waiting for
+    each wave bounds the memory at one unit per device). The last wave is filled up with
     copies of the last unit, so that every device, and so every host, computes in every wave.
+
+    Args:
+        fn: the work of one unit, ``fn(shared, *unit)``. It should be jitted: one compiled
+            program per device, the same for every unit of equal shapes.
+        shared: what every unit reads (e.g. a model), copied once to each device.
+        units: the units, each a tuple of arrays passed after ``shared``.
+        devs: the devices, e.g. from :func:`devices`.
+        replicas: copies of ``shared`` already made by :func:`replicate` (then ``shared`` is
+            not copied again).
+
+    Returns:
+        Every unit's output as a NumPy pytree, in the order of ``units``, on every process.
+
+    Raises:
+        ValueError: on several hosts, if this process owns none of ``devs``.
     """
     replicas = replicate(shared, devs) if replicas is None else replicas
     count, n = len(units), len(devs)
@@ -114,8 +156,13 @@ def _gather(results: list[Any]) -> list[Any]:
 
 
 def chunks(n: int, size: int) -> list[slice]:
-    """Slices of ``size`` rows covering ``range(n)`` (the last one shorter)."""
+    """Slices of ``size`` rows covering ``range(n)``.
+
+    Args:
+        n: the number of rows.
+        size: the rows per slice.
+
+    Returns:
+        The slices in order, the last one shorter when ``size`` does not divide ``n``.
+    """
     return [slice(s, min(s + size, n)) for s in range(0, n, size)]
-
-
-__all__ = ["chunks", "devices", "initialize", "map_units", "replicate"]

@@ -43,6 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from gpg import models, parallel
@@ -66,6 +67,20 @@ from gpg.quadrotor.frames import (
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle, load_vehicle
+
+__all__ = [
+    "CHUNKS",
+    "HOVER_SPEED",
+    "MAX_FRAME_RATE",
+    "Prediction",
+    "Replicated",
+    "Surrogate",
+    "SurrogateAero",
+    "dataset_vehicle",
+    "default_chunk",
+    "domain_box",
+    "predict_state",
+]
 
 
 class Prediction(eqx.Module):
@@ -132,24 +147,44 @@ class Surrogate(eqx.Module):
         residual: bool = True,
         noise_model: bool = False,
         hover_speed: float = HOVER_SPEED,
-        devices=None,
+        devices: parallel.Devices = None,
     ) -> Surrogate:
-        """Preprocess ``dataset`` and build ``model`` (a name from :data:`gpg.models.NAMES`).
+        """Preprocess ``dataset`` and build ``model`` around it: data to a world-frame surrogate.
 
-        The default, ``gpgs_hybrid``, has exactly GP-G's mean (continuous, from all points)
-        and a near-set variance that bounds GP-G's from above, at a fixed per-query cost
-        (README "Results"). ``config`` overrides the model's defaults
-        (:func:`gpg.models.resolve_config`). ``vehicle`` (a :class:`Vehicle`, a name in
-        ``conf/vehicle`` or a YAML path) supplies the rotor layout and, if its file has them,
-        the coefficients of the simplified model ``M``; without it the vehicle the dataset
-        names is used (:func:`dataset_vehicle`), and a dataset that names none is an error, not
-        a silent default. ``bounds`` (the ``data.bounds`` form: ``rpm``, ``yaw_deg``, …) is the
-        input box outside which ``in_domain`` is False (default: the dataset's recorded
-        sampling bounds, else its extent). ``residual=False`` fits the raw outputs without
-        ``M`` (and needs no vehicle); ``hover_speed`` (m/s) is where the airflow frame starts
-        to follow the body heading (0: pure wind axes). ``devices`` (a count or a list of JAX
-        devices) spreads the per-bin precompute of the local models over them
-        (:mod:`gpg.parallel`).
+        The default model, ``gpgs_hybrid``, has exactly GP-G's mean (continuous, from all
+        points) and a near-set variance that bounds GP-G's from above, at a fixed per-query
+        cost (README "Results"). A dataset that names no vehicle, given no ``vehicle``, is an
+        error rather than a silent default: another vehicle's geometry would corrupt ``M``.
+
+        Args:
+            dataset: the training data, airflow or body frame (:attr:`Dataset.frame`).
+            model: a name from :data:`gpg.models.NAMES`.
+            config: overrides of the model's defaults (:func:`gpg.models.resolve_config`),
+                e.g. ``{"hyper": {"subset": 60}}``.
+            vehicle: a :class:`Vehicle`, a name in ``conf/vehicle`` or a YAML path; it
+                supplies the rotor layout and, if its file has them, the coefficients of the
+                simplified model ``M``. None takes the vehicle the dataset names
+                (:func:`dataset_vehicle`).
+            bounds: the input box outside which ``in_domain`` is False, in the ``data.bounds``
+                form (``rpm``, ``yaw_deg``, …); None takes :func:`domain_box` (the dataset's
+                recorded sampling bounds, else its extent).
+            residual: fit the residuals against ``M`` (the paper's method); False fits the raw
+                outputs without ``M`` and needs no vehicle.
+            noise_model: also subtract ``M_noise`` (tonal levels from ``M``'s loads) from the
+                levels and add it back at prediction; needs ``residual``.
+            hover_speed: the airspeed in m/s below which the airflow frame turns toward the
+                body heading (0: pure wind axes).
+            devices: a count or a list of JAX devices over which the per-bin precompute of
+                the local models is spread (:mod:`gpg.parallel`); None for one process.
+
+        Returns:
+            The fitted surrogate, in float64.
+
+        Raises:
+            ValueError: if ``noise_model`` is set without ``residual``; and as
+                :func:`gpg.models.resolve_config`, :func:`dataset_vehicle` and
+                :func:`gpg.models.build` raise it (bad options, no vehicle, data the model
+                cannot train on).
         """
         cfg = models.resolve_config(model, config)
         box = None if bounds is None else Bounds.from_config(bounds).arrays(dataset.frame)
@@ -180,8 +215,25 @@ class Surrogate(eqx.Module):
         hover_speed: float = HOVER_SPEED,
         box: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Surrogate:
-        """A surrogate around an already built ``model`` trained on ``training`` (the output
-        of :func:`gpg.data.prepare` for ``dataset``); ``box`` overrides :func:`domain_box`."""
+        """A surrogate around an already built ``model``.
+
+        Args:
+            model: the built predictor (e.g. :attr:`gpg.models.Built.model`).
+            training: what ``model`` was trained on, the output of :func:`gpg.data.prepare` for
+                ``dataset``: its normaliser, ``M`` and ``M_noise`` are kept.
+            dataset: the training data, for the frame and the domain box.
+            model_name: the model's name, kept for records and checkpoints.
+            config: the model's resolved config, kept as JSON.
+            hover_speed: the airspeed in m/s below which the airflow frame turns toward the
+                body heading.
+            box: (lo, hi) input bounds of ``in_domain``; None takes :func:`domain_box`.
+
+        Returns:
+            The surrogate.
+
+        Raises:
+            ValueError: if ``hover_speed`` is negative or not finite.
+        """
         hover_speed = float(hover_speed)
         if not np.isfinite(hover_speed) or hover_speed < 0.0:
             raise ValueError(f"hover_speed must be a finite speed >= 0 m/s, got {hover_speed}")
@@ -203,13 +255,24 @@ class Surrogate(eqx.Module):
         )
 
     def condition(self, dataset: Dataset) -> Surrogate:
-        """This surrogate conditioned on the cases of ``dataset`` without a refit: the
-        hyperparameters, normaliser, ``M`` and bins kept, the same model as a rebuild with
-        them (to rounding); cases may carry any subset of the gradients (NaN for a
-        perturbation not run). ``gpg``/``gp`` by a bordered Cholesky update, ``gpgs_hybrid``
-        by re-forming ``α`` and the bins whose near set changed (:mod:`gpg.design`, with the
-        rule for when to refit instead). Bad cases (other outputs, outside the box, duplicates
-        of training cases, NaN) raise ``ValueError``; this surrogate is never changed."""
+        """This surrogate conditioned on the cases of ``dataset``, without a refit.
+
+        The hyperparameters, normaliser, ``M`` and bins are kept: the result is the same model
+        as a rebuild with them (to rounding). ``gpg``/``gp`` update by a bordered Cholesky,
+        ``gpgs_hybrid`` by re-forming ``α`` and the bins whose near set changed
+        (:mod:`gpg.design` says when to refit instead). This surrogate is never changed.
+
+        Args:
+            dataset: the new cases, with the training data's outputs; they may carry any
+                subset of the gradients (NaN for a perturbation not run).
+
+        Returns:
+            A new surrogate that has seen the training cases and ``dataset``'s.
+
+        Raises:
+            ValueError: from :func:`gpg.design.condition`, for bad cases (other outputs,
+                outside the box, duplicates of training cases, NaN).
+        """
         from gpg import design
 
         return design.condition(self, dataset)
@@ -243,10 +306,19 @@ class Surrogate(eqx.Module):
         euler: Float[ArrayLike, " 3"],
         v_air: Float[ArrayLike, " 3"],
     ) -> Prediction:
-        """Force, torque, noise, their variances and ``in_domain`` for one state (jitted).
+        """Force, torque, levels, their variances and ``in_domain`` for one state (jitted).
 
-        ``rpm`` rotor speeds r1..r4; ``euler`` = (yaw, pitch, roll) of the body in the world
-        frame (rad); ``v_air`` = vehicle velocity minus wind, world frame (m/s).
+        Args:
+            rpm: (4,) rotor speeds r1..r4.
+            euler: (3,) yaw, pitch, roll of the body in the world frame, rad.
+            v_air: (3,) vehicle velocity minus wind, world frame, m/s.
+
+        Returns:
+            The world-frame prediction with its variance.
+
+        Raises:
+            ValueError: called from Python, if an input has the wrong shape, is complex or
+                boolean, or holds NaN or inf (under a transform: ``in_domain`` False instead).
         """
         return _predict(self, *_as_state(rpm, euler, v_air), True)
 
@@ -256,7 +328,19 @@ class Surrogate(eqx.Module):
         euler: Float[ArrayLike, " 3"],
         v_air: Float[ArrayLike, " 3"],
     ) -> Prediction:
-        """The fast path: as :meth:`predict` without the variance (``variance`` is None)."""
+        """The fast path: as :meth:`predict` without the variance.
+
+        Args:
+            rpm: (4,) rotor speeds r1..r4.
+            euler: (3,) body attitude (yaw, pitch, roll) in the world frame, rad.
+            v_air: (3,) world-frame air velocity (vehicle minus wind), m/s.
+
+        Returns:
+            The prediction, its ``variance`` None.
+
+        Raises:
+            ValueError: as :meth:`predict` raises it, for a bad input.
+        """
         return _predict(self, *_as_state(rpm, euler, v_air), False)
 
     def predict_body(
@@ -267,13 +351,26 @@ class Surrogate(eqx.Module):
         *,
         with_var: bool = True,
     ) -> Prediction:
-        """The body-frame entry point, for simulators that integrate in the body frame: rotor
-        speeds ``rpm``, attitude ``R_WB`` (body FRD to world NED, 3x3) and the airspeed in the
-        body frame ``v_air_body = R_WBᵀ (v_vehicle − v_wind)`` (m/s) give the aerodynamic force
-        (N) and torque (N·m) in the body frame (FRD), their predictive variances in that frame,
-        the levels and ``in_domain``. Other simulators' conventions (z up, FLU, xyzw
-        quaternions, rad/s) are converted by :mod:`gpg.adapters.conventions`. Jittable and
-        differentiable like :meth:`predict`."""
+        """The body-frame entry point, for simulators that integrate in the body frame.
+
+        Other simulators' conventions (z up, FLU, xyzw quaternions, rad/s) are converted by
+        :mod:`gpg.adapters.conventions`. Jittable and differentiable like :meth:`predict`.
+
+        Args:
+            rpm: (4,) rotor speeds r1..r4.
+            R_WB: (3, 3) attitude, body FRD to world NED.
+            v_air_body: (3,) airspeed in the body frame, ``R_WBᵀ (v_vehicle − v_wind)``, m/s.
+            with_var: also compute the variances.
+
+        Returns:
+            The aerodynamic force (N) and torque (N·m) in the body frame (FRD), their
+                predictive variances in that frame (None without ``with_var``), the levels and
+                ``in_domain``.
+
+        Raises:
+            ValueError: called from Python, if ``R_WB`` is not a rotation matrix or an input
+                has the wrong shape or holds NaN or inf.
+        """
         R = _as_rotation(R_WB)
         rpm, _, v_b = _as_state(rpm, np.zeros(3), v_air_body)
         return _predict_body(self, rpm, R, v_b, bool(with_var))
@@ -293,31 +390,61 @@ class Surrogate(eqx.Module):
         mean_only: bool = False,
         chunk: int | None = None,
     ) -> Prediction:
-        """Many states, vmapped in chunks of ``chunk`` (bounded memory for any N; default
-        :func:`default_chunk`, per backend). A NaN or inf in any state raises ``ValueError``
-        naming the input and its rows. JAX arrays stay on their device; the variance of a
-        partitioned model is formed bin by bin within each chunk
-        (:func:`gpg.gp.binned.by_bin`)."""
+        """Many states, vmapped in chunks: bounded memory for any N.
+
+        JAX arrays stay on their device; the variance of a partitioned model is formed bin by
+        bin within each chunk (:func:`gpg.gp.binned.by_bin`).
+
+        Args:
+            rpm: (N, 4) rotor speeds.
+            euler: (N, 3) attitudes (yaw, pitch, roll), rad.
+            v_air: (N, 3) world-frame air velocities, m/s.
+            mean_only: skip the variance (``variance`` None).
+            chunk: states per vmapped block; None takes :func:`default_chunk` for the backend.
+
+        Returns:
+            The predictions, each field with a leading axis of N.
+
+        Raises:
+            ValueError: if the shapes do not match (N, 4), (N, 3), (N, 3), ``chunk`` is not a
+                positive integer, or a state holds NaN or inf (naming the input and its rows).
+        """
         rpm, euler, v_air = _check_batch(rpm, euler, v_air, chunk)
         chunk = default_chunk(not mean_only) if chunk is None else int(chunk)
         return _predict_batch(self, rpm, euler, v_air, not mean_only, chunk)
 
     def replicate(self, devices: parallel.Devices = None) -> Replicated:
-        """This surrogate copied onto several JAX devices, for batched prediction spread over
-        them (:meth:`Replicated.predict_batch`): ``devices`` is a count (the first n of
-        ``jax.devices()``) or a list of devices; see :mod:`gpg.parallel`."""
+        """This surrogate copied onto several JAX devices, for batched prediction spread over them.
+
+        Args:
+            devices: a count (the first n of ``jax.devices()``) or a list of devices
+                (:func:`gpg.parallel.devices`); None for the first device.
+
+        Returns:
+            The copies, whose :meth:`Replicated.predict_batch` spreads blocks over the devices.
+
+        Raises:
+            ValueError: from :func:`gpg.parallel.devices`, for a bad ``devices``.
+        """
         return Replicated(self, parallel.devices(devices))
 
     def realtime(self, *, with_var: bool = True) -> Callable[..., Prediction]:
         """A compiled ``f(rpm, euler, v_air) -> Prediction`` for loops that call it per step.
 
-        Same result as :meth:`predict` (or :meth:`predict_mean` without ``with_var``), but the
-        surrogate's arrays are flattened once here instead of at every call: flattening an
-        equinox module costs more than the whole mean prediction (see ``experiments/bench.py``).
-        Inside your own ``jit``/``vmap``/``scan`` use :meth:`predict`, which costs nothing there.
-        Without ``with_var`` only the arrays the mean reads are passed (each array passed to a
-        compiled function costs about a microsecond per call; a partitioned model's variance
-        factors are hundreds of arrays).
+        Same result as :meth:`predict`, but the surrogate's arrays are flattened once here
+        instead of at every call: flattening an equinox module costs more than the whole mean
+        prediction (see ``experiments/bench.py``). Inside your own ``jit``/``vmap``/``scan``
+        use :meth:`predict`, which costs nothing there. Without ``with_var`` only the arrays
+        the mean reads are passed: each array passed to a compiled function adds to the cost
+        of every call, and a partitioned model's variance factors are hundreds of arrays (see
+        docs/measurements.md).
+
+        Args:
+            with_var: compute the variance, as :meth:`predict`; False is
+                :meth:`predict_mean`.
+
+        Returns:
+            The function of one state, which checks its inputs as :meth:`predict` does.
         """
         sur = self if with_var else eqx.tree_at(lambda s: s.model, self, self.model.mean_view())
         leaves, treedef = jax.tree_util.tree_flatten(sur)
@@ -330,15 +457,29 @@ class Surrogate(eqx.Module):
         return predict
 
     def nbytes(self) -> int:
+        """The memory of the fitted model's arrays.
+
+        Returns:
+            Bytes, as :meth:`gpg.gp.predictor.Predictor.nbytes` counts them.
+        """
         return self.model.nbytes()
 
-    def astype(self, dtype) -> Surrogate:
+    def astype(self, dtype: DTypeLike) -> Surrogate:
         """A copy with every float array in ``dtype``; queries are then computed in ``dtype``.
 
         A fitted surrogate holds float64 arrays. For float32 programs (``jax_enable_x64`` off:
         JAX would otherwise convert the float64 arrays at every call) or float32 rollouts, use
         ``sur.astype(jnp.float32)`` once; its accuracy against float64 is measured by
         ``experiments/bench.py`` (README Measurements). Fitting always runs in float64.
+
+        Args:
+            dtype: a floating dtype, e.g. ``jnp.float32``.
+
+        Returns:
+            The converted copy; integer and other arrays are kept as they are.
+
+        Raises:
+            ValueError: if ``dtype`` is not a floating type.
         """
         dtype = jnp.dtype(dtype)
         if not jnp.issubdtype(dtype, jnp.floating):
@@ -378,8 +519,24 @@ class Replicated:
         mean_only: bool = False,
         chunk: int = 1024,
     ) -> Prediction:
-        """As :meth:`Surrogate.predict_batch`, the blocks of ``chunk`` states spread over the
-        devices; NumPy arrays out."""
+        """As :meth:`Surrogate.predict_batch`, its blocks of ``chunk`` states over the devices.
+
+        The last block is padded to ``chunk`` states, so that every block runs one compiled
+        program.
+
+        Args:
+            rpm: (N, 4) rotor speeds.
+            euler: (N, 3) yaw, pitch and roll, rad.
+            v_air: (N, 3) air velocities in the world frame, m/s.
+            mean_only: skip the variance.
+            chunk: states per block, one block per device at a time.
+
+        Returns:
+            The predictions as NumPy arrays, each with a leading axis of N.
+
+        Raises:
+            ValueError: as :meth:`Surrogate.predict_batch` raises it, for bad inputs.
+        """
         rpm, euler, v_air = (np.asarray(a) for a in _check_batch(rpm, euler, v_air, chunk))
         n, chunk = rpm.shape[0], int(chunk)
         units = []
@@ -425,8 +582,8 @@ def _batch_array(name: str, a):
 
 
 # Queries per vmapped block of predict_batch, per JAX backend, for the mean alone and with
-# the variance: a block's kernel rows and variance products are its working memory (about
-# 20 kB a query at data=default). On the CPU the mean is fastest in blocks that stay in
+# the variance: a block's kernel rows and variance products are its working memory (per
+# query, see docs/measurements.md). On the CPU the mean is fastest in blocks that stay in
 # cache, the variance in blocks long enough to fill each bin's tiles
 # (gpg.gp.binned.by_bin); a GPU wants long blocks for both (one launch per block).
 # experiments.bench 'suites=[gpu]' times several (docs/measurements.md).
@@ -434,17 +591,33 @@ CHUNKS = {"cpu": (1024, 4096), "gpu": (65536, 65536)}
 
 
 def default_chunk(with_var: bool = True) -> int:
-    """:data:`CHUNKS` for JAX's default backend (that of the CPU on a backend it does not
-    list)."""
+    """The states per vmapped block of :meth:`Surrogate.predict_batch` on this backend.
+
+    Args:
+        with_var: the block for a prediction with the variance; False for the mean alone.
+
+    Returns:
+        The entry of :data:`CHUNKS` for JAX's default backend (the CPU's on a backend it does
+            not list).
+    """
     return CHUNKS.get(jax.default_backend(), CHUNKS["cpu"])[int(with_var)]
 
 
 def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """The input box the training data were meant to cover: the sampling bounds recorded by
-    the generator or given to :func:`gpg.data.from_csv` (so hover at exactly 0 m/s is inside),
-    else the data's own extent. In the body frame the extent of ``u, v, w`` is the ball of the
-    data's largest airspeed (``±V`` on each, as the bounds give it): the box of the cases'
-    own velocities need not hold hover, and the ball about hover inside it would be empty."""
+    """The input box the training data were meant to cover: ``in_domain``'s default bounds.
+
+    The sampling bounds recorded by the generator or given to :func:`gpg.data.from_csv` (so
+    hover at exactly 0 m/s is inside), else the data's own extent. In the body frame the
+    extent of ``u, v, w`` is the ball of the data's largest airspeed (``±V`` on each, as the
+    bounds give it): the box of the cases' own velocities need not hold hover, and the ball
+    about hover inside it would be empty.
+
+    Args:
+        dataset: the training data.
+
+    Returns:
+        The lower and upper bounds of the inputs, each of the frame's input size.
+    """
     bounds = dataset.meta.get("bounds")
     if bounds:
         return Bounds.from_config(bounds).arrays(dataset.frame)
@@ -456,10 +629,22 @@ def domain_box(dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
 
 
 def dataset_vehicle(dataset: Dataset, vehicle: Vehicle | str | Path | None = None) -> Vehicle:
-    """The vehicle of ``dataset``: ``vehicle`` when given (a :class:`Vehicle`, a name in
-    ``conf/vehicle`` or a YAML path), else the one the dataset names (the vehicle file
-    recorded by :func:`gpg.data.from_csv` or the generator). ``ValueError`` when there is none:
-    another vehicle's geometry would silently corrupt the simplified model."""
+    """The vehicle of ``dataset``; there is no default, since another vehicle's geometry
+    would silently corrupt the simplified model.
+
+    Args:
+        dataset: the data, which may record its vehicle (:func:`gpg.data.from_csv` or the
+            generator).
+        vehicle: a :class:`Vehicle`, a name in ``conf/vehicle`` or a YAML path, taken when
+            given; None takes the one the dataset names.
+
+    Returns:
+        The vehicle.
+
+    Raises:
+        ValueError: if neither ``vehicle`` nor the dataset names one, or the dataset names a
+            vehicle not in ``conf/vehicle``.
+    """
     if isinstance(vehicle, Vehicle):
         return vehicle
     if vehicle is not None:
@@ -561,10 +746,23 @@ def _require_finite(name: str, a) -> None:
 def predict_state(
     sur: Surrogate, rpm: Array, euler: Array, v_air: Array, with_var: bool, *, body: bool = False
 ) -> Prediction:
-    """The un-jitted pipeline for one state (see module docstring); jit, vmap or scan it.
-    The state is computed in the surrogate's float dtype (:meth:`Surrogate.astype`).
-    ``body`` (static) returns force, torque and their variances in the body frame (FRD)
-    instead of the world frame."""
+    """The un-jitted pipeline for one state (see the module docstring); jit, vmap or scan it.
+
+    The state is computed in the surrogate's float dtype (:meth:`Surrogate.astype`). Nothing
+    is raised here: a non-finite input or output gives ``in_domain`` False.
+
+    Args:
+        sur: the surrogate.
+        rpm: (4,) rotor speeds.
+        euler: (3,) world-frame attitude (yaw, pitch, roll), rad.
+        v_air: (3,) world-frame air velocity, m/s.
+        with_var: (static) also compute the variance.
+        body: (static) force, torque and their variances in the body frame (FRD) instead of
+            the world frame.
+
+    Returns:
+        The prediction (``variance`` None without ``with_var``).
+    """
     dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)  # float32 where x64 is off
     if sur.box_lo.dtype != dt:  # float64 arrays in a float32 program: convert once, explicitly
         sur = sur.astype(dt)
@@ -628,7 +826,24 @@ class SurrogateAero(AeroModel):
 
     surrogate: Surrogate
 
-    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
+    def wrench(
+        self,
+        rpm: Float[Array, " 4"],
+        R_WB: Float[Array, "3 3"],
+        v_air: Float[Array, " 3"],
+        omega: Float[Array, " 3"],
+    ) -> Wrench:
+        """The surrogate's mean prediction as the aerodynamics of the rigid body.
+
+        Args:
+            rpm: (4,) rotor speeds.
+            R_WB: (3, 3) attitude, body to world.
+            v_air: (3,) world-frame air velocity, m/s.
+            omega: body rates, not read (the surrogate does not take them).
+
+        Returns:
+            The world-frame force and torque, the levels and ``in_domain``.
+        """
         p = predict_state(self.surrogate, rpm, euler_from_R(R_WB), v_air, False)
         return Wrench(p.force, p.torque, p.levels, p.in_domain)
 
@@ -643,8 +858,8 @@ def _realtime_fn(treedef, with_var: bool):
     return jax.jit(fn)
 
 
-# Plain jax.jit: every leaf of a Surrogate is an array, and jax.jit dispatches a call several
-# times faster than eqx.filter_jit, which matters at tens of microseconds per prediction.
+# Plain jax.jit: every leaf of a Surrogate is an array, and jax.jit dispatches a call faster
+# than eqx.filter_jit, which matters for a prediction this short (docs/measurements.md).
 @partial(jax.jit, static_argnums=(4,))
 def _predict(sur: Surrogate, rpm, euler, v_air, with_var: bool) -> Prediction:
     return predict_state(sur, rpm, euler, v_air, with_var)

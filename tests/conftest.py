@@ -104,8 +104,8 @@ def smoke_cache(tmp_path_factory):
     pytest-xdist workers share it (the first generates it under a lock, the others load it)."""
     import fcntl
 
+    from experiments.runs.common import conf
     from gpg.data.cache import ensure_datasets
-    from gpg.runs.common import conf
 
     root = tmp_path_factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):
@@ -124,7 +124,7 @@ def smoke_cache(tmp_path_factory):
 def smoke_compare(smoke_cache, tmp_path_factory):
     """One full comparison on smoke data: (run directory, results)."""
     from experiments.compare import model_configs
-    from gpg.runs import compare
+    from experiments.runs import compare
     from tests.helpers import compose_plain
 
     values = compose_plain(

@@ -60,11 +60,11 @@ def _synthetic(x, y, J, meta, **kw):
 
 def compose_plain(name: str, overrides: Sequence[str] = ()) -> dict[str, Any]:
     """``conf/<name>.yaml`` composed by Hydra with ``overrides``, as plain values (what the
-    ``experiments`` entry points pass to ``gpg.runs``)."""
+    ``experiments`` entry points pass to ``experiments.runs``)."""
     from hydra import compose, initialize_config_dir
 
     from experiments._hydra import plain
-    from gpg.runs.common import CONF_DIR
+    from experiments.runs.common import CONF_DIR
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return plain(compose(config_name=name, overrides=list(overrides)))

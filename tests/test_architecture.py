@@ -21,6 +21,8 @@ RANKS = {
     "gpg._precision": 0,
     "gpg._identity": 0,
     "gpg._deprecated": 0,
+    "gpg.runtime": 0.5,
+    "gpg.results": 1,
     "gpg.parallel": 0,
     "gpg.names": 0,
     "gpg.conf": 0,
@@ -40,7 +42,7 @@ RANKS = {
     "gpg.export": 7,
     "gpg.flight": 7,
     "gpg": 8,
-    "gpg.runs": 9,
+    "gpg.runs": 9,  # the deprecated forwarding to experiments.runs, nothing of its own
 }
 
 
@@ -235,3 +237,55 @@ def test_no_private_name_crosses_packages():
                 if private and _group(node.module) != _group(name):
                     crossing.append(f"{path.relative_to(ROOT)}:{node.lineno} {a.name}")
     assert not crossing, crossing
+
+
+def _private_gpg_imports(path: Path) -> list[str]:
+    """The private gpg modules and names ``path`` imports (``gpg._io``, ``_grown_rows``)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            mods = [a.name for a in node.names]
+            names: list[str] = []
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            mods = [node.module or ""]
+            names = [a.name for a in node.names]
+        else:
+            continue
+        for m in mods:
+            if m.split(".")[0] != "gpg":
+                continue
+            parts = m.split(".") + names
+            if any(p.startswith("_") and not p.startswith("__") for p in parts):
+                out.append(f"{path.name}:{node.lineno} {m} {names}")
+    return out
+
+
+def test_experiments_use_the_public_api_only():
+    """The experiments live outside the installed package and use gpg as a user does: no
+    private module or name of gpg (``gpg.runtime`` has what a long run needs)."""
+    found = []
+    for path in sorted((ROOT / "experiments").rglob("*.py")):
+        found += _private_gpg_imports(path)
+    assert found == []
+
+
+def test_the_private_import_check_sees_modules_and_names(tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text(
+        "from gpg._io import atomic_write\nfrom gpg.gp.update import _grown\nimport gpg._dtype\n"
+        "from gpg.runtime import float64\n"
+    )
+    assert [f.split()[0] for f in _private_gpg_imports(src)] == ["m.py:1", "m.py:2", "m.py:3"]
+
+
+def test_the_package_installs_no_experiment_code():
+    """``pip install .`` installs ``gpg`` only: the experiments, their configs and the
+    benchmarks stay in the repository (gpg.runs is a forwarding shim with no code of its
+    own)."""
+    import tomllib
+
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert cfg["tool"]["setuptools"]["packages"]["find"]["include"] == ["gpg*"]
+    assert sorted(p.name for p in (PACKAGE / "runs").iterdir() if p.suffix == ".py") == [
+        "__init__.py"
+    ]

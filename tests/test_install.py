@@ -1,10 +1,12 @@
 """The package as a user gets it: built as a wheel, installed into a fresh virtual environment
-outside the repository, it finds its vehicles and configs (package data) and runs the README's
-real-time quick start. Slow: the venv installs gpg's dependencies (from pip's cache when warm)."""
+outside the repository, it finds its vehicles and configs (package data), holds no experiment
+code (gpg.runs only forwards to a checkout's experiments/), and runs the README's real-time
+quick start. Slow: the venv installs gpg's dependencies (from pip's cache when warm)."""
 
 import re
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -37,6 +39,10 @@ def test_wheel_installs_and_runs_the_quick_start_outside_the_repository(tmp_path
         check=True,
     )
     (wheel,) = wheels.glob("gpg-*.whl")
+    with zipfile.ZipFile(wheel) as z:
+        tops = {n.split("/")[0] for n in z.namelist() if not n.startswith("gpg-")}
+        runs = [n for n in z.namelist() if n.startswith("gpg/runs/")]
+    assert tops == {"gpg"} and runs == ["gpg/runs/__init__.py"], (tops, runs)
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     py = venv / "bin" / "python"
@@ -45,10 +51,18 @@ def test_wheel_installs_and_runs_the_quick_start_outside_the_repository(tmp_path
     work.mkdir()
     check = (
         "import gpg, gpg.quadrotor as q\n"
-        "from gpg.runs.common import conf\n"
+        "from gpg.conf import load\n"
         "assert 'site-packages' in gpg.__file__, gpg.__file__\n"
         "assert {'sui_endurance', 'minimal_example'} <= set(q.vehicle.known_vehicles())\n"
-        "assert conf('smoke', 'data')['n_train'] > 0 and conf('gpgs_hybrid', 'model')\n"
+        "assert load('smoke', 'data')['n_train'] > 0 and load('gpgs_hybrid', 'model')\n"
+        # No experiment code installed; the old name says where it went.
+        "import importlib.util as u, zipfile, sys\n"
+        "assert u.find_spec('experiments') is None\n"
+        "try:\n"
+        "    import gpg.runs.compare\n"
+        "    sys.exit('gpg.runs.compare imported outside a checkout')\n"
+        "except ImportError as e:\n"
+        "    assert 'experiments' in str(e), e\n"
         "from gpg.export.c_source import fragment\n"
         "assert '#define N_LEVELS' in fragment('body.c') and 'rot_wb' in fragment('frames.c')\n"
     )

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from jaxtyping import Array, ArrayLike, Float
 
+from experiments.runs import compare
 from gpg import checkpoint, models
 from gpg.config import ModelConfig
 from gpg.gp.predictor import Predictor
 from gpg.kinds import KINDS, Arrays, Kind, Product
-from gpg.runs import compare
-from gpg.runs.results import read_results
+from gpg.results import read_results
 from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_dataset
 

@@ -6,7 +6,8 @@ import nbformat
 import pytest
 from nbclient import NotebookClient
 
-NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
+ROOT = Path(__file__).resolve().parents[1]
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 
 
 # All six run with `make test-slow`: their steps are covered in the fast set elsewhere (the
@@ -22,6 +23,9 @@ def test_notebook_executes(path, smoke_cache, tmp_path, monkeypatch, request):
     monkeypatch.setenv("GPG_CACHE_DIR", str(smoke_cache))
     monkeypatch.setenv("GPG_NOTEBOOK_POINTS", "40")
     monkeypatch.setenv("GPG_NOTEBOOK_ITERATIONS", "40")
+    # The kernel runs in tmp_path: the checkout's experiments/ (02 and 06 run its code) are
+    # found on the path, as from the repository's root.
+    monkeypatch.setenv("PYTHONPATH", str(ROOT))
     if path.stem == "02_model_comparison":
         monkeypatch.setenv("GPG_RESULTS_DIR", str(request.getfixturevalue("smoke_compare")[0]))
     nb = nbformat.read(path, as_version=4)

@@ -36,6 +36,8 @@ log = logging.getLogger("mkdocs.plugins.gpg")
 # Top-level modules with a reference page of their own; the other top-level modules share
 # the page "gpg" with the package itself. Packages always have their own.
 OWN_PAGE = ("surrogate", "mpc")
+# Modules kept for one release to forward an old name (no code, no reference entry).
+DEPRECATED = ("gpg.runs",)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -62,7 +64,7 @@ def public_modules() -> list[str]:
     def walk(mod):
         out.append(mod.path)
         for name, sub in sorted(mod.modules.items()):
-            if not name.startswith("_") and not sub.is_alias:
+            if not name.startswith("_") and not sub.is_alias and sub.path not in DEPRECATED:
                 walk(sub)
 
     walk(package())
@@ -70,11 +72,13 @@ def public_modules() -> list[str]:
 
 
 def own_members(mod) -> list[str]:
-    """The public names a module defines itself (not imported), as mkdocstrings renders them."""
+    """The names of a module's ``__all__`` that it defines itself (not imported), in the order
+    of its source, as mkdocstrings renders them."""
+    exports = {e if isinstance(e, str) else e.name for e in mod.exports or ()}
     return [
         n
         for n, m in mod.members.items()
-        if not m.is_alias and not m.is_module and not n.startswith("_") and m.is_public
+        if n in exports and not m.is_alias and not m.is_module and not n.startswith("_")
     ]
 
 
@@ -116,6 +120,76 @@ def reference_pages() -> dict[str, str]:
             lines += [f"| `{n}` | [`{t}`][{t}] |" for n, t in sorted(again.items())]
             lines.append("")
     return {f"reference/{p}.md": "\n".join(lines) for p, lines in pages.items()}
+
+
+API_HEAD = """# Public API
+
+Part of gpg's documentation ([contents](README.md); the project's [README](../README.md)).
+
+Generated from the packages' `__all__` (`make api` writes this page; tests/test_docs.py checks
+that it is current): every name gpg exports, with the first sentence of its docstring; on the
+site each name links to its reference entry, with its arguments, returns and errors. A
+package's `__init__` is the one place to import from: `from gpg.flight import correct`, and a
+module it exports through it (`from gpg.gp import partition`, then `partition.build(...)`).
+"""
+
+API_TAIL = """
+Bad input (mismatched shapes, NaN/inf, gradient dims out of range, non-positive
+hyperparameters, unknown model names or config keys, sizes beyond the data) raises `ValueError`
+naming the input; a NaN query to a GP model under `jit` raises through `eqx.error_if`, and the
+`Surrogate` flags it with `in_domain = False`; a likelihood fit that does not converge warns (or
+raises, on request).
+"""
+
+
+def summary(obj) -> str:
+    """The first sentence of ``obj``'s docstring, on one line, its Sphinx roles as code."""
+    if obj.is_alias:
+        obj = obj.final_target
+    text = obj.docstring.value if obj.docstring else ""
+    text = " ".join(text.split("\n\n")[0].split())
+    text = re.sub(r":\w+:`~?([^`]+)`", r"`\1`", text)
+    m = re.search(r"(?<!\bEq)(?<!\bEqs)(?<!e\.g)(?<!i\.e)(?<!\bcf)(?<!\bvs)\.(\s|$)", text)
+    first = (text[: m.start()] if m else text).strip()
+    if not first and obj.is_attribute and obj.value is not None:
+        value = str(obj.value)
+        first = f"`{value if len(value) <= 60 else value[:57] + '...'}`"
+    return first.replace("|", "\\|") or "(no docstring)"
+
+
+def _exports(mod) -> list[str]:
+    return [e if isinstance(e, str) else e.name for e in mod.exports or ()]
+
+
+def api_overview() -> str:
+    """``docs/api.md``: a table per package of ``gpg.__all__``, its exports and those of the
+    modules it exports, one line each."""
+    root = package()
+    lines = [API_HEAD]
+    sections = [("gpg", root)]
+    sections += [
+        (f"gpg.{n}", root.members[n])
+        for n in sorted(_exports(root))
+        if root.members[n].is_module and not root.members[n].is_alias
+    ]
+    for title, mod in sections:
+        mod = mod.final_target if mod.is_alias else mod
+        listed: set[str] = set()
+        lines += [f"## `{title}`", "", summary(mod) + ".", "", "| name | what |", "|---|---|"]
+        for n in _exports(mod):
+            member = mod.members[n]
+            target = member.final_target if member.is_alias else member
+            if n.startswith("__") or (target.is_module and title == "gpg" and not member.is_alias):
+                continue
+            lines.append(f"| `{title}.{n}` | {summary(member)} |")
+            listed.add(target.path)
+            if target.is_module and not target.is_package and not member.is_alias:
+                for m in _exports(target):
+                    sub = target.members[m]
+                    if (sub.final_target if sub.is_alias else sub).path not in listed:
+                        lines.append(f"| `{title}.{n}.{m}` | {summary(sub)} |")
+        lines.append("")
+    return "\n".join(lines) + API_TAIL
 
 
 @cache
@@ -296,3 +370,7 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
     if src.endswith(".ipynb"):
         return markdown
     return link_names(site_links(markdown, src))
+
+
+if __name__ == "__main__":  # make api
+    (ROOT / "docs" / "api.md").write_text(api_overview(), encoding="utf-8")

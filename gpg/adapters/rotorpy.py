@@ -32,6 +32,8 @@ from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.surrogate import Surrogate
 
+__all__ = ["GpgMultirotor", "quad_params"]
+
 
 def quad_params(
     vehicle: Vehicle,
@@ -40,13 +42,29 @@ def quad_params(
     tau_m: float | None = None,
     **overrides: Any,
 ) -> dict[str, Any]:
-    """RotorPy's ``quad_params`` for a gpg ``vehicle`` whose rotors follow ``M`` (``simple``):
-    mass and principal inertia, hub positions converted from FRD to FLU in gpg's rotor order,
+    """RotorPy's ``quad_params`` for a gpg vehicle whose rotors follow ``M``.
+
+    Mass and principal inertia, hub positions converted from FRD to FLU in gpg's rotor order,
     spin directions (gpg's ``spin`` is RotorPy's ``rotor_directions``), ``k_eta = P_F`` and
     ``k_m = T_z`` converted from rpm² to (rad/s)², the motor range in rad/s and its time
-    constant (``tau_m``, default the vehicle's; RotorPy needs one > 0). RotorPy's own
-    aerodynamic terms are zero: with :class:`GpgMultirotor` gpg provides them. ``overrides``
-    set any other key (e.g. RotorPy's controller gains ``kp_att``, ``kd_att``)."""
+    constant. RotorPy's own aerodynamic terms are zero: with :class:`GpgMultirotor` gpg
+    provides them.
+
+    Args:
+        vehicle: the gpg vehicle.
+        simple: ``M``, whose ``P_F`` and ``T_z`` give RotorPy's thrust and drag-torque
+            coefficients.
+        tau_m: the motor time constant (s); default the vehicle's. RotorPy needs one > 0.
+        **overrides: entries of the dictionary replaced, or RotorPy's controller gains
+            ``kp_att``, ``kd_att``, ``k_w``, ``k_v`` added.
+
+    Returns:
+        RotorPy's parameter dictionary.
+
+    Raises:
+        ValueError: if the motor time constant is not > 0, or ``overrides`` names another
+            key.
+    """
     lag = float(vehicle.motor_time_constant) if tau_m is None else float(tau_m)
     if not lag > 0:
         raise ValueError(
@@ -96,9 +114,23 @@ class GpgMultirotor(Multirotor):
     :class:`gpg.quadrotor.dynamics.AeroModel`. The other arguments are RotorPy's; its own
     aerodynamics (``aero=``) are switched off, since gpg's wrench replaces them. Wind comes from
     RotorPy's wind profiles as usual (the wrench sees the airspeed ``v − wind``).
+
+    Args:
+        quad_params: RotorPy's parameters (:func:`quad_params`).
+        aero: the aerodynamics: a :class:`gpg.Surrogate`, ``M`` or an ``AeroModel``.
+        **kwargs: RotorPy's other ``Multirotor`` arguments (initial state, control
+            abstraction, ...), without ``aero``.
+
+    Raises:
+        ValueError: if ``aero=`` is passed among ``kwargs``, or ``aero`` is of another type.
     """
 
-    def __init__(self, quad_params: dict[str, Any], aero, **kwargs: Any):
+    def __init__(
+        self,
+        quad_params: dict[str, Any],
+        aero: Surrogate | SimpleModel | AeroModel,
+        **kwargs: Any,
+    ):
         if kwargs.pop("aero", False):
             raise ValueError("GpgMultirotor replaces RotorPy's aerodynamics: leave aero= unset")
         super().__init__(quad_params, aero=False, **kwargs)
@@ -117,8 +149,26 @@ class GpgMultirotor(Multirotor):
         self._q = np.asarray(s[6:10], dtype=float)  # attitude [x, y, z, w] of this evaluation
         return super()._s_dot_fn(t, s, cmd_rotor_speeds)
 
-    def compute_body_wrench(self, body_rates, rotor_speeds, body_airspeed_vector):
-        """gpg's force and moment in RotorPy's body frame (FLU) at the stored attitude."""
+    def compute_body_wrench(
+        self,
+        body_rates: np.ndarray,
+        rotor_speeds: np.ndarray,
+        body_airspeed_vector: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """gpg's force and moment in RotorPy's body frame (FLU), replacing RotorPy's own.
+
+        RotorPy does not pass the attitude here; the one of the state being differentiated,
+        stored by ``_s_dot_fn``, turns the body airspeed into the world frame gpg reads.
+        ``last_in_domain`` keeps the evaluation's ``in_domain``.
+
+        Args:
+            body_rates: (3,) body rates (FLU, rad/s).
+            rotor_speeds: (4,) rotor speeds (rad/s), gpg's rotor order.
+            body_airspeed_vector: (3,) the airspeed ``v − wind`` in the body frame (FLU, m/s).
+
+        Returns:
+            The force (N) and moment (N·m), (3,) each, body frame (FLU).
+        """
         from scipy.spatial.transform import Rotation
 
         R = Rotation.from_quat(self._q).as_matrix()  # FLU body to RotorPy's world

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+__all__ = ["Bounds"]
+
 
 @dataclass(frozen=True)
 class Bounds:
@@ -31,8 +33,24 @@ class Bounds:
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], where: str = "bounds") -> Bounds:
-        """From the ``data.bounds`` form (``{"yaw_deg": [-90, 90], ...}``, missing keys at their
-        defaults); ``where`` names the input in every error (e.g. a dataset's metadata)."""
+        """The bounds of a ``data.bounds`` config (``{"yaw_deg": [-90, 90], ...}``).
+
+        Missing keys keep their defaults; each value is a pair ``[lower, upper]`` of numbers.
+
+        Args:
+            cfg: the mapping of field names (``rpm``, ``yaw_deg``, ``pitch_deg``, ``roll_deg``,
+                ``airspeed``) to ``[lower, upper]``.
+            where: what ``cfg`` is, named in every error (e.g. a dataset's metadata,
+                ``"meta['bounds']"``).
+
+        Returns:
+            The :class:`Bounds`.
+
+        Raises:
+            ValueError: if ``cfg`` is not a mapping, names an unknown key, or holds a value
+                that is not two numbers or a range that is empty, inverted, infinite or
+                negative (rpm, airspeed); naming ``where`` and the key.
+        """
         fields = list(cls.__dataclass_fields__)
         if not isinstance(cfg, Mapping):
             raise ValueError(
@@ -58,9 +76,21 @@ class Bounds:
             raise ValueError(str(exc).replace("bounds.", f"{where}.")) from None
 
     def arrays(self, frame: str = "airflow") -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper bounds of ``x`` (8,) in file units (rpm, rad, m/s); in the body
-        frame (7,): the rotor speeds' box and the box ``[-V, V]³`` around the ball of air
-        velocities of radius ``V = airspeed[1]`` (the angles do not bound body-frame data)."""
+        """The box as lower and upper corners of the inputs ``x``, in file units.
+
+        In the airflow frame the corners are (8,) in rpm, rad and m/s. In the body frame they
+        are (7,): the rotor speeds' box and the box ``[-V, V]³`` around the ball of air
+        velocities of radius ``V = airspeed[1]`` (the angles do not bound body-frame data).
+
+        Args:
+            frame: ``"airflow"`` or ``"body"``.
+
+        Returns:
+            The lower and the upper corner.
+
+        Raises:
+            ValueError: if ``frame`` is neither.
+        """
         if frame == "body":
             v = self.airspeed[1]
             return (np.array([self.rpm[0]] * 4 + [-v] * 3), np.array([self.rpm[1]] * 4 + [v] * 3))

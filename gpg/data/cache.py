@@ -27,6 +27,8 @@ from gpg.quadrotor.generator import GENERATOR_VERSION, Generator
 from gpg.quadrotor.simple_model import SimpleModel, fit_to_generator
 from gpg.quadrotor.vehicle import Vehicle
 
+__all__ = ["build_generator", "dataset_key", "ensure", "ensure_datasets", "load_data", "load_train"]
+
 # data.generator keys, with their types; those not given keep the configs' defaults.
 _BEMT_KEYS = {"n_radial": int, "n_azimuth": int, "interference": bool, "wake_gain": float}
 _ACOUSTICS_KEYS = {"n_harmonics": int}
@@ -34,7 +36,20 @@ _GEN_KEYS = {**_BEMT_KEYS, **_ACOUSTICS_KEYS}
 
 
 def build_generator(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> Generator:
-    """The generator described by a ``data`` config group and a ``vehicle`` config group."""
+    """The generator described by a ``data`` config group and a ``vehicle`` config group.
+
+    Args:
+        data_cfg: the ``data`` group; its ``generator`` mapping sets the BEMT (``n_radial``,
+            ``n_azimuth``, ``interference``, ``wake_gain``) and acoustics (``n_harmonics``)
+            settings, the others keep the configs' defaults.
+        vehicle_cfg: the ``vehicle`` group (:meth:`gpg.quadrotor.vehicle.Vehicle.from_config`).
+
+    Returns:
+        The :class:`~gpg.quadrotor.generator.Generator`.
+
+    Raises:
+        ValueError: if ``data.generator`` names an unknown key.
+    """
     g = dict(data_cfg.get("generator", {}))
     unknown = sorted(set(g) - _GEN_KEYS.keys())
     if unknown:
@@ -47,8 +62,19 @@ def build_generator(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any])
 
 
 def dataset_key(data_cfg: Mapping[str, Any], vehicle_cfg: Mapping[str, Any]) -> str:
-    """Cache key: hash of everything that determines the data (not ``chunk`` or ``workers``,
-    which do not)."""
+    """The cache key of a train/test pair: a hash of everything that determines the data.
+
+    ``chunk`` and ``workers`` do not change the data and mirror images are made after the
+    cache, so they are left out; the default frame (airflow) keeps the key it had before the
+    frame existed. The generator's version is part of the key.
+
+    Args:
+        data_cfg: the ``data`` config group.
+        vehicle_cfg: the ``vehicle`` config group.
+
+    Returns:
+        ``<data name>-<12 hex digits>``, the name of the pair's cache directory.
+    """
     # chunk and workers do not change the data; mirror images are made after the cache
     relevant = {k: v for k, v in data_cfg.items() if k not in ("chunk", "workers", "mirror")}
     if relevant.get("frame") == "airflow":  # the default: the same key as before it existed
@@ -147,8 +173,16 @@ def ensure_datasets(
 ) -> tuple[Dataset, Dataset, Path, dict[str, Any]]:
     """Load the train/test pair from the cache, generating (and caching) it when absent.
 
-    Returns ``(train, test, cache_path, info)``; ``info`` has the key, whether it was cached,
-    and the generation time.
+    Args:
+        data_cfg: the ``data`` config group (counts, seeds, bounds, steps, generator).
+        vehicle_cfg: the ``vehicle`` config group.
+        cache_dir: the cache directory; the pair lives in its subdirectory
+            :func:`dataset_key`.
+        progress: show progress bars while generating.
+
+    Returns:
+        ``(train, test, cache_path, info)``; ``info`` has the key, the path, whether the pair
+        was cached, and the seconds generation took (None when cached).
     """
     return ensure(data_cfg, vehicle_cfg, cache_dir, progress=progress)[1:]
 
@@ -161,7 +195,25 @@ def ensure(
     *,
     progress: bool = True,
 ) -> tuple[Generator, Dataset, Dataset, Path, dict[str, Any]]:
-    """:func:`ensure_datasets`, also returning the generator it built."""
+    """:func:`ensure_datasets`, also returning the generator it built.
+
+    Every setting is checked before any work or any file (bad bounds fail at once); the
+    cache directory must be writable before a generation whose result could not be kept.
+
+    Args:
+        data_cfg: the ``data`` config group.
+        vehicle_cfg: the ``vehicle`` config group.
+        cache_dir: the cache directory.
+        progress: show progress bars while generating.
+
+    Returns:
+        ``(generator, train, test, cache_path, info)``, the rest as :func:`ensure_datasets`.
+
+    Raises:
+        ValueError: if the two seeds are equal (the test set must be held out), or a count,
+            seed, switch, bound, step or generator setting is invalid, naming it; or if the
+            pair must be generated and ``cache_dir`` is not writable.
+    """
     check_numbers(data_cfg)
     if data_cfg["train_seed"] == data_cfg["test_seed"]:
         raise ValueError("data.train_seed and data.test_seed must differ (held-out test set)")
@@ -207,7 +259,22 @@ def publish(where: Path, train: Dataset, test: Dataset) -> None:
 
 
 def load_data(cfg: dict[str, Any]) -> tuple[Dataset, Dataset, dict[str, Any]]:
-    """Train and test sets: user files (``dataset.train``/``dataset.test``) or generated."""
+    """Train and test sets of a run's config: user files or the generated pair.
+
+    The training set gets its mirror images when ``data.mirror`` asks for them; the test set
+    is never mirrored.
+
+    Args:
+        cfg: the run's config: ``dataset.train`` and ``dataset.test`` (paths of dataset files,
+            both or neither), else ``data``, ``vehicle`` and ``cache_dir`` to generate from.
+
+    Returns:
+        ``(train, test, info)``; ``info`` has the cache key (None for user files) and where
+        the sets come from.
+
+    Raises:
+        ValueError: if only one of ``dataset.train`` and ``dataset.test`` is given.
+    """
     paths = cfg.get("dataset") or {}
     if paths.get("train") or paths.get("test"):
         if not (paths.get("train") and paths.get("test")):
@@ -233,8 +300,20 @@ def with_mirrors(train: Dataset, cfg: dict[str, Any]) -> Dataset:
 
 
 def load_train(cfg: dict[str, Any]) -> Dataset:
-    """The training set alone: ``dataset.train``, else the generated one (as :func:`load_data`,
-    which also generates and caches its test set)."""
+    """The training set alone: ``dataset.train``, else the generated one.
+
+    A generated set comes through :func:`load_data`, which also generates and caches its test
+    set; a user's file is read as it is (no mirror images).
+
+    Args:
+        cfg: the run's config, as for :func:`load_data`.
+
+    Returns:
+        The training :class:`~gpg.data.Dataset`.
+
+    Raises:
+        ValueError: if ``dataset.test`` is given without ``dataset.train``.
+    """
     paths = cfg.get("dataset") or {}
     if paths.get("train"):
         return Dataset.load(paths["train"])

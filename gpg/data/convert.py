@@ -35,14 +35,24 @@ from gpg._dtype import float64
 from gpg.data.dataset import Dataset
 from gpg.quadrotor.frames import R_WB
 
+__all__ = ["body_inputs", "body_meta", "to_body"]
+
 RANK_TOL = 1e-9  # a direction shorter than this times the airspeed moves nothing
 
 
 @float64
 def body_inputs(x_air: np.ndarray) -> np.ndarray:
-    """Airflow-frame cases ``(rpm, yaw, pitch, roll, V)`` (N, 8) as body-frame inputs
-    ``(rpm, u, v, w)`` (N, 7): the air ``V e_x`` of the dataset frame seen from the body,
-    ``R_WB(θ)ᵀ V e_x``."""
+    """Airflow-frame cases as body-frame inputs.
+
+    The air ``V e_x`` of the dataset frame seen from the body is ``R_WB(θ)ᵀ V e_x``, the
+    first row of ``R_WB(θ)`` scaled by the airspeed; the rotor speeds are unchanged.
+
+    Args:
+        x_air: (N, 8) cases ``(r1..r4, yaw, pitch, roll, V)`` in rpm, rad and m/s.
+
+    Returns:
+        The (N, 7) body-frame inputs ``(r1..r4, u, v, w)``.
+    """
     R = np.asarray(jax.vmap(R_WB)(jnp.asarray(x_air[:, 4:7])))
     v_b = R[:, 0, :] * x_air[:, 7:8]  # R^T e_x is R's first row
     return np.concatenate([x_air[:, :4], v_b], axis=1)
@@ -104,14 +114,26 @@ def _complete(T: np.ndarray, radial: np.ndarray) -> np.ndarray:
 
 @float64
 def to_body(ds: Dataset, *, angle_gradients: bool = True) -> Dataset:
-    """The airflow-frame dataset ``ds`` in the body frame (see the module docstring): values
-    and rotor-speed gradients exactly, the angle gradients as derivatives along two directions
-    of ``(u, v, w)`` (:attr:`Dataset.grad_dirs`), the airspeed's not run (NaN); no levels and no
-    raw samples. ``angle_gradients=False`` drops the angle gradients (the ``u, v, w`` columns
-    all not run, no ``grad_dirs``): what they add, measured by ``experiments.envelope``.
-    ``meta["bounds"]`` becomes the rotor speeds and the ball of the airspeed range; the cases
-    cover only the directions of the airflow box within it (``meta["cases"]`` says so), so a
-    surrogate's ``in_domain`` claims more than the data hold."""
+    """An airflow-frame dataset in the body frame (see the module docstring).
+
+    Values and rotor-speed gradients convert exactly, the angle gradients as derivatives along
+    two directions of ``(u, v, w)`` (:attr:`Dataset.grad_dirs`), the airspeed's not run (NaN);
+    no levels and no raw samples. ``meta["bounds"]`` becomes the rotor speeds and the ball of
+    the airspeed range; the cases cover only the directions of the airflow box within it
+    (``meta["cases"]`` says so), so a surrogate's ``in_domain`` claims more than the data hold.
+
+    Args:
+        ds: the airflow-frame dataset.
+        angle_gradients: keep the angle gradients as directional derivatives; False drops
+            them (the ``u, v, w`` columns all not run, no ``grad_dirs``): what they add is
+            measured by ``experiments.envelope``.
+
+    Returns:
+        The body-frame :class:`~gpg.data.Dataset`.
+
+    Raises:
+        ValueError: if ``ds`` is not in the airflow frame.
+    """
     if ds.frame != "airflow":
         raise ValueError(
             f"to_body converts airflow-frame data; this dataset is in the {ds.frame} frame"
@@ -148,9 +170,19 @@ def to_body(ds: Dataset, *, angle_gradients: bool = True) -> Dataset:
 
 
 def body_meta(meta: dict, cases: str) -> dict:
-    """The metadata of an airflow-frame dataset's cases in the body frame: its bounds as the
-    rotor speeds and the ball of its airspeed range, without its finite-difference record
-    (the caller adds the body frame's), and ``cases`` saying where they come from."""
+    """The metadata of an airflow-frame dataset's cases in the body frame.
+
+    The bounds become the rotor speeds and the ball of the airspeed range; the
+    finite-difference record, raw-sample layout and frame are dropped (the caller adds the
+    body frame's record).
+
+    Args:
+        meta: the airflow-frame dataset's metadata.
+        cases: where the body-frame cases come from, recorded as ``meta["cases"]``.
+
+    Returns:
+        The body-frame metadata (``frame`` ``"body"``).
+    """
     bounds = meta.get("bounds") or {}
     kept = {k: v for k, v in meta.items() if k not in ("bounds", "fd", "raw_layout", "frame")}
     return {

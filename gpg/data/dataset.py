@@ -30,6 +30,8 @@ from gpg._checks import as_float_array, require_finite, require_shape
 from gpg._io import atomic_write
 from gpg.names import AERO, FRAMES, GRAD_INPUTS, NOISE, UNITS, grad_inputs, inputs
 
+__all__ = ["Dataset", "from_csv", "unit_factor"]
+
 SCHEMA_VERSION = 1
 _ARRAYS = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "x_raw", "y_raw", "grad_dirs")
 _PER_CASE = ("x", "y_aero", "jac_aero", "y_noise", "jac_noise", "grad_dirs")
@@ -132,12 +134,29 @@ class Dataset:
         )
 
     def summary(self) -> str:
+        """A one-line description of the dataset.
+
+        Returns:
+            The number of points, the outputs, the source (generator or file) and what the
+            dataset lacks.
+        """
         lacks = ", ".join(self.missing) or "nothing"
         src = self.meta.get("generator", {}).get("name", self.meta.get("source", "unknown source"))
         return f"{self.n} points, outputs {list(self.output_names)}, from {src}; lacks: {lacks}"
 
     def validate(self) -> None:
-        """Shapes and finiteness; ``ValueError`` names the array and, for NaN/inf, the rows."""
+        """Check the shapes, the finiteness and the box of the arrays (run on construction).
+
+        Gradients may be NaN only where a perturbation was not run (for every output of the
+        case and input); the rotor speeds and the airflow frame's airspeed must be ≥ 0; when
+        ``meta["bounds"]`` is given, every case lies in that box (and the body frame's ball).
+
+        Raises:
+            ValueError: naming the array and, for NaN/inf or a case out of the box, the rows:
+                an unknown frame, a wrong shape, ``jac_noise`` without ``y_noise``,
+                ``grad_dirs`` without ``jac_aero``, raw samples not 8 per point, a value that
+                is not finite, a negative rotor speed or airspeed, or a case out of the box.
+        """
         if self.frame not in FRAMES:
             raise ValueError(f"meta['frame'] must be one of {list(FRAMES)}, got {self.frame!r}")
         d = len(self.inputs)
@@ -242,10 +261,15 @@ class Dataset:
                 raise ValueError("jac_aero and jac_noise must lack the same perturbations")
 
     def repeated_inputs(self) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """Cases that share an input ``x`` exactly: ``(conflicting, identical)``, each a list of
-        row-index groups; a group is conflicting when its outputs or gradients differ (NaN
-        gradients, not run, compare equal). Repeated runs of a noisy experiment are such
-        groups; so are rows pasted twice with a typo."""
+        """Cases that share an input ``x`` exactly.
+
+        Repeated runs of a noisy experiment are such groups; so are rows pasted twice with a
+        typo. A group is conflicting when its outputs or gradients differ (NaN gradients, not
+        run, compare equal).
+
+        Returns:
+            ``(conflicting, identical)``, each a list of row-index groups sorted by first row.
+        """
         _, inverse, counts = np.unique(self.x, axis=0, return_inverse=True, return_counts=True)
         conflicting, identical = [], []
         for g in np.flatnonzero(counts > 1):
@@ -273,7 +297,14 @@ class Dataset:
         return self.n + (0 if mask is None else int(mask.sum()))
 
     def subset(self, index: np.ndarray) -> Dataset:
-        """The points ``index`` (and their raw samples)."""
+        """The dataset of some of its points, their raw samples included.
+
+        Args:
+            index: the indices of the points to keep, in the order wanted.
+
+        Returns:
+            The :class:`Dataset` of those points; ``meta["subset_of"]`` names this one.
+        """
         index = np.asarray(index)
         kw = {k: (None if getattr(self, k) is None else getattr(self, k)[index]) for k in _PER_CASE}
         if self.has_raw:
@@ -283,7 +314,20 @@ class Dataset:
         return Dataset(**kw, meta={**self.meta, "subset_of": self.meta.get("name")})
 
     def without(self, *what: str) -> Dataset:
-        """A copy without some optional parts: "noise", "gradients", "raw samples"."""
+        """A copy without some optional parts.
+
+        Dropping the noise also drops the noise gradients and the raw samples' levels;
+        dropping the gradients also drops their directions (``grad_dirs``).
+
+        Args:
+            *what: the parts to drop: ``"noise"``, ``"gradients"``, ``"raw samples"``.
+
+        Returns:
+            The :class:`Dataset` without them.
+
+        Raises:
+            ValueError: if a part is none of those, naming it.
+        """
         bad = [w for w in what if w not in ("noise", "gradients", "raw samples")]
         if bad:
             raise ValueError(f"unknown parts {bad}; valid: noise, gradients, raw samples")
@@ -301,7 +345,17 @@ class Dataset:
     # -- files ----------------------------------------------------------------------------------
 
     def save(self, path: str | Path) -> tuple[Path, Path]:
-        """Write ``<path>.npz`` and ``<path>.json`` atomically; returns both paths."""
+        """Write the dataset as ``<path>.npz`` and its ``<path>.json`` sidecar, atomically.
+
+        The arrays are written first, so a sidecar only ever describes arrays in place; equal
+        data give bit-identical files (fixed zip timestamps, sorted JSON).
+
+        Args:
+            path: the files' path without suffix (a ``.npz`` or ``.json`` suffix is dropped).
+
+        Returns:
+            The paths of the ``.npz`` and the ``.json`` file.
+        """
         self.validate()
         npz, side = _paths(path)
         npz.parent.mkdir(parents=True, exist_ok=True)
@@ -324,7 +378,19 @@ class Dataset:
 
     @classmethod
     def load(cls, path: str | Path) -> Dataset:
-        """Read ``<path>.npz`` + ``<path>.json``; a clear ``ValueError`` if missing or broken."""
+        """Read a dataset written by :meth:`save`.
+
+        Args:
+            path: the files' path without suffix (a ``.npz`` or ``.json`` suffix is dropped).
+
+        Returns:
+            The :class:`Dataset`, validated as on construction.
+
+        Raises:
+            ValueError: if a file is missing, the sidecar is not a JSON object or has another
+                schema version, or the ``.npz`` is unreadable, holds non-numeric or unknown
+                arrays, or lacks ``x`` or ``y_aero``.
+        """
         npz, side = _paths(path)
         for p in (npz, side):
             if not p.is_file():
@@ -418,8 +484,19 @@ _BODY_GRADIENT_COLUMNS = tuple(f"d{o}/d{i}" for o in AERO + NOISE for i in grad_
 
 
 def unit_factor(field: str, unit: str | None) -> float:
-    """The factor from ``unit`` to the schema's unit of ``field`` (1 for None); a
-    ``ValueError`` names an unknown unit."""
+    """The factor from a unit to the schema's unit of a field.
+
+    Args:
+        field: the schema field (``r1``, ``yaw``, ``airspeed``, ``Fx``, ``Mz``, ``L1``, ...).
+        unit: the unit of the values (``"deg"``, ``"km/h"``, ``"lbf"``, ...); None for the
+            schema's own.
+
+    Returns:
+        The factor that converts values in ``unit`` to the schema's unit (1 for None).
+
+    Raises:
+        ValueError: if ``unit`` is not known for ``field``'s quantity.
+    """
     base = UNITS[field]
     if unit is None:
         return 1.0
@@ -445,26 +522,41 @@ def from_csv(
 ) -> Dataset:
     """Import a CSV file by mapping schema fields to its column names.
 
-    ``frame="body"`` reads body-frame data instead (inputs ``r1..r4, u, v, w``: the air
-    velocity in the body frame, m/s; outputs in the body frame; gradients along all seven
-    inputs, ``"dFx/du"``); ``bounds`` then takes ``rpm`` and ``airspeed`` (the ball's radius).
+    Inputs and the six aerodynamic outputs are required, the levels optional. Gradients are
+    optional and complete if present: map each one in ``columns`` (``"dFx/dr1": "..."``) or
+    give a ``gradients`` pattern. An empty gradient cell means that perturbation was not run
+    for that case (it must then be empty for every output). Gradients are converted with the
+    units of their output and input. A NaN, inf or non-number in the file is reported by CSV
+    line and column.
 
-    ``columns`` maps schema fields (``r1..r4, yaw, pitch, roll, airspeed, Fx..Mz, L1..L3``) to
-    CSV headers; inputs and the six aerodynamic outputs are required, noise optional. Gradients
-    are optional: either map each one in ``columns`` (``"dFx/dr1": "..."``) or give a
-    ``gradients`` pattern naming the CSV header of ``∂output/∂input`` from the CSV headers of
-    the two (``{output}``, ``{input}``) or from their schema names (``{output_field}``,
-    ``{input_field}``), e.g. ``"d{output}_d{input}"``; they must be complete if present.
-    An empty gradient cell means that perturbation was not run for that case (it must then be
-    empty for every output). ``units`` maps a field to its unit in the file (e.g.
-    ``{"yaw": "deg", "airspeed": "km/h"}``);
-    gradients are converted with the units of their output and input.
+    Args:
+        path: the CSV file (UTF-8, one header line).
+        columns: schema fields (``r1..r4, yaw, pitch, roll, airspeed, Fx..Mz, L1..L3``; in
+            the body frame ``r1..r4, u, v, w``) to the CSV's header names.
+        units: a field's unit in the file where it is not the schema's (e.g.
+            ``{"yaw": "deg", "airspeed": "km/h"}``; see :func:`unit_factor`).
+        gradients: a pattern naming the CSV header of ``∂output/∂input`` from the CSV headers
+            of the two (``{output}``, ``{input}``) or from their schema names
+            (``{output_field}``, ``{input_field}``), e.g. ``"d{output}_d{input}"``.
+        vehicle: a name in ``conf/vehicle`` or a YAML path, recorded in the dataset so that
+            :meth:`gpg.Surrogate.fit` uses it.
+        bounds: the input box the data were sampled in, in the ``data.bounds`` form (``rpm``,
+            ``yaw_deg``, ``pitch_deg``, ``roll_deg``, ``airspeed``; in the body frame ``rpm``
+            and ``airspeed``, the ball's radius), recorded for the surrogate's ``in_domain``.
+        meta: more metadata to record.
+        frame: ``"airflow"`` (the paper's inputs) or ``"body"`` (inputs ``r1..r4, u, v, w``:
+            the air velocity in the body frame, m/s; outputs in the body frame; gradients
+            along all seven inputs, ``"dFx/du"``).
 
-    ``vehicle`` (a name in ``conf/vehicle`` or a YAML path) is recorded in the dataset, so that
-    :meth:`gpg.Surrogate.fit` uses it; ``bounds`` (the ``data.bounds`` form: ``rpm``,
-    ``yaw_deg``, ``pitch_deg``, ``roll_deg``, ``airspeed``) is the input box the data were
-    sampled in, recorded for the surrogate's ``in_domain`` flag. A NaN, inf or non-number in
-    the file is reported by CSV line and column.
+    Returns:
+        The :class:`Dataset`, in the schema's units.
+
+    Raises:
+        ValueError: if an argument has the wrong type or names an unknown field, unit or
+            frame, a required field or gradient is missing, one CSV column feeds two fields,
+            both gradient forms are given, the vehicle or bounds are invalid, a vehicle is
+            given as an object, or the file is missing or unreadable or holds a bad value
+            (naming the line and column).
     """
     for name, arg in (("columns", columns), ("units", units), ("meta", meta)):
         if arg is not None and not isinstance(arg, Mapping):

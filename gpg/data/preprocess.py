@@ -13,6 +13,7 @@ physical units.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -26,6 +27,17 @@ from gpg.names import GRAD_DIMS
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle
+
+__all__ = [
+    "FittedCoefficientsWarning",
+    "Normalizer",
+    "Training",
+    "normalised_gradients",
+    "prepare",
+    "residuals",
+    "restore",
+    "simple_model_for",
+]
 
 
 class Normalizer(eqx.Module):
@@ -42,7 +54,18 @@ class Normalizer(eqx.Module):
     grad_dims: tuple[int, ...] = eqx.field(static=True, default=GRAD_DIMS)
 
     @classmethod
-    def fit(cls, x: np.ndarray, y: np.ndarray, grad_dims=GRAD_DIMS) -> Normalizer:
+    def fit(cls, x: np.ndarray, y: np.ndarray, grad_dims: Sequence[int] = GRAD_DIMS) -> Normalizer:
+        """The normaliser of a training set: its input box and its outputs' mean and spread.
+
+        Args:
+            x: (N, D) inputs in dataset units.
+            y: (N, M) outputs (residuals against ``M``).
+            grad_dims: the input dims the gradient columns are taken along.
+
+        Returns:
+            The :class:`Normalizer`; a constant input gets the box ``[value, value + 2]``
+            (half-range 1), a constant output the scale 1.
+        """
         lo, hi = x.min(0), x.max(0)
         hi = np.where(hi > lo, hi, lo + 2.0)  # constant input: half-range 1 about lo + 1
         std = y.std(0)
@@ -59,31 +82,91 @@ class Normalizer(eqx.Module):
         return 0.5 * (self.x_hi - self.x_lo)
 
     def x(self, x: Float[ArrayLike, "... D"]) -> Float[Array, "... D"]:
-        """Eq. normalize_x: ``2 (x − min)/(max − min) − 1``."""
+        """Inputs normalised to the box [−1, 1] (Eq. normalize_x).
+
+        Args:
+            x: (..., D) inputs in dataset units.
+
+        Returns:
+            ``2 (x − min)/(max − min) − 1``, same shape.
+        """
         return (jnp.asarray(x) - self.x_lo) / self.half_range - 1.0
 
     def x_inv(self, xn: Float[ArrayLike, "... D"]) -> Float[Array, "... D"]:
+        """Normalised inputs back in dataset units, the inverse of :meth:`x`.
+
+        Args:
+            xn: (..., D) normalised inputs.
+
+        Returns:
+            The inputs in dataset units, same shape.
+        """
         return (jnp.asarray(xn) + 1.0) * self.half_range + self.x_lo
 
     def y(self, y: Float[ArrayLike, "... M"]) -> Float[Array, "... M"]:
-        """Eq. normalize_y: ``(y − mean)/std``."""
+        """Outputs z-scored (Eq. normalize_y).
+
+        Args:
+            y: (..., M) outputs in physical units (residuals against ``M``).
+
+        Returns:
+            ``(y − mean)/std``, same shape.
+        """
         return (jnp.asarray(y) - self.y_mean) / self.y_std
 
     def y_inv(self, yn: Float[ArrayLike, "... M"]) -> Float[Array, "... M"]:
+        """Normalised outputs back in physical units, the inverse of :meth:`y`.
+
+        Args:
+            yn: (..., M) normalised outputs.
+
+        Returns:
+            ``yn · std + mean``, same shape.
+        """
         return jnp.asarray(yn) * self.y_std + self.y_mean
 
     def grad_scale(self) -> Float[Array, "M G"]:
-        """Eq. normalize_g: ``(max−min)_j / 2 / std(y_m)`` for output m, gradient dim j."""
+        """The factors that normalise gradients (Eq. normalize_g).
+
+        Returns:
+            (M, G): ``(max−min)_j / 2 / std(y_m)`` for output ``m`` and gradient dim ``j``.
+        """
         return self.half_range[jnp.asarray(self.grad_dims)][None, :] / self.y_std[:, None]
 
     def grad(self, J: Float[ArrayLike, "... M G"]) -> Float[Array, "... M G"]:
+        """Gradients along the input dims normalised (Eq. normalize_g, :meth:`grad_scale`).
+
+        Args:
+            J: (..., M, G) gradients in dataset units.
+
+        Returns:
+            The normalised gradients, same shape.
+        """
         return jnp.asarray(J) * self.grad_scale()
 
     def grad_inv(self, Jn: Float[ArrayLike, "... M G"]) -> Float[Array, "... M G"]:
+        """Normalised gradients back in dataset units, the inverse of :meth:`grad`.
+
+        Args:
+            Jn: (..., M, G) normalised gradients.
+
+        Returns:
+            The gradients in dataset units, same shape.
+        """
         return jnp.asarray(Jn) / self.grad_scale()
 
     def var_inv(self, var: Float[ArrayLike, "..."]) -> Float[Array, "... M"]:
-        """Per-output variance in physical units from the shared latent variance."""
+        """Per-output variance in physical units from the shared latent variance.
+
+        One kernel serves all outputs, so each output's variance is the latent one scaled by
+        that output's ``std²``.
+
+        Args:
+            var: (...) latent variances in normalised units.
+
+        Returns:
+            (..., M) the variance of each output.
+        """
         return jnp.asarray(var)[..., None] * self.y_std**2
 
 
@@ -116,10 +199,19 @@ class FittedCoefficientsWarning(UserWarning):
 
 
 def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
-    """``M`` for a dataset: ``P_F``, ``T_z`` from the vehicle file's ``simple_model`` section,
-    else from the dataset's metadata (written by the generator), else a least-squares fit to
-    the data itself (``−F_zB ≈ P_F Σr²``, ``τ_zB ≈ −T_z Σ d_i r_i²``) with a
+    """The simplified model ``M`` for a dataset and its vehicle.
+
+    ``P_F``, ``T_z`` come from the vehicle file's ``simple_model`` section, else from the
+    dataset's metadata (written by the generator), else a least-squares fit to the data
+    itself (``−F_zB ≈ P_F Σr²``, ``τ_zB ≈ −T_z Σ d_i r_i²``) with a
     :class:`FittedCoefficientsWarning` stating the values.
+
+    Args:
+        ds: the dataset (its metadata, or its cases for the fit).
+        vehicle: the vehicle: rotor layout, spins, and perhaps the coefficients.
+
+    Returns:
+        The :class:`~gpg.quadrotor.simple_model.SimpleModel`.
     """
     if vehicle.thrust_coefficient is not None:
         return SimpleModel.from_vehicle(
@@ -151,9 +243,21 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
 def residuals(
     ds: Dataset, simple: SimpleModel | None, noise_model: SimpleNoise | None = None
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """``(y, J, y_raw)`` with ``M`` subtracted from the six aerodynamic outputs (and their
-    Jacobians and raw samples), and ``M_noise`` (``noise_model``) from the three levels if given;
-    unchanged where a model is None."""
+    """A dataset's outputs, gradients and raw samples with the simplified models subtracted.
+
+    ``M`` comes off the six aerodynamic outputs, their gradients (along the data's gradient
+    columns, :attr:`Dataset.grad_dirs`) and their raw samples; in the body frame ``M``
+    depends on the rotor speeds alone. ``M_noise`` comes off the three levels the same way.
+
+    Args:
+        ds: the dataset.
+        simple: ``M``; None leaves the aerodynamic outputs as they are.
+        noise_model: ``M_noise``; None (or a dataset without levels) leaves the levels.
+
+    Returns:
+        ``(y, J, y_raw)``: (N, M) outputs, (N, M, 7) gradients or None, (8N, M) raw samples
+        or None; copies, the dataset is not changed.
+    """
     y, J = ds.y.copy(), None if ds.jac is None else ds.jac.copy()
     y_raw = None if ds.y_raw is None else ds.y_raw.copy()
 
@@ -193,9 +297,24 @@ def prepare(
     simple: SimpleModel | None,
     noise_model: SimpleNoise | None = None,
 ) -> Training:
-    """Residuals (against ``M`` and, if given, ``M_noise``) and normalisation for ``ds``; the
-    statistics come from its base points (the gradient noise ``λ²`` is the model's:
-    :func:`gpg.models.initial_hyper`)."""
+    """The GP's view of a dataset: residuals against the simplified models, normalised.
+
+    The normalisation's statistics come from the base points (the gradient noise ``λ²`` is
+    the model's: :func:`gpg.models.initial_hyper`). Cases that share an input are warned
+    about (:meth:`Dataset.repeated_inputs`), not refused.
+
+    Args:
+        ds: the dataset.
+        simple: ``M``, subtracted from the aerodynamic outputs; None to keep them.
+        noise_model: ``M_noise``, subtracted from the levels; None to keep them.
+
+    Returns:
+        The :class:`Training`: normalised inputs, targets, gradients and raw samples, and the
+        normaliser and models that produced them.
+
+    Raises:
+        ValueError: if an output or input overflows float64 when standardised (naming it).
+    """
     warn_repeated_inputs(ds)
     y, J, y_raw = residuals(ds, simple, noise_model)
     norm = Normalizer.fit(ds.x, y)
@@ -225,9 +344,22 @@ def prepare(
 def normalised_gradients(
     norm: Normalizer, J: Float[np.ndarray, "N M G"], dirs: Float[np.ndarray, "N G G"] | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """The GP's gradient targets from ``J`` (dataset units) and, for columns along the
-    directions ``dirs`` (:attr:`Dataset.grad_dirs`), their normalised directions
-    (:func:`normalised_directions`); ``(Normalizer.grad(J), None)`` without."""
+    """The GP's gradient targets, and their directions when the columns are directional.
+
+    Args:
+        norm: the training set's normaliser.
+        J: (N, M, G) gradients in dataset units (residuals against ``M``).
+        dirs: (N, G, G) the direction of each gradient column (:attr:`Dataset.grad_dirs`),
+            or None for derivatives along the inputs themselves.
+
+    Returns:
+        ``(dY, bases)``: without ``dirs``, ``(Normalizer.grad(J), None)``; with them, the
+        derivatives along unit directions of the normalised inputs and those directions
+        (:func:`normalised_directions`).
+
+    Raises:
+        ValueError: if a zero direction carries a gradient (:func:`normalised_directions`).
+    """
     if dirs is None:
         return np.asarray(norm.grad(J)), None
     return normalised_directions(norm, J, dirs)
@@ -317,8 +449,18 @@ def _check_standardised(names, y, norm, X, Y, dY, X_raw, Y_raw) -> None:
 def restore(
     training: Training, x: Float[ArrayLike, "N 8"], y_norm: Float[ArrayLike, "N M"]
 ) -> np.ndarray:
-    """Inverse of :func:`prepare` for outputs: de-normalise and add ``M`` (and ``M_noise``)
-    back."""
+    """Normalised outputs back in physical units, the inverse of :func:`prepare`.
+
+    Args:
+        training: the :class:`Training` the outputs were normalised by.
+        x: (N, 8) the cases' inputs in dataset units ((N, 7) in the body frame), where ``M``
+            is evaluated.
+        y_norm: (N, M) normalised outputs (residuals).
+
+    Returns:
+        (N, M) outputs in physical units: de-normalised, with ``M`` (and ``M_noise``) added
+        back.
+    """
     y = np.asarray(training.normalizer.y_inv(y_norm)).copy()
     if training.simple is not None:
         x_m = _m_inputs(training.frame, np.asarray(x))

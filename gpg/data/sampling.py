@@ -32,14 +32,39 @@ from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
 from gpg.quadrotor.generator import Generator, evaluate_batch
 
+__all__ = [
+    "FDSteps",
+    "fd_meta",
+    "forward_differences",
+    "generate",
+    "latin_hypercube",
+    "raw_samples",
+]
+
 
 def latin_hypercube(
     n: int, bounds: Bounds | tuple[np.ndarray, np.ndarray], seed: int, frame: str = "airflow"
 ) -> np.ndarray:
-    """``n`` inputs (n, 8) from a scrambled Latin hypercube (``scipy.stats.qmc``) over
-    ``bounds``, or over a box given as its lower and upper corners (8,) each. In the body frame
-    (n, 7): rotor speeds in ``bounds.rpm`` and air velocities ``s·d``, ``s`` uniform in
-    ``bounds.airspeed``, ``d`` uniform on the sphere (see the module docstring)."""
+    """Inputs from a scrambled Latin hypercube (``scipy.stats.qmc``).
+
+    In the airflow frame the hypercube spans the box; in the body frame it gives rotor speeds
+    in ``bounds.rpm`` and air velocities ``s·d``, ``s`` uniform in ``bounds.airspeed``, ``d``
+    uniform on the sphere (see the module docstring).
+
+    Args:
+        n: the number of inputs.
+        bounds: a :class:`~gpg.data.Bounds`, or (airflow frame only) a box given as its lower
+            and upper corners, (8,) each.
+        seed: the hypercube's seed.
+        frame: ``"airflow"`` or ``"body"``.
+
+    Returns:
+        (n, 8) inputs in rpm, rad and m/s; (n, 7) in the body frame.
+
+    Raises:
+        ValueError: if ``n < 1``, ``frame`` is unknown, or the body frame gets corners
+            instead of a Bounds.
+    """
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     if frame == "body":
@@ -76,15 +101,34 @@ class FDSteps:
                 raise ValueError(f"fd.{k} must be > 0, got {v}")
 
     def steps(self, x: np.ndarray) -> np.ndarray:
-        """Step of each of the 7 gradient inputs at each point (N, 7): the angles' in the
-        airflow frame (x with 8 columns), the air velocity's in the body frame (7 columns)."""
+        """The forward-difference step of each of the 7 gradient inputs at each point.
+
+        Rotor speeds step by ``rpm_rel`` of their value, at least ``rpm_floor``; the angles
+        by ``angle_deg`` in the airflow frame (``x`` with 8 columns), the air velocity by
+        ``velocity`` in the body frame (7 columns).
+
+        Args:
+            x: (N, 8) or (N, 7) points in dataset units.
+
+        Returns:
+            (N, 7) steps in the inputs' units (rpm, rad or m/s).
+        """
         h_rpm = np.maximum(self.rpm_rel * x[:, :4], self.rpm_floor)
         h = math.radians(self.angle_deg) if x.shape[1] == 8 else self.velocity
         return np.concatenate([h_rpm, np.full((x.shape[0], 3), h)], axis=1)
 
 
 def raw_samples(x: np.ndarray, fd: FDSteps) -> tuple[np.ndarray, np.ndarray]:
-    """The 8 raw inputs per point (8N, D), point-major, and the steps (N, 7)."""
+    """The 8 raw inputs per point: the point, then one forward step of each gradient input.
+
+    Args:
+        x: (N, D) points in dataset units.
+        fd: the steps.
+
+    Returns:
+        ``(x_raw, h)``: (8N, D) inputs, point-major (rows ``8i..8i+7`` are point ``i`` and its
+        seven perturbations), and the (N, 7) steps.
+    """
     h = fd.steps(x)
     d = x.shape[1]
     pert = np.repeat(x[:, None, :], 8, axis=1)  # (N, 8, D): base + 7 perturbations
@@ -94,8 +138,15 @@ def raw_samples(x: np.ndarray, fd: FDSteps) -> tuple[np.ndarray, np.ndarray]:
 
 
 def forward_differences(y_raw: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The base outputs (N, M) and their forward-difference gradients (N, M, 7) from the
-    point-major raw samples of :func:`raw_samples` (8N, M) and their steps ``h`` (N, 7)."""
+    """The base outputs and their forward-difference gradients from the raw samples.
+
+    Args:
+        y_raw: (8N, M) outputs at the point-major raw inputs of :func:`raw_samples`.
+        h: (N, 7) their steps.
+
+    Returns:
+        ``(y, J)``: the (N, M) base outputs and the (N, M, 7) gradients.
+    """
     y8 = y_raw.reshape(h.shape[0], 8, -1)
     y = y8[:, 0]
     return y, (y8[:, 1:] - y[:, None]).transpose(0, 2, 1) / h[:, None, :]
@@ -118,12 +169,35 @@ def generate(
     workers: int = 1,
     frame: str = "airflow",
 ) -> Dataset:
-    """Sample ``n`` inputs and evaluate the generator, in the airflow frame (the paper's) or
-    the body frame (``frame="body"``: the whole envelope, see the module docstring).
+    """Sample inputs and evaluate the generator on them: a dataset.
 
-    ``gradients``: ``"fd"`` (the paper's forward differences; also yields the raw 8X samples),
-    ``"exact"`` (forward-mode autodiff through the generator) or ``"none"``. ``workers``
-    processes share the evaluations; the dataset is bit-identical for any number of them.
+    In the airflow frame (the paper's) or the body frame (``frame="body"``: the whole
+    envelope, see the module docstring). The metadata record the generator, bounds, seed and
+    steps.
+
+    Args:
+        gen: the generator (BEMT and tonal acoustics of a vehicle).
+        n: the number of cases.
+        bounds: the sampling box.
+        seed: the Latin hypercube's seed.
+        gradients: ``"fd"`` (the paper's forward differences; also yields the raw 8X
+            samples), ``"exact"`` (forward-mode autodiff through the generator) or ``"none"``.
+        fd: the forward-difference steps.
+        keep_raw: keep the raw 8X samples (needs ``gradients="fd"``).
+        noise: keep the levels (noise outputs).
+        chunk: cases per batch of evaluations.
+        progress: a progress bar, or its label.
+        meta: more metadata to record.
+        workers: processes that share the evaluations; the dataset is bit-identical for any
+            number of them.
+        frame: ``"airflow"`` or ``"body"``.
+
+    Returns:
+        The :class:`~gpg.data.Dataset`.
+
+    Raises:
+        ValueError: if ``gradients`` is unknown, or ``keep_raw`` is asked for without
+            ``gradients="fd"``.
     """
     if gradients not in ("fd", "exact", "none"):
         raise ValueError(f"gradients must be 'fd', 'exact' or 'none', got {gradients!r}")
@@ -173,8 +247,15 @@ def _bounds_meta(bounds: Bounds, frame: str) -> dict[str, Any]:
 
 
 def fd_meta(fd: FDSteps, frame: str) -> dict[str, Any]:
-    """The steps a dataset records: the angle step in the airflow frame, the velocity step in
-    the body frame (the other is not used)."""
+    """The steps a dataset records, those its frame uses.
+
+    Args:
+        fd: the steps.
+        frame: ``"airflow"`` (the angle step is kept) or ``"body"`` (the velocity step).
+
+    Returns:
+        The fields of ``fd`` without the step the frame does not use.
+    """
     out = asdict(fd)
     out.pop("velocity" if frame == "airflow" else "angle_deg")
     return out

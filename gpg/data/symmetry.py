@@ -25,13 +25,30 @@ import numpy as np
 from gpg.data.dataset import Dataset
 from gpg.quadrotor.vehicle import Vehicle
 
+__all__ = ["augment", "keeps_levels", "mirror", "reflection"]
+
 AXES = ("x", "y")
 
 
 def reflection(vehicle: Vehicle, axis: str, *, levels: bool) -> np.ndarray:
-    """The rotor permutation ``π`` (4,) of the mirror across the body plane normal to
-    ``axis``, or ``ValueError`` naming what in ``vehicle`` is not symmetric (rotor positions,
-    spins, drag areas are symmetric by construction; microphones when ``levels``)."""
+    """The rotor permutation of the mirror across a body plane, after checking the symmetry.
+
+    Rotor positions must map onto rotor positions and each rotor onto one spinning the other
+    way (a mirror-image propeller); drag areas are symmetric by construction.
+
+    Args:
+        vehicle: the vehicle.
+        axis: the body axis normal to the mirror plane, ``"x"`` or ``"y"``.
+        levels: whether the data have levels, which then need every microphone to be its own
+            mirror image (:func:`keeps_levels`).
+
+    Returns:
+        The (4,) permutation ``π``: rotor ``i``'s mirror image is rotor ``π[i]``.
+
+    Raises:
+        ValueError: if ``axis`` is unknown, or naming what in ``vehicle`` is not symmetric
+            (rotor positions, spins, microphones when ``levels``).
+    """
     if axis not in AXES:
         raise ValueError(f"axis must be one of {list(AXES)}, got {axis!r}")
     S = _s(axis)
@@ -58,16 +75,41 @@ def reflection(vehicle: Vehicle, axis: str, *, levels: bool) -> np.ndarray:
 
 
 def keeps_levels(vehicle: Vehicle, axis: str) -> bool:
-    """Whether every microphone of ``vehicle`` is its own mirror image across the plane normal
-    to body ``axis``, so that the mirror keeps the levels."""
+    """Whether the mirror across a body plane keeps a vehicle's levels.
+
+    It does when every microphone is its own mirror image across the plane.
+
+    Args:
+        vehicle: the vehicle.
+        axis: the body axis normal to the mirror plane, ``"x"`` or ``"y"``.
+
+    Returns:
+        True when every microphone lies in the plane (to rounding).
+    """
     mics = np.asarray(vehicle.mic_positions, float)
     tol = 1e-9 * max(1.0, float(np.abs(np.asarray(vehicle.positions)).max()))
     return bool(np.abs(mics * _s(axis) - mics).max() <= tol)
 
 
 def mirror(ds: Dataset, vehicle: Vehicle, axis: str) -> Dataset:
-    """The mirror image of every case of the body-frame ``ds`` across the plane normal to body
-    ``axis`` (``"x"`` or ``"y"``): inputs, outputs and gradients (see the module docstring)."""
+    """The mirror image of every case of a body-frame dataset across a body plane.
+
+    Inputs, outputs and gradients are mirrored (see the module docstring); directional
+    gradient columns keep their values and turn their directions. ``meta["mirrored"]``
+    records the axis.
+
+    Args:
+        ds: the body-frame dataset.
+        vehicle: its vehicle, which must be symmetric in ``axis`` (:func:`reflection`).
+        axis: the body axis normal to the mirror plane, ``"x"`` or ``"y"``.
+
+    Returns:
+        The mirrored :class:`~gpg.data.Dataset`, as many cases as ``ds``.
+
+    Raises:
+        ValueError: if ``ds`` is not in the body frame, or the vehicle is not symmetric in
+            ``axis`` (:func:`reflection`).
+    """
     if ds.frame != "body":
         raise ValueError("mirror images are of body-frame data (meta['frame'] == 'body')")
     perm = reflection(vehicle, axis, levels=ds.has_noise)
@@ -95,10 +137,24 @@ def mirror(ds: Dataset, vehicle: Vehicle, axis: str) -> Dataset:
 
 
 def augment(ds: Dataset, vehicle: Vehicle, axes: tuple[str, ...] = ("x",)) -> Dataset:
-    """``ds`` and its mirror images across every product of ``axes`` (``("x",)``: 2x the
-    cases; ``("x", "y")``: 4x), without raw samples. The simulator runs behind it are
-    ``ds``'s: :attr:`Dataset.runs` of the result counts the mirrored cases as runs they are not,
-    so the result records ``meta["runs"]``, the real count."""
+    """A dataset and its mirror images across every product of some body axes.
+
+    The result has ``ds``'s cases and their mirror images (``("x",)``: 2x the cases;
+    ``("x", "y")``: 4x), without raw samples. The simulator runs behind it are ``ds``'s:
+    :attr:`Dataset.runs` of the result counts the mirrored cases as runs they are not, so the
+    result records ``meta["runs"]``, the real count.
+
+    Args:
+        ds: the body-frame dataset.
+        vehicle: its vehicle, symmetric in every axis of ``axes``.
+        axes: the mirrors, among ``"x"`` and ``"y"`` (repeats ignored).
+
+    Returns:
+        The :class:`~gpg.data.Dataset`: ``ds``'s cases, then each mirror's.
+
+    Raises:
+        ValueError: if an axis is unknown, or as :func:`mirror`.
+    """
     axes = tuple(dict.fromkeys(axes))
     for a in axes:
         if a not in AXES:

@@ -40,6 +40,8 @@ from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
 from gpg.gp.gram import rows_gram
 
+__all__ = ["GRADIENTS", "Batch", "propose", "subsets"]
+
 GRADIENTS = ("all", "none", "choose")
 
 
@@ -56,12 +58,26 @@ class Batch:
 
     @property
     def runs(self) -> int:
+        """The simulator runs of the whole batch."""
         return int(self.cost.sum())
 
 
 def subsets(n_grad: int, gradients: str) -> np.ndarray:
-    """Row masks (S, 1+G) of the allowed choices: the value row always, and all gradient rows
-    (``all``), none (``none``) or every subset of them (``choose``)."""
+    """The row masks of the allowed choices of a case's rows.
+
+    The value row is always run; of the gradient rows, all (``all``), none (``none``) or
+    every subset (``choose``, ``2^G`` masks).
+
+    Args:
+        n_grad: ``G``, the model's gradient dims.
+        gradients: ``all``, ``none`` or ``choose``.
+
+    Returns:
+        (S, 1+G) bool masks, the value row first.
+
+    Raises:
+        ValueError: if ``gradients`` is none of those.
+    """
     if gradients not in GRADIENTS:
         raise ValueError(f"gradients must be one of {GRADIENTS}, got {gradients!r}")
     if gradients == "all" or n_grad == 0:
@@ -131,8 +147,11 @@ def propose(
     keep: int | None = None,
     exclude: np.ndarray | None = None,
 ) -> Batch:
-    """A batch of ``batch`` cases from ``candidates`` (normalised inputs, as ``gp.X``) that
-    most reduce the weighted integrated variance over ``reference`` per simulator run.
+    """The candidates that most reduce the integrated variance per simulator run, greedily.
+
+    A batch of ``batch`` cases from ``candidates`` (normalised inputs, as ``gp.X``) that most
+    reduce the weighted integrated variance over ``reference`` per simulator run, each pick
+    fantasised into the posterior before the next (see the module docstring).
 
     Args:
         gp: the current exact GP-G (its posterior; the outcomes are not needed).
@@ -144,6 +163,16 @@ def propose(
             only) or ``choose`` (per case, the subset with the best gain per run).
         keep: candidates kept after the value-row ranking (default ``max(10·batch, 200)``).
         exclude: (C,) bool, candidates that may not be picked.
+
+    Returns:
+        The :class:`Batch`: the picks as indices into ``candidates``, in the order picked.
+
+    Raises:
+        ValueError: if ``reference`` is not (Z, D), ``batch`` is not in ``[1, C]``,
+            ``weights`` is not (Z,) finite and non-negative, or fewer than ``batch``
+            candidates may be picked.
+        RuntimeError: if a candidate's posterior covariance is indefinite beyond rounding
+            (the model's stored factor does not match its ``K̄``).
     """
     C, D = candidates.shape
     if reference.ndim != 2 or reference.shape[1] != D:

@@ -23,6 +23,8 @@ from gpg.data.dataset import Dataset, from_csv, unit_factor
 from gpg.data.sampling import FDSteps
 from gpg.names import AERO, GRAD_DIMS, GRAD_INPUTS, INPUTS, NOISE
 
+__all__ = ["read_tell", "write_ask"]
+
 CASE, RUN, BASE = "case", "run", "base"
 
 
@@ -53,10 +55,27 @@ def write_ask(
     columns: Mapping[str, str] | None = None,
     units: Mapping[str, str] | None = None,
 ) -> Path:
-    """Write the runs of cases ``x`` (B, 8, dataset units) with the perturbations
-    ``gradients`` (B, 7) to ``path``: columns ``case``, ``run`` and the inputs under the
-    headers ``columns`` maps them to (default: the schema names), in ``units`` (default:
-    rpm, rad, m/s). Returns the path; the file is written atomically."""
+    """Write the ask file: one row per simulator run of the proposed cases.
+
+    Each case has its ``base`` run, then one run per perturbation asked for, labelled by the
+    input it raises by its forward-difference step. The columns are ``case``, ``run`` and the
+    inputs; the file is written atomically.
+
+    Args:
+        path: the CSV file to write (its folder is made).
+        x: (B, 8) the cases, in dataset units (:attr:`gpg.design.Proposal.x`).
+        gradients: (B, 7) which perturbations to run at each
+            (:attr:`gpg.design.Proposal.gradients`).
+        fd: the forward-difference steps.
+        columns: the header each input is written under (default: the schema names).
+        units: the unit each input is written in (default: rpm, rad, m/s).
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: if ``x`` is not (B, 8) or ``gradients`` not (B, 7), or a unit is unknown.
+    """
     columns, units = dict(columns or {}), dict(units or {})
     x = np.asarray(x, dtype=float)
     gradients = np.asarray(gradients, dtype=bool)
@@ -85,10 +104,31 @@ def read_tell(
     bounds: Mapping[str, Any] | None = None,
     meta: Mapping[str, Any] | None = None,
 ) -> Dataset:
-    """The cases of an answered ask file: each case's ``base`` run gives its inputs and
-    outputs, each perturbed run one column of its gradients (forward differences, in the
-    dataset's units); perturbations not run are NaN. ``columns`` maps schema fields to the
-    file's headers (default: the schema names, with ``L1..L3`` if the file has them)."""
+    """The cases of an answered ask file, as a dataset with their gradients.
+
+    Each case's ``base`` run gives its inputs and outputs, each perturbed run one column of
+    its gradients (forward differences, in the dataset's units); perturbations not run are
+    NaN. The file is read through :func:`gpg.data.from_csv`, which checks names, units and
+    every value.
+
+    Args:
+        path: the answered ask file (:func:`write_ask`'s, with the outputs added).
+        columns: schema fields to the file's headers (default: the schema names, with
+            ``L1..L3`` if the file has them).
+        units: the file's units where not the schema's, as for :func:`gpg.data.from_csv`.
+        vehicle: the vehicle to record, as for :func:`gpg.data.from_csv`.
+        bounds: the input box to record, as for :func:`gpg.data.from_csv`.
+        meta: more metadata to record; ``meta["cases"]`` becomes the case numbers.
+
+    Returns:
+        The :class:`~gpg.data.Dataset` of the cases, in the order of their numbers.
+
+    Raises:
+        ValueError: if the file is missing or lacks the ``case`` or ``run`` column, a case
+            number is not an integer or has no base run or two, a run is neither ``base``
+            nor a gradient input, a perturbed run does not raise its input alone above the
+            base run's or repeats one, or :func:`gpg.data.from_csv` refuses the file.
+    """
     path = Path(path)
     header = _header(path)
     if columns is None:

@@ -1,9 +1,19 @@
 """gpg inside RL loops: a functional quadrotor environment in gymnax's conventions
 (:mod:`gpg.envs.quadrotor`), Dryden turbulence (:mod:`gpg.envs.wind`), analytic policy
 gradients through it (:mod:`gpg.envs.apg`, needs optax: the ``envs`` extra) and Gymnasium
-wrappers for NumPy and torch users (:mod:`gpg.envs.gymnasium`, the ``envs`` extra)."""
+wrappers for NumPy and torch users (:mod:`gpg.envs.gymnasium`, the ``envs`` extra: imported
+on its own, ``from gpg.envs.gymnasium import GymnasiumEnv``, since it needs Gymnasium)."""
 
-from gpg.envs import apg
+from gpg.envs import apg, wind
 from gpg.envs.quadrotor import ACTIONS, OBS_SIZE, TASKS, EnvParams, EnvState, QuadrotorEnv
 
-__all__ = ["ACTIONS", "OBS_SIZE", "TASKS", "EnvParams", "EnvState", "QuadrotorEnv", "apg"]
+__all__ = [
+    "ACTIONS",
+    "OBS_SIZE",
+    "TASKS",
+    "EnvParams",
+    "EnvState",
+    "QuadrotorEnv",
+    "apg",
+    "wind",
+]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -22,6 +23,8 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
 from gpg.envs.quadrotor import OBS_SIZE, EnvParams, QuadrotorEnv
+
+__all__ = ["APGConfig", "MLPPolicy", "rollout", "train"]
 
 # Observation scales of the default policy: position error /3 m, velocity error /2 m/s,
 # attitude as is, rates /2 rad/s, rotor-speed offsets ×5, reference acceleration /2 m/s².
@@ -45,7 +48,23 @@ class MLPPolicy(eqx.Module):
     scale: Array
 
     @classmethod
-    def create(cls, key: PRNGKeyArray, *, width: int = 64, depth: int = 2, dtype=jnp.float32):
+    def create(
+        cls, key: PRNGKeyArray, *, width: int = 64, depth: int = 2, dtype: Any = jnp.float32
+    ) -> MLPPolicy:
+        """A policy with random weights whose first actions are about zero.
+
+        The last layer's weights are scaled by 0.1, so that the untrained policy commands
+        about hover thrust and no rates (``ctbr``) instead of a random saturated action.
+
+        Args:
+            key: the weights' randomness.
+            width: units per hidden layer.
+            depth: hidden layers (tanh activations).
+            dtype: the floating dtype of the weights and of the observation scales.
+
+        Returns:
+            The policy, mapping a (25,) observation to a (4,) action.
+        """
         mlp = eqx.nn.MLP(OBS_SIZE, 4, width, depth, activation=jax.nn.tanh, key=key, dtype=dtype)
         last = mlp.layers[-1]
         mlp = eqx.tree_at(lambda m: m.layers[-1].weight, mlp, last.weight * 0.1)
@@ -64,8 +83,24 @@ def rollout(
     *,
     decay: float = 1.0,
 ) -> tuple[Array, dict]:
-    """One episode of ``horizon`` steps of ``policy`` from a reset (no automatic reset):
-    the summed reward and per-step ``info`` (position error, in-domain flag, termination)."""
+    """One episode of ``horizon`` steps of ``policy`` from a reset, without automatic reset.
+
+    With ``decay`` below 1 the gradient through the state is scaled by ``decay`` at every step
+    while its value is untouched (``decay x + (1 − decay) stop_gradient(x)``): truncated
+    backpropagation with a short memory. Steps go on after a termination.
+
+    Args:
+        env: the environment flown.
+        params: the environment's parameters.
+        policy: ``action = policy(obs)``, (25,) to (4,).
+        key: the reset's and the steps' randomness.
+        horizon: steps in the episode.
+        decay: the gradient's memory per step, in (0, 1]; 1 keeps the full gradient.
+
+    Returns:
+        The summed reward and per-step arrays (horizon,): ``position_error``, ``in_domain``
+        and ``terminated``.
+    """
 
     def body(carry, k):
         obs, st = carry
@@ -89,7 +124,12 @@ def rollout(
 
 @dataclass(frozen=True)
 class APGConfig:
-    """Training settings (see the module docstring)."""
+    """Training settings (see the module docstring); checked when made.
+
+    Raises:
+        ValueError: if ``n_envs``, ``horizon`` or ``iterations`` is not a positive integer,
+            ``decay`` lies outside (0, 1], or ``learning_rate`` or ``clip_norm`` is not > 0.
+    """
 
     n_envs: int = 64  # episodes per gradient step
     horizon: int = 300  # steps per episode
@@ -119,9 +159,27 @@ def train(
     *,
     progress: bool = True,
 ) -> tuple[eqx.Module, dict[str, np.ndarray]]:
-    """Train ``policy`` by analytic policy gradients; returns it and the learning curve per
-    iteration: ``loss`` (minus the mean reward per step), ``final_error`` (m, mean position
-    error at the last step), ``in_domain`` (share of steps) and ``crashed`` (share of episodes)."""
+    """Train ``policy`` by analytic policy gradients (see the module docstring).
+
+    Each iteration differentiates the mean reward of ``cfg.n_envs`` rollouts from random
+    resets (:func:`rollout`) and takes one step of Adam after global-norm clipping; the
+    iterations' keys fold the iteration into ``cfg.seed``.
+
+    Args:
+        env: the environment flown.
+        params: the environment's parameters (shared by all rollouts).
+        policy: the policy to train, an equinox module (e.g. :class:`MLPPolicy`).
+        cfg: the training settings.
+        progress: whether to show a progress bar.
+
+    Returns:
+        The trained policy and the learning curve per iteration: ``loss`` (minus the mean
+        reward per step), ``final_error`` (m, mean position error at the last step),
+        ``in_domain`` (share of steps) and ``crashed`` (share of episodes).
+
+    Raises:
+        ImportError: if optax (the ``envs`` extra) is not installed.
+    """
     try:
         import optax
     except ImportError as exc:  # an optional extra

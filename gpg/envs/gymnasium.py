@@ -30,6 +30,8 @@ except ImportError as exc:  # an optional extra
 
 from gpg.envs.quadrotor import OBS_SIZE, EnvParams, QuadrotorEnv
 
+__all__ = ["GymnasiumEnv", "GymnasiumVectorEnv"]
+
 
 def _spaces(env: QuadrotorEnv) -> tuple[spaces.Box, spaces.Box]:
     dt = np.dtype(env.dtype)
@@ -51,7 +53,16 @@ def _info(info: dict[str, Any]) -> dict[str, Any]:
 
 
 class GymnasiumEnv(gym.Env):
-    """One :class:`QuadrotorEnv` as a ``gymnasium.Env`` (see the module docstring)."""
+    """One :class:`QuadrotorEnv` as a ``gymnasium.Env`` (see the module docstring).
+
+    Args:
+        env: the environment wrapped.
+        params: its parameters; None for its :attr:`QuadrotorEnv.default_params`.
+
+    Raises:
+        ValueError: if ``env`` is not a :class:`QuadrotorEnv` or ``params`` not an
+            :class:`EnvParams`.
+    """
 
     metadata = {"render_modes": []}
 
@@ -65,12 +76,39 @@ class GymnasiumEnv(gym.Env):
         self._step = jax.jit(env.step_env)
         self._state = None
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """A new episode, as ``gymnasium.Env.reset``.
+
+        Args:
+            seed: seeds the wrapper's generator (Gymnasium's ``np_random``), from which every
+                later key is drawn; None keeps the generator's stream.
+            options: unused (Gymnasium's signature).
+
+        Returns:
+            The first observation (25,) and an empty ``info``.
+        """
         super().reset(seed=seed)
         obs, self._state = self._reset(_key(self.np_random), self.params)
         return np.asarray(obs), {}
 
-    def step(self, action):
+    def step(
+        self, action: np.ndarray
+    ) -> tuple[np.ndarray, float, bool, bool, dict[str, np.ndarray]]:
+        """One control step, as ``gymnasium.Env.step``: no automatic reset.
+
+        Args:
+            action: (4,) the action in [−1, 1] (clipped by the environment).
+
+        Returns:
+            The observation (25,), the reward, ``terminated``, ``truncated`` and ``info``
+            (the environment's, as NumPy: ``in_domain``, ``bad_action``, ``position_error``,
+            ...).
+
+        Raises:
+            ValueError: if called before :meth:`reset`.
+        """
         if self._state is None:
             raise ValueError("call reset() before step()")
         a = np.asarray(action, dtype=self.action_space.dtype)
@@ -87,9 +125,22 @@ class GymnasiumEnv(gym.Env):
 
 
 class GymnasiumVectorEnv(VectorEnv):
-    """``num_envs`` :class:`QuadrotorEnv` episodes as a ``gymnasium.vector.VectorEnv`` (see the
-    module docstring); ``params`` is shared by all, or an :class:`EnvParams` batched along a
-    leading axis of size ``num_envs``."""
+    """``num_envs`` :class:`QuadrotorEnv` episodes as a ``gymnasium.vector.VectorEnv``.
+
+    One compiled, vmapped call steps them all, with same-step automatic reset (see the module
+    docstring).
+
+    Args:
+        env: the environment wrapped.
+        num_envs: environments stepped together.
+        params: shared by all environments, or (``batched_params``) an :class:`EnvParams`
+            batched along a leading axis of size ``num_envs``; None for the defaults.
+        batched_params: whether ``params`` carries one set per environment.
+
+    Raises:
+        ValueError: if ``env`` is not a :class:`QuadrotorEnv`, ``num_envs`` is not a positive
+            integer or ``params`` is not an :class:`EnvParams`.
+    """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
@@ -117,14 +168,45 @@ class GymnasiumVectorEnv(VectorEnv):
         self._rng = np.random.default_rng()
         self._state = None
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """New episodes in every environment, as ``gymnasium.vector.VectorEnv.reset``.
+
+        Args:
+            seed: reseeds the wrapper's generator, from which every later key is drawn; None
+                keeps the generator's stream.
+            options: unused (Gymnasium's signature).
+
+        Returns:
+            The first observations (num_envs, 25) and an empty ``infos``.
+        """
         if seed is not None:
             self._rng = np.random.default_rng(seed)
         keys = jax.random.split(_key(self._rng), self.num_envs)
         obs, self._state = self._reset(keys, self.params)
         return np.asarray(obs), {}
 
-    def step(self, actions):
+    def step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """One control step of every environment, with same-step automatic reset.
+
+        A finished environment returns its next episode's first observation;
+        ``infos["final_obs"]`` holds every environment's last observation of the step and
+        ``infos["_final_obs"]`` says which of them finished.
+
+        Args:
+            actions: (num_envs, 4) the actions in [−1, 1] (clipped by the environment).
+
+        Returns:
+            The observations (num_envs, 25), rewards, ``terminated`` and ``truncated``
+            (num_envs,) and ``infos`` (the environment's, as NumPy, with ``final_obs`` and
+            ``_final_obs``).
+
+        Raises:
+            ValueError: if called before :meth:`reset`, or for actions of another shape.
+        """
         if self._state is None:
             raise ValueError("call reset() before step()")
         a = np.asarray(actions, dtype=self.single_action_space.dtype)

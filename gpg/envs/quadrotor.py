@@ -57,7 +57,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, Int, PRNGKeyArray
 
 from gpg._identity import ByIdentity
 from gpg._precision import highest
@@ -76,6 +76,8 @@ from gpg.quadrotor.frames import matmul, safe_atan2
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
 from gpg.surrogate import Surrogate, SurrogateAero
+
+__all__ = ["ACTIONS", "OBS_SIZE", "TASKS", "EnvParams", "EnvState", "QuadrotorEnv"]
 
 TASKS = ("hover", "waypoints", "trajectory")
 ACTIONS = ("rotor_speeds", "ctbr")
@@ -132,14 +134,33 @@ class EnvParams(eqx.Module):
         cls,
         task: str = "hover",
         *,
-        start=(0.0, 0.0, -10.0),
+        start: Float[ArrayLike, " 3"] = (0.0, 0.0, -10.0),
         ood_terminate: bool = False,
         dtype: Any = jnp.float32,
         **values: float,
     ) -> EnvParams:
-        """Parameters with the defaults of :data:`_PARAMS`, changed by ``values``; ``task`` one
-        of :data:`TASKS`; ``start`` the start position (m, world, z down). Unknown names and
-        out-of-range values raise ``ValueError`` naming them."""
+        """Parameters with the defaults of :data:`_PARAMS`, changed by ``values`` and checked.
+
+        Every number becomes an array (``max_steps`` int32, the others ``dtype``), so that a
+        batch of environments can be given a batch of parameters under ``jax.vmap``.
+
+        Args:
+            task: one of :data:`TASKS`: ``hover``, ``waypoints`` or ``trajectory``.
+            start: the start position (m, world frame, z down): three finite numbers.
+            ood_terminate: whether leaving the surrogate's training domain ends the episode.
+            dtype: the floating dtype of every parameter but ``max_steps``.
+            **values: parameters by their names in :data:`_PARAMS` (units and ranges there),
+                e.g. ``control_dt=0.02``, ``wind_max=5.0``; the others keep their defaults.
+
+        Returns:
+            The parameters, one array per field.
+
+        Raises:
+            ValueError: for an unknown task or parameter name, a value that is not a number or
+                lies outside its range, a ``max_steps`` that is not an integer, a ``start`` that
+                is not three finite numbers or an ``ood_terminate`` that is not a bool, naming
+                it.
+        """
         if task not in TASKS:
             raise ValueError(f"unknown task {task!r}; valid: {list(TASKS)}")
         unknown = sorted(set(values) - set(_PARAMS))
@@ -241,13 +262,32 @@ class QuadrotorEnv(ByIdentity):
         dtype: Any = jnp.float32,
         gains: dict[str, Any] | None = None,
     ) -> QuadrotorEnv:
-        """An environment for ``vehicle`` flown on ``aero``: a :class:`gpg.Surrogate` (its mean;
-        cast to ``dtype``), ``M`` (a :class:`SimpleModel`) or any ``AeroModel``. ``simple`` is
-        ``M`` for the rotor allocation and the hover speed (default: the surrogate's own, or
-        ``aero`` itself). ``action`` one of :data:`ACTIONS`; ``substeps`` RK4 steps per control
-        step (the simulation step is ``control_dt / substeps``); ``dtype`` of every array
-        (float32 by default, the RL setting); ``gains`` of the geometric controller used by
-        :meth:`geometric_action` (:meth:`GeometricController.create`)."""
+        """An environment for ``vehicle`` flown on ``aero``.
+
+        A surrogate is cast to ``dtype`` together with its ``M``: a float64 ``M`` read inside a
+        float32 program would warn at every step.
+
+        Args:
+            vehicle: the rigid body, motors and rotor geometry flown.
+            aero: a :class:`gpg.Surrogate` (its mean), ``M`` (a :class:`SimpleModel`) or any
+                ``AeroModel``.
+            simple: ``M`` for the rotor allocation and the hover speed; default the
+                surrogate's own, or ``aero`` itself when it is ``M``.
+            action: the action mode, one of :data:`ACTIONS`.
+            substeps: RK4 steps per control step (the simulation step is
+                ``control_dt / substeps``).
+            dtype: the floating dtype of every array (float32 by default, the RL setting).
+            gains: the gains of the geometric controller behind :meth:`geometric_action`
+                (:meth:`GeometricController.create`); None for its defaults.
+
+        Returns:
+            The environment, every array in ``dtype``.
+
+        Raises:
+            ValueError: for an unknown ``action``, a ``substeps`` that is not a positive
+                integer, a ``dtype`` that is not floating, an ``aero`` of another type, or no
+                ``M`` to take the allocation from.
+        """
         if action not in ACTIONS:
             raise ValueError(f"unknown action mode {action!r}; valid: {list(ACTIONS)}")
         if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
@@ -285,23 +325,53 @@ class QuadrotorEnv(ByIdentity):
 
     @property
     def default_params(self) -> EnvParams:
+        """:meth:`EnvParams.create`'s defaults in the environment's dtype."""
         return EnvParams.create(dtype=self.dtype)
 
     @property
     def num_actions(self) -> int:
+        """4: the action's size in either mode."""
         return 4
 
     def observation_space(self, params: EnvParams | None = None) -> Box:
+        """The observation's space, as gymnax's ``observation_space``.
+
+        Args:
+            params: unused (gymnax's signature): the space is the same for all parameters.
+
+        Returns:
+            A box of shape ``(OBS_SIZE,)`` in the environment's dtype, bounds ±1e4.
+        """
         return Box(-1e4, 1e4, (OBS_SIZE,), jnp.dtype(self.dtype))
 
     def action_space(self, params: EnvParams | None = None) -> Box:
+        """The action's space, as gymnax's ``action_space``.
+
+        Args:
+            params: unused (gymnax's signature): the space is the same for all parameters.
+
+        Returns:
+            A box of shape (4,) in the environment's dtype, bounds ±1.
+        """
         return Box(-1.0, 1.0, (4,), jnp.dtype(self.dtype))
 
     @highest
     def reset(
         self, key: PRNGKeyArray, params: EnvParams | None = None
     ) -> tuple[Float[Array, " 25"], EnvState]:
-        """A new episode: everything random drawn from ``params``' ranges."""
+        """A new episode: everything random drawn from ``params``' ranges.
+
+        Args:
+            key: the episode's randomness (start, target or curve, wind, turbulence, mass and
+                inertia).
+            params: the environment's parameters; None for :attr:`default_params`.
+
+        Returns:
+            The first observation (25,) and the episode's state.
+
+        Raises:
+            ValueError: if ``params`` is neither None nor an :class:`EnvParams`.
+        """
         params = self._params(params)
         return self.reset_env(key, params)
 
@@ -313,7 +383,27 @@ class QuadrotorEnv(ByIdentity):
         action: Float[Array, " 4"],
         params: EnvParams | None = None,
     ) -> tuple[Float[Array, " 25"], EnvState, Float[Array, ""], Bool[Array, ""], dict]:
-        """One control step with automatic reset (see the module docstring)."""
+        """One control step with automatic reset, as gymnax's ``step``.
+
+        When the step ends the episode, the returned observation and state are a fresh reset's
+        (drawn with a key split from ``key``), and ``info["final_obs"]`` keeps the finished
+        episode's last observation.
+
+        Args:
+            key: the step's randomness (turbulence, and the reset's should the episode end).
+            state: the environment's state.
+            action: (4,) the action in [−1, 1] (clipped), as the action mode reads it.
+            params: the environment's parameters; None for :attr:`default_params`.
+
+        Returns:
+            The observation (25,), the state, the reward, ``done`` (terminated or truncated)
+            and ``info``: ``in_domain``, ``terminated``, ``truncated``, ``bad_action``,
+            ``position_error``, ``discount`` and ``final_obs``.
+
+        Raises:
+            ValueError: if ``params`` is neither None nor an :class:`EnvParams`, or the action
+                is not a (4,) float array.
+        """
         params = self._params(params)
         key, key_reset = jax.random.split(key)
         obs_st, state_st, reward, done, info = self.step_env(key, state, action, params)
@@ -326,6 +416,18 @@ class QuadrotorEnv(ByIdentity):
 
     @highest
     def reset_env(self, key: PRNGKeyArray, params: EnvParams) -> tuple[Array, EnvState]:
+        """A new episode, as gymnax's ``reset_env``: :meth:`reset` with ``params`` given.
+
+        Start, targets and curves spread less in altitude (0.3 times the horizontal range);
+        the mean wind's speed is drawn uniformly over the disc of radius ``wind_max``.
+
+        Args:
+            key: the episode's randomness.
+            params: the environment's parameters.
+
+        Returns:
+            The first observation (25,) and the episode's state.
+        """
         dt = jnp.dtype(self.dtype)
         ks = jax.random.split(key, 13)
 
@@ -382,9 +484,32 @@ class QuadrotorEnv(ByIdentity):
     # dynamics, observation, reward, termination); the state threads through every line.
     @highest
     def step_env(
-        self, key: PRNGKeyArray, state: EnvState, action, params: EnvParams
+        self,
+        key: PRNGKeyArray,
+        state: EnvState,
+        action: Float[ArrayLike, " 4"],
+        params: EnvParams,
     ) -> tuple[Array, EnvState, Array, Array, dict]:
-        """One control step without the automatic reset."""
+        """One control step without the automatic reset, as gymnax's ``step_env``.
+
+        The turbulence steps once, then ``substeps`` RK4 steps fly the action; the reward,
+        termination and truncation are those of the module docstring. A non-finite action is
+        replaced by zero and ends the episode.
+
+        Args:
+            key: the turbulence's noise for this step.
+            state: the environment's state.
+            action: (4,) the action in [−1, 1] (clipped), as the action mode reads it.
+            params: the environment's parameters.
+
+        Returns:
+            The observation (25,), the state, the reward, ``done`` and ``info``
+            (``in_domain``, ``terminated``, ``truncated``, ``bad_action``, ``position_error``,
+            ``discount``).
+
+        Raises:
+            ValueError: if the action is not a (4,) float array (checked before tracing).
+        """
         dt = jnp.dtype(self.dtype)
         action = self._check_action(action)
         bad = ~jnp.all(jnp.isfinite(action))
@@ -450,7 +575,19 @@ class QuadrotorEnv(ByIdentity):
         return self.observation(new, params), new, reward, done, info
 
     def reference(self, state: EnvState, params: EnvParams) -> Reference:
-        """The task's reference at the state's time (position, velocity, acceleration, yaw 0)."""
+        """The task's reference at the state's time.
+
+        ``hover``: the target at rest; ``waypoints``: the minimum-jerk legs through the
+        waypoints, the first starting half a second in; ``trajectory``: the Lissajous curve.
+        The yaw is always 0.
+
+        Args:
+            state: the environment's state (its time, waypoints and curve).
+            params: the environment's parameters (the task and the leg time).
+
+        Returns:
+            The reference position, velocity, acceleration and yaw.
+        """
         dt = jnp.dtype(self.dtype)
         t = state.time
         plan = WaypointPlan(
@@ -476,7 +613,15 @@ class QuadrotorEnv(ByIdentity):
         return jax.tree.map(pick, hover, legs, curve)
 
     def observation(self, state: EnvState, params: EnvParams) -> Float[Array, " 25"]:
-        """The observation of ``state`` (layout and frames in the module docstring)."""
+        """The observation of ``state`` (layout and frames in the module docstring).
+
+        Args:
+            state: the environment's state.
+            params: the environment's parameters (the task's reference).
+
+        Returns:
+            The (25,) observation in the environment's dtype.
+        """
         ref = self.reference(state, params)
         q = state.quad
         obs = jnp.concatenate(
@@ -485,7 +630,21 @@ class QuadrotorEnv(ByIdentity):
         return obs.astype(self.dtype)
 
     def rpm_command(self, a: Float[Array, " 4"], s: State, params: EnvParams) -> Float[Array, " 4"]:
-        """Rotor-speed commands (rpm) for the action ``a`` in state ``s``."""
+        """Rotor-speed commands for the action ``a`` in state ``s``.
+
+        ``rotor_speeds`` maps each action linearly onto ``[rpm_min, rpm_max]``; ``ctbr`` turns
+        the collective thrust and the body-rate command into thrust and torque (a proportional
+        rate loop plus the gyroscopic term ``ω × Jω``) and allocates them through ``M``.
+
+        Args:
+            a: (4,) the clipped action.
+            s: the vehicle's state (its body rates, for ``ctbr``).
+            params: the environment's parameters (``thrust_to_weight``, ``max_rate``,
+                ``rate_gain``).
+
+        Returns:
+            The (4,) rotor-speed commands (rpm).
+        """
         if self.action_mode == "rotor_speeds":
             return self.rpm_min + 0.5 * (a + 1.0) * (self.rpm_max - self.rpm_min)
         c = self.controller
@@ -495,10 +654,19 @@ class QuadrotorEnv(ByIdentity):
         return c.mix(thrust, tau)
 
     def geometric_action(self, state: EnvState, params: EnvParams) -> Float[Array, " 4"]:
-        """The action of gpg's geometric controller (designed on ``M``) for the task's reference:
-        the baseline a learned policy is compared with. ``rotor_speeds``: its rotor speeds;
+        """The action of gpg's geometric controller (designed on ``M``) for the task's reference.
+
+        The baseline a learned policy is compared with. ``rotor_speeds``: its rotor speeds;
         ``ctbr``: its collective thrust and the rate command ``−(K_R/K_ω) e_R`` of its attitude
-        loop."""
+        loop.
+
+        Args:
+            state: the environment's state.
+            params: the environment's parameters (the task's reference and the action scales).
+
+        Returns:
+            The (4,) action in [−1, 1], in the environment's dtype.
+        """
         ref = self.reference(state, params)
         c = self.controller
         s = state.quad

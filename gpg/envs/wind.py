@@ -28,6 +28,8 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from gpg._precision import highest
 
+__all__ = ["Dryden"]
+
 FT = 0.3048  # m
 SQRT3 = math.sqrt(3.0)
 
@@ -62,9 +64,25 @@ class Dryden(eqx.Module):
         *,
         min_speed: float = 0.5,
     ) -> Dryden:
-        """Filters for vertical intensity ``sigma_w`` (m/s) at ``altitude`` (m), convected at
-        the mean wind's speed (at least ``min_speed`` m/s), stepped every ``dt`` s, started
-        from their stationary distribution (so the first step is already turbulent)."""
+        """Filters for one episode, started from their stationary distribution.
+
+        Starting stationary makes the first step already turbulent; the length scales and
+        the horizontal intensities follow from ``altitude`` (in ft, at least ten) as in the
+        module docstring, and ``u`` lies along the mean wind's horizontal direction (+x in
+        calm air).
+
+        Args:
+            key: the initial state's randomness.
+            sigma_w: the vertical intensity ``σ_w`` (m/s); 0 for no turbulence.
+            altitude: the altitude ``h`` (m) of the length scales.
+            mean_wind: (3,) the mean wind (world frame, m/s): its speed convects the
+                turbulence, its dtype is the filters'.
+            dt: the step ``h_t`` (s) the filters are discretised for.
+            min_speed: the least convection speed (m/s), so that calm air keeps finite ``τ``.
+
+        Returns:
+            The turbulence at its initial state.
+        """
         dtype = mean_wind.dtype
         h_ft = jnp.maximum(altitude / FT, 10.0)
         k = 0.177 + 0.000823 * h_ft
@@ -102,14 +120,25 @@ class Dryden(eqx.Module):
 
     @highest
     def velocity(self) -> Float[Array, " 3"]:
-        """The turbulent wind (world frame, m/s) of the current state."""
+        """The turbulent wind of the current state.
+
+        Returns:
+            (3,) the turbulence's velocity (world frame, m/s), to add to the mean wind.
+        """
         u = self.x[0]
         v = self.c_vw[0] @ self.x[1:3]
         w = self.c_vw[1] @ self.x[3:5]
         return self.axes @ jnp.stack([u, v, w])
 
     def step(self, key: PRNGKeyArray) -> Dryden:
-        """One step of ``dt`` with fresh noise."""
+        """One step of ``dt`` with fresh noise.
+
+        Args:
+            key: the step's noise.
+
+        Returns:
+            The turbulence one step later (the same filters, the new state).
+        """
         n = jax.random.normal(key, (5,), dtype=self.x.dtype)
         u = self.a_u * self.x[0] + self.b_u * n[0]
         parts = [u[None]]

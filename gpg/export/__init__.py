@@ -8,10 +8,10 @@ inputs) or the body frame's (rotor speeds and ``R_WBᵀ v_air``, the ball as its
 
 Kinds: every real-time kind (``gpg``, ``gpgs_hybrid``, ``gpg_pic``, ``gpgs``, ``gpgs_schur``,
 ``gps_*``; ``gp`` like ``gpg``) exports its mean and its variance. The exact kinds' variance
-factor is the dense ``(N(1+G))²`` triangle (256 MB at data=default), so it passes only under
-``max_bytes`` (small models); a surrogate with ``M_noise`` is refused (its acoustic model,
-:mod:`gpg.quadrotor.simple_noise`, is not exported), as is an exact model grown by
-``condition`` when its variance is asked for.
+factor is the dense ``(N(1+G))²`` triangle (over ``max_bytes`` at data=default, see
+docs/measurements.md), so it passes only under ``max_bytes`` (small models); a surrogate with
+``M_noise`` is refused (its acoustic model, :mod:`gpg.quadrotor.simple_noise`, is not
+exported), as is an exact model grown by ``condition`` when its variance is asked for.
 """
 
 from gpg._deprecated import deprecated

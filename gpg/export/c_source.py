@@ -38,6 +38,8 @@ from gpg.names import inputs
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
+__all__ = ["to_c"]
+
 DTYPES = {"double": (np.float64, "double"), "float": (np.float32, "float")}
 
 
@@ -50,8 +52,7 @@ def to_c(
     variance: bool = True,
     max_bytes: int = MAX_BYTES,
 ) -> dict[str, Any]:
-    """Write ``<directory>/<name>.c`` and ``.h`` for ``sur``; returns what was written (paths,
-    bytes of the GP's constants, the record of gpg version, model, arrays' SHA-256, units).
+    """Write ``<directory>/<name>.c`` and ``<name>.h``: ``sur``'s prediction in C.
 
     The header documents the calls, which return ``in_domain`` (1 or 0):
 
@@ -66,8 +67,27 @@ def to_c(
     declares ``<name>_box_lo[D]`` and ``_box_hi[D]``, the GP's input box (``D`` =
     ``<NAME>_N_INPUTS``: 8 airflow-frame inputs, or 7 body-frame ones). A non-finite input
     gives 0 and zeros, never NaN.
-    ``ValueError`` (nothing written) for a model :func:`gpg.export.layout.spec` refuses, a bad
-    ``name`` or ``dtype``, or constants over ``max_bytes``."""
+
+    Args:
+        sur: the fitted surrogate, airflow or body frame.
+        directory: where to write (made if missing).
+        name: the C identifier that names the files, the functions and the header's macros.
+        dtype: ``"double"``, or ``"float"`` for the GP's arrays and kernel in float (half the
+            bytes; the frame, normalisation and the mean's sums stay in double).
+        variance: whether to write ``<name>_predict`` with the variance (for a model that has
+            one).
+        max_bytes: the most bytes of constants written.
+
+    Returns:
+        What was written: ``c`` and ``h`` (paths), ``constant_bytes`` (bytes of the GP's
+        constants), ``variance`` (whether ``<name>_predict`` exists) and ``record`` (gpg
+        version, model, arrays' SHA-256, units, dtype).
+
+    Raises:
+        ValueError: nothing written, for a model :func:`gpg.export.layout.spec` refuses, a
+            ``name`` that is not a C identifier, an unknown ``dtype``, or constants over
+            ``max_bytes``.
+    """
     if dtype not in DTYPES:
         raise ValueError(f"dtype must be one of {list(DTYPES)}, got {dtype!r}")
     if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
@@ -240,7 +260,7 @@ def _constants(name: str, dtype: str, s: Layout) -> list[str]:
         dbl("INV_LS_M", gm["inv_ls"])
         dbl("SIGMA_M", gm["sigma"])
         # double whatever the dtype: a float position moves every kernel value by ~1e-7
-        # relative, which the mean's cancelling sum amplifies (measured 5e-5 at data=default)
+        # relative, which the mean's cancelling sum amplifies (see docs/measurements.md)
         dbl("XS_T", gm["xs"].T)
         value, grad = _split_coef(gm, s.grad_dims, m, np_type)
         dbl("COEF0", value)
@@ -290,7 +310,7 @@ def _constants(name: str, dtype: str, s: Layout) -> list[str]:
 
 # gpg/export/c/clones.c: the hot loops also in an AVX2/FMA version that glibc's loader picks
 # on CPUs that have it (GCC's function multiversioning): the default x86-64 target has 2-wide
-# doubles only. Measured at data=default on the development CPU: the mean 15.9 -> 11.3 us.
+# doubles only (the mean's time with and without them: docs/measurements.md).
 # With them (GPG_CLONES), the variance's row products also have an AVX-512 version, picked at
 # run time (latent_variance). Off elsewhere (ARM, clang, musl, MSVC) and with
 # -DGPG_NO_CLONES; -DGPG_NO_AVX512 leaves out the AVX-512 version alone (for CPUs that slow
@@ -346,9 +366,9 @@ def _split_coef(
     ``cᵍ`` (N, G·M) in the dtype asked for. The value block is where the folded sum cancels
     (``c⁰ = α⁰ − Σ_g (x_p,g/l_g²) αᵍ``), so it stays in double; and it is refolded from the
     stored ``cᵍ`` so that their rounding enters the mean as ``Σ_p k_p (x_g − x_p,g)/l_g² δᵍ_p``,
-    small where ``k_p`` is not, instead of ``Σ_p k_p x_g/l_g² δᵍ_p``. At data=default this
-    takes the float export's mean error from 1.9e-5 to below 1e-5 of the force's scale for 36 kB
-    (the float mean-only export then holds 388 kB). In double it changes nothing."""
+    small where ``k_p`` is not, instead of ``Σ_p k_p x_g/l_g² δᵍ_p``. This lowers the float
+    export's mean error at the cost of the value block's N·M numbers in double instead of
+    float (the figures at data=default: docs/measurements.md). In double it changes nothing."""
     coef, xs, inv_ls = gm["coef"], gm["xs"], gm["inv_ls"]
     value, grad = coef[:, :m].copy(), coef[:, m:].astype(np_type)
     delta = coef[:, m:] - grad.astype(np.float64)
@@ -361,7 +381,7 @@ def _coef_sums(m: int, n_grad: int, block: int = 24) -> str:
     """``acc[j] = sum_p k[p] C[p, j]`` for the global mean (``C`` = ``COEF0`` for its ``m``
     value columns, then ``COEFG`` for its ``n_grad`` gradient ones), ``block`` sums at a time
     in named locals: held in registers across the loop over the points instead of loaded and
-    stored each time (3x faster at -O2 at data=default; each sum keeps its order)."""
+    stored each time (faster at -O2, see docs/measurements.md; each sum keeps its order)."""
     parts = [
         "/* acc[j] = sum_p k[p] C[p, j], the sums in blocks held in registers */",
         "HOT static void coef_sums(const double *k, double *acc) {",

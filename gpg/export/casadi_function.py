@@ -5,17 +5,24 @@ and Hessians to a gradient-based MPC (IPOPT, acados, do-mpc) and its code genera
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from gpg.export.layout import Layout, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
+if TYPE_CHECKING:
+    import casadi
 
-def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", variance: bool = True):
-    """``sur`` as a ``casadi.Function`` of ``(rpm[4], euler[3], v_air[3])`` returning
-    ``force[3], torque[3], levels[K]``, with ``variance`` (and a model that has one)
-    ``variance[6+K]``, then ``in_domain`` (1.0 or 0.0): :meth:`Surrogate.predict` in CasADi.
+__all__ = ["to_casadi"]
+
+
+def to_casadi(
+    sur: Surrogate, *, frame: str = "world", name: str = "gpg", variance: bool = True
+) -> casadi.Function:
+    """``sur`` as a ``casadi.Function``: :meth:`Surrogate.predict` in CasADi.
 
     ``frame="body"`` returns force and torque (and their variances) in the body frame (FRD)
     for the same inputs (``v_air`` in the world frame). A body-frame surrogate (fitted on
@@ -25,7 +32,23 @@ def to_casadi(sur: Surrogate, *, frame: str = "world", name: str = "gpg", varian
     JAX); ``in_domain`` uses CasADi's own Jacobian of the airflow frame for the frame-rate
     test, as the library uses autodiff, and does not test the outputs for being finite.
     ``casadi.Function.save`` stores the function, ``generate`` writes its C. Needs the
-    ``casadi`` extra; the kinds of :func:`gpg.export.layout.spec`."""
+    ``casadi`` extra; the kinds of :func:`gpg.export.layout.spec`.
+
+    Args:
+        sur: the fitted surrogate, airflow or body frame.
+        frame: ``"world"`` or ``"body"`` (FRD): the frame of the force and torque returned.
+        name: the function's name.
+        variance: whether to return the variance (for a model that has one).
+
+    Returns:
+        The function of ``(rpm[4], euler[3], v_air[3])`` returning ``force[3]``,
+        ``torque[3]``, ``levels[K]``, with ``variance`` ``variance[6+K]``, then
+        ``in_domain`` (1.0 or 0.0).
+
+    Raises:
+        ValueError: for a ``frame`` other than world or body, or a model
+            :func:`gpg.export.layout.spec` refuses.
+    """
     import casadi as ca
 
     if frame not in ("world", "body"):

@@ -7,20 +7,56 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gpg._io import atomic_write
 
+if TYPE_CHECKING:
+    from gpg.quadrotor.control import GeometricController, WaypointPlan
+    from gpg.quadrotor.dynamics import Quadrotor, State, Wind
+
+__all__ = ["write_params"]
+
 
 def write_params(
-    path: str | Path, *, model: str, quad, ctrl, plan, wind, s0, dt: float, n_steps: int
+    path: str | Path,
+    *,
+    model: str,
+    quad: Quadrotor,
+    ctrl: GeometricController,
+    plan: WaypointPlan,
+    wind: Wind,
+    s0: State,
+    dt: float,
+    n_steps: int,
 ) -> Path:
-    """Write ``flight_params.h`` for a model exported as ``<model>.c`` by
-    :func:`gpg.export.to_c` (its ``<model>_mean`` is the aerodynamics). ``quad`` a
-    :class:`gpg.quadrotor.dynamics.Quadrotor` (its aerodynamics are not read), ``ctrl`` a
-    :class:`gpg.quadrotor.control.GeometricController`, ``plan`` a ``WaypointPlan``, ``wind``
-    a ``Wind``, ``s0`` the initial ``State``; ``dt`` s and ``n_steps`` the flight."""
+    """Write ``flight_params.h``, the flight's parameters as C constants (full precision).
+
+    The C flight holds the aerodynamic wrench over each step and starts at rest, so the
+    flight given must too, for gpg's and the C flight to match.
+
+    Args:
+        path: the header to write.
+        model: the exported model's name (a C identifier): ``<model>.c`` as written by
+            :func:`gpg.export.to_c`, whose ``<model>_mean`` is the aerodynamics.
+        quad: the rigid body and motors (:class:`gpg.quadrotor.dynamics.Quadrotor`; its
+            aerodynamics are not read), with ``hold_aero``.
+        ctrl: the geometric controller (:class:`gpg.quadrotor.control.GeometricController`).
+        plan: the waypoint plan (``WaypointPlan``).
+        wind: the wind (``Wind``): its mean and sinusoidal gust.
+        s0: the initial ``State``, at rest (``v`` and ``w`` zero).
+        dt: the step (s).
+        n_steps: steps flown.
+
+    Returns:
+        ``path``, written.
+
+    Raises:
+        ValueError: if ``model`` is not a C identifier, ``quad`` does not hold the
+            aerodynamics over a step, or ``s0`` is not at rest.
+    """
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", model):
         raise ValueError(f"model must be a C identifier, got {model!r}")
     if quad.hold_aero is not True:
@@ -65,14 +101,18 @@ def write_params(
         f"#define N_WAYPOINTS {np.asarray(plan.waypoints).shape[0]}",
     ]
     lines += [f"#define {k} ({float(np.asarray(v)):.17g})" for k, v in scalars.items()]
-    for k, v in arrays.items():
-        a = np.asarray(v, dtype=float)
-        dims = "".join(f"[{n}]" for n in a.shape)
-        if a.ndim == 2:
-            body = ", ".join("{" + ", ".join(f"{x:.17g}" for x in row) + "}" for row in a)
-        else:
-            body = ", ".join(f"{x:.17g}" for x in a)
-        lines.append(f"static const double {k}{dims} = {{{body}}};")
+    lines += [_c_array(k, v) for k, v in arrays.items()]
     path = Path(path)
     atomic_write(path, ("\n".join(lines) + "\n").encode())
     return path
+
+
+def _c_array(key: str, value: object) -> str:
+    """``static const double KEY[n]... = {...};`` of a vector or matrix, values exact."""
+    a = np.asarray(value, dtype=float)
+    dims = "".join(f"[{n}]" for n in a.shape)
+    if a.ndim == 2:
+        body = ", ".join("{" + ", ".join(f"{x:.17g}" for x in row) + "}" for row in a)
+    else:
+        body = ", ".join(f"{x:.17g}" for x in a)
+    return f"static const double {key}{dims} = {{{body}}};"

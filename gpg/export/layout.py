@@ -34,9 +34,12 @@ from gpg.gp.partition import Partition
 from gpg.names import AERO
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
+__all__ = ["Layout", "spec"]
+
 # A C source holds each constant as text (about 3.5 bytes per stored byte): past this many
 # bytes of constants an export is refused unless asked for (the exact GP-G variance at
-# data=default is 256 MB; its mean, or gpgs_hybrid, is what a real-time target can hold).
+# data=default is over it, see docs/measurements.md; its mean, or gpgs_hybrid, is what a
+# real-time target can hold).
 MAX_BYTES = 64 * 2**20
 
 
@@ -141,7 +144,19 @@ class Layout:
         return self.bins is not None and self.bins.factor is not None
 
     def constant_bytes(self, itemsize: int, variance: bool) -> int:
-        """Bytes of the GP's arrays at ``itemsize`` (the factor at most at its stored size)."""
+        """Bytes of the GP's arrays at ``itemsize``, what a writer checks against ``max_bytes``.
+
+        The global mean's training positions count in double whatever ``itemsize`` (the C
+        writer keeps them so), a variance factor at most at its stored size, and only the
+        entries of each row's non-zero span (what the writers keep of a triangle).
+
+        Args:
+            itemsize: bytes per stored number (8 for double, 4 for float).
+            variance: whether the variance's factors and points count.
+
+        Returns:
+            The bytes of constants.
+        """
         n = 0
         if self.global_mean is not None:  # positions in double (gpg.export.c_source)
             gm = self.global_mean  # C: coef; ONNX: alpha, of the same size
@@ -176,12 +191,27 @@ def row_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None) -> Layout:
-    """The export layout of ``sur`` (``variance``: keep the variance factors), or ``ValueError``
-    saying why it cannot be exported: not a Surrogate, a noise model ``M_noise`` (its acoustic
-    model is not exported), a model kind without a closed form here, an exact model whose
-    factor has rows in a non-layout order (a model grown by ``condition``), non-finite arrays,
-    an exact model's variance factor whose triangle alone is over ``max_bytes`` (refused before
-    the factor is made dense: 256 MB at data=default)."""
+    """The export layout of ``sur``, or ``ValueError`` saying why it cannot be exported.
+
+    The exact kinds' variance is checked against ``max_bytes`` on its triangle's size before
+    the factor is made dense: the dense ``(N(1+G))²`` factor of a large model would not fit in
+    memory.
+
+    Args:
+        sur: the fitted surrogate, airflow or body frame.
+        variance: whether to keep the variance factors (the mean alone otherwise).
+        max_bytes: the most bytes an exact model's variance may take; None for no limit.
+
+    Returns:
+        The layout, with its record (gpg version, model, SHA-256 of the arrays, units).
+
+    Raises:
+        ValueError: if ``sur`` is not a Surrogate, has a noise model ``M_noise`` (its acoustic
+            model is not exported) or a model kind without a closed form here (a model
+            corrected by flights included), or is an exact model whose factor has rows in a
+            non-layout order (a model grown by ``condition``), whose variance's triangle alone
+            is over ``max_bytes``, or whose arrays are not finite.
+    """
     if not isinstance(sur, Surrogate):
         raise ValueError(f"export takes a gpg.Surrogate, got {type(sur).__name__}")
     if sur.noise_model is not None:

@@ -25,6 +25,8 @@ from gpg.export.layout import MAX_BYTES, Layout, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
+__all__ = ["to_onnx"]
+
 FLOAT, DOUBLE = 1, 11  # onnx.TensorProto's element types
 OPSET = 17  # ONNX Runtime 1.14 (2023) on: what C#, Rust and Java bindings in use still ship
 RATE_STEP = 1e-3  # m/s: the central-difference step of the frame rate in float32
@@ -38,8 +40,7 @@ def to_onnx(
     batch: bool = True,
     max_bytes: int = MAX_BYTES,
 ) -> dict[str, Any]:
-    """Write ``sur`` as an ONNX model to ``path``; returns the path, bytes of the file and the
-    record (also in the model's ``metadata_props``, with the units).
+    """Write ``sur`` as an ONNX model to ``path``, checked by ``onnx.checker``.
 
     Inputs ``rpm`` (N, 4) rpm, ``euler`` (N, 3) rad (yaw, pitch, roll; ``R_WB = Rz Ry Rx``),
     ``v_air`` (N, 3) m/s world frame (vehicle velocity minus wind), float32, any N. Outputs
@@ -48,9 +49,24 @@ def to_onnx(
     zeros where an input is not finite. ``batch=False`` writes the graph for one state a run
     (``N = 1``, what a simulator calls once per step): the partitioned kinds' bin is then found
     by ``If`` nodes along the partition's tree and only that bin is evaluated, where the
-    batched graph evaluates every bin for every state. ``ValueError`` (nothing written) for
-    what :func:`gpg.export.layout.spec` refuses or constants over ``max_bytes``. Needs the
-    ``onnx`` extra."""
+    batched graph evaluates every bin for every state. Needs the ``onnx`` extra.
+
+    Args:
+        sur: the fitted surrogate, airflow or body frame.
+        path: the file to write (its directory made if missing).
+        variance: whether to output the variance (for a model that has one).
+        batch: a graph for any N states (True) or for one state a run (False).
+        max_bytes: the most bytes of constants written.
+
+    Returns:
+        What was written: ``onnx`` (the path), ``bytes`` (of the file), ``constant_bytes``,
+        ``variance`` (whether the graph outputs it) and ``record`` (gpg version, model,
+        arrays' SHA-256, units; also in the model's ``metadata_props``).
+
+    Raises:
+        ValueError: nothing written, for a model :func:`gpg.export.layout.spec` refuses or
+            constants over ``max_bytes``.
+    """
     import onnx
 
     s = spec(sur, variance=variance, max_bytes=max_bytes)
@@ -466,8 +482,8 @@ def _build(onnx, s: Layout, batch: bool = True):
     ok = g.mul(ok, g.op("ReduceMin", spinning, axes=[1], keepdims=1))
     ok = g.mul(g.mul(ok, g.op("Cast", steady, to=1)), finite)
     # The GP's mean in float64 from here (the states as given, exactly): its sum over the
-    # training points cancels (at data=default |Σ k α| is a few hundredths of Σ |k α|), so
-    # float32 kernel values or coefficients would cost 1e-4 of the force.
+    # training points cancels (|Σ k α| is a small fraction of Σ |k α|), so float32 kernel
+    # values or coefficients would cost the force accuracy (see docs/measurements.md).
     x64 = g.op("Cast", x, to=DOUBLE)
     lo, half = g.const(s.x_lo, "x_lo", np.float64), g.const(s.half, "half", np.float64)
     xn = g.sub(g.div(g.sub(x64, lo), half), g.const(1.0, "k", np.float64))

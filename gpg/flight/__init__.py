@@ -12,6 +12,7 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 * :mod:`gpg.flight.synthetic` flies a vehicle with known truth through realistic sensors.
 """
 
+from gpg.flight import synthetic
 from gpg.flight.correction import (
     Corrected,
     Online,
@@ -44,6 +45,7 @@ __all__ = [
     "online_step",
     "read_csv",
     "read_ulog",
+    "synthetic",
     "update",
     "update_jit",
     "with_online",

@@ -49,6 +49,18 @@ from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.surrogate import Surrogate
 
+__all__ = [
+    "Corrected",
+    "Online",
+    "adapt",
+    "base",
+    "correct",
+    "online_step",
+    "update",
+    "update_jit",
+    "with_online",
+]
+
 N_LOADS = 6  # force and torque: what a flight measures
 # The discrepancy GPs' lengthscales on normalised inputs (span 2) are kept in this range.
 LENGTHSCALE_MIN, LENGTHSCALE_MAX = 1e-2, 1e2
@@ -81,7 +93,16 @@ class Online(eqx.Module):
 
     @highest
     def features(self, x: Float[Array, " D"]) -> Float[Array, "6 m"]:
-        """``ψ(x) = L⁻¹ k_Z(x)`` per output."""
+        """The whitened features ``ψ(x) = L⁻¹ k_Z(x)`` of one input, per output.
+
+        Each output has its own kernel (``variance``, ``lengthscale``) and so its own ``L⁻¹``.
+
+        Args:
+            x: (D,) a normalised input.
+
+        Returns:
+            (6, m) ``ψ(x)`` of each load output.
+        """
 
         def one(L_inv, var, ls):
             return L_inv @ _cross(x[None], self.Z, var, ls)[0]
@@ -90,7 +111,17 @@ class Online(eqx.Module):
 
     @highest
     def mean_var(self, x: Float[Array, " D"]) -> tuple[Float[Array, " 6"], Float[Array, " 6"]]:
-        """``η``'s mean and variance per output at ``x``."""
+        """``η``'s mean and variance per output at ``x``.
+
+        The mean is ``ψ(x)ᵀ μ`` and the variance ``ψ(x)ᵀ Σ ψ(x)``, with ``μ, Σ`` the
+        weights' current posterior (not relaxed to any later time: see :meth:`relaxed`).
+
+        Args:
+            x: (D,) a normalised input.
+
+        Returns:
+            The (6,) mean and the (6,) variance of ``η(x)`` (normalised units).
+        """
         psi = self.features(x)
         mean = jnp.einsum("om,om->o", psi, self.mean)
         var = jnp.einsum("om,omn,on->o", psi, self.cov, psi)
@@ -98,7 +129,17 @@ class Online(eqx.Module):
 
     @highest
     def relaxed(self, t: Float[ArrayLike, ""]) -> Online:
-        """The weights' law at time ``t``: relaxed toward the prior since :attr:`t`."""
+        """The weights' law at time ``t``: relaxed toward the prior since :attr:`t`.
+
+        The Ornstein-Uhlenbeck step of the module docstring, ``a = e^{−Δt/τ}``; a ``t`` before
+        the last update counts as ``Δt = 0`` (the state never runs backwards).
+
+        Args:
+            t: the time (s) to relax to.
+
+        Returns:
+            The online term with ``μ ← aμ``, ``Σ ← a²Σ + (1 − a²)I`` and its time advanced.
+        """
         dt = jnp.maximum(jnp.asarray(t, self.t.dtype) - self.t, 0.0)
         a = jnp.exp(-dt / self.tau)
         eye = jnp.eye(self.Z.shape[0], dtype=self.cov.dtype)
@@ -109,7 +150,20 @@ class Online(eqx.Module):
     def measured(
         self, x: Float[Array, " D"], y: Float[Array, " 6"], r: Float[Array, " 6"]
     ) -> Online:
-        """One Kalman update per output with the label residual ``y`` of noise variance ``r``."""
+        """One Kalman update per output with the label residual ``y`` of noise variance ``r``.
+
+        A rank-one measurement update of each output's weights; the noise is the label's own
+        ``r`` plus the term's value noise :attr:`noise`. It does not relax the weights first:
+        call :meth:`relaxed` before, as :func:`update` does.
+
+        Args:
+            x: (D,) the label's normalised input.
+            y: (6,) its residual against the offline model, normalised, in the GP's frame.
+            r: (6,) the residual's noise variance (normalised units).
+
+        Returns:
+            The online term conditioned on the label.
+        """
         psi = self.features(x)
 
         def one(mu, S, p, yy, rr, nu):
@@ -202,9 +256,26 @@ class Corrected(Predictor):
         return self.prior.n_outputs
 
     def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> Corrected:
+        """This model with the prior's per-output variance scale replaced.
+
+        Only the prior's scale changes: ``ρ``, ``κ``, the ``δ`` GPs and ``η`` keep theirs.
+
+        Args:
+            scale: (M,) the prior's new output scale.
+
+        Returns:
+            The corrected model over the rescaled prior.
+        """
         return eqx.tree_at(lambda c: c.prior, self, self.prior.with_output_scale(scale))
 
     def describe(self) -> dict[str, Any]:
+        """Plain values for a checkpoint's metadata: the prior's, plus the correction's.
+
+        Returns:
+            The prior's :meth:`~gpg.gp.predictor.Predictor.describe` with a
+            ``flight_correction`` entry: ``scale`` (``ρ``), ``kappa``, each discrepancy's
+            hyperparameters, the number of labels and the online term's size and ``τ``.
+        """
         out = self.prior.describe()
         out["flight_correction"] = {
             "scale": plain(self.scale),
@@ -221,6 +292,15 @@ class Corrected(Predictor):
         return jnp.concatenate([v, jnp.zeros(self.n_outputs - v.shape[0], v.dtype)])
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        """The corrected mean at one query: ``ρ ⊙ μ_prior + κ ⊙ m + δ (+ η)``.
+
+        Args:
+            x: (D,) a normalised input.
+
+        Returns:
+            (M,) the mean (normalised units); ``δ``, ``κ`` and ``η`` add to the load outputs
+            only, the levels keep ``ρ = 1``.
+        """
         out = self.scale * self.prior.mean_one(x) + self._mean_terms(x)
         if self.delta:
             out = out + self._pad(jnp.concatenate([d.mean_one(x) for d in self.delta]))
@@ -229,6 +309,15 @@ class Corrected(Predictor):
         return out
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, " V"]]:
+        """The corrected mean and the latent variance's parts at one query.
+
+        Args:
+            x: (D,) a normalised input.
+
+        Returns:
+            The (M,) mean (as :meth:`mean_one`) and the (V,) latent variance: the prior's, then
+            each ``δ``'s, then ``η``'s per output (:meth:`predictive_variance` combines them).
+        """
         mean, var = self.prior.mean_var_one(x)
         mean = self.scale * mean + self._mean_terms(x)
         parts = [jnp.reshape(var, (1,))]
@@ -243,6 +332,17 @@ class Corrected(Predictor):
         return mean, jnp.concatenate(parts)
 
     def predictive_variance(self, var: Float[ArrayLike, "*Q V"]) -> Float[Array, "*Q M"]:
+        """Each output's predictive variance from the latent parts of :meth:`mean_var_one`.
+
+        ``ρ² var_prior`` scaled by the prior's output scale, plus each ``δ``'s predictive
+        variance (its own value noise, the flights', included) and ``η``'s, on the load outputs.
+
+        Args:
+            var: (..., V) the latent variance parts.
+
+        Returns:
+            (..., M) the predictive variance per output (normalised units).
+        """
         var = jnp.asarray(var)
         # The prior's latent part only: its value noise ν² is the simulator data's, while the
         # flights' noise and whatever the prior misses are δ's (its own ν² is in its part).
@@ -265,6 +365,13 @@ class Corrected(Predictor):
         return out
 
     def mean_view(self) -> Corrected:
+        """This model with the prior and each ``δ`` reduced to what their means read.
+
+        For mean-only loops (:func:`online_step`); its variance is not to be used.
+
+        Returns:
+            The corrected model over the mean views.
+        """
         return eqx.tree_at(
             lambda c: (c.prior, c.delta),
             self,
@@ -273,7 +380,16 @@ class Corrected(Predictor):
 
 
 def base(sur: Surrogate) -> Surrogate:
-    """The simulator-trained surrogate under a corrected one (itself if not corrected)."""
+    """The simulator-trained surrogate under a corrected one (itself if not corrected).
+
+    For what takes only the prior: the export layouts, or a correction anew.
+
+    Args:
+        sur: a surrogate, corrected (:func:`correct`, :func:`adapt`) or not.
+
+    Returns:
+        The surrogate of the prior, its model name without the ``+flight`` suffix.
+    """
     m = sur.model
     if not isinstance(m, Corrected):
         return sur
@@ -295,9 +411,26 @@ def gp_rows(
     force_var: Float[Array, " 3"],
     torque_var: Float[Array, " 3"],
 ) -> tuple[Float[Array, " D"], Float[Array, " 6"], Float[Array, " 6"]]:
-    """A world-frame label as the GP sees it: the normalised input ``x``, the normalised
-    load residual in the GP's frame (``R_WHᵀ (F_W − F_M)``, likewise the torque) and its noise
-    variance there (the world-frame variances rotated, divided by the output scales²)."""
+    """A world-frame label as the GP sees it.
+
+    The residual is taken against ``M`` where the surrogate has one and rotated into the GP's
+    frame (``R_WHᵀ (F_W − F_M)``, likewise the torque); the variances are rotated with ``R²``
+    (independent components) and divided by the output scales².
+
+    Args:
+        sur: the surrogate whose frame and normaliser apply.
+        rpm: (4,) rotor speeds, rpm.
+        euler: (3,) (yaw, pitch, roll), rad.
+        v_air: (3,) air velocity, world, m/s.
+        force: (3,) the measured aerodynamic force, world, N.
+        torque: (3,) the measured aerodynamic torque, world, N·m.
+        force_var: (3,) the force's noise variances, world.
+        torque_var: (3,) the torque's noise variances, world.
+
+    Returns:
+        The (D,) normalised input ``x``, the (6,) normalised load residual and its (6,) noise
+        variance.
+    """
     if sur.frame == "body":
         R = R_WB(euler)
         x = jnp.concatenate([rpm, matvec(R.T, v_air)])
@@ -319,7 +452,15 @@ _rows_batch = jax.jit(jax.vmap(gp_rows, in_axes=(None, 0, 0, 0, 0, 0, 0, 0)))
 
 
 def training_rows(sur: Surrogate, labels: Labels) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`gp_rows` of every label: ``X`` (N, D), ``Y`` (N, 6), noise variances (N, 6)."""
+    """:func:`gp_rows` of every label, against the prior under ``sur`` (:func:`base`).
+
+    Args:
+        sur: the surrogate (a corrected one's prior is used).
+        labels: the labels (world frame).
+
+    Returns:
+        ``X`` (N, D), ``Y`` (N, 6) and the noise variances (N, 6), as NumPy arrays.
+    """
     x, y, v = _rows_batch(
         base(sur),
         *(
@@ -378,7 +519,7 @@ def correct(
         checkpoints take it.
 
     Raises:
-        ValueError: no labels, or labels with NaN (naming the array).
+        ValueError: no labels, fewer than 8, or labels with NaN (naming the array).
     """
     parts = [labels] if isinstance(labels, Labels) else list(labels)
     if not parts:
@@ -498,6 +639,9 @@ def adapt(
 
     Returns:
         A :class:`~gpg.Surrogate` whose :class:`Corrected` model carries the online term.
+
+    Raises:
+        ValueError: ``inducing`` under 1, ``tau`` not positive, or ``inputs`` not (n, D).
     """
     from scipy.cluster.vq import kmeans2
     from scipy.stats import qmc
@@ -561,10 +705,30 @@ def update(
     force_var: Float[ArrayLike, " 3"],
     torque_var: Float[ArrayLike, " 3"],
 ) -> Surrogate:
-    """``sur`` (from :func:`adapt`) after one labelled sample at time ``t`` (s): the online
-    term relaxed since its last update and conditioned on the label (world frame, as
-    :class:`~gpg.flight.Labels` holds them). Pure and jittable: a ``lax.scan`` over labels
-    carries the surrogate; from Python, :func:`update_jit`."""
+    """``sur`` (from :func:`adapt`) after one labelled sample at time ``t``.
+
+    The online term is relaxed since its last update and conditioned on the label's residual
+    against the offline model (prior, ``κ`` and ``δ``). Pure and jittable: a ``lax.scan`` over
+    labels carries the surrogate (:meth:`gpg.flight.Labels.columns` gives its ``xs``); from
+    Python, :func:`update_jit`.
+
+    Args:
+        sur: a surrogate prepared by :func:`adapt`.
+        t: the label's time, s.
+        rpm: (4,) rotor speeds, rpm.
+        euler: (3,) (yaw, pitch, roll), rad.
+        v_air: (3,) air velocity, world, m/s.
+        force: (3,) measured aerodynamic force, world, N (as :class:`~gpg.flight.Labels`).
+        torque: (3,) measured aerodynamic torque, world, N·m.
+        force_var: (3,) the force's noise variances.
+        torque_var: (3,) the torque's noise variances.
+
+    Returns:
+        The surrogate with its online term updated.
+
+    Raises:
+        ValueError: ``sur`` carries no online term (not from :func:`adapt`).
+    """
     m = sur.model
     if not isinstance(m, Corrected) or m.online is None:
         raise ValueError("update needs a surrogate prepared by gpg.flight.adapt")
@@ -580,16 +744,37 @@ update_jit = jax.jit(update)
 
 
 def with_online(sur: Surrogate, online: Online) -> Surrogate:
-    """``sur`` (from :func:`adapt`) carrying the online state ``online``."""
+    """``sur`` (from :func:`adapt`) carrying the online state ``online``.
+
+    Puts back a state that :func:`online_step` advanced, for predictions.
+
+    Args:
+        sur: a surrogate prepared by :func:`adapt`.
+        online: the online term to carry.
+
+    Returns:
+        The surrogate with ``online`` in place of its own.
+    """
     return eqx.tree_at(lambda s: s.model.online, sur, online)
 
 
 def online_step(sur: Surrogate) -> Callable[..., Online]:
-    """A compiled ``step(online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
-    -> Online`` for loops that update once a step from Python: :func:`update` on the online
-    state alone. The offline model's arrays are flattened once here (the mean's only), not at
-    every call, and only the small online state goes in and out; :func:`with_online` puts a
-    state back into the surrogate for predictions."""
+    """A compiled step for loops that update once a step from Python.
+
+    ``step(online, t, rpm, euler, v_air, force, torque, force_var, torque_var) -> Online`` is
+    :func:`update` on the online state alone. The offline model's arrays are flattened once
+    here (the mean's only), not at every call, and only the small online state goes in and
+    out; :func:`with_online` puts a state back into the surrogate for predictions.
+
+    Args:
+        sur: a surrogate prepared by :func:`adapt` (its online term is the start state only).
+
+    Returns:
+        The step function.
+
+    Raises:
+        ValueError: ``sur`` carries no online term (not from :func:`adapt`).
+    """
     m = sur.model
     if not isinstance(m, Corrected) or m.online is None:
         raise ValueError("online_step needs a surrogate prepared by gpg.flight.adapt")
@@ -631,18 +816,3 @@ def _whitening(Z: np.ndarray, var: np.ndarray, ls: np.ndarray) -> np.ndarray:
 def _cross(A: Float[Array, "P D"], B: Float[Array, "Q D"], var, ls) -> Float[Array, "P Q"]:
     """The RBF kernel (:func:`gpg.gp.kernels.rbf`) between every row of ``A`` and of ``B``."""
     return jax.vmap(lambda a: jax.vmap(lambda b: kernels.rbf(a, b, var, ls))(B))(A)
-
-
-__all__ = [
-    "Corrected",
-    "Online",
-    "adapt",
-    "base",
-    "correct",
-    "gp_rows",
-    "online_step",
-    "training_rows",
-    "update",
-    "update_jit",
-    "with_online",
-]

@@ -33,6 +33,7 @@ import dataclasses
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +45,11 @@ from gpg.flight.log import GAP_FACTOR, FlightLog, FlightLogWarning
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
+
+if TYPE_CHECKING:
+    from gpg.surrogate import Surrogate
+
+__all__ = ["Labels", "MotorCurve", "calibrate_simple", "hover_samples", "label"]
 
 GROUND_THRUST = 0.5  # M's thrust below this fraction of the weight: on the ground (if still)
 GROUND_MIN_S = 0.5  # s: on the ground only for at least this long
@@ -79,9 +85,18 @@ class MotorCurve:
     source: str = "given"
 
     def rpm(self, command: np.ndarray, voltage: np.ndarray | None = None) -> np.ndarray:
-        """Rotor speeds (rpm) of ``command`` (T, 4) at ``voltage`` (T,) or the reference.
+        """Rotor speeds (rpm) of motor commands through the curve.
+
         Commands outside :attr:`command_range` warn (:class:`FlightLogWarning`) with their
-        count: the curve is extrapolated there."""
+        count: the curve is extrapolated there. Negative speeds are clipped to 0.
+
+        Args:
+            command: (T, 4) motor commands, 0..1.
+            voltage: (T,) battery voltage, V; None: the reference :attr:`v_ref`.
+
+        Returns:
+            (T, 4) rotor speeds, rpm.
+        """
         u = np.asarray(command, dtype=float)
         lo, hi = self.command_range
         out = (u < lo - 1e-9) | (u > hi + 1e-9)
@@ -100,7 +115,19 @@ class MotorCurve:
     def fit_speeds(
         cls, command: np.ndarray, rpm: np.ndarray, voltage: np.ndarray | None = None
     ) -> MotorCurve:
-        """Least squares of measured rotor speeds ``rpm`` (T, 4) on commands (T, 4)."""
+        """Fit the curve to measured rotor speeds by least squares.
+
+        Idle commands (at most 0.02, the ESC's own floor) are left out; ``v_ref`` is the
+        median voltage, so that ``s = u`` at a typical battery.
+
+        Args:
+            command: (T, 4) motor commands, 0..1.
+            rpm: (T, 4) the rotor speeds measured with them.
+            voltage: (T,) battery voltage, V; None: no voltage scaling.
+
+        Returns:
+            The fitted curve (``source="speeds"``), with its RMS residual and command range.
+        """
         u, w = np.asarray(command, float).ravel(), np.asarray(rpm, float).ravel()
         V = None if voltage is None else np.repeat(np.asarray(voltage, float), 4)
         v_ref = 1.0 if V is None else float(np.median(V))
@@ -114,10 +141,24 @@ class MotorCurve:
 
     @classmethod
     def fit_hover(cls, log: FlightLog, vehicle: Vehicle, simple: SimpleModel) -> MotorCurve:
-        """From the log's hover: ``M``'s thrust of the curve's rotor speeds balances the
-        measured thrust ``−m f_z`` (the accelerometer; the weight where the log has none) on
-        samples that hover (speed under 1 m/s, tilt under 10°, rotors turning); ``M``'s roll
-        and pitch moments balance too. Needs commands and a hover."""
+        """Fit the curve to the log's hover, where no rotor speeds are logged.
+
+        ``M``'s thrust of the curve's rotor speeds balances the measured thrust ``−m f_z`` (the
+        accelerometer; the weight where the log has none) on samples that hover (speed under
+        1 m/s, tilt under 10°, rotors turning); ``M``'s roll and pitch moments balance too.
+
+        Args:
+            log: the flight, with motor commands and a hover.
+            vehicle: its mass and gravity.
+            simple: ``M``, whose allocation turns rotor speeds into thrust and moments.
+
+        Returns:
+            The fitted curve (``source="hover"``); its residual is the thrust balance's,
+            converted to rpm (a relative thrust error ``e`` is a rotor-speed error ``e/2``).
+
+        Raises:
+            ValueError: the log has no motor commands, or fewer than 20 hover samples.
+        """
         if log.command is None:
             raise ValueError(f"{log.name}: fit_hover needs motor commands in the log")
         m, g = float(vehicle.mass), float(vehicle.gravity)
@@ -153,9 +194,20 @@ class MotorCurve:
 
 
 def hover_samples(log: FlightLog, rpm: np.ndarray, *, min_height: float = 0.3) -> np.ndarray:
-    """Which samples hover: rotors turning (every rotor above a quarter of the flight's median
-    turning speed), speed under 0.5 m/s, tilt under 10°, and, when the log has the vehicle on
-    the ground (rotors below that), at least ``min_height`` m above it (out of ground effect)."""
+    """Which samples hover.
+
+    Hovering: rotors turning (every rotor above a quarter of the flight's median turning
+    speed), speed under 0.5 m/s, tilt under 10°, and, when the log has the vehicle on the
+    ground (rotors below that), at least ``min_height`` above it (out of ground effect).
+
+    Args:
+        log: the flight.
+        rpm: (T, 4) its rotor speeds (the log's, or from a :class:`MotorCurve`).
+        min_height: m above the ground's height, where the log shows the ground.
+
+    Returns:
+        (T,) bool, True where the vehicle hovers.
+    """
     R = log.R_WB()
     tilt = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
     turning = rpm.min(1) > 0
@@ -176,13 +228,24 @@ def calibrate_simple(
     torque_ratio: float | None = None,
     min_hover: int = 5,
 ) -> SimpleModel:
-    """``M``'s coefficients from a flight: ``P_F`` so that ``M``'s thrust balances the measured
-    thrust ``−m f_z`` where the log hovers (:func:`hover_samples`; least squares), ``T_z`` so
-    that ``M``'s yaw moment matches ``J_z ω̇_z`` (least squares over the airborne samples;
-    ``T_z = torque_ratio · P_F`` where given (m: the rotor's drag torque per unit thrust),
-    else the vehicle file's ratio where it has one). For a vehicle whose file has no
-    ``simple_model`` section, or to check one against a flight; ``rpm`` overrides the log's
-    rotor speeds (e.g. from a :class:`MotorCurve`).
+    """``M``'s coefficients fitted to a flight.
+
+    ``P_F`` so that ``M``'s thrust balances the measured thrust ``−m f_z`` where the log
+    hovers (:func:`hover_samples`; least squares), ``T_z`` so that ``M``'s yaw moment matches
+    ``J_z ω̇_z`` (least squares over the airborne samples; ``T_z = torque_ratio · P_F`` where
+    given (m: the rotor's drag torque per unit thrust), else the vehicle file's ratio where it
+    has one). For a vehicle whose file has no ``simple_model`` section, or to check one
+    against a flight.
+
+    Args:
+        log: the flight, with the IMU's specific force and a hover.
+        vehicle: its mass, inertia, rotor spins and (if any) the file's coefficients.
+        rpm: (T, 4) rotor speeds overriding the log's.
+        torque_ratio: ``T_z / P_F`` (m); None: the vehicle file's, else fitted to yaw.
+        min_hover: the fewest hover samples to calibrate on.
+
+    Returns:
+        ``M`` built from the vehicle with the fitted ``P_F`` and ``T_z``.
 
     Raises:
         ValueError: fewer than ``min_hover`` hover samples, a log without the specific force
@@ -270,8 +333,12 @@ class Labels:
         return int(self.t.shape[0])
 
     def columns(self) -> tuple[np.ndarray, ...]:
-        """``(t, rpm, euler, v_air, force, torque, force_var, torque_var)``: each label's
-        arguments of :func:`gpg.flight.update`, as columns (a ``lax.scan``'s ``xs``)."""
+        """The labels as the columns of :func:`gpg.flight.update`'s arguments.
+
+        Returns:
+            ``(t, rpm, euler, v_air, force, torque, force_var, torque_var)``, each (N, ...):
+            a ``lax.scan``'s ``xs``, or one row per call of the update.
+        """
         return (self.t, self.rpm, self.euler, self.v_air, self.force, self.torque,
                 self.force_var, self.torque_var)  # fmt: skip
 
@@ -285,8 +352,15 @@ class Labels:
         """(N, 3) measured minus reference torque, N·m."""
         return self.torque - self.model_torque
 
-    def take(self, rows) -> Labels:
-        """The labels ``rows`` (slice, mask or indices)."""
+    def take(self, rows: slice | np.ndarray | Sequence[int]) -> Labels:
+        """A subset of the labels; the flight's other fields (``dropped``, ``name``) are kept.
+
+        Args:
+            rows: a slice, a boolean mask or indices.
+
+        Returns:
+            The labels ``rows``.
+        """
         arrays = {
             f.name: getattr(self, f.name)[rows]
             for f in dataclasses.fields(self)
@@ -309,12 +383,34 @@ class Labels:
         return float(self._steps().sum())
 
     def first(self, seconds: float) -> Labels:
-        """The labels of the first ``seconds`` of labelled flight (:attr:`seconds`)."""
+        """The labels of the first ``seconds`` of labelled flight.
+
+        Labelled time as in :attr:`seconds`: dropped stretches do not count.
+
+        Args:
+            seconds: s of labelled flight to keep.
+
+        Returns:
+            The first labels, up to ``seconds``.
+        """
         return self.take(np.cumsum(self._steps()) <= seconds + 1e-9)
 
     @classmethod
     def concatenate(cls, parts: Sequence[Labels]) -> Labels:
-        """Labels of several flights as one set (times kept; ``dropped`` summed)."""
+        """Labels of several flights as one set.
+
+        Times are kept as they are (not made continuous); ``dropped`` counts are summed and
+        the names joined with ``+``; the other fields are the first part's.
+
+        Args:
+            parts: the flights' labels.
+
+        Returns:
+            The labels of all parts, in order.
+
+        Raises:
+            ValueError: ``parts`` is empty.
+        """
         if not parts:
             raise ValueError("concatenate needs at least one Labels")
         arrays = {
@@ -335,7 +431,7 @@ def label(
     log: FlightLog,
     vehicle: Vehicle,
     *,
-    reference=None,
+    reference: SimpleModel | Surrogate | None = None,
     rate: float = 10.0,
     source: str = "auto",
     delay: float | str = "estimate",
@@ -370,9 +466,10 @@ def label(
         :class:`Labels` at ``rate`` Hz over the labelled stretches of the flight.
 
     Raises:
-        ValueError: ``source="imu"`` on a log without specific force; rotor speeds that look
-            like rad/s (their airborne median far below the vehicle's hover speed and near it
-            in rad/s); no sample left to label; a bad option.
+        ValueError: ``source="imu"`` on a log without specific force; ``reference=None`` for
+            a vehicle file without ``simple_model`` coefficients; rotor speeds that look like
+            rad/s (their airborne median far below the vehicle's hover speed and near it in
+            rad/s); no sample left to label; a bad option.
     """
     if source not in ("auto", "imu", "velocity"):
         raise ValueError(f"source must be 'auto', 'imu' or 'velocity', got {source!r}")
@@ -688,6 +785,3 @@ def _estimate_delay(t, model, measured, keep, max_delay: float) -> float:
 
 def _dropped_text(drop: dict[str, int]) -> str:
     return ", ".join(f"{k} {v}" for k, v in drop.items())
-
-
-__all__ = ["Labels", "MotorCurve", "calibrate_simple", "hover_samples", "label"]

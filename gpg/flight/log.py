@@ -34,11 +34,14 @@ import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from gpg._checks import as_float_array
 from gpg._io import atomic_write
+
+__all__ = ["CsvFormat", "FlightLog", "FlightLogWarning", "read_csv", "write_csv"]
 
 # |‖q‖ − 1| above this is not rounding: a wrong column, order or unit (the rows are named).
 QUAT_NORM_TOL = 0.02
@@ -106,11 +109,22 @@ class FlightLog:
         return float(1.0 / np.median(np.diff(self.t)))
 
     def R_WB(self) -> np.ndarray:
-        """(T, 3, 3) attitude matrices, body FRD to world NED."""
+        """The attitude as rotation matrices.
+
+        Returns:
+            (T, 3, 3) ``R_WB``, body FRD to world NED.
+        """
         return quat_to_matrix(self.quaternion)
 
-    def slice(self, rows) -> FlightLog:
-        """The samples ``rows`` (a slice, a mask or indices) as a flight of their own."""
+    def slice(self, rows: slice | np.ndarray | Sequence[int]) -> FlightLog:
+        """Some samples as a flight of their own, checked again (gaps warned about).
+
+        Args:
+            rows: a slice, a boolean mask or indices of the samples.
+
+        Returns:
+            The flight of those samples, under the same name.
+        """
         kw = {
             f.name: (None if getattr(self, f.name) is None else getattr(self, f.name)[rows])
             for f in dataclasses.fields(self)
@@ -118,8 +132,15 @@ class FlightLog:
         }
         return FlightLog(**kw, name=self.name)
 
-    def replace(self, **changes) -> FlightLog:
-        """A copy with ``changes`` (checked again)."""
+    def replace(self, **changes: np.ndarray | str | None) -> FlightLog:
+        """A copy with some fields changed, checked again as a new flight.
+
+        Args:
+            **changes: new values of fields, by name (``rpm=...``, ``name=...``).
+
+        Returns:
+            The changed flight.
+        """
         return dataclasses.replace(self, **changes)
 
 
@@ -244,11 +265,31 @@ class CsvFormat:
             raise ValueError(f"rotor_order must be a permutation of 0..3, got {self.rotor_order}")
 
     def name(self, key: str) -> str:
-        """The log's column for gpg's ``key``."""
+        """The log's column name for one of gpg's names.
+
+        Args:
+            key: one of gpg's column names (:data:`DEFAULT_COLUMNS`).
+
+        Returns:
+            The name given in :attr:`columns`, else the default.
+        """
         return self.columns.get(key, DEFAULT_COLUMNS[key])
 
     def to_gpg(self, raw: Mapping[str, np.ndarray], name: str) -> FlightLog:
-        """A :class:`FlightLog` from signals named by gpg's groups, in this format's units."""
+        """A :class:`FlightLog` from signals in this format's frames, units and rotor order.
+
+        Positions, velocities and the wind turn by the world frame, rates and the specific
+        force by the body frame, the attitude by both (``R_ned_frd = W R Bᵀ``); the quaternion
+        keeps its norm so that :class:`FlightLog` checks the log's own values.
+
+        Args:
+            raw: signals by gpg's group names (``t``, ``position``, ``quaternion``, ``rpm``,
+                ...), each (T,) or (T, k); optional ones absent or None.
+            name: the flight's name.
+
+        Returns:
+            The flight in gpg's conventions, checked.
+        """
         W, B = WORLD_FRAMES[self.world], BODY_FRAMES[self.body]
         order = list(self.rotor_order)
         out: dict[str, np.ndarray | None] = {"t": raw["t"] * TIME_UNITS[self.time_unit]}
@@ -269,20 +310,24 @@ class CsvFormat:
         return FlightLog(**out, name=name)
 
 
-def read_csv(path: str | Path, fmt: CsvFormat | None = None, **format_options) -> FlightLog:
+def read_csv(path: str | Path, fmt: CsvFormat | None = None, **format_options: Any) -> FlightLog:
     """Read a CSV flight log (module docstring) into gpg's conventions.
 
     Args:
         path: the CSV file (a header row of column names, one row per sample).
-        fmt: how the log differs from gpg's conventions; or give its fields as keywords
+        fmt: how the log differs from gpg's conventions; None: the defaults, or the
+            keywords.
+        **format_options: the fields of a :class:`CsvFormat`, instead of ``fmt``
             (``columns={...}, world="enu", rotor_speed="rad/s"``).
 
     Returns:
         The flight, checked (:class:`FlightLog`).
 
     Raises:
-        ValueError: a required column missing (named, with the columns the file has), a value
-            that is not a number (its column and row), and every check of :class:`FlightLog`.
+        ValueError: both ``fmt`` and keywords; an empty file; a required column missing
+            (named, with the columns the file has), a value that is not a number (its column
+            and row), neither rotor speed nor command columns; every check of
+            :class:`CsvFormat` and :class:`FlightLog`.
     """
     if fmt is not None and format_options:
         raise ValueError("give fmt or its fields as keywords, not both")
@@ -336,7 +381,18 @@ def read_csv(path: str | Path, fmt: CsvFormat | None = None, **format_options) -
 
 
 def write_csv(log: FlightLog, path: str | Path) -> Path:
-    """Write ``log`` in gpg's CSV form (default names, gpg's conventions), atomically."""
+    """Write a flight in gpg's CSV form (default names, gpg's conventions), atomically.
+
+    :func:`read_csv` reads it back with defaults (values written with ``repr``, at full
+    precision); absent signals have no columns.
+
+    Args:
+        log: the flight.
+        path: the file to write (its folder made; replaced whole, never half-written).
+
+    Returns:
+        The path written.
+    """
     cols: list[tuple[str, np.ndarray]] = [("t", log.t)]
     for key, names in _GROUPS.items():
         v = getattr(log, key)

@@ -35,6 +35,8 @@ from gpg.quadrotor.dynamics import AeroModel, Quadrotor, State, Wind, Wrench
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle, vehicle_config
 
+__all__ = ["BEMTAero", "Flight", "Sensors", "fly", "perturbed", "random_plan"]
+
 
 class BEMTAero(AeroModel):
     """The blade-element-momentum physics as a flight simulator's aerodynamics (the truth of a
@@ -45,7 +47,24 @@ class BEMTAero(AeroModel):
     config: bemt.BEMTConfig = bemt.BEMTConfig()
 
     @highest
-    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
+    def wrench(
+        self,
+        rpm: Float[Array, " 4"],
+        R_WB: Float[Array, "3 3"],
+        v_air: Float[Array, " 3"],
+        omega: Float[Array, " 3"],
+    ) -> Wrench:
+        """The BEMT aerodynamic wrench on the vehicle at one state, world frame.
+
+        Args:
+            rpm: (4,) rotor speeds, rpm.
+            R_WB: (3, 3) attitude, body to world.
+            v_air: (3,) air velocity (velocity minus wind), world, m/s.
+            omega: (3,) body rates, rad/s (the hubs' own velocities).
+
+        Returns:
+            The force and torque (world frame), no levels, always in the domain.
+        """
         r = bemt.aero(self.vehicle, self.config, rpm, R_WB, v_air, omega)
         return Wrench(r.force_W, r.torque_W, jnp.zeros(0, r.force_W.dtype), jnp.asarray(True))
 
@@ -53,10 +72,20 @@ class BEMTAero(AeroModel):
 def perturbed(
     vehicle: str | Mapping[str, Any] = "sui_endurance", changes: Mapping[str, Any] | None = None
 ) -> Vehicle:
-    """A vehicle with some of its file's values changed: ``vehicle`` is a name in
-    ``conf/vehicle``, a YAML path or the file's mapping; ``changes`` maps dotted keys of the
-    file (``airfoil.cd0``, ``mass``, ``motor.time_constant``) to a new value, or to
-    ``{"scale": s}`` for ``s`` times the file's (element-wise for lists)."""
+    """A vehicle with some of its file's values changed: the "real" vehicle of a benchmark.
+
+    Args:
+        vehicle: a name in ``conf/vehicle``, a YAML path or the file's mapping.
+        changes: dotted keys of the file (``airfoil.cd0``, ``mass``, ``motor.time_constant``)
+            to a new value, or to ``{"scale": s}`` for ``s`` times the file's (element-wise
+            for lists); None: no change.
+
+    Returns:
+        The vehicle, its name suffixed ``_real``.
+
+    Raises:
+        ValueError: a key the file does not have, or a mapping other than ``{"scale": s}``.
+    """
     cfg = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
     name = cfg.get("name", "vehicle")
     for key, value in (changes or {}).items():
@@ -137,15 +166,27 @@ def random_plan(
     rng: np.random.Generator,
     duration: float,
     *,
-    start=(0.0, 0.0, -10.0),
+    start: tuple[float, float, float] = (0.0, 0.0, -10.0),
     box: float = 25.0,
     step: tuple[float, float] = (5.0, 20.0),
     leg_time: tuple[float, float] = (4.0, 7.0),
 ) -> WaypointPlan:
-    """A random walk of waypoints: each leg ``step`` m long (drawn) in a random horizontal
-    direction, kept within ±``box`` m of the origin and 5 to 15 m up, flown in ``leg_time``
-    seconds (drawn once per flight), the nose along each leg. The defaults peak near
-    ``1.9 · 20 / 4 ≈ 9`` m/s (a minimum-jerk leg's peak speed is 1.875 times its mean)."""
+    """A random walk of waypoints, the nose along each leg.
+
+    The defaults peak near ``1.9 · 20 / 4 ≈ 9`` m/s (a minimum-jerk leg's peak speed is 1.875
+    times its mean).
+
+    Args:
+        rng: the draws' generator.
+        duration: s to cover (legs are added past it, so that the plan outlasts the flight).
+        start: the first waypoint (NED, m).
+        box: m, the waypoints stay within ±``box`` of the origin horizontally (5 to 15 m up).
+        step: m, the range each leg's length is drawn from, in a random horizontal direction.
+        leg_time: s, the range of the time per leg (drawn once per flight).
+
+    Returns:
+        The plan, starting half a second in.
+    """
     lt = float(rng.uniform(*leg_time))
     n = int(np.ceil(duration / lt)) + 2
     w = np.empty((n, 3))
@@ -268,6 +309,3 @@ def _commands(curve: MotorCurve, rpm_cmd: np.ndarray, volt: np.ndarray) -> np.nd
     a, b = curve.c2, curve.c1
     s = (-b + np.sqrt(b * b + 4 * a * rpm_cmd)) / (2 * a) if a > 0 else rpm_cmd / b
     return np.clip(s * curve.v_ref / volt[:, None], 0.0, 1.0)
-
-
-__all__ = ["BEMTAero", "Flight", "Sensors", "fly", "perturbed", "random_plan"]

@@ -39,6 +39,8 @@ import numpy as np
 
 from gpg.flight.log import QUAT_NORM_TOL, FlightLog, FlightLogWarning
 
+__all__ = ["read_ulog"]
+
 # One logged topic: field name -> column (pyulog's ``Data.data``), keyed by (name, multi_id).
 Topics = Mapping[tuple[str, int], Mapping[str, np.ndarray]]
 

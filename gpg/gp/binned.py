@@ -30,8 +30,18 @@ from gpg.gp.mean import output_scale
 from gpg.gp.predictor import Predictor, plain
 from gpg.linalg.tri import BlockTriangular
 
+__all__ = [
+    "BinFactors",
+    "BinnedGP",
+    "METHODS",
+    "by_bin",
+    "near_rows",
+    "pack",
+    "pack_points",
+]
+
 FAR = 1e3  # padding position: its kernel with any query in [-1, 1]^D underflows to 0
-FACTOR_BANDS = 8  # row bands per variance factor (gpg.linalg.tri): 56 % of the dense bytes
+FACTOR_BANDS = 8  # row bands per variance factor (gpg.linalg.tri): (1 + 1/8)/2 of the dense bytes
 
 
 @dataclass(frozen=True)
@@ -52,7 +62,20 @@ class BinFactors:
 
 
 def near_rows(near: np.ndarray, n_points: int, n_grad: int) -> np.ndarray:
-    """Rows of ``K̄`` for near points ``near``: value rows, then each gradient dimension's rows."""
+    """Rows of ``K̄`` for near points ``near``: value rows, then each gradient dimension's rows.
+
+    ``K̄`` is dimension-major (:mod:`gpg.gp.kernels`): point ``i``'s value row is ``i`` and its
+    gradient row along the ``k``-th gradient dimension is ``k·N + i``.
+
+    Args:
+        near: (p,) indices of the points, in the order their rows are wanted.
+        n_points: N, the number of training points behind ``K̄``.
+        n_grad: G, the number of gradient dimensions (rows per point beyond its value).
+
+    Returns:
+        The (p(1+G),) row indices: the value rows of ``near``, then its rows of each gradient
+        dimension in turn.
+    """
     return np.concatenate([near + k * n_points for k in range(1 + n_grad)])
 
 
@@ -123,9 +146,23 @@ class BinnedGP(Predictor):
         return self.coef.shape[1]
 
     def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> BinnedGP:
+        """This model with the per-output variance scale replaced.
+
+        Args:
+            scale: (M,) the new per-output scale of the predictive variance.
+
+        Returns:
+            A copy sharing every other array with this one.
+        """
         return eqx.tree_at(lambda m: m.output_scale, self, jnp.asarray(scale))
 
     def describe(self) -> dict[str, Any]:
+        """The hyperparameters and the partition, as plain values for a checkpoint's metadata.
+
+        Returns:
+            ``hyperparameters`` (σ ``variance``, ``lengthscale`` l, ``noise`` ν²) and
+            ``partition`` (``scheme``, ``n_bins`` and each bin's number of ``near_points``).
+        """
         return {
             "hyperparameters": {
                 "variance": plain(self.variance),
@@ -140,7 +177,19 @@ class BinnedGP(Predictor):
         }
 
     def kernel_row(self, x: Float[Array, " D"], b: Int[Array, ""]) -> Float[Array, " Rp"]:
-        """``k̄(x, X_n)`` against bin ``b``'s near set: values, then gradient rows."""
+        """``k̄(x, X_n)`` against bin ``b``'s near set: values, then gradient rows.
+
+        The padding points sit at :data:`FAR`, so their entries underflow to zero; with
+        ``bases`` the gradient rows are turned to the stored directions, and with ``shared``
+        (PIC) the inducing rows come first.
+
+        Args:
+            x: (D,) one normalised query.
+            b: the bin whose near set the row is taken against (the query's own, normally).
+
+        Returns:
+            The (Rp,) kernel row in the bin's row order (zeros on padding).
+        """
         Xb = jax.lax.dynamic_index_in_dim(self.Xn, b, keepdims=False)
         row = kernels.query_rows(x[None], Xb, self.variance, self.lengthscale, self.grad_dims)[0]
         if self.bases is not None:
@@ -154,21 +203,52 @@ class BinnedGP(Predictor):
         return jnp.concatenate([k_u, row])
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        """Posterior mean at one query, from its own bin's coefficients: ``k̄_qnᵀ c_b``.
+
+        Args:
+            x: (D,) one normalised query.
+
+        Returns:
+            The (M,) posterior mean.
+        """
         b = self.partition.lookup(x)
         return binned_contract(self.coef, b, self.kernel_row(x, b))
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
+        """Posterior mean and latent variance at one query, both from its own bin.
+
+        One kernel row serves both: the mean ``k̄_qnᵀ c_b`` and the variance
+        ``σ − ‖F_b k̄_qn‖²``.
+
+        Args:
+            x: (D,) one normalised query.
+
+        Returns:
+            The (M,) posterior mean and the scalar latent variance (unclamped).
+        """
         b = self.partition.lookup(x)
         k = self.kernel_row(x, b)
         quad = binned_quadratic_form(self.factor, b, k)
         return binned_contract(self.coef, b, k), self.variance - quad
 
     def mean_view(self) -> BinnedGP:
-        """Without the variance factors (the mean reads the coefficients only)."""
+        """This model without the variance factors (the mean reads the coefficients only).
+
+        Returns:
+            A copy whose ``factor`` is empty: its mean equals this one's, its variance is not
+            to be used.
+        """
         return eqx.tree_at(lambda m: m.factor, self, ())
 
     def variance_one(self, x: Float[Array, " D"]) -> Float[Array, ""]:
-        """Latent variance alone (unclamped): ``σ − ‖F_b k̄_qn‖²``."""
+        """Latent variance alone (unclamped): ``σ − ‖F_b k̄_qn‖²``.
+
+        Args:
+            x: (D,) one normalised query.
+
+        Returns:
+            The scalar latent variance from the query's own bin (the hybrid's variance).
+        """
         b = self.partition.lookup(x)
         return self.variance - binned_quadratic_form(self.factor, b, self.kernel_row(x, b))
 
@@ -308,18 +388,32 @@ def by_bin(
     tile: int | None = None,
     method: str | None = None,
 ) -> tuple[Float[Array, " Q"]] | tuple[Float[Array, " Q"], Float[Array, "Q R"]]:
-    """``‖F_b k_q‖²`` for a batch of kernel rows ``K``, each with its own bin ``bins[q]``, and
-    with ``with_grad`` the gradients ``2 F_bᵀ F_b k_q``, by one matrix product per bin.
+    """``‖F_b k_q‖²`` for a batch of kernel rows, each with its own bin, by one product per bin.
 
-    The queries are sorted by bin and each bin's run is padded to whole tiles of ``tile`` rows
-    (default :func:`tile_rows`), so every tile belongs to one bin, and each tile is multiplied
-    by its own bin's factor: ``method`` ``loop`` (a ``lax.map`` over the tiles, a
-    ``lax.switch`` reading only that bin's bands) or ``gather`` (the bands of every tile's bin
-    gathered, one batched product per band); ``every`` instead multiplies every query by every
-    bin's factor and keeps its own (for a few queries per bin); default :func:`default_method`.
-    At most ``Q/tile + B`` tiles, so the work is that of the queries' own products plus at most
-    one padded tile per bin, where reading every bin's factor for every query costs ``B`` times
-    the work (what a plain ``vmap`` of the one-query code does)."""
+    The queries are sorted by bin and each bin's run is padded to whole tiles, so every tile
+    belongs to one bin and is multiplied by its own bin's factor. At most ``Q/tile + B`` tiles,
+    so the work is that of the queries' own products plus at most one padded tile per bin,
+    where reading every bin's factor for every query costs ``B`` times the work (what a plain
+    ``vmap`` of the one-query code does).
+
+    Args:
+        factor: one triangular variance factor ``F_b`` per bin (row bands), all of one width.
+        bins: (Q,) the bin of each query.
+        K: (Q, R) the queries' kernel rows against their own bins' rows.
+        with_grad: also return the gradients ``2 F_bᵀ F_b k_q`` of the forms in ``k_q``.
+        tile: queries per tile; default :func:`tile_rows`.
+        method: ``loop`` (a ``lax.map`` over the tiles, a ``lax.switch`` reading only that
+            bin's bands), ``gather`` (the bands of every tile's bin gathered, one batched
+            product per band) or ``every`` (every query times every bin's factor, each keeping
+            its own: for a few queries per bin); default :func:`default_method`.
+
+    Returns:
+        ``(q,)`` with the (Q,) forms ``‖F_b k_q‖²``, or with ``with_grad`` ``(q, G)`` with the
+        (Q, R) gradients as well.
+
+    Raises:
+        ValueError: if ``method`` is not one of :data:`METHODS`.
+    """
     q_count, width = K.shape
     n_bins = len(factor)
     method = default_method(q_count, n_bins) if method is None else method
@@ -463,14 +557,30 @@ def pack_points(
     scale: np.ndarray | None = None,
     bases: Sequence[np.ndarray] | None = None,
 ) -> BinnedGP:
-    """Padded, stacked per-bin arrays of a :class:`BinnedGP`: bin ``b`` conditions on the
-    points ``points[b]`` (p_b, D) through ``factors[b]`` (rows dimension-major over them),
-    after the rows of the ``shared`` points if any (PIC's inducing inputs). ``dtype`` is the
-    storage type of the variance factors. ``scale`` is the per-output variance scale; by
-    default it is pooled from the bins' own fits (ones where a route does not report them).
-    ``factors`` may be a generator: each bin's factor is stored in bands before the next one
-    is drawn, so the dense factors are never all held at once. ``bases``: per bin, the
-    directions of its points' gradient rows (p_b, G, G) (:func:`gpg.gp.gram.row_directions`)."""
+    """A :class:`BinnedGP` from each bin's points and factors, padded and stacked.
+
+    Each bin is padded to the widest with points at :data:`FAR`; the local-to-padded row map
+    is increasing, so a triangular factor stays triangular. Each bin's factor is stored in
+    bands before the next one is drawn, so with a generator of ``factors`` the dense factors
+    are never all held at once.
+
+    Args:
+        points: per bin ``b``, the (p_b, D) points it conditions on.
+        factors: per bin, its :class:`BinFactors` (rows dimension-major over its points, after
+            the ``shared`` rows); a generator is consumed one bin at a time.
+        part: the partition that assigns queries to the bins.
+        hyper: the hyperparameters (σ, l, ν²) the factors were computed with.
+        grad_dims: the input dimensions that carry gradient rows.
+        dtype: storage type of the variance factors.
+        shared: (U, D) points whose rows come first in every bin (PIC's inducing inputs).
+        scale: (M,) per-output variance scale; by default pooled from the bins' own fits
+            (ones where a route does not report them).
+        bases: per bin, the (p_b, G, G) directions of its points' gradient rows
+            (:func:`gpg.gp.gram.row_directions`); None for derivatives along the inputs.
+
+    Returns:
+        The partitioned predictor.
+    """
     B, D = len(points), points[0].shape[1]
     g = len(grad_dims)
     P = max(p.shape[0] for p in points)
@@ -539,8 +649,23 @@ def pack(
     scale: np.ndarray | None = None,
     bases: np.ndarray | None = None,
 ) -> BinnedGP:
-    """:func:`pack_points` for near sets of training points ``X[near.near[b]]`` (``bases``
-    (N, G, G) the directions of their gradient rows, if not the inputs')."""
+    """:func:`pack_points` for near sets of training points ``X[near.near[b]]``.
+
+    Args:
+        X: (N, D) normalised training inputs.
+        factors: per bin, its :class:`BinFactors` over the rows of its near set.
+        near: the near sets (:func:`gpg.gp.partition.near_sets`).
+        part: the partition that assigns queries to the bins.
+        hyper: the hyperparameters (σ, l, ν²) the factors were computed with.
+        grad_dims: the input dimensions that carry gradient rows.
+        dtype: storage type of the variance factors.
+        scale: (M,) per-output variance scale; by default pooled from the bins' own fits.
+        bases: (N, G, G) the directions of the training points' gradient rows, if not the
+            inputs'.
+
+    Returns:
+        The partitioned predictor.
+    """
     points = [X[nb] for nb in near.near]
     per_bin = None if bases is None else [bases[nb] for nb in near.near]
     return pack_points(

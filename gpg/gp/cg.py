@@ -30,6 +30,13 @@ from gpg._precision import highest
 from gpg.gp import kernels
 from gpg.gp.hyper import Hyper
 
+__all__ = [
+    "CGInfo",
+    "NotConverged",
+    "Nystrom",
+    "solve",
+]
+
 
 class NotConverged(ValueError):
     """A CG solve did not reach its tolerance within its iteration budget."""
@@ -69,11 +76,24 @@ class Nystrom(eqx.Module):
         jitter: float = 1e-6,
         chunk: int | None = 512,
     ) -> Nystrom:
-        """From training inputs ``X``, inducing inputs ``Z`` (with gradient rows for
-        ``grad_dims`` too) and a relative ``jitter`` on ``K̄_uu``'s diagonal; ``K̄_xu`` made
-        ``chunk`` points at a time into a host buffer, or, with ``chunk=None``, in pure JAX
-        (traceable, ``K̄_xu`` held whole: the likelihood on all points rebuilds it at every
-        hyperparameter step, :mod:`gpg.gp.slq`)."""
+        """The preconditioner for ``K̄`` of ``X`` from inducing inputs ``Z``.
+
+        The inducing inputs carry gradient rows for ``grad_dims`` too, as the training rows
+        do; ``K̄_xu`` is never needed whole on the host path.
+
+        Args:
+            X: (N, D) training inputs.
+            hyper: the hyperparameters (σ, l, ν², λ_i²).
+            grad_dims: the input dimensions that carry gradient rows.
+            Z: (U, D) inducing inputs (:func:`gpg.gp.pic.inducing_inputs`).
+            jitter: added to ``K̄_uu``'s diagonal, relative to it.
+            chunk: ``K̄_xu`` made this many points at a time into a host buffer; None: in pure
+                JAX (traceable, ``K̄_xu`` held whole: the likelihood on all points rebuilds
+                it at every hyperparameter step, :mod:`gpg.gp.slq`).
+
+        Returns:
+            The preconditioner, applied as ``P⁻¹ r`` by calling it.
+        """
         X, Z = jnp.asarray(X), jnp.asarray(Z)
         n, g = X.shape[0], len(grad_dims)
         Lu = _inducing_factor(Z, hyper, grad_dims, jitter)
@@ -100,7 +120,11 @@ class Nystrom(eqx.Module):
         return cls(V=jnp.asarray(V), d_inv=jnp.asarray(d_inv), chol=jnp.linalg.cholesky(inner))
 
     def log_det(self) -> Float[Array, ""]:
-        """``log|P̂| = log|D| + log|I + Vᵀ D⁻¹ V|`` (the matrix determinant lemma)."""
+        """``log|P̂| = log|D| + log|I + Vᵀ D⁻¹ V|`` (the matrix determinant lemma).
+
+        Returns:
+            The scalar log-determinant of the preconditioner, exact (no sampling).
+        """
         return -jnp.sum(jnp.log(self.d_inv)) + 2.0 * jnp.sum(jnp.log(jnp.diag(self.chol)))
 
     @highest
@@ -164,11 +188,29 @@ def solve(
     progress: bool = True,
     what: str = "K̄ α = Ȳ",
 ) -> tuple[Array, CGInfo]:
-    """``X`` with ``matvec(X) = B`` for a symmetric positive definite operator, by
-    preconditioned CG on every column of ``B`` at once; ``precond`` approximates the inverse.
-    Stops when every column's relative residual is at most ``tol``; raises
-    :class:`NotConverged` naming ``what`` and the residuals reached if ``max_iter`` iterations
-    do not get there. A progress bar shows the worst residual."""
+    """``X`` with ``matvec(X) = B`` by preconditioned CG on every column of ``B`` at once.
+
+    The operator must be symmetric positive definite. Iteration stops when every column's
+    relative residual ``‖B_m − matvec(X)_m‖ / ‖B_m‖`` is at most ``tol``; a column already
+    solved keeps step length 0. A progress bar shows the worst residual.
+
+    Args:
+        matvec: the operator's product with an (R, M) block (:func:`gpg.gp.matfree.gram_matvec`).
+        B: (R, M) right-hand sides, one CG run per column.
+        precond: an approximation of the inverse applied to an (R, M) block (:class:`Nystrom`).
+        tol: relative residual every column must reach, in (0, 1).
+        max_iter: the iteration budget.
+        progress: show the progress bar.
+        what: the system's name in the progress bar and the error.
+
+    Returns:
+        The (R, M) solution and a :class:`CGInfo` on how the solve went.
+
+    Raises:
+        ValueError: if ``tol`` is not in (0, 1) or ``max_iter`` is not a positive integer.
+        NotConverged: naming ``what`` and the residual reached, if ``max_iter`` iterations do
+            not bring every column to ``tol``.
+    """
     if not (isinstance(tol, float | int) and 0 < tol < 1):
         raise ValueError(f"tol must be in (0, 1), got {tol!r}")
     if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:

@@ -29,22 +29,18 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from gpg._dtype import float64, in_model_dtype
 from gpg._precision import highest
 from gpg.gp import kernels, predictor
-from gpg.gp.gram import (
-    assemble_gram,
-    assemble_rows_gram,
-    check_bases,
-    check_training_data,
-    device_gram,
-    from_bases,
-    to_bases,
-    value_row_noise,
-)
+from gpg.gp.assembly import assemble_gram, assemble_rows_gram, device_gram
+from gpg.gp.directions import check_bases, from_bases, to_bases
 from gpg.gp.hyper import Hyper
+from gpg.gp.layout import value_row_noise
 from gpg.gp.mean import GlobalMean, output_scale
 from gpg.gp.predictor import Predictor, plain
+from gpg.gp.targets import check_training_data
 from gpg.linalg import dense, memory
 from gpg.linalg import device as linalg_device
 from gpg.linalg.tri import BlockTriangular, BorderedTriangular
+
+__all__ = ["ExactGP"]
 
 
 class ExactGP(Predictor):
@@ -59,7 +55,7 @@ class ExactGP(Predictor):
             bands (:class:`gpg.linalg.tri.BlockTriangular`), so that the variance is
             ``σ − ‖L⁻¹ k̄_q‖²``. A matrix-vector product with the stored inverse reads the
             triangle once, row-major; a triangular solve in JAX first copies ``L`` to
-            column-major order and is over ten times slower per query at 8000 rows. A model
+            column-major order and is much slower per query (docs/measurements.md). A model
             grown by :meth:`condition` keeps the new rows' part factored around it
             (:class:`gpg.linalg.tri.BorderedTriangular`).
         hyper: the hyperparameters used.
@@ -132,6 +128,9 @@ class ExactGP(Predictor):
                 ``ν²`` on its value row: labels of known, unequal noise (measured flights).
                 Not stored: cases added by :meth:`condition` carry ``ν²`` alone.
 
+        Returns:
+            The fitted GP, its log marginal likelihood and per-output scales included.
+
         Raises:
             ValueError: mismatched shapes, NaN/inf in an input, bad ``grad_dims`` or
                 non-positive hyperparameters (the message names the input), or a ``K̄`` that
@@ -193,10 +192,20 @@ class ExactGP(Predictor):
         ``α₁ = α − L⁻ᵀ Sᵀ α₂``. Cost ``r R²`` flops (one product of the stored ``L⁻¹`` with
         ``r`` columns) against ``2R³/3`` for a refit; memory ``O(r R)``.
 
-        ``dY`` (n, M, G) over the model's gradient dims, with ``observed`` (n, G) as in
-        :meth:`fit`; without ``dY`` the new cases are values only. ``output_scale`` is
-        re-formed as a refit would (from ``Ȳᵀ α``); a model whose scales were set to ones
-        keeps ones.
+        ``output_scale`` is re-formed as a refit would (from ``Ȳᵀ α``); a model whose scales
+        were set to ones keeps ones.
+
+        Args:
+            X: (n, D) the new cases' inputs.
+            Y: (n, M) their values, or (n,) for one output.
+            dY: (n, M, G) their gradients over the model's gradient dims; None: the new cases
+                are values only.
+            observed: (n, G) which gradients each new case has, as in :meth:`fit`.
+            bases: (n, G, G) the directions of the new cases' gradient rows, as in
+                :meth:`fit`; default coordinates.
+
+        Returns:
+            The grown GP; this one is unchanged.
 
         Raises:
             ValueError: inputs, outputs or gradient dims that do not match the model, NaN,
@@ -225,9 +234,23 @@ class ExactGP(Predictor):
         return None
 
     def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> ExactGP:
+        """This GP with ``output_scale`` replaced (the factor and ``α`` shared, not copied).
+
+        Args:
+            scale: (M,) the per-output variance scale.
+
+        Returns:
+            The GP with the new scale.
+        """
         return eqx.tree_at(lambda m: m.output_scale, self, jnp.asarray(scale))
 
     def describe(self) -> dict[str, Any]:
+        """The hyperparameters as plain values, for a checkpoint's metadata.
+
+        Returns:
+            ``{"hyperparameters": {...}}``: σ (``variance``), ``lengthscale``, ``ν²``
+            (``noise``) and ``λ²`` (``grad_noise``) as nested lists.
+        """
         h = self.hyper
         return {
             "hyperparameters": {
@@ -239,16 +262,31 @@ class ExactGP(Predictor):
         }
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
-        """Posterior mean (M,) at one query, Eq. (GPGmean), in the folded form of
-        :mod:`gpg.gp.mean` (plain kernel values times fixed coefficients)."""
+        """Posterior mean at one query, Eq. (GPGmean).
+
+        In the folded form of :mod:`gpg.gp.mean`: plain kernel values times fixed coefficients.
+
+        Args:
+            x: (D,) the normalised query.
+
+        Returns:
+            ``μ(x)`` (M,).
+        """
         return self.mean(x)
 
     @highest
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
-        """Posterior mean (M,) and latent variance () at one query: Eqs. (GPGmean, GPGvariance).
+        """Posterior mean and latent variance at one query: Eqs. (GPGmean, GPGvariance).
 
-        The batched, jitted :meth:`predict` / :meth:`predict_mean` are inherited from
-        :class:`gpg.gp.predictor.Predictor`.
+        The variance is ``σ − ‖L⁻¹ k̄_q‖²``, with ``k̄_q`` turned to the directional rows when
+        the model has ``bases``. The batched, jitted :meth:`predict` / :meth:`predict_mean` are
+        inherited from :class:`gpg.gp.predictor.Predictor`.
+
+        Args:
+            x: (D,) a normalised query.
+
+        Returns:
+            The mean (M,) and the latent variance (), not clipped.
         """
         k = _cross(self, x[None])[0]
         if self.bases is not None:
@@ -258,11 +296,25 @@ class ExactGP(Predictor):
         return self.mean(x), self.hyper.variance - v @ v
 
     def mean_view(self) -> ExactGP:
-        """Without ``L⁻¹`` (the folded mean reads ``mean`` only)."""
+        """This GP without ``L⁻¹``: the folded mean reads ``mean`` only.
+
+        Returns:
+            The GP with an empty factor (its variance is not to be used).
+        """
         return eqx.tree_at(lambda m: m.chol_inv, self, BlockTriangular((), self.chol_inv.n, True))
 
     def predict_gradient(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M D"]:
-        """Mean of ``∂f(x_q)``: ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]`` (all D inputs)."""
+        """Mean of ``∂f(x_q)``, the predicted gradient (the paper's first remark).
+
+        By forward-mode differentiation of :meth:`mean_one`, for all D inputs whether or not
+        the model was given their gradients.
+
+        Args:
+            Xq: (Q, D) the normalised queries, finite.
+
+        Returns:
+            ``out[q, m, d] = ∂μ_m/∂x_d`` at ``Xq[q]``, (Q, M, D).
+        """
         return in_model_dtype(self, lambda: _predict_gradient(self, jnp.asarray(Xq)), Xq)
 
 
@@ -293,7 +345,7 @@ def _factorise(data, hyper: Hyper, index, bases, Ybar: np.ndarray, r: int, devic
         del K
         return Ybar, alpha, logdet, BlockTriangular.from_device(Linv, n_blocks=8)
     # One dense r x r buffer, factorised and inverted in place, then moved into JAX band by
-    # band while its rows are released: the peak stays near one copy (12.8 GB at 40000 rows).
+    # band while its rows are released: the peak stays near one copy (8 r² bytes).
     memory.require(f"an exact GP with {r} rows", int(r * r * 8 * 1.2))
     buf = memory.square_buffer(r)
     gram, sel = _gram(data, hyper, index, bases, buf.array)

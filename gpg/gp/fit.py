@@ -24,9 +24,20 @@ from gpg._deprecated import deprecated
 from gpg._dtype import float64
 from gpg.gp import slq
 from gpg.gp.cg import NotConverged
-from gpg.gp.gram import Checked, check_bases, check_training_data, log_marginal_likelihood
+from gpg.gp.directions import check_bases
 from gpg.gp.hyper import Hyper, gradient_noise
+from gpg.gp.likelihood import log_marginal_likelihood
 from gpg.gp.pic import inducing_inputs
+from gpg.gp.targets import Checked, check_training_data
+
+__all__ = [
+    "FitError",
+    "FitOptions",
+    "FitWarning",
+    "HyperFitResult",
+    "Stochastic",
+    "fit_hyperparameters",
+]
 
 
 @dataclass(frozen=True)
@@ -66,8 +77,21 @@ class Stochastic:
         ):
             raise ValueError(f"stochastic.ftol must be a number >= 0, got {self.ftol!r}")
 
-    def arguments(self, X, n_grad: int, rows: int) -> tuple:
-        """The inducing inputs and the fixed probes for the points ``X``."""
+    def arguments(self, X: Float[ArrayLike, "N D"], n_grad: int, rows: int) -> tuple:
+        """The inducing inputs and the fixed probes for the points ``X``.
+
+        Both are fixed for the whole fit, so that the objective is one deterministic function
+        of the hyperparameters.
+
+        Args:
+            X: (N, D) the points the likelihood is evaluated on.
+            n_grad: the number of gradient dims G.
+            rows: R, the number of rows of ``Ȳ``.
+
+        Returns:
+            ``(Z, probes)``: ``min(points, N)`` k-means inducing inputs (a JAX array) and the
+            :class:`gpg.gp.slq.Probes` drawn with ``seed``.
+        """
         Z = inducing_inputs(np.asarray(X), min(self.points, X.shape[0]), seed=self.seed)
         Z = jnp.asarray(Z)
         return Z, slq.Probes.draw(rows, Z.shape[0] * (1 + n_grad), self.probes, self.seed)
@@ -167,8 +191,8 @@ def _minimise_with_progress(
     search is trying a step below ``stall_step`` in every (log-)parameter: the stochastic
     objective is exact only to its CG tolerance (its step counts change with the
     hyperparameters), so near the optimum the line search finds nothing lower and
-    optimistix's Cauchy test, which needs an accepted step, never passes. Measured at
-    data=default: converged at step 27, then 70 rejected steps to ``max_steps``
+    optimistix's Cauchy test, which needs an accepted step, never passes: at data=default
+    the fit converged, then spent the rest of ``max_steps`` on rejected steps
     (docs/scaling.md). Rejections alone are no sign: far from the optimum a quasi-Newton
     step may need several halvings.
 
@@ -176,7 +200,7 @@ def _minimise_with_progress(
     lowered the objective by less than ``ftol`` (scipy's ``ftol``, absolute: the loss is a
     negative log likelihood per target); rejected steps neither count nor reset that run.
     The full-data refit spends its second half crawling along a nearly flat valley that
-    moves the likelihood by a few nats per step and no test error by more than 1 %
+    moves the likelihood by a few nats per step and the test errors hardly at all
     (docs/scaling.md measures both)."""
     fn = lambda y, a: (loss(y, a), None)  # noqa: E731
     f_struct = jax.ShapeDtypeStruct((), jnp.result_type(float))

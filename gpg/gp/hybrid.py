@@ -13,6 +13,11 @@ from gpg.gp.hyper import Hyper
 from gpg.gp.mean import GlobalMean
 from gpg.gp.predictor import Predictor
 
+__all__ = [
+    "HybridGP",
+    "Record",
+]
+
 
 class Record(eqx.Module):
     """The training data a hybrid was built on, normalised: inputs ``X`` (N, D), stacked
@@ -76,18 +81,52 @@ class HybridGP(Predictor):
         return self.local.lengthscale
 
     def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> HybridGP:
+        """This model with the per-output variance scale replaced (held by the near sets).
+
+        Args:
+            scale: (M,) the new per-output scale of the predictive variance.
+
+        Returns:
+            A copy with the same mean and record.
+        """
         return HybridGP(self.mean, self.local.with_output_scale(scale), self.record)
 
     def describe(self) -> dict[str, Any]:
-        """The near sets' description: the mean shares their hyperparameters."""
+        """The near sets' description: the mean shares their hyperparameters.
+
+        Returns:
+            :meth:`gpg.gp.binned.BinnedGP.describe` of the near sets.
+        """
         return self.local.describe()
 
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        """GP-G's exact posterior mean at one query, from the global ``α``.
+
+        Args:
+            x: (D,) one normalised query.
+
+        Returns:
+            The (M,) posterior mean.
+        """
         return self.mean(x)
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
+        """The exact mean and the near-set variance ``σ − k_qnᵀ K̄_nn⁻¹ k_qn`` at one query.
+
+        Args:
+            x: (D,) one normalised query.
+
+        Returns:
+            The (M,) posterior mean and the scalar latent variance (unclamped), an upper
+            bound on GP-G's.
+        """
         return self.mean(x), self.local.variance_one(x)
 
     def mean_view(self) -> HybridGP:
-        """The global mean with the near sets' arrays dropped (the mean does not read them)."""
+        """The global mean with the near sets' arrays dropped (the mean does not read them).
+
+        Returns:
+            A hybrid without variance factors or record: its mean equals this one's, its
+            variance is not to be used.
+        """
         return HybridGP(mean=self.mean, local=self.local.mean_view(), record=None)

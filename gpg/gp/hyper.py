@@ -14,6 +14,8 @@ from jaxtyping import Array, ArrayLike, Float
 from gpg import _checks
 from gpg._deprecated import deprecated
 
+__all__ = ["Hyper", "gradient_noise"]
+
 
 class Hyper(eqx.Module):
     """Kernel and noise hyperparameters (paper symbols in brackets).
@@ -49,9 +51,21 @@ class Hyper(eqx.Module):
         return self.noise
 
     def validate(self, n_inputs: int, n_grad: int) -> Hyper:
-        """Check shapes and positivity against ``n_inputs`` inputs and ``n_grad`` gradient dims.
+        """Check shapes and positivity against the data's inputs and gradient dims.
 
-        Raises ``ValueError`` naming the offending field. Needs concrete values (not under jit).
+        Needs concrete values (not under jit). Without gradient rows ``λ²`` is unused, so a
+        ``grad_noise`` vector meant for another model is accepted.
+
+        Args:
+            n_inputs: the number of inputs D (``lengthscale`` is a scalar or (D,)).
+            n_grad: the number of gradient dims G (``grad_noise`` is a scalar or (G,)).
+
+        Returns:
+            This ``Hyper``, unchanged.
+
+        Raises:
+            ValueError: naming the offending field: a shape that does not fit, or a value that
+                is not finite and positive.
         """
         for name in ("variance", "noise"):
             if getattr(self, name).ndim != 0:
@@ -72,7 +86,16 @@ class Hyper(eqx.Module):
         return self
 
     def noise_diagonal(self, n_points: int, n_grad: int) -> Float[Array, " R"]:
-        """Diagonal ``(ν², …, ν², λ_1², …, λ_G², …)`` of length ``n_points·(1+n_grad)``."""
+        """The noise on ``K̄``'s diagonal, in the row layout of :mod:`gpg.gp.kernels`.
+
+        Args:
+            n_points: the number of points N.
+            n_grad: the number of gradient dims G.
+
+        Returns:
+            ``(ν², …, ν², λ_1², …, λ_1², …, λ_G², …)``: ``ν²`` on the N value rows, then
+            ``λ_g²`` on each block of N gradient rows, length ``N (1 + G)``.
+        """
         if n_grad == 0:
             return jnp.full(n_points, self.noise)
         lam = jnp.broadcast_to(self.grad_noise, (n_grad,))
@@ -83,9 +106,19 @@ class Hyper(eqx.Module):
 def gradient_noise(dY: Float[ArrayLike, "N M G"], s: float = 0.3) -> Float[Array, " G"]:
     """The paper's rule ``λ_i² = s · Var(∂_i Ỹ)``, the variance taken over points and outputs.
 
-    ``dY`` are the (normalised) gradients, ``s`` the paper's scale (0.3 in the paper). NaN
-    marks a gradient a case does not have (:func:`gpg.gp.gram.observed_rows`); a dimension
-    no case has gets the variance 1 of a normalised gradient.
+    A dimension no case has gets the variance 1 of a normalised gradient; one whose gradients
+    are all equal gets the smallest positive variance, so that ``K̄`` stays positive definite.
+
+    Args:
+        dY: (N, M, G) the (normalised) gradients; NaN marks a gradient a case does not have
+            (:func:`gpg.gp.gram.observed_rows`).
+        s: the paper's scale (0.3 in the paper).
+
+    Returns:
+        ``λ_i²`` (G,).
+
+    Raises:
+        ValueError: if ``dY`` is not a 3-dimensional numeric array, or ``s`` is not > 0.
     """
     dY = _checks.as_float_array("dY", dY, ndim=3)
     if not s > 0:

@@ -30,6 +30,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from gpg._precision import highest
 
+__all__ = ["KernelBlocks", "direction_gram", "gradient_blocks", "gram", "rbf", "row_gram"]
+
 
 class KernelBlocks(NamedTuple):
     """The four covariance blocks between ``(f(x), ∂f(x))`` and ``(f(x'), ∂f(x'))``."""
@@ -47,10 +49,16 @@ def rbf(
     variance: Float[ArrayLike, ""],
     lengthscale: Float[ArrayLike, "*L"],
 ) -> Float[Array, ""]:
-    """Squared-exponential kernel, paper Eq. (kernel 00).
+    """Squared-exponential kernel ``σ exp(-½ Σ_d (x1_d − x2_d)² / l_d²)``, paper Eq. (kernel 00).
 
-    ``variance`` is the paper's signal variance σ; ``lengthscale`` is its radius scale ``l``,
-    a scalar (isotropic) or one value per input dimension (ARD).
+    Args:
+        x1: (D,) the first input.
+        x2: (D,) the second input.
+        variance: the paper's signal variance σ.
+        lengthscale: its radius scale ``l``, a scalar (isotropic) or (D,) (ARD).
+
+    Returns:
+        The covariance ``k(x1, x2)``, a scalar.
     """
     r = (jnp.asarray(x1) - jnp.asarray(x2)) / lengthscale
     return variance * jnp.exp(-0.5 * jnp.dot(r, r))
@@ -66,7 +74,16 @@ def gradient_blocks(
     """``k00, k0m, kn0, knm`` of paper Eq. (kernel_gradient), by ``jax.grad``/``jax.hessian``.
 
     ``knm`` is the mixed block of ``jax.hessian`` of :func:`rbf` in ``(x1, x2)``:
-    ``knm[n, m] = ∂²k/∂x1_n ∂x2_m``.
+    ``knm[n, m] = ∂²k/∂x1_n ∂x2_m``. The closed forms are what the tests compare it with.
+
+    Args:
+        x1: (D,) the input of the first observation (``x``).
+        x2: (D,) the input of the second (``x'``).
+        variance: the signal variance σ.
+        lengthscale: ``l``, a scalar or (D,).
+
+    Returns:
+        The four blocks, ``k00`` () to ``knm`` (D, D), over all D inputs.
     """
     x1 = jnp.asarray(x1)
     x2 = jnp.asarray(x2)
@@ -147,8 +164,20 @@ def gram(
 ) -> Float[Array, "R1 R2"]:
     """Gram matrix ``K̄(X1, X2)`` with value rows and gradient rows for ``dims1``/``dims2``.
 
-    Shape ``((1+G1)·N1, (1+G2)·N2)`` in the layout of the module docstring. With
-    ``dims1 = dims2 = ()`` it is the plain kernel matrix ``k(X1, X2)``.
+    Every pair's block comes from the derivatives of :func:`rbf` (compiled once per
+    ``dims1``, ``dims2`` and shapes). With ``dims1 = dims2 = ()`` it is the plain kernel
+    matrix ``k(X1, X2)``.
+
+    Args:
+        X1: (N1, D) the inputs of the rows.
+        X2: (N2, D) the inputs of the columns.
+        variance: the signal variance σ.
+        lengthscale: ``l``, a scalar or (D,).
+        dims1: the G1 input dims of the rows' gradient observations (static).
+        dims2: the G2 input dims of the columns' (static).
+
+    Returns:
+        ``((1+G1)·N1, (1+G2)·N2)`` in the layout of the module docstring (no noise).
     """
     inner = jax.vmap(pair_block, in_axes=(None, 0, None, None, None, None), out_axes=2)
     outer = jax.vmap(inner, in_axes=(0, None, None, None, None, None), out_axes=1)
@@ -205,8 +234,7 @@ def row_gram(
     variance: Float[ArrayLike, ""],
     lengthscale: Float[ArrayLike, "*L"],
 ) -> Float[Array, "R1 R2"]:
-    """Covariance of arbitrary rows: row ``i`` is ``f(X1[i])`` where ``a1[i] < 0`` and
-    ``∂f/∂x_{a1[i]}`` at ``X1[i]`` otherwise (likewise for ``X2``, ``a2``).
+    """Covariance of arbitrary rows, each a value or a derivative along one input.
 
     The blocks of Eq. (kernel_gradient) in closed form, with ``u = (x1 − x2) / l²``:
     ``k00 = k``, ``k0m = k u_m``, ``kn0 = −k u_n``, ``knm = k (δ_nm / l_n² − u_n u_m)``, i.e.
@@ -214,6 +242,18 @@ def row_gram(
     ``s2 = u_m`` (or 1). Rows of a case that lacks some gradients are then built as they are,
     with no row for what was not observed: the same matrix as :func:`gram` restricted to
     those rows, for ``R1·R2`` entries instead of ``(1+G)²`` times as many.
+
+    Args:
+        X1: (R1, D) each row's input.
+        a1: (R1,) what each row observes: ``f(X1[i])`` where ``a1[i] < 0``, else
+            ``∂f/∂x_{a1[i]}`` at ``X1[i]``.
+        X2: (R2, D) each column's input.
+        a2: (R2,) what each column observes, as ``a1``.
+        variance: the signal variance σ.
+        lengthscale: ``l``, a scalar or (D,).
+
+    Returns:
+        (R1, R2) the covariances (no noise).
     """
     d = X1.shape[1]
     ls = jnp.broadcast_to(jnp.asarray(lengthscale, dtype=X1.dtype), (d,))
@@ -242,13 +282,27 @@ def direction_gram(
     variance: Float[ArrayLike, ""],
     lengthscale: Float[ArrayLike, "*L"],
 ) -> Float[Array, "R1 R2"]:
-    """Covariance of rows that observe ``f`` (``v1[i]``) or its derivative along a direction
-    ``E1[i]`` (D,) at ``X1[i]`` (likewise ``X2, E2, v2``): the paper's remark on derivatives
-    in arbitrary directions. The blocks of Eq. (kernel_gradient) are linear in the directions,
-    so with ``u = (x1 − x2) / l²``: ``cov(D_e f, f) = −(e·u) k``, ``cov(f, D_f f) = (f·u) k``
-    and ``cov(D_e f, D_f f) = (Σ_d e_d f_d / l_d² − (e·u)(f·u)) k``, i.e.
+    """Covariance of rows that observe ``f`` or its derivative along a direction.
+
+    The paper's remark on derivatives in arbitrary directions. The blocks of
+    Eq. (kernel_gradient) are linear in the directions, so with ``u = (x1 − x2) / l²``:
+    ``cov(D_e f, f) = −(e·u) k``, ``cov(f, D_f f) = (f·u) k`` and
+    ``cov(D_e f, D_f f) = (Σ_d e_d f_d / l_d² − (e·u)(f·u)) k``, i.e.
     ``k (a1 a2 + [both derivatives] e·f/l²)`` with ``a1 = −e·u`` (1 for a value) and
     ``a2 = f·u`` (1). One-hot directions give :func:`row_gram`.
+
+    Args:
+        X1: (R1, D) each row's input.
+        E1: (R1, D) each derivative row's direction ``e`` (read only where ``v1`` is False).
+        v1: (R1,) whether the row observes the value ``f(X1[i])``.
+        X2: (R2, D) each column's input.
+        E2: (R2, D) each derivative column's direction ``f``.
+        v2: (R2,) whether the column observes the value.
+        variance: the signal variance σ.
+        lengthscale: ``l``, a scalar (isotropic) or (D,) (ARD).
+
+    Returns:
+        (R1, R2) the rows' covariances with the columns, without noise.
     """
     d = X1.shape[1]
     ls = jnp.broadcast_to(jnp.asarray(lengthscale, dtype=X1.dtype), (d,))
@@ -265,7 +319,7 @@ def direction_gram(
 
 
 @highest
-def rbf_matrix(A: Array, B: Array, variance) -> Array:
+def rbf_matrix(A: Array, B: Array, variance: Float[ArrayLike, ""]) -> Array:
     """``σ exp(-½ |a − b|²)`` for the rows of ``A`` and ``B``, already divided by ``l``."""
     r2 = jnp.sum(A * A, 1)[:, None] + jnp.sum(B * B, 1)[None, :] - 2.0 * (A @ B.T)
     # Rounding can make r² a hair negative at coincident points; k must not exceed σ.

@@ -31,6 +31,10 @@ from gpg.gp.hyper import Hyper
 from gpg.gp.partition import NearSets
 from gpg.linalg import dense
 
+__all__ = [
+    "precompute",
+]
+
 
 def precompute(
     X: Float[np.ndarray, "N D"],
@@ -39,20 +43,38 @@ def precompute(
     grad_dims: Sequence[int],
     near: NearSets,
     *,
-    devices=None,
+    devices: parallel.Devices = None,
     rows: np.ndarray | None = None,
     bins: Sequence[int] | None = None,
     bases: np.ndarray | None = None,
 ) -> list[BinFactors]:
     """Per-bin coefficients and factors of the local GPs over ``near.near``.
 
-    ``X`` the normalised training inputs (N, D), ``Ybar`` the stacked targets (N(1+G), M) in the
-    layout of :mod:`gpg.gp.kernels`; ``devices`` (a mesh, a device count or list,
-    :mod:`gpg.parallel`) spreads the bins over JAX devices, None keeps the host path.
-    ``rows`` (R,) marks the observed rows (:func:`gpg.gp.gram.observed_rows`; host path
-    only); ``bins`` restricts the work to those bins (the others are not returned);
-    ``bases`` (N, G, G) the directions of the gradient rows (host path only,
-    :func:`gpg.gp.gram.row_directions`).
+    Bin ``b`` gets ``c = K̄_nn⁻¹ Ȳ_n`` and the lower factor ``F = L⁻¹`` of ``K̄_nn = L Lᵀ``
+    (module docstring); the far set is dropped, not corrected for.
+
+    Args:
+        X: (N, D) normalised training inputs.
+        Ybar: (N(1+G), M) stacked targets ``Ȳ`` in the layout of :mod:`gpg.gp.kernels`.
+        hyper: the hyperparameters (σ, l, ν², λ_i²).
+        grad_dims: the input dimensions that carry gradient rows.
+        near: the near sets (:func:`gpg.gp.partition.near_sets`).
+        devices: a device count or a list of devices (:func:`gpg.parallel.devices`) to spread
+            the bins over, the same compiled program for every bin; None keeps the host path.
+        rows: (R,) the observed rows (:func:`gpg.gp.gram.observed_rows`; host path only), None
+            for all.
+        bins: restrict the work to these bins (the others are not returned).
+        bases: (N, G, G) the directions of the gradient rows (host path only,
+            :func:`gpg.gp.gram.row_directions`).
+
+    Returns:
+        One :class:`gpg.gp.binned.BinFactors` per bin (of ``bins``, in that order), with the
+        bin's share of the output scale.
+
+    Raises:
+        ValueError: if ``rows`` or ``bases`` is given with ``devices``.
+        gpg.linalg.dense.NotPositiveDefiniteError: if a bin's ``K̄_nn`` is not positive
+            definite.
     """
     dims = tuple(grad_dims)
     chosen = near.near if bins is None else [near.near[b] for b in bins]

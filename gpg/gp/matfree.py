@@ -27,6 +27,11 @@ from gpg import parallel
 from gpg._precision import highest
 from gpg.gp.hyper import Hyper
 
+__all__ = [
+    "gram_matvec",
+    "gram_matvec_devices",
+]
+
 
 @highest
 def _columns(Xg, il2, v0, Vg):
@@ -114,11 +119,24 @@ def gram_matvec(
     *,
     tile: int = 256,
 ) -> Float[Array, "R M"]:
-    """``(K̄ + diag(ν², λ²)) V`` for the training inputs ``X`` with gradient rows for
-    ``grad_dims`` (the layout of :mod:`gpg.gp.kernels`, ``R = N(1+G)``), equal to the dense
-    product of :func:`gpg.gp.gram.noisy_gram` to rounding, without forming ``K̄``: rows of
-    ``K`` are made ``tile`` points at a time (``lax.map``), so memory is one tile of ``K`` plus
-    the ``(G+1)(G+2)·M`` columns it multiplies."""
+    """``(K̄ + diag(ν², λ²)) V`` without forming ``K̄``.
+
+    Equal to the dense product of :func:`gpg.gp.gram.noisy_gram` to rounding. Rows of the
+    plain ``K`` are made ``tile`` points at a time (``lax.map``), so memory is one tile of
+    ``K`` plus the ``(G+1)(G+2)·M`` columns it multiplies; in reverse mode each tile is
+    rematerialised rather than kept.
+
+    Args:
+        X: (N, D) training inputs.
+        hyper: the hyperparameters (σ, l, ν², λ_i²); l may be isotropic or per input.
+        grad_dims: the input dimensions that carry gradient rows (G of them).
+        V: (R, M) right-hand sides, ``R = N(1+G)`` rows in the layout of
+            :mod:`gpg.gp.kernels` (value rows, then each gradient dimension's).
+        tile: training points per tile of ``K``.
+
+    Returns:
+        The (R, M) product, in the layout of ``V``.
+    """
     n, g, m = X.shape[0], len(grad_dims), V.shape[1]
     W, ls, il2 = _prepare(X, hyper, grad_dims, V)
     # Rematerialised in reverse mode: a gradient through the product (the likelihood on all
@@ -136,13 +154,26 @@ def gram_matvec_devices(
     grad_dims: tuple[int, ...],
     V: Float[Array, "R M"],
     *,
-    devices,
+    devices: parallel.Devices,
     tile: int = 256,
 ) -> Float[Array, "R M"]:
-    """:func:`gram_matvec` with the row tiles spread over JAX ``devices`` (a count, a list or
-    a mesh, :func:`gpg.parallel.devices`; across hosts after :func:`gpg.parallel.initialize`).
+    """:func:`gram_matvec` with the row tiles spread over JAX devices.
+
     Every tile runs the same compiled program, so the result is bit-identical for any number
-    of devices; each device holds ``X``, the columns and one tile of ``K``."""
+    of devices; each device holds ``X``, the columns and one tile of ``K``.
+
+    Args:
+        X: (N, D) training inputs.
+        hyper: the hyperparameters (σ, l, ν², λ_i²).
+        grad_dims: the input dimensions that carry gradient rows (G of them).
+        V: (R, M) right-hand sides, ``R = N(1+G)`` rows in the layout of :mod:`gpg.gp.kernels`.
+        devices: a device count or a list of devices (:func:`gpg.parallel.devices`; across
+            hosts after :func:`gpg.parallel.initialize`).
+        tile: training points per tile of ``K``, the unit of work handed to a device.
+
+    Returns:
+        The (R, M) product ``(K̄ + diag(ν², λ²)) V``.
+    """
     devs = parallel.devices(devices)
     n, g, m = X.shape[0], len(grad_dims), V.shape[1]
     W, ls, il2 = _prepare(X, hyper, grad_dims, V)

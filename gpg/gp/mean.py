@@ -23,6 +23,8 @@ from jaxtyping import Array, ArrayLike, Float
 from gpg._precision import highest
 from gpg.gp import kernels
 
+__all__ = ["GlobalMean", "output_scale"]
+
 
 class GlobalMean(eqx.Module):
     """``x ↦ k̄(x, X)ᵀ α`` for one query, in the folded form of the module docstring.
@@ -50,7 +52,26 @@ class GlobalMean(eqx.Module):
         lengthscale: Float[ArrayLike, "*L"],
         grad_dims: tuple[int, ...],
     ) -> GlobalMean:
-        """Fold ``α`` (R, M), ``R = N(1+G)`` in the row layout of :mod:`gpg.gp.kernels`."""
+        """Fold ``α`` into the coefficients of the module docstring's form.
+
+        The lengthscales enter the coefficients (``x_g / l_g²``), so the folded mean is for
+        these hyperparameters only.
+
+        Args:
+            X: (N, D) the training inputs.
+            alpha: (R, M) ``α = K̄⁻¹ Ȳ``, ``R = N(1+G)`` in the row layout of
+                :mod:`gpg.gp.kernels` (over coordinate rows:
+                :func:`gpg.gp.gram.from_bases` for directional ones).
+            variance: the signal variance σ.
+            lengthscale: ``l``, a scalar or (D,).
+            grad_dims: the G input dims of the gradient rows.
+
+        Returns:
+            The folded mean.
+
+        Raises:
+            ValueError: if ``alpha`` is not (N(1+G), M).
+        """
         X = np.asarray(X, dtype=float)
         alpha = np.asarray(alpha, dtype=float)
         n, d = X.shape
@@ -77,7 +98,7 @@ class GlobalMean(eqx.Module):
 
     @highest
     def __call__(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
-        """Mean (M,) at one query ``x`` (D,)."""
+        """Mean (M,) at one query ``x`` (D,): ``k(x, X)`` times the folded coefficients."""
         k = kernels.rbf_matrix((x * self.inv_ls)[None], self.Xs, self.variance)[0]
         out = (k @ self.coef).reshape(1 + len(self.grad_dims), self.n_outputs)
         if not self.grad_dims:
@@ -96,6 +117,16 @@ def output_scale(yty: Float[ArrayLike, " M"], n_rows: int) -> np.ndarray:
     factorisation. With one shared scale the forces were over-covered and the moments
     under-covered; the per-output scales' effect on NLPD and coverage is in docs/results.md
     ("Fitted noise").
+
+    Args:
+        yty: (M,) ``Ȳ_mᵀ α_m`` per output.
+        n_rows: R, the number of observed rows of ``Ȳ``.
+
+    Returns:
+        ``c`` (M,), at least the smallest positive float.
+
+    Raises:
+        ValueError: if ``n_rows`` is not positive.
     """
     yty = np.asarray(yty, dtype=float)
     if n_rows <= 0:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -26,6 +27,20 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from gpg.gp import kernels
+
+__all__ = [
+    "NearSets",
+    "Partition",
+    "SCHEMES",
+    "adaptive",
+    "boundary_pairs",
+    "build",
+    "far_correlation",
+    "kdtree",
+    "near_sets",
+    "slab",
+    "variation_weights",
+]
 
 SCHEMES = ("slab", "kdtree", "adaptive")
 
@@ -46,7 +61,16 @@ class Partition(eqx.Module):
     scheme: str = eqx.field(static=True)
 
     def lookup(self, x: Float[ArrayLike, " D"]) -> Int[Array, ""]:
-        """Bin of one query (jittable, vmappable)."""
+        """Bin of one query (jittable, vmappable).
+
+        A value on a split goes to the lower side (``x[d] <= split``).
+
+        Args:
+            x: (D,) one query in the normalised inputs the partition was built on.
+
+        Returns:
+            The bin index, an int32 scalar in ``[0, n_bins)``.
+        """
         x = jnp.asarray(x)
         if self.n_bins == 1:
             return jnp.zeros((), dtype=jnp.int32)
@@ -61,11 +85,26 @@ class Partition(eqx.Module):
         return (-node - 1).astype(jnp.int32)
 
     def lookup_batch(self, X: Float[ArrayLike, "Q D"]) -> Int[Array, " Q"]:
-        """Bins of a batch of queries."""
+        """Bins of a batch of queries.
+
+        Args:
+            X: (Q, D) queries in the normalised inputs.
+
+        Returns:
+            The (Q,) bin indices (int32), as :meth:`lookup` gives one by one.
+        """
         return jax.vmap(self.lookup)(jnp.asarray(X))
 
     def boxes(self, n_inputs: int) -> tuple[np.ndarray, np.ndarray]:
-        """Each bin's box ``(lo, hi]`` as arrays (n_bins, D), with ±inf where unbounded."""
+        """Each bin's box ``(lo, hi]``, walking the tree of splits on the host.
+
+        Args:
+            n_inputs: D, the number of inputs (the tree records only the inputs it cuts).
+
+        Returns:
+            The lower and upper bounds ``lo``, ``hi``, each (n_bins, D), with ±inf where a bin
+            is unbounded.
+        """
         lo = np.full((self.n_bins, n_inputs), -np.inf)
         hi = np.full((self.n_bins, n_inputs), np.inf)
         if self.n_bins == 1:
@@ -116,7 +155,20 @@ def _check(X: np.ndarray, n_bins: int) -> np.ndarray:
 
 
 def slab(X: Float[ArrayLike, "N D"], n_bins: int, dim: int = 7) -> Partition:
-    """Equal-count intervals along input ``dim`` (airspeed, the paper's dominant effect)."""
+    """Equal-count intervals along input ``dim`` (airspeed, the paper's dominant effect).
+
+    Args:
+        X: (N, D) training inputs.
+        n_bins: the number of slabs, at most N.
+        dim: the input cut (7, airspeed, in the airflow frame).
+
+    Returns:
+        A chain of ``n_bins − 1`` cuts, scheme ``slab``.
+
+    Raises:
+        ValueError: if ``X`` is not (N, D), ``n_bins`` is not in ``[1, N]``, ``dim`` is out
+            of range, or input ``dim`` has too few distinct values for ``n_bins`` slabs.
+    """
     return _slabs(X, n_bins, dim, None, "slab")
 
 
@@ -127,11 +179,27 @@ def adaptive(
     *,
     weights: Float[ArrayLike, " N"],
 ) -> Partition:
-    """Intervals along input ``dim`` holding equal shares of ``weights`` instead of equal
-    counts: more, narrower bins where the weights (the outputs' local variation,
-    :func:`variation_weights`) are large, the paper's proposal of finer partitions at high
-    airspeed. Equal weights give exactly :func:`slab`. Every bin keeps at least a quarter of an
-    equal share of the points, so that no bin is left without data to condition on."""
+    """Intervals along input ``dim`` holding equal shares of ``weights`` instead of equal counts.
+
+    More, narrower bins where the weights are large: the paper's proposal of finer partitions
+    at high airspeed. Equal weights give exactly :func:`slab`. Every bin keeps at least a
+    quarter of an equal share of the points, so that no bin is left without data to condition
+    on.
+
+    Args:
+        X: (N, D) training inputs.
+        n_bins: the number of intervals, at most N.
+        dim: the input cut (7, airspeed, in the airflow frame).
+        weights: (N,) finite, non-negative, not all zero: each point's weight, normally the
+            outputs' local variation (:func:`variation_weights`).
+
+    Returns:
+        A chain of ``n_bins − 1`` cuts, scheme ``adaptive``.
+
+    Raises:
+        ValueError: if ``weights`` is not N finite values >= 0 with a positive sum, or for
+            the reasons :func:`slab` gives.
+    """
     w = np.asarray(weights, dtype=float)
     if w.shape != (np.shape(X)[0],) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
         raise ValueError(f"weights must be {np.shape(X)[0]} finite values >= 0, not all zero")
@@ -170,9 +238,20 @@ def _slabs(X, n_bins: int, dim: int, weights: np.ndarray | None, scheme: str) ->
 def variation_weights(
     X: Float[ArrayLike, "N D"], Y: Float[ArrayLike, "N M"], k: int = 8
 ) -> np.ndarray:
-    """How fast the outputs change around each training point: the mean over its ``k`` nearest
-    neighbours (in the normalised inputs) of ``‖Y_i − Y_j‖ / ‖X_i − X_j‖``. Values only, so it
-    serves the models with and without gradients alike."""
+    """How fast the outputs change around each training point.
+
+    The mean over its ``k`` nearest neighbours (in the normalised inputs) of
+    ``‖Y_i − Y_j‖ / ‖X_i − X_j‖``. Values only, so it serves the models with and without
+    gradients alike; distances are computed a block of rows at a time.
+
+    Args:
+        X: (N, D) normalised training inputs.
+        Y: (N, M) training outputs.
+        k: neighbours per point (at most N − 1).
+
+    Returns:
+        The (N,) weights for :func:`adaptive` (ones when there are no neighbours).
+    """
     X, Y = np.asarray(X, dtype=float), np.asarray(Y, dtype=float)
     k = min(k, X.shape[0] - 1)
     if k < 1:
@@ -191,7 +270,22 @@ def variation_weights(
 
 
 def kdtree(X: Float[ArrayLike, "N D"], n_bins: int) -> Partition:
-    """Balanced median splits into ``n_bins`` leaves (any count, not only powers of two)."""
+    """Balanced median splits into ``n_bins`` leaves (any count, not only powers of two).
+
+    Each node cuts the input of largest spread among its points, at the quantile that gives
+    its two children bin counts in proportion; ties at the cut go left, as :meth:`lookup` does.
+
+    Args:
+        X: (N, D) training inputs.
+        n_bins: the number of leaves, at most N.
+
+    Returns:
+        The tree, scheme ``kdtree``.
+
+    Raises:
+        ValueError: if ``X`` is not (N, D), ``n_bins`` is not in ``[1, N]``, or repeated inputs
+            leave a node that cannot be split.
+    """
     X = _check(X, n_bins)
     nodes: list[list] = []
 
@@ -221,9 +315,23 @@ def kdtree(X: Float[ArrayLike, "N D"], n_bins: int) -> Partition:
     return _tree([tuple(n) for n in nodes], n_bins, depth, "kdtree")
 
 
-def build(X: Float[ArrayLike, "N D"], scheme: str, n_bins: int, **kw) -> Partition:
-    """``slab``, ``kdtree`` or ``adaptive`` (needs ``weights=``); unknown schemes list the
-    valid ones."""
+def build(X: Float[ArrayLike, "N D"], scheme: str, n_bins: int, **kw: Any) -> Partition:
+    """The partition of ``scheme``: :func:`slab`, :func:`kdtree` or :func:`adaptive`.
+
+    Args:
+        X: (N, D) training inputs.
+        scheme: one of :data:`SCHEMES`.
+        n_bins: the number of bins, at most N.
+        **kw: the scheme's options: ``dim`` for ``slab`` and ``adaptive``, ``weights`` (needed)
+            for ``adaptive``; none for ``kdtree``.
+
+    Returns:
+        The partition.
+
+    Raises:
+        ValueError: for an unknown scheme (listing the valid ones), options given to
+            ``kdtree``, or what the scheme itself rejects.
+    """
     if scheme == "slab":
         return slab(X, n_bins, **kw)
     if scheme == "adaptive":
@@ -268,12 +376,29 @@ def near_sets(
     points: int | None = None,
     chunk: int = 2048,
 ) -> NearSets:
-    """Near set of every bin by correlation threshold ``epsilon``, by ``budget`` (a fraction
-    of the points) or by ``points`` (a number of points, whatever N).
+    """Near set of every bin, by a correlation threshold, a fraction or a count of points.
 
-    The correlation of a point with a bin is its largest ``k(x, a)/σ`` over the bin's anchors.
-    Anchors are always near. Exactly one of ``epsilon``, ``budget`` and ``points`` must be
-    given.
+    The correlation of a point with a bin is its largest ``k(x, a)/σ`` over the bin's anchors
+    (its training points). Anchors are always near, even beyond a budget. Exactly one of
+    ``epsilon``, ``budget`` and ``points`` must be given: with long lengthscales a fixed ``ε``
+    makes nearly every point near, which a budget avoids.
+
+    Args:
+        X: (N, D) normalised training inputs.
+        partition: the bins.
+        lengthscale: the kernel lengthscale l (isotropic or per input).
+        epsilon: correlation threshold ``ε`` in [0, 1): the points above it are near.
+        budget: fraction in (0, 1]: the ``⌈budget·N⌉`` most correlated points are near.
+        points: a positive count: that many most correlated points are near, whatever N.
+        chunk: training points per block of the correlation computation.
+
+    Returns:
+        Per bin, its anchors, its near points (sorted), the near fraction and the smallest
+        correlation admitted (the effective ``ε`` under a budget).
+
+    Raises:
+        ValueError: unless exactly one of ``epsilon``, ``budget`` and ``points`` is given
+            and in range, or if a bin holds no training point.
     """
     if sum(v is not None for v in (epsilon, budget, points)) != 1:
         raise ValueError(
@@ -323,11 +448,20 @@ def far_correlation(
     *,
     chunk: int = 2048,
 ) -> np.ndarray:
-    """For each training input, taken as a query in its own bin: its largest kernel
-    correlation ``k(x, x_f)/σ`` with the bin's far set (0 when the far set is empty).
+    """Each training input's largest kernel correlation ``k(x, x_f)/σ`` with its bin's far set.
 
-    The Schur forms (and any model that drops the far set) assume ``k_qf ≈ 0``; this is
-    the measured size of what they drop, at the inputs the model was trained on.
+    Each input is taken as a query in its own bin. The Schur forms (and any model that drops
+    the far set) assume ``k_qf ≈ 0``; this is the size of what they drop, at the inputs the
+    model was trained on.
+
+    Args:
+        X: (N, D) normalised training inputs.
+        near: the near sets (:func:`near_sets`).
+        lengthscale: the kernel lengthscale l.
+        chunk: far points per block of the correlation computation.
+
+    Returns:
+        The (N,) correlations, 0 where the bin's far set is empty.
     """
     X = np.asarray(X, dtype=float)
     n = X.shape[0]
@@ -353,12 +487,26 @@ def boundary_pairs(
     delta: float = 1e-7,
     seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs of inputs straddling the bins' boundaries: ``(inside, outside)``, each (K, D).
+    """Pairs of inputs straddling the bins' boundaries, to test continuity across bins.
 
-    For every finite upper face ``x_d = hi`` of every bin box, up to ``per_face`` of the
-    ``samples`` (a random subset) are moved into the box and onto the face; the pair is
-    ``x_d = hi − delta`` (in the bin) and ``x_d = hi + delta`` (in its neighbour). A model
-    continuous across bins gives nearly equal predictions for the two members of a pair.
+    For every finite upper face ``x_d = hi`` of every bin box, a random subset of the
+    ``samples`` is moved into the box and onto the face; the pair is ``x_d = hi − delta`` (in
+    the bin) and ``x_d = hi + delta`` (in its neighbour). A model continuous across bins gives
+    nearly equal predictions for the two members of a pair. Pairs whose members land in one
+    bin are dropped.
+
+    Args:
+        partition: the bins.
+        samples: (S, D) inputs to move onto the faces (normally the normalised test inputs).
+        per_face: at most this many samples per face.
+        delta: half the gap between a pair's members, along the face's input.
+        seed: seed of the random choice of samples.
+
+    Returns:
+        ``(inside, outside)``, each (K, D): row ``k`` of each is one pair.
+
+    Raises:
+        ValueError: if ``samples`` is not a non-empty (S, D) array.
     """
     samples = np.asarray(samples, dtype=float)
     if samples.ndim != 2 or samples.shape[0] == 0:

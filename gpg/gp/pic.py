@@ -47,11 +47,30 @@ from gpg.gp.gram import assemble_gram, noisy_gram
 from gpg.gp.hyper import Hyper
 from gpg.linalg import dense
 
+__all__ = [
+    "inducing_inputs",
+    "iter_precompute",
+    "iter_precompute_devices",
+    "precompute",
+]
+
 
 def inducing_inputs(X: Float[ArrayLike, "N D"], n: int, *, seed: int = 0) -> np.ndarray:
     """``n`` inducing inputs by k-means (k-means++ start) on the training inputs ``X``.
 
-    All N points when ``n == N``; ``ValueError`` for ``n < 1`` or ``n > N``.
+    An empty cluster would keep a stale centre that duplicates another: each duplicate is
+    replaced by an unused training input, so the inducing inputs are distinct.
+
+    Args:
+        X: (N, D) training inputs.
+        n: the number of inducing inputs, in ``[1, N]``; all N points when ``n == N``.
+        seed: seed of the k-means start and of the replacements.
+
+    Returns:
+        The (n, D) inducing inputs.
+
+    Raises:
+        ValueError: if ``n`` is not a positive integer or exceeds N.
     """
     from scipy.cluster.vq import kmeans2
 
@@ -124,7 +143,23 @@ def precompute(
     *,
     jitter: float = 1e-6,
 ) -> list[BinFactors]:
-    """:func:`iter_precompute` as a list."""
+    """:func:`iter_precompute` as a list (every block's dense factor held at once).
+
+    Args:
+        X: the (N, D) training inputs, normalised.
+        Ybar: the targets ``Ȳ``, (N(1+G), M), value rows then gradient rows.
+        hyper: σ, l, ν² and λ_i².
+        grad_dims: which inputs have gradient rows.
+        blocks: per bin, its training indices (each point in exactly one block).
+        Z: the (U, D) inducing inputs.
+        jitter: the relative jitter on ``K̄_uu``'s diagonal.
+
+    Returns:
+        One :class:`gpg.gp.binned.BinFactors` per block, in block order.
+
+    Raises:
+        ValueError: if ``blocks`` do not partition the training points.
+    """
     return list(iter_precompute(X, Ybar, hyper, grad_dims, blocks, Z, jitter=jitter))
 
 
@@ -138,16 +173,30 @@ def iter_precompute(
     *,
     jitter: float = 1e-6,
 ) -> Iterator[BinFactors]:
-    """Per-block mean coefficients and variance factors of PIC (see the module docstring),
-    yielded block by block so that a consumer can store each one compactly before the next is
-    computed (the dense factors of all blocks together would dominate the peak memory).
+    """Per-block mean coefficients and variance factors of PIC (see the module docstring).
 
-    ``X`` (N, D) and ``Ybar`` (N(1+G), M) as for :func:`gpg.gp.local.precompute`; ``blocks`` the
-    training indices of each bin (a partition of ``range(N)``); ``Z`` (U, D) the inducing
-    inputs; ``jitter`` is added to ``K̄_uu``'s diagonal relative to it (inducing values are
-    noise-free). Each :class:`BinFactors` is over the rows ``[u; b]``: the inducing rows
-    (dimension-major over ``Z``), then the block's rows (dimension-major over its points), and
-    its ``factor`` is block upper triangular (dense over the first ``U'`` rows).
+    Yielded block by block so that a consumer can store each one compactly before the next is
+    computed: the dense factors of all blocks together would dominate the peak memory. Two
+    passes over the blocks (the inducing system first), on the host.
+
+    Args:
+        X: (N, D) normalised training inputs.
+        Ybar: (N(1+G), M) stacked targets ``Ȳ`` in the layout of :mod:`gpg.gp.kernels`.
+        hyper: the hyperparameters (σ, l, ν², λ_i²).
+        grad_dims: the input dimensions that carry gradient rows.
+        blocks: the training indices of each bin, a partition of ``range(N)``.
+        Z: (U, D) inducing inputs (:func:`inducing_inputs`).
+        jitter: added to ``K̄_uu``'s diagonal, relative to it (inducing values are
+            noise-free).
+
+    Yields:
+        Per block, a :class:`gpg.gp.binned.BinFactors` over the rows ``[u; b]``: the inducing
+        rows (dimension-major over ``Z``), then the block's rows (dimension-major over its
+        points); its ``factor`` is block upper triangular (dense over the first ``U'`` rows).
+
+    Raises:
+        ValueError: if ``blocks`` do not partition the training points (when the first block
+            is drawn).
     """
     dims = tuple(grad_dims)
     n, g = X.shape[0], len(dims)
@@ -205,15 +254,35 @@ def iter_precompute_devices(
     Z: np.ndarray,
     *,
     jitter: float = 1e-6,
-    devices=None,
+    devices: parallel.Devices = None,
 ) -> Iterator[BinFactors]:
-    """:func:`iter_precompute` in JAX with the blocks spread over ``devices`` (a count or a
-    list, :func:`gpg.parallel.devices`), one block per device at a time.
+    """:func:`iter_precompute` in JAX with the blocks spread over devices, one per device at
+    a time.
 
     Blocks are padded to the largest with far-away points, whose rows decouple from every
     other row (zero kernel), so each padded quantity restricted to the real rows is the real
-    one. Equal to :func:`iter_precompute` up to rounding; bit-identical for any number of
-    devices. Memory: a few padded blocks per device, as the host path.
+    one. The pass-1 sums are taken on the host in block order: equal to
+    :func:`iter_precompute` up to rounding, bit-identical for any number of devices. Memory: a
+    few padded blocks per device, as the host path.
+
+    Args:
+        X: (N, D) normalised training inputs, padded per block on the host.
+        Ybar: (N(1+G), M) stacked targets ``Ȳ``, padded with the inputs.
+        hyper: the hyperparameters (σ, l, ν², λ_i²), shared by every device.
+        grad_dims: the input dimensions that carry gradient rows.
+        blocks: the training indices of each bin, a partition of ``range(N)``: the units of
+            work.
+        Z: (U, D) inducing inputs, shared by every device.
+        jitter: added to ``K̄_uu``'s diagonal, relative to it (``K̄_uu`` is factored on the
+            host).
+        devices: a device count or a list of devices (:func:`gpg.parallel.devices`); None, the
+            first device.
+
+    Yields:
+        Per block, its :class:`gpg.gp.binned.BinFactors`, as :func:`iter_precompute` does.
+
+    Raises:
+        ValueError: on the first draw, if ``blocks`` is not a partition of ``range(N)``.
     """
     dims = tuple(grad_dims)
     n, g = X.shape[0], len(dims)

@@ -28,6 +28,8 @@ from gpg._dtype import in_model_dtype
 from gpg._precision import highest
 from gpg.gp.partition import Partition
 
+__all__ = ["Predictor", "plain"]
+
 
 class Predictor(eqx.Module):
     """Interface of every GP model in gpg (exact, partitioned, Schur-corrected).
@@ -54,47 +56,107 @@ class Predictor(eqx.Module):
 
     @abc.abstractmethod
     def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> "Predictor":
-        """This model with the per-output variance scale replaced by ``scale`` (M,)."""
+        """This model with the per-output variance scale replaced.
+
+        Args:
+            scale: (M,) the new ``output_scale``.
+
+        Returns:
+            A copy of the model; the arrays it shares are not copied.
+        """
 
     @abc.abstractmethod
     def describe(self) -> dict[str, Any]:
-        """Plain values a person reads in a checkpoint's metadata: at least
-        ``hyperparameters`` (signal ``variance``, ``lengthscale``, value ``noise`` ν²)."""
+        """Plain values a person reads in a checkpoint's metadata.
+
+        Returns:
+            JSON-ready values (:func:`plain`): at least ``hyperparameters`` (signal
+            ``variance``, ``lengthscale``, value ``noise`` ν²).
+        """
 
     def predictive_variance(self, var: Float[ArrayLike, "*Q"]) -> Float[Array, "*Q M"]:
-        """An observation's predictive variance per output (normalised units) from the latent
-        variance: ``output_scale · (max(var, 0) + ν²)``."""
+        """An observation's predictive variance per output (normalised units).
+
+        Args:
+            var: the latent variance at some queries, any shape (negative values count as 0).
+
+        Returns:
+            ``output_scale · (max(var, 0) + ν²)``, one more axis (M,) than ``var``.
+        """
         return (jnp.maximum(jnp.asarray(var), 0.0) + self.noise)[..., None] * self.output_scale
 
     @abc.abstractmethod
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
-        """Posterior mean at one query."""
+        """Posterior mean at one query, written for ``jax.vmap``.
+
+        Args:
+            x: (D,) the normalised query.
+
+        Returns:
+            The mean (M,).
+        """
 
     @abc.abstractmethod
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
-        """Posterior mean and latent variance at one query."""
+        """Posterior mean and latent variance at one query, written for ``jax.vmap``.
+
+        Args:
+            x: (D,) the normalised query.
+
+        Returns:
+            The mean (M,) and the latent variance () as computed (not clipped).
+        """
 
     def mean_view(self) -> "Predictor":
-        """A predictor whose ``mean_one`` equals this one's, holding only what the mean reads
-        (for mean-only real-time loops; its variance is not to be used)."""
+        """A predictor whose ``mean_one`` equals this one's, holding only what the mean reads.
+
+        For mean-only real-time loops; its variance is not to be used. The default keeps
+        everything.
+
+        Returns:
+            The lighter predictor (this one by default).
+        """
         return self
 
     def predict(
         self, Xq: Float[ArrayLike, "Q D"]
     ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
-        """Mean (Q, M) and latent variance (Q,), clipped at 0, at a batch of queries (jitted)."""
+        """Mean and latent variance, clipped at 0, at a batch of queries (jitted).
+
+        Args:
+            Xq: (Q, D) the normalised queries, finite.
+
+        Returns:
+            The mean (Q, M) and the latent variance (Q,), at least 0.
+        """
         mean, var = self.predict_unclipped(Xq)
         return mean, jnp.maximum(var, 0.0)
 
     def predict_unclipped(
         self, Xq: Float[ArrayLike, "Q D"]
     ) -> tuple[Float[Array, "Q M"], Float[Array, " Q"]]:
-        """As :meth:`predict`, with the variance as computed (negative where a model's
-        assumptions fail: count those, do not trust them)."""
+        """As :meth:`predict`, with the variance as computed.
+
+        The variance is negative where a model's assumptions fail: count those, do not trust
+        them.
+
+        Args:
+            Xq: (Q, D) the normalised queries, finite (a check in the program).
+
+        Returns:
+            The mean (Q, M) and the unclipped latent variance (Q,).
+        """
         return in_model_dtype(self, lambda: _batch(self, jnp.asarray(Xq), True), Xq)
 
     def predict_mean(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M"]:
-        """Mean only (Q, M): the fast path."""
+        """Mean only: the fast path (no variance is formed).
+
+        Args:
+            Xq: (Q, D) the normalised queries.
+
+        Returns:
+            The mean (Q, M).
+        """
         return in_model_dtype(self, lambda: _batch(self, jnp.asarray(Xq), False)[0], Xq)
 
     def nbytes(self) -> int:
@@ -102,12 +164,22 @@ class Predictor(eqx.Module):
 
         The leaves kept by ``eqx.is_array`` (JAX arrays, NumPy arrays and scalars) all report
         ``nbytes`` themselves, so nothing is copied to the host.
+
+        Returns:
+            The total bytes.
         """
         return int(sum(x.nbytes for x in jax.tree.leaves(eqx.filter(self, eqx.is_array))))
 
 
 def plain(x: Any) -> Any:
-    """An array as nested lists (JSON-ready), for :meth:`Predictor.describe`."""
+    """An array as nested lists (JSON-ready), for :meth:`Predictor.describe`.
+
+    Args:
+        x: an array or scalar (NumPy, JAX or Python).
+
+    Returns:
+        Nested lists of Python numbers (a number for a scalar).
+    """
     return np.asarray(x).tolist()
 
 

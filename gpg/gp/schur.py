@@ -36,12 +36,20 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
+from jaxtyping import ArrayLike, Float
 
 from gpg.gp.binned import BinFactors, bin_yty, near_rows
 from gpg.gp.gram import assemble_gram
 from gpg.gp.hyper import Hyper
 from gpg.gp.partition import NearSets, Partition, far_correlation
 from gpg.linalg import dense, memory
+
+__all__ = [
+    "SchurAssumptionWarning",
+    "check_options",
+    "diagnose",
+    "precompute",
+]
 
 ROUTES = ("global", "direct")
 MEAN_FORMS = ("exact", "paper")
@@ -59,17 +67,30 @@ def diagnose(
     X: np.ndarray,
     partition: Partition,
     near: NearSets,
-    lengthscale,
+    lengthscale: Float[ArrayLike, "*L"],
     *,
     name: str = "gpgs_schur",
     threshold: float = KQF_WARN,
 ) -> dict[str, Any]:
     """Measure the Schur assumption ``k_qf ≈ 0`` on the training inputs and warn when it fails.
 
-    Returns the near-set ε per bin and the distribution (median, p90, max) of each training
-    input's largest correlation with its bin's far set (:func:`gpg.gp.partition.far_correlation`);
-    ``kqf_violated`` is True, with one :class:`SchurAssumptionWarning`, when the median
-    exceeds ``threshold``.
+    Each training input, as a query in its own bin, gets its largest correlation with the
+    bin's far set (:func:`gpg.gp.partition.far_correlation`). What the correction drops is
+    amplified by ``S⁻¹``, so a violated assumption makes the Schur model much worse than
+    dropping the far set (``gpgs``).
+
+    Args:
+        X: (N, D) normalised training inputs.
+        partition: the bins (not read: the near sets carry each bin's anchors).
+        near: the near sets (:func:`gpg.gp.partition.near_sets`).
+        lengthscale: the kernel lengthscale l.
+        name: the model named in the warning.
+        threshold: the median correlation above which the assumption counts as violated.
+
+    Returns:
+        ``near_epsilon`` (per bin), ``far_correlation_median``, ``far_correlation_p90``,
+        ``far_correlation_max``, ``kqf_threshold`` and ``kqf_violated``, True (with one
+        :class:`SchurAssumptionWarning`) when the median exceeds ``threshold``.
     """
     corr = far_correlation(X, near, lengthscale)
     med = float(np.median(corr))
@@ -97,8 +118,18 @@ def diagnose(
 
 
 def check_options(mean: str, route: str) -> None:
-    """``ValueError`` for an unknown mean form or precompute route (dropping the far set is not
-    a route of the Schur correction but another model: :mod:`gpg.gp.local`, ``gpgs``)."""
+    """Check a mean form and a precompute route of the Schur correction.
+
+    Dropping the far set is not a route of the Schur correction but another model
+    (:mod:`gpg.gp.local`, ``gpgs``): asking for route ``local`` says so.
+
+    Args:
+        mean: the mean form, ``exact`` or ``paper`` (module docstring).
+        route: the route to ``S⁻¹``, ``global`` or ``direct``.
+
+    Raises:
+        ValueError: for an unknown mean form or route, listing the valid ones.
+    """
     if mean not in MEAN_FORMS:
         raise ValueError(f"unknown mean form {mean!r}; valid: {list(MEAN_FORMS)}")
     if route not in ROUTES:
@@ -118,8 +149,29 @@ def precompute(
 ) -> list[BinFactors]:
     """Per-bin coefficients and variance factors by ``route`` (see module docstring).
 
-    ``X`` are the (normalised) training inputs (N, D) and ``Ybar`` the stacked targets
-    (N(1+G), M) in the layout of :mod:`gpg.gp.kernels`.
+    The memory the route needs (``K̄`` and its working arrays) is checked before ``K̄`` is
+    formed (:func:`gpg.linalg.memory.require`).
+
+    Args:
+        X: (N, D) the normalised training inputs.
+        Ybar: (N(1+G), M) the stacked targets ``Ȳ`` (layout of :mod:`gpg.gp.kernels`).
+        hyper: σ, l, ν², λ_i², as fitted.
+        grad_dims: the inputs with gradient rows.
+        near: the near sets; their complements are the far sets.
+        route: ``global`` (one factorisation of ``K̄`` for every bin) or ``direct`` (the
+            paper's, one factorisation of ``K̄_ff`` per bin).
+        mean: ``exact`` (``k_qnᵀ α_n``) or ``paper`` (``k_qnᵀ S⁻¹ Ȳ_n``, Eq. GPGSmean).
+
+    Returns:
+        One :class:`gpg.gp.binned.BinFactors` per bin: upper factors from the global route,
+        lower ones from the direct route.
+
+    Raises:
+        ValueError: for an unknown ``mean`` or ``route`` (:func:`check_options`).
+        gpg.linalg.memory.InsufficientMemory: if ``K̄`` and the route's working arrays do
+            not fit the memory available.
+        gpg.linalg.dense.NotPositiveDefiniteError: if ``K̄`` (global route) or a bin's
+            ``K̄_ff`` or ``S`` (direct route) is not positive definite.
     """
     check_options(mean, route)
     dims = tuple(grad_dims)

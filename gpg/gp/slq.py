@@ -22,6 +22,7 @@ deterministic function of the hyperparameters, as a quasi-Newton line search nee
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -33,6 +34,14 @@ from gpg.gp import cg
 from gpg.gp.hyper import Hyper
 from gpg.gp.matfree import gram_matvec
 
+__all__ = [
+    "PCGResult",
+    "Probes",
+    "StochasticLML",
+    "pcg_lanczos",
+    "stochastic_log_marginal_likelihood",
+]
+
 
 class Probes(NamedTuple):
     """Standard normal draws behind the probes ``z = V ε_V + D^{½} ε_D`` (``P̂ = V Vᵀ + D``):
@@ -43,8 +52,23 @@ class Probes(NamedTuple):
 
     @classmethod
     def draw(cls, rows: int, inducing_rows: int, n_probes: int, seed: int) -> Probes:
-        """``n_probes`` fixed probes for a ``K̄`` of ``rows`` rows and a preconditioner of
-        ``inducing_rows`` inducing rows, from ``seed``."""
+        """Fixed probes for a ``K̄`` and its Nyström preconditioner, from a seed.
+
+        The draws stay fixed over a fit, so the objective is a deterministic function of the
+        hyperparameters; each ``P̂`` turns them into its own probes.
+
+        Args:
+            rows: R, the rows of ``K̄``.
+            inducing_rows: U(1+G), the inducing rows of the preconditioner.
+            n_probes: P, the number of probes, a positive integer.
+            seed: seed of the draws.
+
+        Returns:
+            The standard normal draws ``eps_v`` (U(1+G), P) and ``eps_d`` (R, P).
+
+        Raises:
+            ValueError: if ``n_probes`` is not a positive integer.
+        """
         if isinstance(n_probes, bool) or not isinstance(n_probes, int) or n_probes < 1:
             raise ValueError(f"the number of probes must be a positive integer, got {n_probes!r}")
         rng = np.random.default_rng(seed)
@@ -67,10 +91,32 @@ class PCGResult(NamedTuple):
     residual: Float[Array, " K"]
 
 
-def pcg_lanczos(matvec, B: Float[Array, "R K"], precond, *, tol: float, max_iter: int) -> PCGResult:
-    """Preconditioned CG on every column of ``B`` (traceable: ``lax.while_loop``), keeping
-    the coefficients that Lanczos quadrature needs. A column stops (its coefficients frozen)
-    once its relative residual is at most ``tol``; all stop after ``max_iter`` steps."""
+def pcg_lanczos(
+    matvec: Callable[[Array], Array],
+    B: Float[Array, "R K"],
+    precond: Callable[[Array], Array],
+    *,
+    tol: float,
+    max_iter: int,
+) -> PCGResult:
+    """Preconditioned CG on every column of ``B``, keeping what Lanczos quadrature needs.
+
+    Traceable (``lax.while_loop``), unlike :func:`gpg.gp.cg.solve`: the step sizes ``α_j``
+    and ratios ``β_j`` of each column's run are the entries of its Lanczos tridiagonal ``T``
+    on the preconditioned matrix. A column stops (its coefficients frozen) once its relative
+    residual is at most ``tol``; all stop after ``max_iter`` steps, converged or not.
+
+    Args:
+        matvec: the product with the symmetric positive definite ``K̄`` (R, K) -> (R, K).
+        B: (R, K) right-hand sides: the targets and the probes.
+        precond: ``P̂⁻¹`` applied to an (R, K) block (:class:`gpg.gp.cg.Nystrom`).
+        tol: relative residual at which a column stops.
+        max_iter: the most steps any column takes (the length of the coefficient history).
+
+    Returns:
+        The solution, the steps each column took, the coefficients of each step, ``bᵀ P̂⁻¹ b``
+        and the final relative residuals (:class:`PCGResult`).
+    """
     bnorm = jnp.linalg.norm(B, axis=0)
     bnorm = jnp.where(bnorm > 0, bnorm, 1.0)
     z = precond(B)
@@ -145,17 +191,37 @@ def stochastic_log_marginal_likelihood(
     tile: int = 256,
     probe_tol: float | None = None,
 ) -> StochasticLML:
-    """``log p(Ȳ | X)`` (the sum over the M columns of ``Ȳ``, as
-    :func:`gpg.gp.gram.log_marginal_likelihood`) without forming ``K̄``: CG for the data term,
-    stochastic Lanczos quadrature for ``log|K̄|`` with the fixed ``probes``, a Nyström
-    preconditioner on inducing inputs ``Z``; reverse- and forward-mode differentiable in
-    ``hyper`` through Hutchinson's estimate of the trace term (module docstring). Pure JAX.
+    """``log p(Ȳ | X)`` without forming ``K̄``: CG, stochastic Lanczos quadrature, Hutchinson.
 
-    ``tol`` is the relative residual of the data solves ``K̄ α = Ȳ``; ``probe_tol`` (default
-    ``tol``) that of the probe solves, which run as a second CG of their own when it differs.
-    The probes' sampling error dwarfs a looser solve's, and their Lanczos quadrature converges
-    long before the solve does, so ``probe_tol`` ≫ ``tol`` saves most of the products
-    (docs/scaling.md measures it)."""
+    The sum over the M columns of ``Ȳ``, as :func:`gpg.gp.gram.log_marginal_likelihood`: CG
+    for the data term, stochastic Lanczos quadrature for ``log|K̄|`` with the fixed
+    ``probes``, a Nyström preconditioner on the inducing inputs; reverse- and forward-mode
+    differentiable in ``hyper`` through Hutchinson's estimate of the trace term (module
+    docstring). Pure JAX. The probes' sampling error dwarfs a looser solve's, and their
+    Lanczos quadrature converges long before the solve does, so ``probe_tol`` ≫ ``tol`` saves
+    most of the products (docs/scaling.md measures it).
+
+    Args:
+        X: (N, D) training inputs.
+        Ybar: (R, M) stacked targets ``Ȳ``, ``R = N(1+G)``, in the layout of
+            :mod:`gpg.gp.kernels`.
+        hyper: the hyperparameters (σ, l, ν², λ_i²) the likelihood and its gradient are
+            taken at.
+        grad_dims: the input dimensions that carry gradient rows.
+        Z: (U, D) inducing inputs of the preconditioner ``P̂``.
+        probes: the fixed draws behind the probes (:meth:`Probes.draw`).
+        tol: relative residual of the data solves ``K̄ α = Ȳ``.
+        max_iter: the most CG steps per solve.
+        lanczos: the most Lanczos steps in each probe's quadrature.
+        tile: training points per tile of the matrix-free products.
+        probe_tol: relative residual of the probe solves (default ``tol``); when it differs
+            they run as a second CG of their own.
+
+    Returns:
+        The log likelihood (its gradient through the surrogate), the ``log|K̄|`` estimate,
+        the most CG steps taken and whether every solve reached its tolerance
+        (:class:`StochasticLML`).
+    """
     h = jax.lax.stop_gradient(hyper)
     r, m = Ybar.shape
     n_probes = probes.eps_d.shape[1]

@@ -19,18 +19,16 @@ import math
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
 
-from gpg.gp.gram import (
-    Checked,
-    assemble_rows_gram,
-    check_bases,
-    check_training_data,
-    from_bases,
-    rows_gram,
-)
+from gpg.gp.assembly import assemble_rows_gram, rows_gram
+from gpg.gp.directions import check_bases, from_bases
 from gpg.gp.mean import GlobalMean, output_scale
+from gpg.gp.targets import Checked, check_training_data
 from gpg.linalg import dense, memory
 from gpg.linalg.tri import BorderedTriangular
+
+__all__ = ["grown_bases", "grown_rows", "layout_index"]
 
 
 def check_new_cases(model, X, Y, dY, observed) -> Checked:
@@ -53,8 +51,21 @@ def check_new_cases(model, X, Y, dY, observed) -> Checked:
 
 
 def layout_index(n_old: int, n_new: int, n_grad: int) -> tuple[np.ndarray, np.ndarray]:
-    """Where the rows of the old points (in their own layout) and of the new points (in
-    theirs) sit in the layout of all ``n_old + n_new`` points (old points first)."""
+    """Where the rows of the old points and of the new points sit in the layout of all.
+
+    In the row layout of :mod:`gpg.gp.kernels` of all ``n_old + n_new`` points, old points
+    first: each block of rows (the values, then one per gradient dim) holds the old points'
+    rows, then the new ones'.
+
+    Args:
+        n_old: the number of points already in.
+        n_new: the number of new points.
+        n_grad: the number of gradient dims G.
+
+    Returns:
+        The rows of the old points' layout (``n_old (1 + G)``,) and of the new points'
+        (``n_new (1 + G)``,), each in the order of its own layout, as rows of the grown one.
+    """
     n = n_old + n_new
     blocks = np.arange(1 + n_grad)[:, None] * n
     old = (blocks + np.arange(n_old)[None, :]).ravel()
@@ -153,9 +164,29 @@ def _likelihood_and_scale(model, observed_all, size, dq, log_det2):
     return lml, scale
 
 
-def grown_bases(old, new, n_old: int, n_new: int, g: int):
-    """The directions of the old cases' gradient rows, of the new ones' and of all (None where
-    every row is along the inputs): a side without its own is along the inputs (identity)."""
+def grown_bases(
+    old: Float[ArrayLike, "N G G"] | None,
+    new: Float[ArrayLike, "n G G"] | None,
+    n_old: int,
+    n_new: int,
+    g: int,
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """The directions of the old cases' gradient rows, of the new ones' and of all.
+
+    A side without its own directions is along the inputs (the identity), once the other
+    side has some.
+
+    Args:
+        old: (N, G, G) the directions of the cases already in, or None (the inputs).
+        new: (n, G, G) those of the new cases, or None.
+        n_old: N, the number of cases already in.
+        n_new: n, the number of new cases.
+        g: the number of gradient dims G.
+
+    Returns:
+        The old cases' (N, G, G), the new ones' (n, G, G) and all (N + n, G, G) directions;
+        three None when both sides are along the inputs.
+    """
     if old is None and new is None:
         return None, None, None
     old = np.broadcast_to(np.eye(g), (n_old, g, g)) if old is None else np.asarray(old)
@@ -163,8 +194,25 @@ def grown_bases(old, new, n_old: int, n_new: int, g: int):
     return old, new, np.concatenate([old, new])
 
 
-def grown_rows(old, new, old_idx, new_idx, size) -> np.ndarray | None:
-    """The observed-row mask of the grown model in its layout, None when all are observed."""
+def grown_rows(
+    old: Bool[ArrayLike, " R"] | None,
+    new: Bool[ArrayLike, " r"] | None,
+    old_idx: np.ndarray,
+    new_idx: np.ndarray,
+    size: int,
+) -> np.ndarray | None:
+    """The observed-row mask of the grown model in its layout.
+
+    Args:
+        old: (R,) the observed rows of the model already in its layout, or None (all).
+        new: (r,) the new cases' observed rows in theirs, or None (all).
+        old_idx: where the old layout's rows sit in the grown one (:func:`layout_index`).
+        new_idx: where the new cases' rows sit.
+        size: the number of rows of the grown layout.
+
+    Returns:
+        (size,) bool, or None when neither side has a mask (every row observed).
+    """
     if old is None and new is None:
         return None
     out = np.ones(size, dtype=bool)

@@ -11,11 +11,25 @@ pic         :class:`gpg.gp.binned.BinnedGP` (inducing rows)   partition, inducin
 =========== ================================================ =========================
 """
 
-from gpg.kinds import exact, hybrid, local, pic, schur
+from gpg.kinds import base, exact, hybrid, local, pic, schur
 from gpg.kinds.base import Arrays, Cases, Kind, Product
 
+__all__ = [
+    "Arrays",
+    "Cases",
+    "KINDS",
+    "Kind",
+    "Product",
+    "base",
+    "exact",
+    "hybrid",
+    "local",
+    "pic",
+    "schur",
+]
+
+# The built-in kinds by name (gpg.models.SPECS refers to them; a kind of one's own is passed
+# to gpg.models.register instead).
 KINDS: dict[str, Kind] = {
     k.name: k for k in (exact.KIND, local.KIND, schur.KIND, hybrid.KIND, pic.KIND)
 }
-
-__all__ = ["KINDS", "Arrays", "Cases", "Kind", "Product"]

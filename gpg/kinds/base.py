@@ -25,9 +25,12 @@ from gpg.gp.gram import mask_targets, observed_rows, stack_targets
 from gpg.gp.hyper import Hyper
 from gpg.gp.predictor import Predictor
 from gpg.linalg import device as linalg_device
+from gpg.parallel import Devices
 
 if TYPE_CHECKING:
     from gpg.gp.exact import ExactGP
+
+__all__ = ["Arrays", "Cases", "Kind", "Product", "build_partition"]
 
 
 @dataclass(frozen=True)
@@ -57,13 +60,26 @@ class Arrays:
         return observed_rows(self.observed, self.X.shape[0])
 
     def bins(self, cfg: ModelConfig) -> partition.Partition:
-        """The partition to train with: the one given, else the one ``cfg`` asks for."""
+        """The partition to train with: the one given, else the one ``cfg`` asks for.
+
+        Args:
+            cfg: the resolved model config (its ``partition`` section).
+
+        Returns:
+            :attr:`partition` when set (a rebuild that must keep a model's bins), else
+            :func:`build_partition` on ``X`` and ``Y``.
+        """
         return (
             self.partition if self.partition is not None else build_partition(self.X, cfg, self.Y)
         )
 
     def targets(self) -> np.ndarray:
-        """``Ȳ`` (R, M) in the layout of :mod:`gpg.gp.kernels`, 0 on unobserved rows."""
+        """The stacked targets ``Ȳ`` the kinds solve against.
+
+        Returns:
+            ``Ȳ`` (R, M) in the layout of :mod:`gpg.gp.kernels` (values, then each gradient
+            dim's rows), 0 on the rows not observed.
+        """
         return mask_targets(stack_targets(self.Y, self.dY), self.rows)
 
 
@@ -104,18 +120,50 @@ class Kind(abc.ABC):
     directional_gradients: ClassVar[bool] = False
 
     def condition(self, model: Predictor, new: Arrays, cfg: ModelConfig) -> Predictor:
-        """``model`` conditioned on the cases ``new`` with its hyperparameters kept, equal to
-        a rebuild on all the cases (kinds that can; the others refuse)."""
+        """``model`` conditioned on the cases ``new``, without a refit.
+
+        Kinds that can condition override this; the result equals a rebuild on all the cases
+        with ``model``'s hyperparameters. The default refuses.
+
+        Args:
+            model: a predictor this kind built.
+            new: the new cases, normalised as ``model``'s training arrays were.
+            cfg: the model's resolved config.
+
+        Returns:
+            The conditioned predictor.
+
+        Raises:
+            ValueError: always, for a kind that cannot condition (naming the kind).
+        """
         raise self._cannot_condition()
 
     def cases(self, model: Predictor) -> Cases:
-        """What :mod:`gpg.design` reads of a model that conditions: its normalised training
-        inputs, hyperparameters and gradient dims (kinds that cannot condition refuse)."""
+        """What :mod:`gpg.design` reads of a model that conditions.
+
+        Args:
+            model: a predictor this kind built.
+
+        Returns:
+            Its normalised training inputs, hyperparameters and gradient dims.
+
+        Raises:
+            ValueError: always, for a kind that cannot condition.
+        """
         raise self._cannot_condition()
 
     def posterior(self, model: Predictor) -> ExactGP:
-        """The exact GP-G on ``model``'s training cases with its hyperparameters: what the
-        acquisition's variances are read from (kinds that condition)."""
+        """The exact GP-G that the acquisition reads its variances from.
+
+        Args:
+            model: a predictor this kind built.
+
+        Returns:
+            The exact GP-G on ``model``'s training cases with its hyperparameters.
+
+        Raises:
+            ValueError: always, for a kind that cannot condition.
+        """
         raise self._cannot_condition()
 
     def _cannot_condition(self) -> ValueError:
@@ -125,16 +173,47 @@ class Kind(abc.ABC):
         )
 
     @abc.abstractmethod
-    def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
-        """The predictor on ``arrays`` with fixed hyperparameters ``hyper``; ``devices`` spreads
-        the kind's per-bin work over JAX devices where it has any (:mod:`gpg.parallel`)."""
+    def build(
+        self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices: Devices = None
+    ) -> Product:
+        """The predictor on ``arrays`` with fixed hyperparameters.
+
+        Args:
+            arrays: the normalised training arrays.
+            hyper: the hyperparameters (σ, l, ν², λ_i²), fitted beforehand.
+            cfg: the resolved model config; only the keys in :attr:`reads` are used.
+            devices: JAX devices to spread the kind's per-bin work over, where it has any
+                (:mod:`gpg.parallel`); None for the single-device or host path.
+
+        Returns:
+            The predictor with the near sets, diagnostics and timings of the build.
+        """
 
     @abc.abstractmethod
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
-        """Peak bytes of :meth:`build` beyond the data, estimated from sizes alone."""
+        """Peak bytes of :meth:`build` beyond the data, estimated from sizes alone.
+
+        Args:
+            cfg: the resolved model config.
+            n_points: training points ``N``.
+            n_grad: gradient dims per point ``G`` (0 without gradients).
+
+        Returns:
+            The estimate in bytes, checked against the memory available before any work.
+        """
 
     def check(self, model: str, cfg: ModelConfig, n_points: int) -> None:
-        """Size checks against the data before any work (``ValueError`` naming ``model``)."""
+        """Size checks of the options against the data, before any work.
+
+        Args:
+            model: the model name, for the message.
+            cfg: the resolved model config.
+            n_points: training points.
+
+        Raises:
+            ValueError: if a partitioned kind is asked for more bins than points, naming
+                ``model``.
+        """
         if self.partitioned and cfg.partition.n_bins(n_points) > n_points:
             raise ValueError(
                 f"model {model!r}: partition.bins={cfg.partition.n_bins(n_points)} exceeds the "
@@ -145,8 +224,21 @@ class Kind(abc.ABC):
 def build_partition(
     X: np.ndarray, cfg: ModelConfig, Y: np.ndarray | None = None
 ) -> partition.Partition:
-    """The partition a resolved config asks for, on training inputs ``X`` (the ``adaptive``
-    scheme also reads the targets ``Y``: its bins follow their local variation)."""
+    """The partition a resolved config asks for.
+
+    Args:
+        X: (N, D) normalised training inputs.
+        cfg: the resolved model config (its ``partition`` section: scheme, bins, dim).
+        Y: (N, M) training targets, read by the ``adaptive`` scheme only (its bins follow
+            their local variation).
+
+    Returns:
+        The partition of ``X`` into the configured number of bins.
+
+    Raises:
+        ValueError: if ``partition.dim`` is not an input of ``X``, or the ``adaptive``
+            scheme is given no targets.
+    """
     pc = cfg.partition
     opts: dict[str, Any] = {"dim": pc.dim} if pc.scheme in ("slab", "adaptive") else {}
     if opts and not 0 <= pc.dim < X.shape[1]:

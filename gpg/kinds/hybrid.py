@@ -31,6 +31,9 @@ from gpg.kinds.base import (
 )
 from gpg.linalg import dense, memory
 from gpg.linalg import device as linalg_device
+from gpg.parallel import Devices
+
+__all__ = ["KIND", "Hybrid"]
 
 
 @dataclass(frozen=True)
@@ -45,7 +48,24 @@ class Hybrid(Kind):
     partial_gradients = True
     directional_gradients = True
 
-    def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
+    def build(
+        self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices: Devices = None
+    ) -> Product:
+        """The global ``α = K̄⁻¹ Ȳ`` for the mean, the bins' near sets for the variance.
+
+        Args:
+            arrays: the normalised training arrays; cases with some gradients missing and
+                directional gradient rows are taken (on the host path, and not by CG).
+            hyper: the fitted hyperparameters.
+            cfg: the resolved config: ``solver`` (``method`` cholesky or cg for ``α``,
+                ``device``), ``partition``, ``near`` and ``variance_dtype``.
+            devices: JAX devices for the CG products and the bins' factorisations; None lets
+                ``solver.device`` place them.
+
+        Returns:
+            The :class:`~gpg.gp.hybrid.HybridGP` with its training record, the near sets, the
+            solver's diagnostics (CG's iterations and residuals) and the timings.
+        """
         part, near, Ybar, timings = bins_and_near(arrays, hyper, cfg)
         t0 = time.perf_counter()
         rows, bases = arrays.rows, arrays.bases
@@ -67,10 +87,25 @@ class Hybrid(Kind):
         return Product(model, near, diagnostics, timings)
 
     def condition(self, model: HybridGP, new: Arrays, cfg: ModelConfig) -> HybridGP:
-        """The hybrid on its cases and ``new``, hyperparameters and bins kept: ``α`` re-formed
-        on all the cases by the model's solver, the near sets recomputed, and only the bins
-        whose near set changed factorised again (the others' factors are reused as stored).
-        Equal to a rebuild with the same hyperparameters and partition."""
+        """The hybrid on its cases and ``new``, hyperparameters and bins kept.
+
+        ``α`` is re-formed on all the cases by the configured solver, the near sets are
+        recomputed, and only the bins whose near set changed are factorised again (the
+        others' factors are reused as stored). Equal to a rebuild with the same
+        hyperparameters and partition.
+
+        Args:
+            model: a hybrid that holds its training record.
+            new: the new cases (normalised).
+            cfg: the resolved config (the solver and the near-set rule).
+
+        Returns:
+            The conditioned hybrid, its record grown by ``new``.
+
+        Raises:
+            ValueError: if ``model`` holds no training record (a mean view, or one saved by
+                gpg < 0.3).
+        """
         rec = _record(model)
         local_gp, dims, hyper = model.local, model.local.grad_dims, rec.hyper
         X_old, n_old = np.asarray(rec.X), rec.X.shape[0]
@@ -97,11 +132,33 @@ class Hybrid(Kind):
         return _assemble(X, Ybar, rows, alpha, factors, near, part, hyper, dims, cfg, bases)
 
     def cases(self, model: HybridGP) -> Cases:
+        """The cases in the hybrid's training record.
+
+        Args:
+            model: a hybrid that holds its training record.
+
+        Returns:
+            The recorded inputs (as NumPy), hyperparameters and gradient dims.
+
+        Raises:
+            ValueError: if ``model`` holds no training record.
+        """
         rec = _record(model)
         return Cases(np.asarray(rec.X), rec.hyper, model.local.grad_dims)
 
     def posterior(self, model: HybridGP) -> ExactGP:
-        """One factorisation of ``K̄`` over the training record."""
+        """The exact GP-G on the hybrid's training record: one factorisation of ``K̄``.
+
+        Args:
+            model: a hybrid that holds its training record.
+
+        Returns:
+            The :class:`~gpg.gp.exact.ExactGP` on the recorded cases, with their observed
+            rows and gradient directions, and the hybrid's hyperparameters.
+
+        Raises:
+            ValueError: if ``model`` holds no training record.
+        """
         rec, dims = _record(model), model.local.grad_dims
         X, Ybar = np.asarray(rec.X), np.asarray(rec.Ybar)
         n, g = X.shape[0], len(dims)
@@ -112,6 +169,19 @@ class Hybrid(Kind):
                            observed=obs, bases=bases)  # fmt: skip
 
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
+        """The larger of the mean's solve and the near-set precompute.
+
+        The mean's is one dense ``K̄`` for the Cholesky solver, CG's working set (nine
+        outputs) otherwise.
+
+        Args:
+            cfg: the resolved config (``solver``, ``partition``, ``near``).
+            n_points: training points.
+            n_grad: gradient dims per point.
+
+        Returns:
+            The estimate in bytes.
+        """
         if solver_method(cfg, n_points, n_grad) == "cg":
             mean = cg_bytes(cfg, n_points, n_grad, 9)  # the nine outputs of gpg's data
         else:

@@ -14,6 +14,9 @@ from gpg.gp.binned import pack_points
 from gpg.gp.gram import stack_targets
 from gpg.gp.hyper import Hyper
 from gpg.kinds.base import Arrays, Kind, Product, bin_devices
+from gpg.parallel import Devices
+
+__all__ = ["KIND", "Pic"]
 
 
 @dataclass(frozen=True)
@@ -24,7 +27,26 @@ class Pic(Kind):
     reads = ("partition", "inducing", "variance_dtype", "solver.device")
     partitioned = True
 
-    def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
+    def build(
+        self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices: Devices = None
+    ) -> Product:
+        """PIC bin by bin: each bin's exact block plus the shared inducing rows.
+
+        Args:
+            arrays: the normalised training arrays (every gradient at every case).
+            hyper: the fitted hyperparameters.
+            cfg: the resolved config: ``partition``, ``inducing`` (points, seed, jitter),
+                ``variance_dtype`` and ``solver.device``.
+            devices: JAX devices over which the bins' blocks are spread; None lets
+                ``solver.device`` choose.
+
+        Returns:
+            The :class:`~gpg.gp.binned.BinnedGP`, the inducing and block sizes, and the
+            timings (no near sets).
+
+        Raises:
+            ValueError: if a bin holds no training point.
+        """
         t0 = time.perf_counter()
         X, dims = arrays.X, arrays.dims
         part = arrays.bins(cfg)
@@ -52,6 +74,16 @@ class Pic(Kind):
         return Product(model, None, info, timings)
 
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
+        """Peak bytes of PIC's training: a bin's blocks and cross-covariances, then the factors.
+
+        Args:
+            cfg: the resolved config (bins and inducing points set the block width).
+            n_points: training points.
+            n_grad: gradient dims per point.
+
+        Returns:
+            The estimate in bytes.
+        """
         bins = cfg.partition.n_bins(n_points)
         per_bin = -(-n_points // bins) * (1 + n_grad)
         u = cfg.inducing.points * (1 + n_grad)
@@ -61,6 +93,17 @@ class Pic(Kind):
         return int(8 * (3 * width * width + rows * u // bins + bins * 0.6 * width * width))
 
     def check(self, model: str, cfg: ModelConfig, n_points: int) -> None:
+        """The partitioned kinds' check, and no more inducing points than training points.
+
+        Args:
+            model: the model name, for the message.
+            cfg: the resolved config.
+            n_points: training points.
+
+        Raises:
+            ValueError: if there are more bins or more inducing points than training points,
+                naming ``model``.
+        """
         super().check(model, cfg, n_points)
         if cfg.inducing.points > n_points:
             raise ValueError(

@@ -10,6 +10,9 @@ from gpg.gp import schur
 from gpg.gp.binned import pack
 from gpg.gp.hyper import Hyper
 from gpg.kinds.base import Arrays, Kind, Product, bins_and_near, gram_bytes
+from gpg.parallel import Devices
+
+__all__ = ["KIND", "Schur"]
 
 
 @dataclass(frozen=True)
@@ -22,7 +25,22 @@ class Schur(Kind):
     partitioned = True
     needs_gram = True
 
-    def build(self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices=None) -> Product:
+    def build(
+        self, arrays: Arrays, hyper: Hyper, cfg: ModelConfig, *, devices: Devices = None
+    ) -> Product:
+        """Near sets per bin with the Schur-corrected far set, and the check of ``k_qf ≈ 0``.
+
+        Args:
+            arrays: the normalised training arrays (every gradient at every case).
+            hyper: the fitted hyperparameters.
+            cfg: the resolved config: ``partition``, ``near``, ``variance_dtype``, ``route``
+                (how the far set's Schur complement is formed) and ``mean``.
+            devices: unused: the Schur precompute runs on the host.
+
+        Returns:
+            The :class:`~gpg.gp.binned.BinnedGP`, the near sets, the far-correlation
+            diagnostics (:func:`gpg.gp.schur.diagnose`) and the timings.
+        """
         part, near, Ybar, timings = bins_and_near(arrays, hyper, cfg)
         X, dims, t0 = arrays.X, arrays.dims, time.perf_counter()
         factors = schur.precompute(X, Ybar, hyper, dims, near, route=cfg.route, mean=cfg.mean)
@@ -32,6 +50,16 @@ class Schur(Kind):
         return Product(model, near, diagnostics, timings)
 
     def required_bytes(self, cfg: ModelConfig, n_points: int, n_grad: int) -> int:
+        """Dense ``K̄``-sized buffers: three for the ``direct`` route, one and a half otherwise.
+
+        Args:
+            cfg: the resolved config (its ``route``).
+            n_points: training points ``N``.
+            n_grad: gradient dims ``G``.
+
+        Returns:
+            The estimate in bytes, in multiples of ``8 (N(1 + G))²``.
+        """
         return gram_bytes(n_points, n_grad, 3 if cfg.route == "direct" else 1.5)
 
 

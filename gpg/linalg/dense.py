@@ -1,11 +1,11 @@
 """Dense factorisations done in place, for the large offline solves.
 
 Why not ``jax.scipy.linalg.cho_factor`` here: on the CPU backend JAX's ``potrf`` runs on one
-core and needs an output copy plus a masking pass, so an 8000x8000 factorisation takes 2.6 s and
-two copies of the matrix, against 1.6 s and one copy for LAPACK's ``dpotrf`` called in place
-(both measured on the 2-core development machine with ``experiments/bench.py``). For the 40000-row
-matrices of ``data=paper`` (12.8 GB each) a second copy does not fit in memory at all. The
-differentiable small-matrix path (hyperparameter fits) still uses ``jax.scipy.linalg``.
+core and needs an output copy plus a masking pass, so it is slower and holds two copies of the
+matrix, where LAPACK's ``dpotrf`` called in place holds one (docs/measurements.md, the
+Cholesky of a ready ``K̄``). For the 40000-row matrices of ``data=paper`` (40000² doubles
+each) a second copy does not fit in memory at all. The differentiable small-matrix path
+(hyperparameter fits) still uses ``jax.scipy.linalg``.
 
 Storage convention: matrices are C-ordered NumPy arrays. A C-ordered symmetric ``K`` read as a
 Fortran array is the same ``K``; LAPACK's upper factor ``U`` (``UᵀU = K``) of that Fortran view,
@@ -17,6 +17,15 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg.blas as blas
 import scipy.linalg.lapack as lapack
+
+__all__ = [
+    "NotPositiveDefiniteError",
+    "cho_solve",
+    "cholesky_inplace",
+    "gram_t",
+    "solve_lower",
+    "triangular_inverse_inplace",
+]
 
 # Above this size the Cholesky factorisation is blocked by hand (see cholesky_inplace).
 BLOCKED_ABOVE = 8192
@@ -36,14 +45,25 @@ def _check_square_c(name: str, a: np.ndarray) -> None:
 def cholesky_inplace(a: np.ndarray, *, what: str = "K̄", block: int = 2048) -> np.ndarray:
     """Overwrite the symmetric positive definite ``a`` with its lower Cholesky factor ``L``.
 
-    Returns ``a`` itself (strict upper triangle zeroed). Raises
-    :class:`NotPositiveDefiniteError` naming the first failing pivot.
-
     Up to :data:`BLOCKED_ABOVE` rows this is one LAPACK ``dpotrf``. Above, it is a right-looking
     blocked factorisation (``dpotrf`` on diagonal blocks, triangular solves for the panels,
     matrix products for the trailing update): the multi-threaded ``dsyrk`` inside OpenBLAS's
-    own ``dpotrf`` crashed this machine (SIGSEGV) from 16000 rows up (scipy-openblas 0.3.31,
-    two threads), while its ``dgemm`` runs at any size.
+    own ``dpotrf`` crashed the development machine (SIGSEGV) from 16000 rows up
+    (scipy-openblas 0.3.31, two threads), while its ``dgemm`` runs at any size.
+
+    Args:
+        a: (n, n) symmetric positive definite matrix (``K̄``), writeable C-contiguous float64;
+            overwritten.
+        what: the matrix's name in the error messages.
+        block: rows per diagonal block of the blocked factorisation (above
+            :data:`BLOCKED_ABOVE` rows only).
+
+    Returns:
+        ``a`` itself, holding ``L`` (``L Lᵀ = a``) with its strict upper triangle zeroed.
+
+    Raises:
+        NotPositiveDefiniteError: if a pivot is not positive, naming the first that fails.
+        ValueError: if ``a`` is not square, or not a writeable C-contiguous float64 array.
     """
     _check_square_c(what, a)
     n = a.shape[0]
@@ -94,17 +114,37 @@ def _blocked_cholesky(a: np.ndarray, what: str, block: int) -> np.ndarray:
 
 
 def gram_t(a: np.ndarray) -> np.ndarray:
-    """``aᵀ a`` by ``dgemm``. NumPy would route ``a.T @ a`` to ``dsyrk``, which crashes in
-    OpenBLAS's threaded code for large outputs (see :func:`cholesky_inplace`)."""
+    """``aᵀ a`` by ``dgemm``, never ``dsyrk``.
+
+    NumPy would route ``a.T @ a`` to ``dsyrk``, which crashes in OpenBLAS's threaded code for
+    large outputs (see :func:`cholesky_inplace`).
+
+    Args:
+        a: (n, m) float64 matrix, in C or Fortran order.
+
+    Returns:
+        The (m, m) symmetric ``aᵀ a``, C-ordered.
+    """
     f = np.asfortranarray(a.T) if not a.flags.c_contiguous else a.T  # F-ordered view of aᵀ
     # The F-ordered result is symmetric: its transpose is the same matrix, C-ordered, no copy.
     return blas.dgemm(1.0, f, f, trans_b=1).T
 
 
 def solve_lower(L: np.ndarray, b: np.ndarray, *, trans: bool = False) -> np.ndarray:
-    """``L⁻¹ b`` (or ``L⁻ᵀ b`` with ``trans``) for a C-ordered lower-triangular ``L`` and a
-    C-ordered ``b`` (n, m), by one ``dtrsm`` on the Fortran views, without the layout copies
-    that ``scipy.linalg.solve_triangular`` makes for C-ordered arrays. Returns a new array."""
+    """``L⁻¹ b`` (or ``L⁻ᵀ b``) by one ``dtrsm`` on the Fortran views.
+
+    Reading the C-ordered arrays as Fortran ones turns the left solve into a right solve with
+    ``Lᵀ``, which avoids the layout copies that ``scipy.linalg.solve_triangular`` makes for
+    C-ordered arrays.
+
+    Args:
+        L: (n, n) lower-triangular float64 matrix, C-ordered.
+        b: (n,) or (n, m) right-hand side; not modified.
+        trans: solve with ``Lᵀ`` instead, ``L⁻ᵀ b``.
+
+    Returns:
+        A new array of ``b``'s shape: ``L⁻¹ b``, or ``L⁻ᵀ b`` with ``trans``.
+    """
     x = np.array(b, dtype=np.float64, order="C", copy=True)
     if x.ndim == 1:
         return solve_lower(L, x[:, None], trans=trans)[:, 0]
@@ -114,7 +154,19 @@ def solve_lower(L: np.ndarray, b: np.ndarray, *, trans: bool = False) -> np.ndar
 
 
 def cho_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve ``K x = b`` given the lower factor ``chol`` of ``K``; ``b`` is (R,) or (R, M)."""
+    """Solve ``K x = b`` given the lower Cholesky factor of ``K`` (LAPACK ``dpotrs``).
+
+    Args:
+        chol: (R, R) lower factor ``L`` of ``K = L Lᵀ``, C-ordered (from
+            :func:`cholesky_inplace`).
+        b: (R,) or (R, M) right-hand side, e.g. the stacked targets ``Ȳ``.
+
+    Returns:
+        ``x = K⁻¹ b``, of ``b``'s shape.
+
+    Raises:
+        ValueError: if LAPACK's ``dpotrs`` rejects an argument (``info < 0``).
+    """
     x, info = lapack.dpotrs(chol.T, np.asarray(b, dtype=np.float64), lower=0)
     if info != 0:  # pragma: no cover
         raise ValueError(f"dpotrs rejected argument {-info}")
@@ -122,7 +174,19 @@ def cho_solve(chol: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def triangular_inverse_inplace(chol: np.ndarray) -> np.ndarray:
-    """Overwrite the lower-triangular ``chol`` with ``chol⁻¹`` (also lower triangular)."""
+    """Overwrite the lower-triangular ``chol`` with ``chol⁻¹`` (LAPACK ``dtrtri``).
+
+    Args:
+        chol: (n, n) lower-triangular factor ``L``, writeable C-contiguous float64;
+            overwritten.
+
+    Returns:
+        ``chol`` itself, holding ``L⁻¹`` (lower triangular as well).
+
+    Raises:
+        NotPositiveDefiniteError: if ``L`` has a zero on its diagonal, naming the pivot.
+        ValueError: if ``chol`` is not square, or not a writeable C-contiguous float64 array.
+    """
     _check_square_c("chol", chol)
     inv, info = lapack.dtrtri(chol.T, lower=0, overwrite_c=1)
     if info != 0:

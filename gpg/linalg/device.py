@@ -1,7 +1,8 @@
 """Dense factorisations on the accelerator, and the rule that places them.
 
 The host path (:mod:`gpg.linalg.dense`) factorises ``K̄`` in place with LAPACK: on the CPU it is
-the faster of the two and the only one that fits ``data=paper``'s 12.8 GB ``K̄`` in one copy.
+the faster of the two and the only one that fits ``data=paper``'s ``K̄`` (40000² doubles) in
+one copy.
 With an accelerator, the same solve runs there in float64 (``K̄`` assembled on the device,
 ``jax.lax.linalg`` Cholesky and triangular solves), many times faster than on the host's cores
 (docs/measurements.md, "One GPU").
@@ -48,13 +49,25 @@ log = logging.getLogger("gpg")
 
 
 def accelerator() -> jax.Device | None:
-    """JAX's first default device when it is not a CPU, else None."""
+    """The accelerator the ``auto`` rule may place a solve on.
+
+    Returns:
+        JAX's first default device when it is not a CPU, else None.
+    """
     dev = jax.devices()[0]
     return None if dev.platform == "cpu" else dev
 
 
 def free_bytes(device: jax.Device) -> int | None:
-    """Bytes the device can still allocate now, or None where it does not say."""
+    """Bytes the device can still allocate now, from its ``memory_stats()``.
+
+    Args:
+        device: the JAX device asked (:func:`accelerator`).
+
+    Returns:
+        ``bytes_limit − bytes_in_use``, or None where the device reports no limit (a CPU, or a
+        backend without ``memory_stats``).
+    """
     stats = device.memory_stats() if hasattr(device, "memory_stats") else None
     if not stats or "bytes_limit" not in stats:
         return None
@@ -62,11 +75,22 @@ def free_bytes(device: jax.Device) -> int | None:
 
 
 def place(mode: str, peak_bytes: int, what: str) -> str:
-    """``"host"`` or ``"device"`` for a dense solve whose device program peaks at
-    ``peak_bytes`` (module docstring: the rule); ``what`` names the solve in the log.
+    """Where a dense solve runs: the host (LAPACK) or JAX's default device.
+
+    The rule is the module docstring's: ``host`` and ``device`` are obeyed, ``auto`` takes the
+    accelerator when there is one and ``HEADROOM × peak_bytes`` fits its free memory. The
+    choice is logged (logger ``gpg``) with the sizes it was made from.
+
+    Args:
+        mode: ``solver.device``, one of :data:`PLACEMENTS`.
+        peak_bytes: the device program's peak (:func:`solve_bytes`).
+        what: the solve's name in the log (``"the global α over 8000 rows"``).
+
+    Returns:
+        ``"host"`` or ``"device"``.
 
     Raises:
-        ValueError: ``mode`` is not one of :data:`PLACEMENTS`.
+        ValueError: if ``mode`` is not one of :data:`PLACEMENTS`.
     """
     if mode not in PLACEMENTS:
         raise ValueError(f"solver.device must be one of {PLACEMENTS}, got {mode!r}")
@@ -93,8 +117,18 @@ def place(mode: str, peak_bytes: int, what: str) -> str:
 
 
 def solve_bytes(rows: int, inverse: bool) -> int:
-    """Peak device bytes of :func:`factor_solve` on ``rows`` rows: ``K̄`` (its buffer reused by
-    the factor), and with ``inverse`` the identity and ``L⁻¹`` beside ``L``."""
+    """Peak device bytes of :func:`factor_solve`, counted from its buffers.
+
+    ``K̄``'s buffer is reused by the factor; with ``inverse`` the identity and ``L⁻¹`` are held
+    beside ``L``.
+
+    Args:
+        rows: rows of ``K̄``.
+        inverse: whether ``L⁻¹`` is formed as well.
+
+    Returns:
+        ``8 rows²`` bytes, three times that with ``inverse``.
+    """
     return 8 * rows * rows * (3 if inverse else 1)
 
 
@@ -104,12 +138,20 @@ def _cholesky(K: Float[Array, "r r"]) -> Float[Array, "r r"]:
 
 
 def cholesky(K: Float[Array, "r r"], *, what: str = "K̄") -> Float[Array, "r r"]:
-    """The lower factor of the symmetric positive definite ``K`` on its device (``K``'s buffer
-    is donated: do not read ``K`` afterwards).
+    """The lower Cholesky factor of ``K``, computed on ``K``'s device.
+
+    ``K``'s buffer is donated: do not read ``K`` afterwards.
+
+    Args:
+        K: (r, r) symmetric positive definite JAX array, float64.
+        what: the matrix's name in the error message.
+
+    Returns:
+        The (r, r) lower factor ``L`` with ``L Lᵀ = K``, on the same device.
 
     Raises:
-        NotPositiveDefiniteError: the factorisation failed (JAX's device Cholesky returns NaN
-            where it fails, on CPU and GPU the whole factor, so no pivot is named).
+        NotPositiveDefiniteError: if the factorisation failed (JAX's device Cholesky returns
+            NaN where it fails, on CPU and GPU the whole factor, so no pivot is named).
     """
     L = _cholesky(K)
     if not bool(jnp.all(jnp.isfinite(jnp.diagonal(L)))):
@@ -137,9 +179,24 @@ def _inverse(L):
 def factor_solve(
     K: Float[Array, "r r"], Ybar: Float[Array, "r M"], *, inverse: bool, what: str = "K̄"
 ) -> tuple[np.ndarray, float, Float[Array, "r r"] | None]:
-    """``α = K⁻¹ Ȳ`` (on the host), ``log det L`` and, with ``inverse``, ``L⁻¹`` (left on the
-    device) for ``K = L Lᵀ``, everything computed on ``K``'s device in float64. ``K``'s buffer
-    is reused (donated)."""
+    """Factorise ``K = L Lᵀ`` and solve for ``α = K⁻¹ Ȳ``, all on ``K``'s device in float64.
+
+    ``K``'s buffer is reused (donated) by the factor: do not read ``K`` afterwards.
+
+    Args:
+        K: (r, r) the Gram matrix ``K̄`` (noise included), a JAX array on its device.
+        Ybar: (r, M) the stacked targets ``Ȳ``.
+        inverse: whether to form ``L⁻¹`` as well (for the variance).
+        what: the matrix's name in the error message.
+
+    Returns:
+        ``α`` (r, M) on the host, ``log det L`` as a float, and ``L⁻¹`` (r, r) left on the
+        device with ``inverse``, else None.
+
+    Raises:
+        NotPositiveDefiniteError: if ``K`` is not numerically positive definite (from
+            :func:`cholesky`).
+    """
     L = cholesky(K, what=what)
     alpha, logdet = _solve(L, jnp.asarray(Ybar, L.dtype, device=_device_of(L)))
     alpha, logdet = np.asarray(alpha), float(logdet)

@@ -1,6 +1,7 @@
 """Memory: big square buffers that can be given back row by row, budgets, and peak RSS.
 
-At ``data=paper`` one ``K̄`` has 40000 rows: 12.8 GB in float64, half this machine's memory.
+At ``data=paper`` one ``K̄`` has 40000 rows, 40000² doubles: a large share of a workstation's
+memory.
 It is factorised in place (:mod:`gpg.linalg`), but the factor must then be copied into JAX
 arrays for prediction, and two full copies do not fit. :func:`square_buffer` allocates the
 matrix in an anonymous memory map whose rows can be returned to the operating system
@@ -17,11 +18,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = [
+    "InsufficientMemory",
+    "PeakRSS",
+    "SquareBuffer",
+    "available_bytes",
+    "require",
+    "square_buffer",
+]
+
 PAGE = mmap.PAGESIZE
 
 
 class InsufficientMemory(MemoryError):
-    """A model would need more memory than is available; raised before allocating it."""
+    """A model would need more memory than is available; raised before allocating it.
+
+    Args:
+        what: the step's name, which the message starts with.
+        needed: bytes the step would allocate (kept as ``.needed``).
+        available: bytes available (kept as ``.available``).
+    """
 
     def __init__(self, what: str, needed: int, available: int):
         self.needed, self.available = needed, available
@@ -42,7 +58,11 @@ class SquareBuffer:
         """Give the pages wholly inside rows ``[start, stop)`` back to the system.
 
         Their contents are lost (they read as zeros afterwards): call this only for rows that
-        will not be read again.
+        will not be read again. Pages that straddle a boundary row are kept.
+
+        Args:
+            start: first row released.
+            stop: one past the last row released.
         """
         n = self.array.shape[1]
         lo = -(-start * n * 8 // PAGE) * PAGE  # first whole page inside the range
@@ -52,14 +72,28 @@ class SquareBuffer:
 
 
 def square_buffer(n: int) -> SquareBuffer:
-    """An uninitialised (zero-filled on first touch) ``n x n`` float64 buffer."""
-    # Private: for a shared anonymous map (Python's default) MADV_DONTNEED frees nothing.
+    """An uninitialised (zero-filled on first touch) ``n x n`` float64 buffer.
+
+    The map is private: for a shared anonymous map (Python's default) ``MADV_DONTNEED`` frees
+    nothing, and :meth:`SquareBuffer.release_rows` would not lower the peak.
+
+    Args:
+        n: rows (and columns).
+
+    Returns:
+        The buffer; its ``array`` is the C-ordered (n, n) view to write ``K̄`` into.
+    """
     mm = mmap.mmap(-1, max(n * n * 8, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
     return SquareBuffer(np.frombuffer(mm, dtype=np.float64, count=n * n).reshape(n, n), mm)
 
 
 def available_bytes() -> int:
-    """``MemAvailable`` from ``/proc/meminfo`` (the kernel's estimate), or a large number."""
+    """The memory available to a new allocation, as the kernel estimates it.
+
+    Returns:
+        ``MemAvailable`` from ``/proc/meminfo`` in bytes, or ``2⁶²`` where it cannot be read
+        (no check then refuses).
+    """
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -71,14 +105,23 @@ def available_bytes() -> int:
 
 
 def require(what: str, needed: int, *, margin: float = 0.9) -> None:
-    """Raise :class:`InsufficientMemory` unless ``needed`` fits in ``margin`` of free memory."""
+    """Refuse, before allocating, a step that would not fit in the memory available.
+
+    Args:
+        what: the step's name in the message (``"the global α over 40000 rows"``).
+        needed: bytes the step will allocate.
+        margin: the share of :func:`available_bytes` it may take.
+
+    Raises:
+        InsufficientMemory: if ``needed`` exceeds ``margin`` of the memory available.
+    """
     avail = available_bytes()
     if needed > margin * avail:
         raise InsufficientMemory(what, needed, avail)
 
 
 def rss_bytes() -> int:
-    """Resident set size of this process."""
+    """Resident set size of this process in bytes (0 where ``/proc`` cannot be read)."""
     try:
         with open("/proc/self/statm") as f:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
@@ -87,8 +130,14 @@ def rss_bytes() -> int:
 
 
 class PeakRSS:
-    """Context manager sampling the resident set size every ``interval`` s; ``.peak_delta`` is
-    the highest RSS seen above the value at entry (bytes)."""
+    """Context manager sampling the resident set size in a background thread.
+
+    ``.peak_delta`` is the highest RSS seen above the value at entry, in bytes; a peak shorter
+    than ``interval`` may be missed.
+
+    Args:
+        interval: seconds between two samples.
+    """
 
     def __init__(self, interval: float = 0.02):
         self.interval = interval
@@ -113,4 +162,5 @@ class PeakRSS:
 
     @property
     def peak_delta(self) -> int:
+        """The highest RSS seen above the value at entry, in bytes."""
         return self.peak - self.start

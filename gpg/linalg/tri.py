@@ -1,12 +1,12 @@
 """Triangular matrices stored as bands of rows, for the variance term ``‖F k‖²``.
 
 A dense ``n x n`` triangular factor wastes half its bytes on zeros, and a matrix-vector
-product with it reads all of them: at the sizes of a bin (1000 rows, 8 MB) or of an exact GP-G
-(8000 rows, 512 MB) that product is bound by memory. Cut into ``n_blocks`` bands of rows, each
-band keeps only the columns that can be non-zero (from its first row on for an upper factor,
-up to its last row for a lower one), so a product reads ``(1 + 1/n_blocks)/2`` of the dense
-bytes. Each band is its own array: the product never slices a larger buffer, which on the CPU
-would copy it first.
+product with it reads all of them: at the sizes of a bin (1000 rows, 1000² doubles) or of an
+exact GP-G (8000 rows, 8000² doubles) that product is bound by memory. Cut into ``n_blocks``
+bands of rows, each band keeps only the columns that can be non-zero (from its first row on for
+an upper factor, up to its last row for a lower one), so a product reads
+``(1 + 1/n_blocks)/2`` of the dense bytes. Each band is its own array: the product never
+slices a larger buffer, which on the CPU would copy it first.
 """
 
 from __future__ import annotations
@@ -17,10 +17,17 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg._precision import highest
+from gpg.linalg.memory import SquareBuffer
+
+__all__ = ["BlockTriangular", "BorderedTriangular"]
 
 
 class BlockTriangular(eqx.Module):
-    """Row bands of a triangular ``n x n`` matrix (``lower`` or upper)."""
+    """Row bands of a triangular ``n x n`` matrix (``lower`` or upper).
+
+    Build one with :meth:`from_dense`, :meth:`from_buffer` or :meth:`from_device`; the
+    products read only the bands, never the zeros across the diagonal.
+    """
 
     blocks: tuple[Float[Array, "b c"], ...]
     n: int = eqx.field(static=True)
@@ -32,8 +39,20 @@ class BlockTriangular(eqx.Module):
     ) -> BlockTriangular:
         """Bands of the triangular ``F``; entries on the other side of the diagonal are dropped.
 
-        ``dense_rows`` (upper only): the first that many rows are one band of their own, kept
-        whole, for a factor that is triangular only below them (:mod:`gpg.gp.pic`).
+        Args:
+            F: (n, n) triangular matrix, NumPy or JAX.
+            lower: whether ``F`` is lower triangular (else upper).
+            n_blocks: bands to cut the rows into (fewer when ``F`` has fewer rows).
+            dense_rows: upper factors only: the first that many rows are one band of their
+                own, kept whole, for a factor that is triangular only below them
+                (:mod:`gpg.gp.pic`).
+
+        Returns:
+            The banded ``F``, each band a JAX array of its own.
+
+        Raises:
+            ValueError: if ``F`` is not square, if ``dense_rows`` is given for a lower factor,
+                or if it is outside ``[0, n]``.
         """
         F = np.asarray(F)
         n = F.shape[0]
@@ -52,10 +71,24 @@ class BlockTriangular(eqx.Module):
         return cls(blocks=tuple(blocks), n=n, lower=lower)
 
     @classmethod
-    def from_buffer(cls, buf, *, lower: bool, n_blocks: int = 4) -> BlockTriangular:
-        """Bands of the lower-triangular matrix in a :class:`gpg.linalg.memory.SquareBuffer`, giving
-        each band's rows back to the system once copied, so that the dense matrix and its
-        bands are never both held in full."""
+    def from_buffer(cls, buf: SquareBuffer, *, lower: bool, n_blocks: int = 4) -> BlockTriangular:
+        """Bands of the lower-triangular matrix in ``buf``, its rows given back as they are copied.
+
+        Each band's rows are released (:meth:`gpg.linalg.memory.SquareBuffer.release_rows`)
+        once JAX holds their copy, so that the dense matrix and its bands are never both held
+        in full; ``buf`` is not readable afterwards.
+
+        Args:
+            buf: the (n, n) buffer holding the lower-triangular factor.
+            lower: must be True (kept for the signature of :meth:`from_dense`).
+            n_blocks: bands to cut the rows into.
+
+        Returns:
+            The banded factor, its bands owned by JAX.
+
+        Raises:
+            ValueError: if ``lower`` is False.
+        """
         if not lower:
             raise ValueError("from_buffer handles lower-triangular matrices (rows end at the band)")
         F = buf.array
@@ -65,15 +98,26 @@ class BlockTriangular(eqx.Module):
         for a, b in zip(edges[:-1], edges[1:], strict=True):
             # A copy owned by JAX, made before the rows are given back: ``jnp.array`` may copy
             # the host rows asynchronously, and rows released under a pending copy read as
-            # zeros (measured: the last band, zeroed in part in 9 of 40 factors under load).
+            # zeros (seen in practice: the last band came back partly zeroed under load).
             blocks.append(jnp.array(F[a:b, :b]).block_until_ready())
             buf.release_rows(a, b)
         return cls(blocks=tuple(blocks), n=n, lower=True)
 
     @classmethod
     def from_device(cls, F: Float[Array, "n n"], *, n_blocks: int = 4) -> BlockTriangular:
-        """Bands of the lower-triangular JAX array ``F``, cut where it lives (an accelerator's
-        factor never visits the host); ``F`` itself is dropped by the caller."""
+        """Bands of the lower-triangular JAX array ``F``, cut on the device where it lives.
+
+        An accelerator's factor never visits the host; the caller drops ``F`` itself afterwards,
+        so that only the bands stay on the device.
+
+        Args:
+            F: (n, n) lower-triangular JAX array (``L⁻¹`` from
+                :func:`gpg.linalg.device.factor_solve`).
+            n_blocks: bands to cut the rows into.
+
+        Returns:
+            The banded ``F``, on ``F``'s device.
+        """
         n = F.shape[0]
         edges = np.linspace(0, n, min(n_blocks, max(n, 1)) + 1).astype(int)
         blocks = tuple(F[a:b, :b] for a, b in zip(edges[:-1], edges[1:], strict=True))
@@ -88,11 +132,21 @@ class BlockTriangular(eqx.Module):
 
     @property
     def dtype(self):
+        """The storage dtype of the bands (the products' dtype)."""
         return self.blocks[0].dtype
 
     @highest
     def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
-        """``F k``, in the factor's storage dtype (a float32 factor reads half the bytes)."""
+        """``F k`` for one vector, band by band.
+
+        Computed in the factor's storage dtype: a float32 factor reads half the bytes.
+
+        Args:
+            k: (n,) vector, e.g. the covariances ``k̄`` of a query with the training rows.
+
+        Returns:
+            The (n,) product ``F k``.
+        """
         k = k.astype(self.dtype)
         parts = []
         for blk in self.blocks:
@@ -102,23 +156,46 @@ class BlockTriangular(eqx.Module):
 
     @highest
     def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
-        """``K Fᵀ`` for a batch of rows ``K`` (each row's ``F k``)."""
+        """``K Fᵀ`` for a batch of rows ``K``: each row's ``F k``.
+
+        Args:
+            K: (q, n) rows, one per query.
+
+        Returns:
+            The (q, n) product, in the factor's storage dtype.
+        """
         K = K.astype(self.dtype)
         parts = []
         for blk in self.blocks:
             Kp = K[:, : blk.shape[1]] if self.lower else K[:, self.n - blk.shape[1] :]
-            # (B Kᵀ)ᵀ, not K Bᵀ: XLA's CPU dot transposes the big operand for the latter, an
-            # order of magnitude slower for one row against a band.
+            # (B Kᵀ)ᵀ, not K Bᵀ: XLA's CPU dot transposes the big operand for the latter, far
+            # slower for one row against a band.
             parts.append((blk @ Kp.T).T)
         return jnp.concatenate(parts, axis=1)
 
     def rmatvec(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
-        """``Fᵀ v``, in the factor's storage dtype."""
+        """``Fᵀ v`` for one vector (:meth:`lmatmul` on a batch of one).
+
+        Args:
+            v: (n,) vector.
+
+        Returns:
+            The (n,) product ``Fᵀ v``, in the factor's storage dtype.
+        """
         return self.lmatmul(v[None])[0]
 
     @highest
     def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
-        """``V F`` for a batch of rows ``V`` (each row's ``Fᵀ v``)."""
+        """``V F`` for a batch of rows ``V``: each row's ``Fᵀ v``.
+
+        Each band's product is padded back to ``n`` columns and summed.
+
+        Args:
+            V: (q, n) rows.
+
+        Returns:
+            The (q, n) product, in the factor's storage dtype.
+        """
         V = V.astype(self.dtype)
         out = jnp.zeros(V.shape, dtype=self.dtype)
         for a, blk in zip(self._starts(), self.blocks, strict=True):
@@ -129,9 +206,20 @@ class BlockTriangular(eqx.Module):
         return out
 
     def host_matmul(self, B: np.ndarray) -> np.ndarray:
-        """``F B`` (lower factors) with NumPy's BLAS on the host: the same product as
-        :meth:`rmatmul` transposed, without a JAX compilation for every new shape (a model
-        conditioned again and again has new shapes each time)."""
+        """``F B`` with NumPy's BLAS on the host, for lower factors.
+
+        The same product as :meth:`rmatmul` transposed, without a JAX compilation for every
+        new shape (a model conditioned again and again has new shapes each time).
+
+        Args:
+            B: (n, m) host matrix.
+
+        Returns:
+            The (n, m) float64 product ``F B``.
+
+        Raises:
+            ValueError: if the factor is upper triangular.
+        """
         if not self.lower:
             raise ValueError("host_matmul handles lower-triangular factors")
         out = np.empty((self.n, B.shape[1]))
@@ -141,7 +229,17 @@ class BlockTriangular(eqx.Module):
         return out
 
     def host_lmatmul(self, V: np.ndarray) -> np.ndarray:
-        """``V F`` (lower factors) on the host: :meth:`lmatmul` without compilation."""
+        """``V F`` on the host, for lower factors: :meth:`lmatmul` without compilation.
+
+        Args:
+            V: (q, n) host rows.
+
+        Returns:
+            The (q, n) float64 product ``V F``.
+
+        Raises:
+            ValueError: if the factor is upper triangular.
+        """
         if not self.lower:
             raise ValueError("host_lmatmul handles lower-triangular factors")
         out = np.zeros((V.shape[0], self.n))
@@ -151,6 +249,11 @@ class BlockTriangular(eqx.Module):
         return out
 
     def to_dense(self) -> np.ndarray:
+        """The full matrix, zeros across the diagonal filled in.
+
+        Returns:
+            The (n, n) float64 NumPy array.
+        """
         out = np.zeros((self.n, self.n))
         for a, blk in zip(self._starts(), self.blocks, strict=True):
             b = a + blk.shape[0]
@@ -180,6 +283,7 @@ class BorderedTriangular(eqx.Module):
 
     @property
     def dtype(self):
+        """The storage dtype of the border (the products' dtype)."""
         return self.corner.dtype
 
     def _split(self, A, axis: int):
@@ -188,42 +292,89 @@ class BorderedTriangular(eqx.Module):
 
     @highest
     def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
-        """``F k`` (the factor's storage dtype)."""
+        """``F k`` for one vector: ``[v; L₂⁻¹ k₂ − M v]`` with ``v = L⁻¹ k₁``.
+
+        Args:
+            k: (n,) vector, split after the base's rows into ``k₁`` and ``k₂``.
+
+        Returns:
+            The (n,) product, in the factor's storage dtype.
+        """
         k1, k2 = self._split(k.astype(self.dtype), 0)
         v = self.base.matvec(k1)
         return jnp.concatenate([v, self.corner @ k2 - self.coupling @ v])
 
     @highest
     def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
-        """``K Fᵀ`` (each row's ``F k``)."""
+        """``K Fᵀ`` for a batch of rows, the base's part first, then the border's.
+
+        Args:
+            K: (q, n) rows, one per query.
+
+        Returns:
+            The (q, n) product (each row's ``F k``), in the factor's storage dtype.
+        """
         K1, K2 = self._split(K.astype(self.dtype), 1)
         V = self.base.rmatmul(K1)
         # (A Bᵀ)ᵀ as in BlockTriangular.rmatmul: XLA's CPU dot is fast that way round.
         return jnp.concatenate([V, (self.corner @ K2.T).T - (self.coupling @ V.T).T], axis=1)
 
     def rmatvec(self, v: Float[Array, " n"]) -> Float[Array, " n"]:
-        """``Fᵀ v``."""
+        """``Fᵀ v`` for one vector, through :meth:`lmatmul`.
+
+        Args:
+            v: (n,) vector.
+
+        Returns:
+            The (n,) product ``Fᵀ v``.
+        """
         return self.lmatmul(v[None])[0]
 
     @highest
     def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
-        """``V F`` (each row's ``Fᵀ v``): ``[(V₁ − V₂ M) L⁻¹, V₂ L₂⁻¹]``."""
+        """``V F`` for a batch of rows: ``[(V₁ − V₂ M) L⁻¹, V₂ L₂⁻¹]``.
+
+        Args:
+            V: (q, n) rows, split after the base's columns into ``V₁`` and ``V₂``.
+
+        Returns:
+            The (q, n) product (each row's ``Fᵀ v``), in the factor's storage dtype.
+        """
         V1, V2 = self._split(V.astype(self.dtype), 1)
         return jnp.concatenate([self.base.lmatmul(V1 - V2 @ self.coupling), V2 @ self.corner], 1)
 
     def host_matmul(self, B: np.ndarray) -> np.ndarray:
-        """``F B`` with NumPy on the host (:meth:`BlockTriangular.host_matmul`)."""
+        """``F B`` with NumPy on the host, the base's product reused for the border's rows.
+
+        Args:
+            B: (n, m) host matrix.
+
+        Returns:
+            The (n, m) float64 product ``F B``.
+        """
         B1, B2 = self._split(B, 0)
         top = self.base.host_matmul(B1)
         return np.concatenate([top, np.asarray(self.corner) @ B2 - np.asarray(self.coupling) @ top])
 
     def host_lmatmul(self, V: np.ndarray) -> np.ndarray:
-        """``V F`` on the host."""
+        """``V F`` with NumPy on the host: :meth:`lmatmul` without compilation.
+
+        Args:
+            V: (q, n) host rows.
+
+        Returns:
+            The (q, n) product ``V F``.
+        """
         V1, V2 = self._split(V, 1)
         left = self.base.host_lmatmul(V1 - V2 @ np.asarray(self.coupling))
         return np.concatenate([left, V2 @ np.asarray(self.corner)], axis=1)
 
     def to_dense(self) -> np.ndarray:
+        """The full ``L'⁻¹``, its lower-left block ``−M L⁻¹`` formed explicitly.
+
+        Returns:
+            The (n, n) float64 NumPy array.
+        """
         top = self.base.to_dense()
         m = self.base.n
         out = np.zeros((self.n, self.n))

@@ -41,6 +41,8 @@ from gpg._precision import highest
 from gpg.quadrotor.bemt import AeroResult, radial_elements
 from gpg.quadrotor.vehicle import Vehicle
 
+__all__ = ["AcousticsConfig", "harmonic_msq", "oaspl"]
+
 P_REF = 20e-6  # Pa, reference pressure for dB
 
 
@@ -98,7 +100,21 @@ def harmonic_msq(
     """Mean-square pressures (Pa²) of loading and thickness noise: (rotor, microphone, harmonic).
 
     Mean squares rather than amplitudes so that a silent rotor has a zero with a finite
-    gradient (an amplitude ``|p|`` has none at zero).
+    gradient (an amplitude ``|p|`` has none at zero). Loading follows the Gutin–Lowson series
+    over the blade-load harmonics ``λ`` (module docstring), thickness the compact monopole of
+    the section area; the rms of each harmonic is its peak over √2.
+
+    Args:
+        vehicle: the vehicle; its rotor geometry, microphone positions, air density and speed
+            of sound enter (a full vehicle, as the generator needs).
+        aero: the rotors' loads, of which ``omega`` (rad/s) and the per-blade azimuthal loads
+            ``rotors.blade_thrust``/``rotors.blade_torque`` (4, P) are read.
+        cfg: the number of BPF harmonics ``m = 1..H``, the loading radius ``R_e/R`` and the
+            radial stations of the thickness integral.
+
+    Returns:
+        The loading and the thickness mean squares (Pa²), each (4, K, H): rotor, microphone,
+        harmonic ``m``.
     """
     B = vehicle.rotor.n_blades
     c0, rho = vehicle.speed_of_sound, vehicle.air_density
@@ -147,8 +163,18 @@ def oaspl(vehicle: Vehicle, aero: AeroResult, cfg: AcousticsConfig = DEFAULT) ->
     """Overall tonal sound pressure level (dB re 20 µPa) at each microphone.
 
     Sum of the mean squares of the first ``cfg.n_harmonics`` BPF harmonics of loading and
-    thickness noise of the four rotors. A silent vehicle gives 0 dB: the reference pressure is
-    added to the sum, so the level stays finite and differentiable at zero rpm.
+    thickness noise of the four rotors (:func:`harmonic_msq`), summed incoherently. A silent
+    vehicle gives 0 dB: the reference pressure is added to the sum, so the level stays finite
+    and differentiable at zero rpm.
+
+    Args:
+        vehicle: the (full) vehicle whose microphones hear the rotors.
+        aero: the rotor speeds and blade loads of :func:`gpg.quadrotor.bemt.aero` (or of
+            ``M_noise``'s prescribed loads).
+        cfg: the tonal-noise settings (harmonics, effective radius, thickness stations).
+
+    Returns:
+        The (K,) OASPL in dB re 20 µPa, one per microphone.
     """
     load, thick = harmonic_msq(vehicle, aero, cfg)
     msq = jnp.sum(load + thick, axis=(0, 2))

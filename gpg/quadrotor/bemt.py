@@ -41,6 +41,8 @@ from jaxtyping import Array, ArrayLike, Float
 from gpg._precision import highest
 from gpg.quadrotor.vehicle import Airfoil, Rotor, Vehicle
 
+__all__ = ["AeroResult", "BEMTConfig", "RotorLoads", "aero"]
+
 RPM_TO_RAD_S = 2.0 * jnp.pi / 60.0
 # Velocity floor (m/s) inside square roots and normalisations: keeps every expression and its
 # gradient finite at zero rpm and zero airspeed; far below any physical velocity here.
@@ -389,11 +391,22 @@ def aero(
 ) -> AeroResult:
     """Total aerodynamic wrench about the centre of mass (no gravity), and per-rotor loads.
 
+    Each rotor is solved in isolation first; with ``cfg.interference`` each is solved again
+    with the wake it ingests from the others (:func:`wake_overlap`, scaled by
+    ``cfg.wake_gain``). Airframe drag ``−½ ρ |v| diag(f) v`` (body axes) is added at the centre
+    of mass.
+
     Args:
+        vehicle: the (full) vehicle: layout, rotor, airfoil, drag areas, air properties.
+        cfg: the blade-element grid and the inflow solver's settings (static).
         rpm: rotor speeds r1..r4 (rpm, >= 0).
         R_WB: body-to-world rotation.
         v_air_W: airspeed vector ``v_vehicle − v_wind`` in the world frame (m/s).
-        omega_B: body angular rate (rad/s); adds ``ω × p`` to each hub's velocity.
+        omega_B: body angular rate (rad/s); adds ``ω × p`` to each hub's velocity. None: zero.
+
+    Returns:
+        The wrench in body and world axes, the four rotors' loads (leading axis 4) and the
+        rotor speeds in rad/s.
     """
     rpm = jnp.asarray(rpm)
     R_WB = jnp.asarray(R_WB)

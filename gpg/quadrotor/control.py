@@ -15,19 +15,21 @@ Reference trajectories are minimum-jerk polynomials between waypoints (:class:`W
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from gpg._precision import highest
 from gpg.quadrotor.dynamics import State
 from gpg.quadrotor.frames import matmul, matvec
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
+
+__all__ = ["GeometricController", "Reference", "WaypointPlan", "vee"]
 
 
 class Reference(eqx.Module):
@@ -57,10 +59,34 @@ class WaypointPlan(eqx.Module):
 
     @classmethod
     def create(
-        cls, waypoints, *, start_time=1.0, leg_time=4.0, yaw="travel", yaw0=0.0
+        cls,
+        waypoints: ArrayLike,
+        *,
+        start_time: float = 1.0,
+        leg_time: float = 4.0,
+        yaw: float | str = "travel",
+        yaw0: float = 0.0,
     ) -> WaypointPlan:
-        """``yaw="travel"`` points the nose along each leg, so the airflow meets the vehicle
-        from the front as in the dataset; a number holds one heading throughout."""
+        """A plan through ``waypoints`` from plain numbers (checked).
+
+        ``yaw="travel"`` points the nose along each leg, so the airflow meets the vehicle from
+        the front as in the dataset; a number holds one heading throughout.
+
+        Args:
+            waypoints: (W, 3) positions in the world frame (m, z down), ``W >= 2``.
+            start_time: when the first leg starts (s); the reference holds the first waypoint
+                before it.
+            leg_time: the duration of every leg (s, > 0).
+            yaw: ``"travel"`` (each leg's heading along its direction) or one heading (rad).
+            yaw0: the heading before the first leg (rad).
+
+        Returns:
+            The plan, with one heading per leg.
+
+        Raises:
+            ValueError: if ``waypoints`` is not (W >= 2, 3), ``leg_time`` is not positive, or
+                ``yaw`` is a string other than ``"travel"``.
+        """
         w = np.asarray(waypoints, dtype=float)
         if w.ndim != 2 or w.shape[1] != 3 or w.shape[0] < 2:
             raise ValueError(f"waypoints must be (W >= 2, 3), got {w.shape}")
@@ -111,6 +137,17 @@ class WaypointPlan(eqx.Module):
 
 
 def vee(S: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+    """The vector of a skew-symmetric matrix, the inverse of the hat map: ``S = [s]×``.
+
+    Only the entries below and above the diagonal that ``[s]×`` fills are read,
+    ``(S₃₂, S₁₃, S₂₁)``; a matrix that is not skew-symmetric is not checked.
+
+    Args:
+        S: a (3, 3) skew-symmetric matrix, such as ``R_dᵀR − RᵀR_d``.
+
+    Returns:
+        The (3,) vector ``s`` with ``S v = s × v``.
+    """
     return jnp.stack([S[2, 1], S[0, 2], S[1, 0]])
 
 
@@ -133,9 +170,26 @@ class GeometricController(eqx.Module):
     def create(
         cls, vehicle: Vehicle, simple: SimpleModel, gains: Mapping[str, Any] | None = None
     ) -> GeometricController:
-        """Gains from natural frequencies and damping (defaults tuned for the SUI-like vehicle):
+        """The controller of ``vehicle`` with gains from natural frequencies and damping.
+
         ``K_p = m ω_p²``, ``K_v = 2 ζ m ω_p``, and per axis ``K_R = J ω_R²``,
-        ``K_ω = 2 ζ J ω_R``."""
+        ``K_ω = 2 ζ J ω_R`` (defaults tuned for the SUI-like vehicle). The allocation it
+        inverts is ``simple``'s: the controller knows only ``M``.
+
+        Args:
+            vehicle: mass, inertia, gravity and the motor range.
+            simple: the simplified model whose allocation matrix maps rotor speeds² to thrust
+                and moment.
+            gains: overrides of ``position_hz`` (ω_p/2π per axis), ``attitude_hz`` (ω_R/2π per
+                axis), ``damping`` (ζ) and ``max_tilt_deg`` (the tilt limit of the position
+                loop); None keeps the defaults.
+
+        Returns:
+            The controller, its gains as arrays.
+
+        Raises:
+            ValueError: if ``gains`` has a key other than the four above.
+        """
         g = {
             "position_hz": [0.35, 0.35, 0.45],
             "attitude_hz": [2.5, 2.5, 1.2],
@@ -178,8 +232,19 @@ class GeometricController(eqx.Module):
     def thrust_and_attitude(
         self, s: State, ref: Reference
     ) -> tuple[Float[Array, " 1"], Float[Array, "3 3"]]:
-        """The position loop: collective thrust (N, ≥ 0, shape (1,)) and desired attitude
-        ``R_d``."""
+        """The position loop: collective thrust and desired attitude ``R_d``.
+
+        ``F = m(a_d − g e_z) − K_p e_p − K_v e_v`` with its horizontal part shrunk to the tilt
+        limit (and at least a fifth of the weight upward); ``R_d`` has ``z_d = −F/‖F‖`` and
+        the reference heading; the thrust is ``F`` projected on the current ``−z_B``.
+
+        Args:
+            s: the current state.
+            ref: the desired position, velocity, acceleration and yaw.
+
+        Returns:
+            The collective thrust (N, ≥ 0, shape (1,)) and ``R_d`` (3, 3), body to world.
+        """
         R = s.R
         e_p, e_v = s.p - ref.p, s.v - ref.v
         F = self.mass * ref.a.at[2].add(-self.gravity) - self.kp * e_p - self.kv * e_v
@@ -200,9 +265,19 @@ class GeometricController(eqx.Module):
         return jnp.maximum(thrust, 0.0)[None], R_d
 
     def mix(self, thrust: Float[Array, ""], tau: Float[Array, " 3"]) -> Float[Array, " 4"]:
-        """Rotor speeds for collective thrust and moment; yaw yields first when a rotor would
-        leave its range (the rotors' drag torque is a weak yaw actuator, and spending thrust
-        margin on it costs altitude and attitude)."""
+        """Rotor speeds for collective thrust and moment, through the inverse allocation.
+
+        Yaw yields first when a rotor would leave its range (the rotors' drag torque is a weak
+        yaw actuator, and spending thrust margin on it costs altitude and attitude): the yaw
+        moment is clipped to what keeps every ``r²`` in range, then the speeds are clipped.
+
+        Args:
+            thrust: collective thrust (N).
+            tau: body moment (N·m) about x, y, z.
+
+        Returns:
+            The (4,) rotor speeds (rpm) in the motor range.
+        """
         lo, hi = self.rpm_min**2, self.rpm_max**2
         base = matvec(
             self.alloc_inv, jnp.concatenate([thrust[None], tau[:2], jnp.zeros(1, tau.dtype)])
@@ -217,11 +292,3 @@ class GeometricController(eqx.Module):
         # sqrt has an infinite slope at 0: a rotor clipped to rest (rpm_min = 0) would turn the
         # clip's zero gradient into NaN. A floor of 1e-6 rpm² changes no speed that matters.
         return jnp.sqrt(jnp.maximum(r2, 1e-6))
-
-
-__all__: Sequence[str] = [
-    "GeometricController",
-    "Reference",
-    "WaypointPlan",
-    "vee",
-]

@@ -22,12 +22,24 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from gpg._deprecated import deprecated
 from gpg.quadrotor.frames import matvec
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import Vehicle
+
+__all__ = [
+    "AeroModel",
+    "Quadrotor",
+    "SimpleAero",
+    "State",
+    "Wind",
+    "Wrench",
+    "body_parameters",
+    "quat_from_euler",
+    "quat_to_R",
+]
 
 
 class State(eqx.Module):
@@ -41,9 +53,22 @@ class State(eqx.Module):
     rpm: Float[Array, " 4"]
 
     @classmethod
-    def hover(cls, p, rpm, euler=(0.0, 0.0, 0.0)) -> State:
-        """At rest at ``p`` (m) with rotor speeds ``rpm`` and attitude ``euler`` = (yaw, pitch,
-        roll) in rad (level by default), e.g. for the random resets of RL environments."""
+    def hover(
+        cls,
+        p: Float[ArrayLike, " 3"],
+        rpm: Float[ArrayLike, "..."],
+        euler: Float[ArrayLike, " 3"] = (0.0, 0.0, 0.0),
+    ) -> State:
+        """A state at rest, e.g. for the random resets of RL environments.
+
+        Args:
+            p: position (m, world frame).
+            rpm: rotor speeds (rpm), one for all four rotors or one each.
+            euler: attitude ``(yaw, pitch, roll)`` (rad); level by default.
+
+        Returns:
+            The state with zero velocity and body rates.
+        """
         return cls(
             p=jnp.asarray(p, dtype=float),
             v=jnp.zeros(3),
@@ -58,7 +83,16 @@ class State(eqx.Module):
 
 
 def quat_to_R(q: Float[Array, " 4"]) -> Float[Array, "3 3"]:
-    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    """Rotation matrix of a unit quaternion.
+
+    The quaternion is not normalised here: the integrator keeps it unit length after every step.
+
+    Args:
+        q: (4,) unit quaternion ``(w, x, y, z)``, scalar first, body to world.
+
+    Returns:
+        The (3, 3) rotation ``R_WB``.
+    """
     w, x, y, z = q[0], q[1], q[2], q[3]
     return jnp.stack(
         [
@@ -70,7 +104,14 @@ def quat_to_R(q: Float[Array, " 4"]) -> Float[Array, "3 3"]:
 
 
 def quat_from_euler(euler: Float[Array, " 3"]) -> Float[Array, " 4"]:
-    """Quaternion of ``R_WB = Rz(yaw) Ry(pitch) Rx(roll)``."""
+    """Quaternion of ``R_WB = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+    Args:
+        euler: (3,) angles ``(yaw, pitch, roll)`` (rad), the dataset's order.
+
+    Returns:
+        The (4,) unit quaternion ``(w, x, y, z)``, scalar first.
+    """
     cy, sy = jnp.cos(euler[0] / 2), jnp.sin(euler[0] / 2)
     cp, sp = jnp.cos(euler[1] / 2), jnp.sin(euler[1] / 2)
     cr, sr = jnp.cos(euler[2] / 2), jnp.sin(euler[2] / 2)
@@ -124,7 +165,19 @@ class AeroModel(eqx.Module):
         R_WB: Float[Array, "3 3"],
         v_air: Float[Array, " 3"],
         omega: Float[Array, " 3"],
-    ) -> Wrench: ...
+    ) -> Wrench:
+        """The aerodynamic wrench at one flight state.
+
+        Args:
+            rpm: (4,) rotor speeds r1..r4 (rpm).
+            R_WB: (3, 3) body-to-world rotation.
+            v_air: (3,) airspeed ``v_vehicle − v_wind`` in the world frame (m/s).
+            omega: (3,) body rates (rad/s).
+
+        Returns:
+            The force and moment in the world frame about the centre of mass, the noise levels
+            and whether the query was inside the model's domain.
+        """
 
 
 class SimpleAero(AeroModel):
@@ -132,7 +185,27 @@ class SimpleAero(AeroModel):
 
     model: SimpleModel
 
-    def wrench(self, rpm, R_WB, v_air, omega) -> Wrench:
+    def wrench(
+        self,
+        rpm: Float[Array, " 4"],
+        R_WB: Float[Array, "3 3"],
+        v_air: Float[Array, " 3"],
+        omega: Float[Array, " 3"],
+    ) -> Wrench:
+        """``M``'s body-frame thrust and drag torque, rotated to the world frame.
+
+        The airspeed and body rates do not enter ``M``; there are no noise levels, and every
+        query is in domain.
+
+        Args:
+            rpm: (4,) rotor speeds (rpm).
+            R_WB: (3, 3) body-to-world rotation.
+            v_air: (3,) airspeed (m/s, world frame); unused.
+            omega: (3,) body rates (rad/s); unused.
+
+        Returns:
+            The world-frame force and moment, no levels, ``in_domain`` True.
+        """
         F, tau = self.model.wrench_body(rpm)
         return Wrench(matvec(R_WB, F), matvec(R_WB, tau), jnp.zeros(0, F.dtype), jnp.asarray(True))
 
@@ -147,11 +220,23 @@ class Wind(eqx.Module):
 
     @classmethod
     def calm(cls) -> Wind:
+        """No wind and no gust.
+
+        Returns:
+            The zero wind (a unit gust period keeps the sine defined).
+        """
         return cls(jnp.zeros(3), jnp.zeros(3), jnp.asarray(1.0), jnp.asarray(0.0))
 
     @classmethod
-    def constant(cls, mean) -> Wind:
-        """A constant wind ``mean`` (m/s), in its own float dtype (a float32 mean stays float32)."""
+    def constant(cls, mean: Float[ArrayLike, " 3"]) -> Wind:
+        """A constant wind in its own float dtype (a float32 mean stays float32).
+
+        Args:
+            mean: (3,) wind velocity (m/s, world frame); an integer array becomes float.
+
+        Returns:
+            The wind with zero gust, in ``mean``'s float dtype.
+        """
         m = jnp.asarray(mean)
         m = m if jnp.issubdtype(m.dtype, jnp.floating) else m.astype(float)
         one = jnp.ones((), m.dtype)
@@ -164,8 +249,16 @@ class Wind(eqx.Module):
 
 
 def body_parameters(vehicle: Vehicle) -> dict[str, Any]:
-    """The rigid body and motors of ``vehicle`` as the dynamics read them (mass, inertia,
-    gravity, motor lag, rotor speed limits)."""
+    """The rigid body and motors of ``vehicle`` as the dynamics read them.
+
+    Args:
+        vehicle: the vehicle (a minimal one suffices).
+
+    Returns:
+        A mapping with ``mass``, ``inertia``, ``gravity``, ``motor_time_constant``,
+        ``rpm_min`` and ``rpm_max``: the keyword arguments of :class:`Quadrotor` besides its
+        aerodynamics.
+    """
     return {
         "mass": vehicle.mass,
         "inertia": vehicle.inertia,
@@ -192,13 +285,46 @@ class Quadrotor(eqx.Module):
     def from_vehicle(
         cls, vehicle: Vehicle, aero: AeroModel, *, hold_aero: bool = True
     ) -> Quadrotor:
+        """The rigid body and motors of ``vehicle`` flown with the aerodynamics ``aero``.
+
+        Args:
+            vehicle: mass, inertia, gravity, motor lag and range.
+            aero: the aerodynamic model: :class:`SimpleAero` or a GP surrogate's.
+            hold_aero: hold the wrench over each RK4 step (evaluated once at its start) rather
+                than evaluate it at every stage.
+
+        Returns:
+            The quadrotor.
+        """
         return cls(aero=aero, hold_aero=hold_aero, **body_parameters(vehicle))
 
     def wrench(self, s: State, wind_velocity: Float[Array, " 3"]) -> Wrench:
+        """The aerodynamic model's wrench at a state, in the air moving at ``wind_velocity``.
+
+        Args:
+            s: the state (rotor speeds, attitude, velocity, body rates).
+            wind_velocity: (3,) wind (m/s, world frame).
+
+        Returns:
+            The wrench of :meth:`AeroModel.wrench` at airspeed ``v − wind_velocity``.
+        """
         return self.aero.wrench(s.rpm, s.R, s.v - wind_velocity, s.w)
 
     def derivatives(self, s: State, rpm_cmd: Float[Array, " 4"], wr: Wrench) -> State:
-        """Time derivative of the state under a given aerodynamic wrench."""
+        """Time derivative of the state under a given aerodynamic wrench.
+
+        Newton–Euler in the world frame (translation) and body frame (rotation), the
+        quaternion rate ``½ q ⊗ (0, ω)``, and the first-order motor lag toward the clipped
+        command (a zero rate without lag: :meth:`step` then sets the speeds directly).
+
+        Args:
+            s: the state.
+            rpm_cmd: (4,) rotor speed commands (rpm), clipped to the motor range.
+            wr: the aerodynamic wrench (world frame) acting over the stage.
+
+        Returns:
+            The time derivative as a :class:`State` (each field the rate of the state's).
+        """
         R = s.R
         acc = (wr.force / self.mass).at[2].add(self.gravity)
         tau_b = matvec(R.T, wr.torque)
@@ -213,7 +339,22 @@ class Quadrotor(eqx.Module):
     def step(
         self, s: State, rpm_cmd: Float[Array, " 4"], t: Float[Array, ""], dt: float, wind: Wind
     ) -> tuple[State, Wrench]:
-        """One RK4 step of length ``dt``; returns the new state and the wrench at the step start."""
+        """One RK4 step of length ``dt``.
+
+        With ``hold_aero`` the wrench of the step's start is used at all four stages;
+        otherwise it is evaluated at each (with the wind at each stage's time). The quaternion
+        is renormalised after the step.
+
+        Args:
+            s: the state at ``t``.
+            rpm_cmd: (4,) rotor speed commands (rpm), held over the step.
+            t: the time at the step's start (s).
+            dt: the step length (s).
+            wind: the wind, evaluated at the stage times.
+
+        Returns:
+            The state at ``t + dt`` and the wrench at the step's start.
+        """
         wr0 = self.wrench(s, wind(t))
 
         def f(x: State, tt) -> State:

@@ -25,6 +25,20 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+__all__ = [
+    "R_WB",
+    "R_WH",
+    "TINY_SPEED",
+    "airflow_direction",
+    "airflow_frame",
+    "airflow_frame_rate",
+    "euler_from_R",
+    "matmul",
+    "matvec",
+    "safe_atan2",
+    "to_airflow_frame",
+]
+
 # Below this horizontal speed (m/s) the heading is taken as zero. Far below any physical
 # airspeed; only there to keep atan2 and its gradient defined at the origin.
 TINY_SPEED = 1e-9  # also the exports' (C, CasADi, ONNX): the same frame everywhere
@@ -52,21 +66,45 @@ def rot_z(a: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
 
 
 def matvec(R: Float[Array, "m n"], v: Float[Array, " n"]) -> Float[Array, " m"]:
-    """``R @ v`` as a broadcast multiply-add: XLA fuses it with its neighbours, where a small
-    ``dot`` (3x3 rotations, the 4x4 rotor allocation) would be a separate kernel launch (they
-    add up in a 100 µs prediction)."""
+    """``R @ v`` as a broadcast multiply-add.
+
+    XLA fuses it with its neighbours, where a small ``dot`` (3x3 rotations, the 4x4 rotor
+    allocation) would be a separate kernel launch; the launches add up in a real-time
+    prediction (see docs/measurements.md).
+
+    Args:
+        R: an (m, n) matrix.
+        v: an (n,) vector.
+
+    Returns:
+        The (m,) product ``R v``.
+    """
     return jnp.sum(R * v[None, :], axis=1)
 
 
 def matmul(A: Float[Array, "3 3"], B: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
-    """``A @ B`` for 3x3 matrices, fusible (see :func:`matvec`)."""
+    """``A @ B`` for 3x3 matrices, fusible (see :func:`matvec`).
+
+    Args:
+        A: the left (3, 3) matrix.
+        B: the right (3, 3) matrix.
+
+    Returns:
+        The (3, 3) product ``A B``.
+    """
     return jnp.sum(A[:, :, None] * B[None, :, :], axis=1)
 
 
 def R_WB(euler: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
-    """Body-to-world rotation ``Rz(yaw) Ry(pitch) Rx(roll)`` from ``euler = (yaw, pitch, roll)``.
+    """Body-to-world rotation ``Rz(yaw) Ry(pitch) Rx(roll)``.
 
     Written out entry by entry (the product expanded), which compiles to one fused kernel.
+
+    Args:
+        euler: (3,) angles ``(yaw, pitch, roll)`` (rad), the order of the input vector ``x``.
+
+    Returns:
+        The (3, 3) rotation ``R_WB`` (body FRD to world, z down).
     """
     euler = jnp.asarray(euler)
     cy, sy = jnp.cos(euler[0]), jnp.sin(euler[0])
@@ -84,7 +122,19 @@ def R_WB(euler: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
 def safe_atan2(
     y: Float[ArrayLike, ""], x: Float[ArrayLike, ""], tiny: float = 0.0
 ) -> Float[Array, ""]:
-    """``atan2(y, x)``, but 0 with a zero gradient where ``|x|, |y| <= tiny`` instead of NaN."""
+    """``atan2(y, x)``, but 0 with a zero gradient where ``|x|, |y| <= tiny`` instead of NaN.
+
+    Both branches of the ``where`` are kept finite (the origin is replaced by ``(1, 0)`` before
+    ``arctan2``), so the gradient of the unused branch cannot poison the result with NaN.
+
+    Args:
+        y: the ordinate.
+        x: the abscissa.
+        tiny: the half-width of the square around the origin that gives 0.
+
+    Returns:
+        The angle (rad) in ``(−π, π]``, 0 near the origin.
+    """
     at_origin = (jnp.abs(x) <= tiny) & (jnp.abs(y) <= tiny)
     xs = jnp.where(at_origin, 1.0, x)
     ys = jnp.where(at_origin, 0.0, y)
@@ -100,11 +150,17 @@ def safe_norm(v: Float[ArrayLike, "*n"]) -> Float[Array, ""]:
 
 
 def euler_from_R(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
-    """``(yaw, pitch, roll)`` with ``R_WB(euler) = R``; pitch in [−π/2, π/2].
+    """The Euler angles of a rotation, the inverse of :func:`R_WB`; pitch in [−π/2, π/2].
 
     Pitch comes from ``atan2(−R31, ‖(R11, R21)‖)``, which stays accurate near ±90° where
     ``asin`` loses half its digits. At gimbal lock (``cos pitch = 0``) yaw and roll are not
     separable; roll is then set to zero and yaw read from the second column.
+
+    Args:
+        R: a (3, 3) rotation matrix (body to world).
+
+    Returns:
+        The (3,) angles ``(yaw, pitch, roll)`` (rad) with ``R_WB(euler) = R``.
     """
     R = jnp.asarray(R)
     cp = jnp.hypot(R[0, 0], R[1, 0])
@@ -119,7 +175,19 @@ def euler_from_R(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:
 
 
 def R_WH(v_air: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
-    """Airflow frame: a proper rotation with ``R_WH @ e_x = v̂_air`` (wind axes, see module doc)."""
+    """Airflow frame: a proper rotation with ``R_WH @ e_x = v̂_air`` (wind axes).
+
+    ``R_WH = Rz(χ) Ry(γ)`` with heading ``χ`` and climb angle ``γ`` of ``v_air`` (module
+    docstring): not the paper's Householder reflection. The heading is zero where both
+    horizontal components are within :data:`TINY_SPEED` of zero (vertical airflow), the climb
+    where the vertical and the horizontal speed both are, so ``v = 0`` gives the identity.
+
+    Args:
+        v_air: (3,) airspeed ``v_vehicle − v_wind`` in the world frame (m/s).
+
+    Returns:
+        The (3, 3) rotation ``R_WH`` (airflow frame to world).
+    """
     v = jnp.asarray(v_air)
     heading = safe_atan2(v[1], v[0], TINY_SPEED)
     climb = safe_atan2(-v[2], safe_norm(v[:2]), TINY_SPEED)
@@ -129,16 +197,24 @@ def R_WH(v_air: Float[ArrayLike, "3"]) -> Float[Array, "3 3"]:
 def airflow_direction(
     v_air_W: Float[ArrayLike, "3"], yaw: Float[ArrayLike, ""], hover_speed: float
 ) -> Float[Array, "3"]:
-    """The vector whose direction ``H`` takes as its x axis: ``v_air`` itself above
-    ``hover_speed`` (m/s), blended toward the body's horizontal heading below it.
+    """The vector whose direction ``H`` takes as its x axis.
 
-    At zero airspeed the aerodynamic wrench does not depend on the direction of ``H`` at all,
+    ``v_air`` itself above ``hover_speed``, blended toward the body's horizontal heading below
+    it. At zero airspeed the aerodynamic wrench does not depend on the direction of ``H`` at all,
     so any choice is exact there; but wind axes alone then pick a heading of zero (or whatever
     direction a few mm/s of drift point), which puts a hovering vehicle with a yaw beyond ±90°,
     or a tilted one, outside the training box for no physical reason. Adding
     ``c = h (1 − ‖v‖²/h²)²₊`` along the heading makes ``ψ_H → 0`` and ``γ → 0`` in hover;
     ``c`` and its gradient vanish at ``‖v‖ = h``, so above that the frame is exactly wind
     axes, and the result commutes with rotations about the world z axis like :func:`R_WH`.
+
+    Args:
+        v_air_W: (3,) airspeed in the world frame (m/s).
+        yaw: the body's heading (rad).
+        hover_speed: the blend's speed ``h`` (m/s, static); 0 or less returns ``v_air_W``.
+
+    Returns:
+        The (3,) direction vector (m/s, not normalised).
     """
     v = jnp.asarray(v_air_W)
     if hover_speed <= 0.0:
@@ -170,6 +246,15 @@ def airflow_frame(
     all: in a steep climb or descent from behind the roll relative to ``H`` can bring them
     back inside, so a surrogate also asks :func:`airflow_frame_rate` before it calls a
     query in domain.
+
+    Args:
+        v_air_W: (3,) airspeed in the world frame (m/s).
+        yaw: the body's heading (rad).
+        hover_speed: the blend's speed ``h`` (m/s, static); 0 or less gives pure wind axes,
+            :func:`R_WH`.
+
+    Returns:
+        The (3, 3) rotation ``R_WH`` (airflow frame to world).
     """
     v = jnp.asarray(v_air_W)
     if hover_speed <= 0.0:
@@ -199,6 +284,15 @@ def to_airflow_frame(
     ``hover_speed > 0`` (m/s, static) turns ``H`` toward the body heading at low airspeed and
     at low horizontal airspeed (vertical airflow), see :func:`airflow_direction` and
     :func:`airflow_frame`; 0 gives pure wind axes.
+
+    Args:
+        euler_W: (3,) attitude ``(yaw, pitch, roll)`` in the world frame (rad).
+        v_air_W: (3,) airspeed in the world frame (m/s).
+        hover_speed: the hover blend's speed (m/s, static); 0: pure wind axes.
+
+    Returns:
+        ``euler_H`` (3,), the attitude relative to ``H``; the airspeed ``‖v_air‖`` (m/s, with
+        a zero gradient at rest); and ``R_WH`` (3, 3).
     """
     euler_W = jnp.asarray(euler_W)
     rwh = airflow_frame(v_air_W, euler_W[0], hover_speed)
@@ -220,6 +314,14 @@ def airflow_frame_rate(
     a surrogate is out of domain where this exceeds :data:`gpg.surrogate.MAX_FRAME_RATE`.
     The one point where the construction's guards hide the singularity from autodiff (pure
     wind axes, ``hover_speed = 0``, with no horizontal airspeed) gives ``inf``.
+
+    Args:
+        euler_W: (3,) attitude ``(yaw, pitch, roll)`` in the world frame (rad).
+        v_air_W: (3,) airspeed in the world frame (m/s).
+        hover_speed: the hover blend's speed (m/s, static), as in :func:`to_airflow_frame`.
+
+    Returns:
+        The rate (rad per m/s, a scalar, ``inf`` at that one point).
     """
     euler_W = jax.lax.stop_gradient(jnp.asarray(euler_W))
     v = jax.lax.stop_gradient(jnp.asarray(v_air_W))

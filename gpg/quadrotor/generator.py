@@ -28,6 +28,17 @@ from gpg.quadrotor import acoustics, bemt
 from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.vehicle import Vehicle
 
+__all__ = [
+    "GENERATOR_VERSION",
+    "Generator",
+    "evaluate",
+    "evaluate_batch",
+    "evaluate_body",
+    "jacobian",
+    "jacobian_body",
+    "vortex_ring_state",
+]
+
 # Bump when the physics changes, so that cached datasets are regenerated.
 GENERATOR_VERSION = "1"
 N_INPUTS = 8
@@ -51,7 +62,19 @@ class Generator(eqx.Module):
 
 
 def evaluate(gen: Generator, x: Float[ArrayLike, " 8"]) -> Float[Array, " 9"]:
-    """``y(x)`` for one dataset case: wrench in the dataset frame and the three OASPLs."""
+    """``y(x)`` for one dataset case: wrench in the dataset frame and the three OASPLs.
+
+    The BEMT wrench (:func:`gpg.quadrotor.bemt.aero`) at attitude ``R_WB(yaw, pitch, roll)``
+    in the airflow ``v_air = (V, 0, 0)``, and the tonal levels
+    (:func:`gpg.quadrotor.acoustics.oaspl`) of the same loads.
+
+    Args:
+        gen: the generator (vehicle and model settings).
+        x: (8,) input ``(r1..r4, yaw, pitch, roll, V)`` (rpm, rad, m/s).
+
+    Returns:
+        The (9,) output ``(Fx, Fy, Fz, Mx, My, Mz, L1, L2, L3)`` (N, N·m, dB).
+    """
     x = jnp.asarray(x)
     res = bemt.aero(gen.vehicle, gen.bemt, x[:4], R_WB(x[4:7]), jnp.stack([x[7], 0.0, 0.0]))
     noise = acoustics.oaspl(gen.vehicle, res, gen.acoustics)
@@ -59,9 +82,18 @@ def evaluate(gen: Generator, x: Float[ArrayLike, " 8"]) -> Float[Array, " 9"]:
 
 
 def evaluate_body(gen: Generator, x: Float[ArrayLike, " 7"]) -> Float[Array, " 9"]:
-    """``y_B(x_B)`` for one body-frame case: the wrench in the body frame and the OASPLs. The
-    same physics as :func:`evaluate` with the attitude the identity and the air velocity
-    ``(u, v, w)``: ``evaluate(R_WB(θ), V) = R_WB(θ) evaluate_body(R_WB(θ)ᵀ V e_x)``."""
+    """``y_B(x_B)`` for one body-frame case: the wrench in the body frame and the OASPLs.
+
+    The same physics as :func:`evaluate` with the attitude the identity and the air velocity
+    ``(u, v, w)``: ``evaluate(R_WB(θ), V) = R_WB(θ) evaluate_body(R_WB(θ)ᵀ V e_x)``.
+
+    Args:
+        gen: the generator.
+        x: (7,) body-frame input ``(r1..r4, u, v, w)`` (rpm, m/s FRD).
+
+    Returns:
+        The (9,) output in the body frame: force (N), moment (N·m), levels (dB).
+    """
     x = jnp.asarray(x)
     res = bemt.aero(gen.vehicle, gen.bemt, x[:4], jnp.eye(3, dtype=x.dtype), x[4:7])
     noise = acoustics.oaspl(gen.vehicle, res, gen.acoustics)
@@ -69,12 +101,30 @@ def evaluate_body(gen: Generator, x: Float[ArrayLike, " 7"]) -> Float[Array, " 9
 
 
 def jacobian_body(gen: Generator, x: Float[ArrayLike, " 7"]) -> Float[Array, "9 7"]:
-    """Exact ``∂y_B/∂x_B`` along all seven body-frame inputs, by forward-mode autodiff."""
+    """Exact ``∂y_B/∂x_B`` along all seven body-frame inputs, by forward-mode autodiff.
+
+    Args:
+        gen: the generator.
+        x: (7,) body-frame input ``(r1..r4, u, v, w)``.
+
+    Returns:
+        The (9, 7) Jacobian of :func:`evaluate_body`.
+    """
     return jax.jacfwd(partial(evaluate_body, gen))(jnp.asarray(x))
 
 
 def jacobian(gen: Generator, x: Float[ArrayLike, " 8"]) -> Float[Array, "9 7"]:
-    """Exact ``∂y/∂x_j`` for the 7 rpm and angle inputs, by forward-mode autodiff."""
+    """Exact ``∂y/∂x_j`` for the 7 rpm and angle inputs, by forward-mode autodiff.
+
+    The airspeed ``V`` is held: the dataset has no gradient along it.
+
+    Args:
+        gen: the generator.
+        x: (8,) input ``(r1..r4, yaw, pitch, roll, V)``.
+
+    Returns:
+        The (9, 7) Jacobian of :func:`evaluate` along ``r1..r4, yaw, pitch, roll``.
+    """
     x = jnp.asarray(x)
     return jax.jacfwd(lambda head: evaluate(gen, jnp.concatenate([head, x[7:]])))(x[:7])
 
@@ -119,6 +169,24 @@ def evaluate_batch(
     ``workers > 1`` evaluates the chunks in that many worker processes (each compiles the same
     program once). The chunks are the same as with one process, so the result is bit-identical
     whatever the number of workers; the work is embarrassingly parallel, one chunk per task.
+    Runs in float64; a deferred Ctrl-C stops between chunks.
+
+    Args:
+        gen: the generator.
+        X: (N, 8) airflow-frame inputs, or (N, 7) body-frame ones with ``frame="body"``.
+        chunk: rows per compiled call (the memory bound).
+        with_jacobian: also return the Jacobians.
+        progress: show a progress bar (a string: its label).
+        workers: the number of worker processes (1: this process).
+        frame: ``"airflow"`` or ``"body"``, the frame of ``X`` and of the outputs.
+
+    Returns:
+        ``y`` (N, 9) as NumPy; with ``with_jacobian`` the pair ``(y, J)`` with ``J``
+        (N, 9, 7).
+
+    Raises:
+        ValueError: if ``frame`` is unknown, ``X`` is not (N, 8) or (N, 7) as the frame needs,
+            or ``workers`` is not a positive integer.
     """
     X = np.asarray(X, dtype=np.float64)
     if frame not in _FNS:
@@ -228,7 +296,7 @@ VRS_EDGEWISE = 1.0
 
 
 def vortex_ring_state(
-    vehicle, x_body: Float[ArrayLike, "N 7"], force_body: Float[ArrayLike, "N 3"]
+    vehicle: Vehicle, x_body: Float[ArrayLike, "N 7"], force_body: Float[ArrayLike, "N 3"]
 ) -> np.ndarray:
     """Which body-frame cases (N,) lie in the vortex-ring state, where this generator's inflow
     is a regularisation (``BEMTConfig.kappa2``: one momentum root where the real flow is
@@ -238,7 +306,16 @@ def vortex_ring_state(
     body-frame force's ``z``, N), the descent through the disks ``w`` (the body-frame air's
     ``z``, positive down: the air comes up through the rotors) and the edgewise speed
     ``√(u² + v²)``: flagged where ``0.25 v_h ≤ w ≤ 1.75 v_h`` and the edgewise speed is below
-    ``v_h`` (:data:`VRS_DESCENT`, :data:`VRS_EDGEWISE`)."""
+    ``v_h`` (:data:`VRS_DESCENT`, :data:`VRS_EDGEWISE`).
+
+    Args:
+        vehicle: the vehicle, for its rotor radius and the air density.
+        x_body: (N, 7) body-frame inputs ``(r1..r4, u, v, w)``.
+        force_body: (N, 3) body-frame aerodynamic force (N) of those cases.
+
+    Returns:
+        A (N,) boolean array, True where the case lies in the vortex-ring state.
+    """
     x = np.asarray(x_body, float)
     thrust = np.maximum(-np.asarray(force_body, float)[:, 2], 0.0)
     area = np.pi * float(vehicle.rotor.radius) ** 2

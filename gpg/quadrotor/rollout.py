@@ -18,6 +18,8 @@ from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, State, Wind
 from gpg.quadrotor.frames import euler_from_R
 
+__all__ = ["Trace", "batched_rollouts", "random_scenario", "simulate"]
+
 
 class Trace(eqx.Module):
     """Per-step records of a rollout (leading axis: time; batched rollouts add one in front)."""
@@ -49,7 +51,24 @@ def simulate(
     dt: float,
     n_steps: int,
 ) -> tuple[State, Trace]:
-    """Fly ``n_steps`` steps of ``dt`` seconds from ``s0``; jittable and vmappable."""
+    """Fly ``n_steps`` steps of ``dt`` seconds from ``s0``; jittable and vmappable.
+
+    Each step asks the plan for the reference at ``t = k dt``, the controller for the rotor
+    commands, and advances the quadrotor by one RK4 step (:meth:`Quadrotor.step`).
+
+    Args:
+        quad: the rigid body, motors and aerodynamics.
+        ctrl: the controller.
+        plan: the reference trajectory.
+        wind: the wind.
+        s0: the initial state.
+        dt: the step (s).
+        n_steps: the number of steps (static).
+
+    Returns:
+        The final state, and the :class:`Trace` of every step (the state at the step's start,
+        the command and the wrench it met).
+    """
 
     def step(s: State, k):
         t = k * dt
@@ -82,9 +101,23 @@ def random_scenario(
     gust_max: float = 2.0,
     leg_time: float = 5.0,
 ) -> tuple[WaypointPlan, Wind]:
-    """One randomised environment: a target within ``target_range`` m horizontally (±30 % of it
-    vertically) reached in one minimum-jerk leg, a horizontal wind up to ``wind_max`` m/s and a
-    gust up to ``gust_max`` m/s with a 2–8 s period."""
+    """One randomised environment: a target, a wind and a gust drawn from ``key``.
+
+    A target within ``target_range`` m horizontally (±30 % of it vertically) reached in one
+    minimum-jerk leg, a horizontal wind up to ``wind_max`` m/s and a gust up to ``gust_max``
+    m/s with a 2–8 s period.
+
+    Args:
+        key: the random key.
+        start: (3,) the start position (m, world frame); the plan starts there.
+        target_range: the largest horizontal offset of the target per axis (m).
+        wind_max: the largest horizontal mean wind per axis (m/s).
+        gust_max: the largest gust amplitude per axis (m/s; the vertical one scaled by 0.3).
+        leg_time: the duration of the leg (s).
+
+    Returns:
+        The plan (one leg, the nose along it) and the wind.
+    """
     k1, k2, k3, k4, k5 = jax.random.split(key, 5)
     horiz = jax.random.uniform(k1, (2,), minval=-target_range, maxval=target_range)
     vert = jax.random.uniform(k2, (), minval=-0.3 * target_range, maxval=0.3 * target_range)
@@ -118,10 +151,24 @@ def batched_rollouts(
     n_envs: int,
     n_steps: int,
     dt: float,
-    **scenario,
+    **scenario: float,
 ) -> tuple[State, Trace]:
-    """``n_envs`` environments with randomised targets and wind, vmapped (see
-    :func:`random_scenario` for ``scenario`` options)."""
+    """``n_envs`` environments with randomised targets and wind, vmapped.
+
+    Args:
+        quad: the rigid body, motors and aerodynamics, shared by every environment.
+        ctrl: the controller, shared.
+        key: the random key, split into one per environment.
+        s0: the initial state, shared; the targets are drawn around its position.
+        n_envs: the number of environments.
+        n_steps: the number of steps of each.
+        dt: the step (s).
+        **scenario: options of :func:`random_scenario` (``target_range``, ``wind_max``,
+            ``gust_max``, ``leg_time``).
+
+    Returns:
+        The final states and the traces, each with a leading axis of ``n_envs``.
+    """
     keys = jax.random.split(key, n_envs)
 
     def one(k):

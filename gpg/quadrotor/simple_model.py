@@ -15,6 +15,8 @@ sweep (:func:`fit_to_generator`), so the residual the GP learns is what ``M`` mi
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -25,6 +27,11 @@ from gpg._dtype import float64, in_model_dtype
 from gpg.quadrotor import bemt
 from gpg.quadrotor.frames import R_WB, matvec
 from gpg.quadrotor.vehicle import Vehicle
+
+if TYPE_CHECKING:
+    from gpg.quadrotor.generator import Generator
+
+__all__ = ["SimpleModel", "fit_to_generator", "hover_sweep"]
 
 
 class SimpleModel(eqx.Module):
@@ -37,6 +44,16 @@ class SimpleModel(eqx.Module):
 
     @classmethod
     def from_vehicle(cls, vehicle: Vehicle, P_F: float, T_z: float) -> SimpleModel:
+        """``M`` with the rotor layout of ``vehicle`` and the given coefficients.
+
+        Args:
+            vehicle: the vehicle whose hub positions and spins set the allocation.
+            P_F: the thrust coefficient (N/rpm²), ``T = P_F r²`` per rotor.
+            T_z: the torque coefficient (N·m/rpm²), ``Q = T_z r²`` per rotor.
+
+        Returns:
+            The model, its coefficients as float arrays.
+        """
         return cls(
             P_F=jnp.asarray(P_F, dtype=float),
             T_z=jnp.asarray(T_z, dtype=float),
@@ -63,9 +80,17 @@ class SimpleModel(eqx.Module):
     def wrench_body(
         self, rpm: Float[ArrayLike, " 4"]
     ) -> tuple[Float[Array, " 3"], Float[Array, " 3"]]:
-        """Body-frame force (N) and torque (N·m) at rotor speeds ``rpm``: ``A r²`` with ``A``
-        from :attr:`allocation`, the matrix the controller inverts, and the thrust along
-        ``−z_B``."""
+        """Body-frame force and torque at rotor speeds ``rpm``.
+
+        ``(ΣT, τ) = A r²`` with ``A`` from :attr:`allocation`, the matrix the controller
+        inverts; the thrust acts along ``−z_B``.
+
+        Args:
+            rpm: (4,) rotor speeds r1..r4 (rpm).
+
+        Returns:
+            The body-frame force (3,) (N), ``(0, 0, −ΣT)``, and torque (3,) (N·m).
+        """
         u = matvec(self.allocation, jnp.asarray(rpm) ** 2)  # (ΣT, τx, τy, τz)
         zero = jnp.zeros_like(u[0])
         return jnp.stack([zero, zero, -u[0]]), u[1:]
@@ -78,22 +103,52 @@ class SimpleModel(eqx.Module):
         return jnp.concatenate([matvec(R, F), matvec(R, tau)])
 
     def jacobian(self, x_M: Float[ArrayLike, " 7"]) -> Float[Array, "6 7"]:
-        """``J_M = ∂y_M/∂x_M`` (6, 7), by forward-mode autodiff."""
+        """``J_M = ∂y_M/∂x_M``, by forward-mode autodiff.
+
+        Args:
+            x_M: (7,) state ``(r1..r4, yaw, pitch, roll)`` (rpm, rad).
+
+        Returns:
+            The (6, 7) Jacobian of the world-frame wrench ``y_M = (F_W, τ_W)``.
+        """
         return jax.jacfwd(self.__call__)(jnp.asarray(x_M))
 
     def batch(
         self, X_M: Float[ArrayLike, "N 7"]
     ) -> tuple[Float[Array, "N 6"], Float[Array, "N 6 7"]]:
-        """``y_M`` and ``J_M`` for many states, in padded chunks (:func:`in_chunks`); traced
-        ``X_M`` (inside a user's ``jit``) is vmapped directly."""
+        """``y_M`` and ``J_M`` for many states, in padded chunks.
+
+        One compiled program serves every ``N`` (:func:`in_chunks`); a traced ``X_M`` (inside
+        a user's ``jit``) is vmapped directly.
+
+        Args:
+            X_M: (N, 7) states ``(r1..r4, yaw, pitch, roll)``.
+
+        Returns:
+            The wrenches ``y_M`` (N, 6) and the Jacobians ``J_M`` (N, 6, 7).
+        """
         return in_chunks(_batch, self, X_M)
 
     def values(self, X_M: Float[ArrayLike, "N 7"]) -> Float[Array, "N 6"]:
-        """``y_M`` for many states, as :meth:`batch` without the Jacobians."""
+        """``y_M`` for many states, as :meth:`batch` without the Jacobians.
+
+        Args:
+            X_M: (N, 7) states ``(r1..r4, yaw, pitch, roll)``.
+
+        Returns:
+            The world-frame wrenches ``y_M`` (N, 6).
+        """
         return in_chunks(_values, self, X_M)
 
     def hover_rpm(self, weight: float) -> Float[Array, ""]:
-        """Equal rotor speed at which ``M``'s thrust balances ``weight`` (N)."""
+        """Equal rotor speed at which ``M``'s thrust balances ``weight``: ``√(W / 4P_F)``.
+
+        Args:
+            weight: the weight to carry (N).
+
+        Returns:
+            The rotor speed (rpm), a scalar (computed in the model's dtype).
+        """
         return in_model_dtype(self, lambda: jnp.sqrt(weight / (4.0 * self.P_F)))
 
 
@@ -105,7 +160,8 @@ def in_chunks(fn, model, X: ArrayLike):
     last row), the outputs' rows concatenated; a traced ``X`` (inside a user's ``jit``) is
     passed to ``fn`` whole. One compiled program serves every ``N``: run op
     by op, the vmapped model and its Jacobian compiled some 80 small programs for every new
-    ``N`` (1.5-2 s at each fit or conditioning), and a program per ``N`` rounds a row's
+    ``N`` (a compile at each fit or conditioning, see docs/measurements.md), and a program
+    per ``N`` rounds a row's
     Jacobian differently, by an ulp, from one ``N`` to another, so that a case's targets would
     depend on the batch it came in (conditioning then differs from a rebuild by far more on
     ill-conditioned data). Here a row's result is the same in any batch."""
@@ -147,10 +203,19 @@ def fit_coefficients(
     )
 
 
-def hover_sweep(generator, rpm: Float[ArrayLike, " S"]) -> tuple[np.ndarray, np.ndarray]:
-    """Per-rotor thrust (N) and torque (N·m), each (S, 4), of ``generator`` (a
-    :class:`gpg.quadrotor.generator.Generator`) at hover (level, zero airspeed), all four
-    rotors at each rpm of ``rpm``."""
+def hover_sweep(generator: Generator, rpm: Float[ArrayLike, " S"]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-rotor thrust and torque of the generator at hover, all four rotors at each rpm.
+
+    Hover here is level, at zero airspeed, without body rates (:func:`gpg.quadrotor.bemt.aero`
+    with the generator's settings).
+
+    Args:
+        generator: the generator (:class:`gpg.quadrotor.generator.Generator`).
+        rpm: (S,) rotor speeds (rpm), the same on all four rotors.
+
+    Returns:
+        The thrust (N) and torque (N·m) of each rotor, each (S, 4), as NumPy.
+    """
 
     @jax.jit
     def one(r):
@@ -162,11 +227,21 @@ def hover_sweep(generator, rpm: Float[ArrayLike, " S"]) -> tuple[np.ndarray, np.
 
 
 @float64
-def fit_to_generator(generator, rpm: Float[ArrayLike, " S"] | None = None) -> SimpleModel:
+def fit_to_generator(
+    generator: Generator, rpm: Float[ArrayLike, " S"] | None = None
+) -> SimpleModel:
     """Fit ``P_F`` and ``T_z`` on the generator's :func:`hover_sweep`.
 
-    ``generator`` is a :class:`gpg.quadrotor.generator.Generator`; the sweep defaults to
-    2000–6000 rpm in 500 rpm steps, the range of the paper's hover condition and its margins.
+    The sweep defaults to 2000–6000 rpm in 500 rpm steps, the range of the paper's hover
+    condition and its margins; the fit runs in float64.
+
+    Args:
+        generator: the generator (:class:`gpg.quadrotor.generator.Generator`) whose vehicle
+            ``M`` describes.
+        rpm: (S,) the rotor speeds of the sweep (rpm); None: the default sweep.
+
+    Returns:
+        ``M`` of the generator's vehicle with the fitted ``P_F`` and ``T_z``.
     """
     rpm = np.arange(2000.0, 6001.0, 500.0) if rpm is None else np.asarray(rpm, dtype=float)
     T, Q = hover_sweep(generator, rpm)

@@ -48,6 +48,8 @@ from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.simple_model import SimpleModel, in_chunks
 from gpg.quadrotor.vehicle import Vehicle
 
+__all__ = ["SimpleNoise"]
+
 RPM_TO_RAD_S = 2.0 * jnp.pi / 60.0
 _EPS_V = 1e-6  # m/s, keeps speeds and their derivatives finite at rest
 
@@ -59,8 +61,8 @@ class SimpleNoise(eqx.Module):
     vehicle: Vehicle
     P_F: Float[Array, ""]  # N/rpm², M's thrust coefficient
     T_z: Float[Array, ""]  # N·m/rpm², M's torque coefficient
-    # The first four BPF harmonics and eight thickness stations: within 0.03 dB of the ten and
-    # sixteen of the generator's setting at hover, at a quarter of the cost.
+    # The first four BPF harmonics and eight thickness stations: close to the ten and sixteen
+    # of the generator's setting at hover, at a fraction of the cost (docs/measurements.md).
     n_harmonics: int = eqx.field(static=True, default=4)
     thickness_stations: int = eqx.field(static=True, default=8)
     # Twelve azimuthal stations resolve the load harmonics λ = 0..±5, enough for the on-axis
@@ -76,8 +78,19 @@ class SimpleNoise(eqx.Module):
 
     @classmethod
     def from_vehicle(cls, vehicle: Vehicle, simple: SimpleModel) -> SimpleNoise:
-        """``M_noise`` of ``vehicle`` with ``simple``'s coefficients; ``ValueError`` naming what
-        a vehicle without the acoustic data lacks."""
+        """``M_noise`` of ``vehicle`` with ``simple``'s coefficients.
+
+        Args:
+            vehicle: a vehicle with the acoustic data (rotor, airfoil, microphones, air
+                density, speed of sound).
+            simple: ``M``, whose ``P_F`` and ``T_z`` set the mean rotor loads.
+
+        Returns:
+            The noise model, with the default harmonics, stations and strips.
+
+        Raises:
+            ValueError: if the vehicle lacks any of the acoustic data, naming what.
+        """
         missing = [
             k
             for k in ("rotor", "airfoil", "microphones", "air_density", "speed_of_sound")
@@ -92,9 +105,18 @@ class SimpleNoise(eqx.Module):
 
     @highest
     def load_shape(self, x: Float[Array, " D"]) -> Float[Array, "4 P"]:
-        """``s_i(ψ)``: each rotor's blade load at the azimuths ``2πk/P`` over its mean, from the
-        quasi-steady blade elements (module docstring) at the dataset input ``x`` (8 airflow-
-        frame entries, or 7 body-frame ones)."""
+        """``s_i(ψ)``: each rotor's blade load at the azimuths ``2πk/P`` over its mean.
+
+        From the quasi-steady blade elements with Drees' prescribed inflow around Glauert's
+        ``v₀`` of ``M``'s thrust (module docstring).
+
+        Args:
+            x: one dataset input: (8,) ``(r1..r4, yaw, pitch, roll, V)`` in the airflow frame
+                or (7,) ``(r1..r4, u, v, w)`` in the body frame.
+
+        Returns:
+            The (4, P) load shapes, each row of mean one, ``P = n_azimuth``.
+        """
         veh, rot = self.vehicle, self.vehicle.rotor
         R = rot.radius
         omega = x[:4] * RPM_TO_RAD_S
@@ -169,15 +191,33 @@ class SimpleNoise(eqx.Module):
         return acoustics.oaspl(self.vehicle, self._loads(x), self.cfg)
 
     def jacobian(self, x: Float[ArrayLike, " D"]) -> Float[Array, "3 D"]:
-        """``∂M_noise/∂x`` (3, D), by forward-mode autodiff."""
+        """``∂M_noise/∂x``, by forward-mode autodiff.
+
+        Args:
+            x: one dataset input, (8,) airflow-frame or (7,) body-frame.
+
+        Returns:
+            The (3, D) Jacobian of the three levels (dB per input unit).
+        """
         return jax.jacfwd(self.__call__)(jnp.asarray(x, dtype=float))
 
     def batch(
         self, X: Float[ArrayLike, "N D"]
     ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3 D"]]:
-        """Levels and Jacobians of many inputs (D = 8 airflow-frame or 7 body-frame entries),
-        in padded chunks (:func:`in_chunks`): one compiled program serves every N (its
-        compilation, not the evaluation, is the cost)."""
+        """Levels and Jacobians of many inputs, in padded chunks.
+
+        One compiled program serves every N (:func:`gpg.quadrotor.simple_model.in_chunks`):
+        its compilation, not the evaluation, is the cost.
+
+        Args:
+            X: (N, D) inputs, D = 8 airflow-frame or 7 body-frame entries.
+
+        Returns:
+            The levels (N, 3) (dB) and their Jacobians (N, 3, D).
+
+        Raises:
+            ValueError: if ``X`` is not (N, 8) or (N, 7).
+        """
         X = np.asarray(X, dtype=float)
         if X.ndim != 2 or X.shape[1] not in (8, 7):
             raise ValueError(

@@ -32,6 +32,8 @@ from jaxtyping import Array, Float
 
 from gpg import conf
 
+__all__ = ["Airfoil", "Rotor", "Vehicle", "known_vehicles", "load_vehicle", "vehicle_config"]
+
 INCH = 0.0254  # m
 
 
@@ -115,7 +117,15 @@ class Vehicle(eqx.Module):
         return tuple(k for k in GENERATOR_KEYS if have[k] is None)
 
     def require_generator(self) -> Vehicle:
-        """This vehicle, or a ``ValueError`` naming what the built-in generator would lack."""
+        """This vehicle, checked to carry everything the built-in generator needs.
+
+        Returns:
+            The vehicle itself, unchanged.
+
+        Raises:
+            ValueError: if it lacks any generator-only part (:attr:`generator_missing`), naming
+                them.
+        """
         missing = self.generator_missing
         if missing:
             raise ValueError(
@@ -127,8 +137,22 @@ class Vehicle(eqx.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> Vehicle:
-        """Build from the mapping of a vehicle YAML file (plain dict); see the module
-        docstring for what is required and what is optional."""
+        """Build from the mapping of a vehicle YAML file (plain dict).
+
+        The module docstring says what is required and what is optional. Every key is read
+        once: a missing required key, a value out of range and an unknown key are errors,
+        each naming the full key (``vehicle.motor.rpm_max``).
+
+        Args:
+            cfg: the vehicle file's mapping (as :func:`vehicle_config` returns it).
+
+        Returns:
+            The vehicle; the generator-only fields are None where the file omits them.
+
+        Raises:
+            ValueError: if a key is missing, malformed, out of range or unknown, or the spins,
+                inertia or motor range are inconsistent, naming the key.
+        """
         c = _Reader(cfg, "vehicle")
         lay = _Reader(c.get("layout"), "vehicle.layout")
         motor = _Reader(c.get("motor"), "vehicle.motor")
@@ -263,20 +287,45 @@ def _generator_part(c: _Reader) -> dict[str, Any]:
 
 
 def load_vehicle(name_or_path: str | Path = "sui_endurance") -> Vehicle:
-    """A vehicle by name (one of :func:`known_vehicles`, shipped with gpg) or from a YAML file at
-    any path (any suffix): an existing file is read as it is, anything else is looked up by
-    name."""
+    """A vehicle by name or from a YAML file at any path.
+
+    An existing file (any suffix) is read as it is; anything else is looked up by name among
+    the vehicle files shipped with gpg (:func:`known_vehicles`).
+
+    Args:
+        name_or_path: a shipped vehicle's name (``"sui_endurance"``, the default) or a path.
+
+    Returns:
+        The vehicle (:meth:`Vehicle.from_config` of :func:`vehicle_config`).
+    """
     return Vehicle.from_config(vehicle_config(name_or_path))
 
 
 def known_vehicles() -> list[str]:
-    """The names of the vehicle files shipped with gpg (``gpg/conf/vehicle``)."""
+    """The names of the vehicle files shipped with gpg (``gpg/conf/vehicle``).
+
+    Returns:
+        The names, each accepted by :func:`load_vehicle`.
+    """
     return conf.names("vehicle")
 
 
 def vehicle_config(name_or_path: str | Path = "sui_endurance") -> dict[str, Any]:
-    """The plain mapping of a vehicle file (see :func:`load_vehicle`), e.g. to record in a
-    dataset's metadata so that the dataset names its own vehicle."""
+    """The plain mapping of a vehicle file, unchecked beyond being a mapping.
+
+    Used e.g. to record in a dataset's metadata, so that the dataset names its own vehicle;
+    the lookup is :func:`load_vehicle`'s.
+
+    Args:
+        name_or_path: a shipped vehicle's name or the path of a YAML file.
+
+    Returns:
+        The file's mapping as a plain dict.
+
+    Raises:
+        ValueError: if there is no such file or shipped vehicle, or the file is not valid
+            YAML (or UTF-8) or does not hold a mapping.
+    """
     path = Path(name_or_path)
     where: Any = path
     if path.is_file():

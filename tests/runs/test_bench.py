@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from gpg.runs import bench
+from experiments.runs import bench
 from tests.helpers import compose_plain, finite_numbers
 
 
@@ -123,7 +123,7 @@ def test_bench_export_suite(tmp_path):
 def test_bench_gpu_suite_on_the_cpu(smoke_cache, synthetic_surrogate, tmp_path):
     """The accelerator suite runs on whatever JAX's default device is (here the CPU): fits,
     throughput in both dtypes, the float32 error in newtons, environment steps."""
-    from gpg.runs.bench_gpu import bench_gpu, gpu_table
+    from experiments.runs.bench_gpu import bench_gpu, gpu_table
 
     cfg = compose_plain("bench", ["data=smoke"])
     sub = {

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from experiments.compare import model_configs
-from gpg.runs import compare
+from experiments.runs import compare
 from tests.helpers import compose_plain, finite_numbers, synthetic_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -233,7 +233,7 @@ def test_noise_model_both_runs_each_model_with_and_without_m_noise(tmp_path):
     ],
 )
 def test_bad_overrides_fail_before_any_work(tmp_path, override, match):
-    from gpg.runs import compare
+    from experiments.runs import compare
 
     values = compose_plain(
         "compare",
@@ -249,7 +249,7 @@ def test_runs_started_in_the_same_second_get_their_own_directories():
     from omegaconf import OmegaConf
 
     import experiments._hydra  # noqa: F401  (registers the resolver, as the entry points do)
-    from gpg.runs.common import CONF_DIR
+    from experiments.runs.common import CONF_DIR
 
     dirs = []
     for _ in range(2):

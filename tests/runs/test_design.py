@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
+from experiments.runs import design
 from gpg.data.dataset import Dataset
 from gpg.design import cases
-from gpg.runs import design
 from tests.helpers import compose_plain, finite_numbers
 
 pytestmark = pytest.mark.slow
@@ -51,8 +51,8 @@ def test_ask_then_tell(smoke_cache, tmp_path):
         compose_plain("design", SMALL + [f"cache_dir={smoke_cache}", "step=ask"]), tmp_path / "a"
     )
     assert asked["cases"] == 4
+    from experiments.runs.common import conf
     from gpg.data.cache import build_generator
-    from gpg.runs.common import conf
 
     gen = build_generator(conf("smoke", "data"), conf("sui_endurance", "vehicle"))
     answered = design.answer(gen, tmp_path / "a" / "ask.csv", tmp_path / "answered.csv")
@@ -73,8 +73,8 @@ def test_ask_then_tell(smoke_cache, tmp_path):
 def test_bench_design_suite(smoke_cache):
     """The ``design`` bench suite on smoke data: conditioning equals the rebuild; the refit
     with its likelihood fit is timed when asked for."""
-    from gpg.runs.bench_design import bench_design, design_table
-    from gpg.runs.common import conf
+    from experiments.runs.bench_design import bench_design, design_table
+    from experiments.runs.common import conf
 
     cfg = {"data": conf("smoke", "data"), "vehicle": conf("sui_endurance", "vehicle"),
            "cache_dir": str(smoke_cache), "added": 6, "models": ["gpg"], "candidates": 200,

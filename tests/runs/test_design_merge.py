@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from gpg.runs import design
+from experiments.runs import design
 from tests.helpers import compose_plain
 
 

@@ -1,4 +1,4 @@
-"""``experiments.envelope`` (gpg/runs/envelope.py): the airflow-frame cases seen from the
+"""``experiments.envelope`` (experiments/runs/envelope.py): the airflow-frame cases seen from the
 body, and the whole experiment at smoke scale (slow: a generator run and twelve fits)."""
 
 import json
@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from experiments.runs import envelope
+from experiments.runs.common import world_arrays
 from gpg.data.convert import body_inputs
 from gpg.quadrotor.frames import R_WB
-from gpg.runs import envelope
-from gpg.runs.common import world_arrays
 from tests.helpers import compose_plain, finite_numbers
 
 

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from gpg.runs import export
+from experiments.runs import export
 from tests.helpers import compose_plain, finite_numbers
 
 pytestmark = pytest.mark.slow

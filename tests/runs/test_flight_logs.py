@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
+from experiments.runs import flight_logs
 from gpg import checkpoint
-from gpg.runs import flight_logs
 from tests.helpers import compose_plain, finite_numbers
 
 SMOKE = [

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from experiments.runs import generate_data
 from gpg.data.dataset import Dataset
-from gpg.runs import generate_data
 from tests.helpers import compose_plain
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,9 +9,9 @@ import jax
 import numpy as np
 import pytest
 
+from experiments.runs import learn, mpc
 from gpg import checkpoint
 from gpg.envs import apg
-from gpg.runs import learn, mpc
 from tests.helpers import compose_plain, finite_numbers
 
 pytestmark = pytest.mark.slow

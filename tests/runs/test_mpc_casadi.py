@@ -1,4 +1,4 @@
-"""The CasADi MPC (gpg/runs/mpc_casadi.py) on a small surrogate: one IPOPT solve from hover
+"""The CasADi MPC (experiments/runs/mpc_casadi.py) on a small surrogate: one IPOPT solve from hover
 behind a moving reference returns offsets inside their bounds that push toward the reference,
 and a second solve warm-starts from the first."""
 
@@ -31,7 +31,7 @@ def setup():
 
 @pytest.mark.parametrize("beta, linear", [(0.0, True), (2.0, False)])
 def test_one_solve_pushes_toward_the_reference(beta, linear):
-    from gpg.runs.mpc_casadi import make_casadi_solver
+    from experiments.runs.mpc_casadi import make_casadi_solver
 
     sur, vehicle, ctrl, plan, x0 = setup()
     solve = make_casadi_solver(sur, vehicle, ctrl, plan, {**C, "caution_linearised": linear}, beta)
@@ -49,7 +49,7 @@ def test_linearised_caution_converges_to_the_exact_one():
     problem, each time about the last plan, reaches the exact term's solution (to IPOPT's
     tolerance of the scaled optimality error, 1e-8 here; it contracts by about 7x a solve on
     this problem, so six reach 1e-4 of the offsets with margin)."""
-    from gpg.runs.mpc_casadi import make_casadi_solver
+    from experiments.runs.mpc_casadi import make_casadi_solver
 
     sur, vehicle, ctrl, plan, x0 = setup()
     c = {**C, "tol": 1e-8}

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from gpg.runs import simulate
+from experiments.runs import simulate
 from tests.helpers import compose_plain, finite_numbers
 
 pytestmark = pytest.mark.slow

@@ -29,6 +29,7 @@ import jax
 import numpy as np
 import yaml
 
+from experiments.runs.common import CONF_DIR, conf
 from gpg import models
 from gpg.data.cache import load_data
 from gpg.data.preprocess import prepare, restore, simple_model_for
@@ -36,7 +37,6 @@ from gpg.gp import ExactGP, partition
 from gpg.gp.fit import fit_hyperparameters
 from gpg.names import AERO
 from gpg.quadrotor.vehicle import load_vehicle
-from gpg.runs.common import CONF_DIR, conf
 
 HERE = Path(__file__).parent
 FAST = 15.0  # m/s

@@ -24,13 +24,13 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg._dtype import float64
+from experiments.runs.common import check_options, machine, report
 from gpg.data.cache import build_generator, load_data
 from gpg.data.dataset import Dataset
 from gpg.data.sampling import FDSteps, generate
 from gpg.design import cases, merge_datasets, propose
 from gpg.quadrotor.generator import evaluate_batch
-from gpg.runs.common import check_options, machine, report, write_json
+from gpg.runtime import float64, write_json
 from gpg.surrogate import Surrogate
 
 OPTIONS = {

@@ -183,7 +183,7 @@ def compare_figures(
 ) -> list[Path]:
     """Error distributions (paper Fig. model comparison), all outputs, the Schur model against
     its no-Schur counterpart, error vs airspeed, and every mean form of the Schur model.
-    ``results`` are the runs by label (:class:`gpg.runs.results.ModelRun`, others skipped) and
+    ``results`` are the runs by label (:class:`gpg.results.ModelRun`, others skipped) and
     ``errors`` their absolute test errors (Q, M). Models that fail on an output are listed under
     its panel instead of stretching its axis (their own figures show them)."""
     ok = {k: v for k, v in results.items() if k in errors}

@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
-from gpg._dtype import float64
+from experiments.runs.common import check_options, report
 from gpg.data.cache import ensure
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import simple_model_for
 from gpg.quadrotor.generator import Generator, evaluate_batch
-from gpg.runs.common import check_options, report, write_json
+from gpg.runtime import float64, write_json
 
 
 def _gradient_check(gen: Generator, ds: Dataset, n: int) -> dict[str, Any]:
@@ -53,7 +53,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
         "hover_rpm_simple_model": float(simple.hover_rpm(float(gen.vehicle.weight))),
     }
     if cfg.get("figures", True):
-        from gpg.runs import plots
+        from experiments.runs import plots
 
         check = _gradient_check(gen, train, int(cfg.get("sanity_points", 200)))
         figs = plots.data_sanity(gen, simple, check, outdir / "figures")

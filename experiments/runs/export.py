@@ -27,9 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpg._dtype import float64
-from gpg.quadrotor.frames import R_WB
-from gpg.runs.common import (
+from experiments.runs.common import (
     check_options,
     latency,
     machine,
@@ -39,8 +37,9 @@ from gpg.runs.common import (
     surrogate_from_config,
     table,
     time_calls,
-    write_json,
 )
+from gpg.quadrotor.frames import R_WB
+from gpg.runtime import float64, write_json
 
 FORMATS = ("c", "casadi", "onnx")
 OPTIONS = {
@@ -431,7 +430,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
 
 
 def _us(timing: dict[str, float]) -> dict[str, float]:
-    """:func:`gpg.runs.common.stats` (seconds) in microseconds."""
+    """:func:`experiments.runs.common.stats` (seconds) in microseconds."""
     return {k[:-2] + "_us": 1e6 * v for k, v in timing.items() if k.endswith("_s")}
 
 

@@ -21,9 +21,10 @@ Suites:
   states, and the time of a batched ``jacrev``.
 * ``envs``: environment steps per second of :class:`gpg.envs.QuadrotorEnv` (float32) on the
   surrogate and on ``M``, for several numbers of vmapped environments.
-* ``gpu``: gpg end to end on one accelerator (:mod:`gpg.runs.bench_gpu`; runs on the CPU too).
+* ``gpu``: gpg end to end on one accelerator (:mod:`experiments.runs.bench_gpu`; runs on the
+  CPU too).
 * ``flight``: a PX4 log read and labelled against the time it flew, and the cost of one
-  adaptation update (:mod:`gpg.runs.bench_flight`).
+  adaptation update (:mod:`experiments.runs.bench_flight`).
 """
 
 from __future__ import annotations
@@ -37,19 +38,13 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg._dtype import float64
-from gpg.gp.exact import ExactGP
-from gpg.gp.gram import assemble_gram
-from gpg.gp.hyper import Hyper
-from gpg.linalg import dense
-from gpg.runs.bench_design import bench_design, design_table
-from gpg.runs.bench_export import bench_export, export_table
-from gpg.runs.bench_flight import bench_flight, flight_table
-from gpg.runs.bench_gpu import bench_gpu, gpu_table
-from gpg.runs.bench_solver import bench_solver, solver_table
-from gpg.runs.common import (
+from experiments.runs.bench_design import bench_design, design_table
+from experiments.runs.bench_export import bench_export, export_table
+from experiments.runs.bench_flight import bench_flight, flight_table
+from experiments.runs.bench_gpu import bench_gpu, gpu_table
+from experiments.runs.bench_solver import bench_solver, solver_table
+from experiments.runs.common import (
     conf,
-    deep_merge,
     fit_model,
     latency,
     machine,
@@ -60,8 +55,13 @@ from gpg.runs.common import (
     time_calls,
     world_arrays,
     world_states,
-    write_json,
 )
+from gpg.conf import deep_merge
+from gpg.gp.exact import ExactGP
+from gpg.gp.gram import assemble_gram
+from gpg.gp.hyper import Hyper
+from gpg.linalg import dense
+from gpg.runtime import float64, write_json
 
 
 def _synthetic(n: int, d: int, dims: tuple[int, ...], n_out: int, seed: int):

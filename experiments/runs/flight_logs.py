@@ -33,8 +33,8 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from experiments.runs.common import check_options, flight_setup, machine, report, table
 from gpg import checkpoint
-from gpg._dtype import float64
 from gpg.flight import correction as fc
 from gpg.flight.labels import Labels, label
 from gpg.flight.log import read_csv, write_csv
@@ -42,7 +42,7 @@ from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController
 from gpg.quadrotor.dynamics import Wind
-from gpg.runs.common import check_options, flight_setup, machine, report, table, write_json
+from gpg.runtime import float64, write_json
 
 OPTIONS = {
     "cache_dir": "path",

@@ -16,12 +16,13 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.runs.common import conf, table
 from gpg import models
+from gpg.conf import deep_merge
 from gpg.data.cache import ensure_datasets
 from gpg.data.preprocess import prepare, restore, simple_model_for
 from gpg.linalg import memory
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import conf, deep_merge, table
 
 MODEL = "gpgs_hybrid"
 

@@ -22,11 +22,11 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from experiments.runs.common import table
+from experiments.runs.design import release_memory
 from gpg import design
 from gpg.data.cache import ensure_datasets
 from gpg.linalg import memory
-from gpg.runs.common import table
-from gpg.runs.design import release_memory
 from gpg.surrogate import Surrogate
 
 

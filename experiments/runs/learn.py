@@ -19,41 +19,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpg._dtype import float64
+from experiments.runs.common import check_options, machine, report, surrogate_from_config
 from gpg.envs import apg
+from gpg.envs.evaluation import evaluate
 from gpg.envs.quadrotor import EnvParams, QuadrotorEnv
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import check_options, machine, report, surrogate_from_config, write_json
-
-
-def evaluate(env, params, act, key, n_envs: int, steps: int) -> dict[str, Any]:
-    """``act(obs, state) -> action`` flown from ``n_envs`` resets drawn from ``key`` for
-    ``steps`` steps (no automatic reset): RMS and final position error, in-domain share and
-    the share of episodes that crashed; plus the mean error per step (for the figure)."""
-
-    def one(k):
-        k0, k1 = jax.random.split(k)
-        obs, st = env.reset_env(k0, params)
-
-        def body(carry, kk):
-            obs, st, dead = carry
-            obs, st, _, _, info = env.step_env(kk, st, act(obs, st), params)
-            dead = dead | info["terminated"]
-            return (obs, st, dead), (info["position_error"], info["in_domain"], dead)
-
-        _, out = jax.lax.scan(body, (obs, st, jnp.asarray(False)), jax.random.split(k1, steps))
-        return out
-
-    err, ok, dead = jax.jit(jax.vmap(one))(jax.random.split(key, n_envs))
-    err, ok, dead = np.asarray(err, float), np.asarray(ok), np.asarray(dead)
-    return {
-        "rms_position_error_m": float(np.sqrt(np.mean(err**2))),
-        "final_position_error_m": float(np.mean(err[:, -1])),
-        "in_domain_fraction": float(np.mean(ok)),
-        "crashed_fraction": float(np.mean(dead[:, -1])),
-        "error_per_step_m": err.mean(0).tolist(),
-    }
-
+from gpg.runtime import float64, write_json
 
 OPTIONS = {
     "figures": "bool",

@@ -17,7 +17,7 @@ for every controller. The mission is the paper's round trip (``simulate``'s flig
   it steers away from states where the model is unsure (outside or at the edge of its data).
 
 * **casadi** (``casadi.enabled``): a gradient-based MPC of the same offsets through CasADi's
-  ``Opti`` and IPOPT on the exported surrogate (:mod:`gpg.runs.mpc_casadi`), its variance as
+  ``Opti`` and IPOPT on the exported surrogate (:mod:`experiments.runs.mpc_casadi`), its variance as
   the cautious term (linearised about the previous plan, or exact), at its own rate
   (``casadi.dt``).
 
@@ -36,14 +36,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpg._dtype import float64
+from experiments.runs.common import flight_setup, machine, report
 from gpg.envs.wind import Dryden
 from gpg.mpc import MPPI, pack, unpack
 from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, State, Wind
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import flight_setup, machine, report, write_json
+from gpg.runtime import float64, write_json
 from gpg.surrogate import Surrogate, SurrogateAero, predict_state
 
 
@@ -200,8 +200,8 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
             solve, plant_step, s0, plan, winds, key, dt, every, int(c["horizon"])
         )
     cas = {**c, **cfg.get("casadi", {})}
-    if cas.get("enabled", False):  # IPOPT on the exported surrogate (gpg.runs.mpc_casadi)
-        from gpg.runs.mpc_casadi import make_casadi_solver
+    if cas.get("enabled", False):  # IPOPT on the exported surrogate (experiments.runs.mpc_casadi)
+        from experiments.runs.mpc_casadi import make_casadi_solver
 
         every_c = int(round(float(cas["dt"]) / dt))
         if every_c < 1 or abs(every_c * dt - float(cas["dt"])) > 1e-9:

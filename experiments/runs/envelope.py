@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpg._dtype import float64
+from experiments.runs.common import check_options, conf, machine, report, table, world_arrays
 from gpg.data.bounds import Bounds
 from gpg.data.cache import build_generator, ensure_datasets
 from gpg.data.convert import body_inputs, body_meta, to_body
@@ -42,15 +42,7 @@ from gpg.data.dataset import Dataset
 from gpg.data.sampling import FDSteps, fd_meta, forward_differences, raw_samples
 from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.generator import evaluate_batch, vortex_ring_state
-from gpg.runs.common import (
-    check_options,
-    conf,
-    machine,
-    report,
-    table,
-    world_arrays,
-    write_json,
-)
+from gpg.runtime import float64, write_json
 
 # The training sets, in order (see the module docstring)
 TRAININGS = ("airflow", "same_cases", "converted", "converted_no_angles", "envelope")
@@ -186,8 +178,8 @@ def generator_changes(gen, states, step: float) -> np.ndarray:
 def env_in_domain(sur, vehicle, ecfg: dict[str, Any]) -> list[dict[str, Any]]:
     """The geometric controller in the RL environment on ``sur``: the share of steps in
     domain for each task and wind (any direction), ``n_envs`` environments, ``steps`` steps."""
+    from gpg.envs.evaluation import evaluate
     from gpg.envs.quadrotor import EnvParams, QuadrotorEnv
-    from gpg.runs.learn import evaluate
 
     env = QuadrotorEnv.create(vehicle, sur, action="ctbr", dtype=jnp.float32)
     rows = []

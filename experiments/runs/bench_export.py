@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from gpg.runs.common import latency, report, stats, table
-from gpg.runs.export import CASADI_DRIVER, c_driver, compile_and_time
+from experiments.runs.common import latency, report, stats, table
+from experiments.runs.export import CASADI_DRIVER, c_driver, compile_and_time
 
 CALLS = (
     ("mean", "quad_mean(rpm, e, v, f, tq, lv)"),
@@ -30,8 +30,8 @@ CALLS = (
 
 def _casadi(sur, cc: str, flags, where: Path, states, cfg) -> dict[str, Any]:
     """The CasADi function: its own evaluation from Python, and its generated C."""
+    from experiments.runs.common import time_calls
     from gpg import export
-    from gpg.runs.common import time_calls
 
     f = export.to_casadi(sur, name="quad_ca", variance=False)
     calls = iter(states * (cfg["jax_calls"] // len(states) + 2))
@@ -65,7 +65,7 @@ def bench_export(cfg: dict[str, Any]) -> dict[str, Any]:
     for n in cfg["n_points"]:
         report(f"export: {n} training points")
         sur = Surrogate.fit(
-            _smooth_dataset(n, cfg["seed"]),
+            smooth_dataset(n, cfg["seed"]),
             "gpgs_hybrid",
             {"hyper": {"fit": False, "lengthscale": 0.8}},
         )
@@ -149,7 +149,7 @@ def export_table(res: dict[str, Any]) -> str:
     return table(rows, cols)
 
 
-def _smooth_dataset(n: int, seed: int):
+def smooth_dataset(n: int, seed: int):
     """N cases in the paper's box with the 9 outputs and their gradients of a smooth random
     function (a linear map of the scaled inputs through a sine): the sizes of a real model."""
     from gpg.data import Bounds, Dataset, latin_hypercube

@@ -21,7 +21,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from gpg.runs.common import stats, table
+from experiments.runs.common import stats, table
 
 
 def bench_flight(cfg: dict[str, Any]) -> dict[str, Any]:
@@ -62,12 +62,12 @@ def _log(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def _update(cfg: dict[str, Any]) -> dict[str, Any]:
+    from experiments.runs.bench_export import smooth_dataset
     from gpg import flight
-    from gpg.runs.bench_export import _smooth_dataset
     from gpg.surrogate import Surrogate
 
     prior = Surrogate.fit(
-        _smooth_dataset(int(cfg["n_points"]), 0),
+        smooth_dataset(int(cfg["n_points"]), 0),
         "gpgs_hybrid",
         {"hyper": {"fit": False, "lengthscale": 0.8}},
     )

@@ -20,19 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg import _interrupt, models
-from gpg._dtype import float64
-from gpg.config import ModelConfig
-from gpg.data.cache import load_data
-from gpg.data.dataset import Dataset
-from gpg.data.preprocess import prepare, restore, simple_model_for
-from gpg.gp import partition
-from gpg.linalg import memory
-from gpg.quadrotor.simple_noise import SimpleNoise
-from gpg.quadrotor.vehicle import Vehicle
-from gpg.runs.common import (
+from experiments.runs.common import (
     check_options,
-    deep_merge,
     fit_model,
     latency,
     machine,
@@ -41,7 +30,18 @@ from gpg.runs.common import (
     table,
     world_states,
 )
-from gpg.runs.results import Comparison, ModelRun, Run, Skipped, write_results
+from gpg import models
+from gpg.conf import deep_merge
+from gpg.config import ModelConfig
+from gpg.data.cache import load_data
+from gpg.data.dataset import Dataset
+from gpg.data.preprocess import prepare, restore, simple_model_for
+from gpg.gp import partition
+from gpg.linalg import memory
+from gpg.quadrotor.simple_noise import SimpleNoise
+from gpg.quadrotor.vehicle import Vehicle
+from gpg.results import Comparison, ModelRun, Run, Skipped, write_results
+from gpg.runtime import check_interrupt, float64
 from gpg.surrogate import Surrogate
 
 AIRSPEED_BINS = 10
@@ -341,7 +341,7 @@ def noise_reference(noise: SimpleNoise, train: Dataset, test: Dataset) -> dict[s
 @float64
 def run(cfg: dict[str, Any], outdir: Path, model_cfgs: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Compare the models of ``model_cfgs`` (name -> config) on the configured data; returns
-    what ``results.json`` holds (:func:`gpg.runs.results.write_results`)."""
+    what ``results.json`` holds (:func:`gpg.results.write_results`)."""
     outdir = Path(outdir)
     check_options(cfg, OPTIONS)
     resolved = resolve_models(model_cfgs, cfg.get("model_overrides"))
@@ -447,7 +447,7 @@ def _run_jobs(ready, results, cfg, train, test, simple, noise, single) -> dict[s
     bar = tqdm(ready, desc="models", unit="model")
     for label, name, mc, with_noise in bar:
         bar.set_postfix_str(label)
-        _interrupt.check()  # a deferred Ctrl-C stops between models
+        check_interrupt()  # a deferred Ctrl-C stops between models
         try:
             results[label], errors[label] = evaluate(
                 label,
@@ -476,7 +476,7 @@ def _record(cfg, resolved, results, errors, train, test, data_info, noise, outdi
     names = list(next(r for r in results.values() if isinstance(r, ModelRun)).mae)
     figures = []
     if cfg.get("figures", True):
-        from gpg.runs import plots
+        from experiments.runs import plots
 
         figures = plots.compare_figures(results, errors, names, outdir / "figures")
     ref = results.get("gp")

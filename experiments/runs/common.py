@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-import json
 import logging
 import os
 import platform
-import re
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -17,7 +15,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import jax
 import numpy as np
 
-from gpg._io import atomic_write
+from gpg import conf as package_conf
 
 if TYPE_CHECKING:
     from gpg.config import ModelConfig
@@ -27,11 +25,12 @@ if TYPE_CHECKING:
     from gpg.quadrotor.simple_model import SimpleModel
     from gpg.quadrotor.simple_noise import SimpleNoise
 
-# The entry points' own configs (compare.yaml, ...): in a checkout of the repository only. The
-# library's configs (data scales, models, vehicles) ship inside the package (gpg.conf).
+# The entry points' own configs (compare.yaml, ...), beside this package in the repository
+# (experiments/ and conf/ are both the repository's, neither is installed). The library's
+# configs (data scales, models, vehicles) ship inside gpg (gpg.conf).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
-_log = logging.getLogger("gpg.runs")
+_log = logging.getLogger("experiments.runs")
 
 
 def report(text: str) -> None:
@@ -46,56 +45,19 @@ def report(text: str) -> None:
 def conf(name: str, group: str | None = None) -> dict[str, Any]:
     """A config file as plain values, without Hydra (for notebooks and scripts):
     ``conf("smoke", "data")`` reads the data scale ``smoke`` shipped with gpg
-    (``gpg/conf/data/smoke.yaml``; likewise the groups ``model`` and ``vehicle``, found in an
-    installed gpg too); other groups and the entry points' configs are read from the
-    repository's ``conf/``. A defaults list is composed as Hydra does: a file of the same group
-    (``model/*.yaml`` extend ``_base``) is merged in, a ``group: name`` entry
-    (``conf/compare.yaml``'s ``data: default``) goes under the key ``group``; Hydra's own
-    settings (``hydra:``) are left out."""
+    (:func:`gpg.conf.load`; likewise the groups ``model`` and ``vehicle``); other groups and
+    the entry points' configs are read from the repository's ``conf/``, their defaults lists
+    composed as Hydra does (:func:`gpg.conf.compose`)."""
     import yaml
 
-    from gpg import conf as package_conf
-
     if group in package_conf.GROUPS:
-        text = package_conf.read_text(group, name)
-        where = f"gpg/conf/{group}/{name}.yaml"
-        if text is None:
-            raise ValueError(f"no config {where}; known: {package_conf.names(group)}")
-    else:
-        path = CONF_DIR / (group or "") / f"{name}.yaml"
-        where = str(path)
-        if not path.is_file():
-            known = sorted(p.stem for p in path.parent.glob("*.yaml") if not p.stem.startswith("_"))
-            raise ValueError(f"no config {path}; known: {known}")
-        text = path.read_text(encoding="utf-8")
-    own = yaml.safe_load(text) or {}
-    own.pop("hydra", None)
-    defaults = own.pop("defaults", None)
-    if defaults is None:
-        return own
-    out: dict[str, Any] = {}
-    for entry in defaults if "_self_" in defaults else [*defaults, "_self_"]:
-        if entry == "_self_":
-            out = deep_merge(out, own)
-        elif isinstance(entry, str):
-            out = deep_merge(out, conf(entry, group))
-        elif isinstance(entry, dict) and len(entry) == 1 and re.fullmatch(r"\w+", *entry):
-            ((sub, sub_name),) = entry.items()
-            out = deep_merge(out, {sub: conf(sub_name, sub)})
-        else:
-            raise ValueError(
-                f"{where}: the defaults entry {entry!r} needs Hydra (only 'name' and"
-                " 'group: name' entries are read without it)"
-            )
-    return out
-
-
-def deep_merge(base: dict[str, Any], over: dict[str, Any] | None) -> dict[str, Any]:
-    """``base`` with the (nested) keys of ``over`` replaced."""
-    out = dict(base)
-    for k, v in (over or {}).items():
-        out[k] = deep_merge(out.get(k) or {}, v) if isinstance(v, dict) else v
-    return out
+        return package_conf.load(name, group)
+    path = CONF_DIR / (group or "") / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in path.parent.glob("*.yaml") if not p.stem.startswith("_"))
+        raise ValueError(f"no config {path}; known: {known}")
+    own = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    return package_conf.compose(own, str(path), group, conf)
 
 
 def set_dispatch(cfg: Mapping[str, Any]) -> None:
@@ -290,22 +252,6 @@ def machine() -> dict[str, Any]:
         "jax": jax.__version__,
         "backend": jax.default_backend(),
     }
-
-
-def _default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray | jax.Array):
-        return np.asarray(o).tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON atomically (:func:`gpg._io.atomic_write`)."""
-    text = json.dumps(obj, indent=2, sort_keys=False, default=_default) + "\n"
-    atomic_write(path, text.encode())
 
 
 def table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str]]) -> str:

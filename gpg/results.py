@@ -15,7 +15,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gpg.runs.common import write_json
+from gpg.runtime import write_json
+
+__all__ = ["TIMINGS", "Comparison", "ModelRun", "Run", "Skipped", "read_results", "write_results"]
 
 TIMINGS = ("hyper_s", "partition_s", "fit_s")  # build steps, written flat as before
 
@@ -64,7 +66,11 @@ class ModelRun:
     predict_ratio_to_gp: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        """The entry as ``results.json`` holds it (the timings flat, beside ``train_s``)."""
+        """The entry as ``results.json`` holds it.
+
+        Returns:
+            The fields as plain values, the build's timings flat beside ``train_s``.
+        """
         out: dict[str, Any] = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
@@ -76,6 +82,17 @@ class ModelRun:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> ModelRun:
+        """An entry of ``results.json`` read back (:meth:`to_json`'s inverse).
+
+        Args:
+            d: the entry, its timings flat.
+
+        Returns:
+            The record.
+
+        Raises:
+            ValueError: if ``d`` has keys the record does not know (a newer file's).
+        """
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names - set(TIMINGS)
         if unknown:
@@ -92,6 +109,11 @@ class Skipped:
     reason: str
 
     def to_json(self) -> dict[str, Any]:
+        """The entry as ``results.json`` holds it.
+
+        Returns:
+            ``{"model": ..., "skipped": reason}``.
+        """
         return {"model": self.model, "skipped": self.reason}
 
 
@@ -124,7 +146,12 @@ _HEADER = ("machine", "data", "noise_reference", "n_train", "n_test", "outputs")
 
 
 def write_results(path: str | Path, comp: Comparison) -> None:
-    """Write ``comp`` to ``path`` (atomically, :func:`gpg.runs.common.write_json`)."""
+    """Write a comparison's ``results.json``, atomically (:func:`gpg.runtime.write_json`).
+
+    Args:
+        path: the file to write.
+        comp: the comparison.
+    """
     out: dict[str, Any] = {k: getattr(comp, k) for k in _HEADER}
     out["models"] = {k: r.to_json() for k, r in comp.models.items()}
     out.update(figures=comp.figures, wall_s=comp.wall_s, config=comp.config, **comp.extra)
@@ -132,7 +159,14 @@ def write_results(path: str | Path, comp: Comparison) -> None:
 
 
 def read_results(path: str | Path) -> Comparison:
-    """The :class:`Comparison` in ``path`` (a ``results.json`` or the run directory)."""
+    """A comparison read back from its ``results.json``.
+
+    Args:
+        path: the ``results.json``, or the run directory that holds it.
+
+    Returns:
+        The :class:`Comparison`, each model a :class:`ModelRun` or a :class:`Skipped`.
+    """
     path = Path(path)
     if path.is_dir():
         path = path / "results.json"

@@ -18,10 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments.runs.common import conf, report, stats, table, time_calls, world_arrays
 from gpg import models
+from gpg.conf import deep_merge
 from gpg.data.cache import ensure_datasets
 from gpg.linalg import memory
-from gpg.runs.common import conf, deep_merge, report, stats, table, time_calls, world_arrays
 
 
 def _block(p):

@@ -18,50 +18,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpg._dtype import float64
+from experiments.runs.common import flight_setup, machine, report
 from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
-from gpg.quadrotor.rollout import Trace, batched_rollouts, simulate
-from gpg.runs.common import flight_setup, machine, report, write_json
+from gpg.quadrotor.metrics import flight_metrics
+from gpg.quadrotor.rollout import batched_rollouts, simulate
+from gpg.runtime import float64, write_json
 from gpg.surrogate import SurrogateAero
-
-
-def flight_metrics(tr: Trace, plan: WaypointPlan, dt: float, radius: float) -> dict[str, Any]:
-    """Per leg: time from the leg's start to the first entry within ``radius`` of its waypoint
-    (None if never), overshoot past the waypoint along the leg, and the largest sink below the
-    reference altitude (z is down); rotor speed statistics over the flight."""
-    p, ref = np.asarray(tr.p), np.asarray(tr.ref_p)
-    t = np.asarray(tr.t)
-    w = np.asarray(plan.waypoints)
-    legs = []
-    for k in range(len(w) - 1):
-        t0 = float(plan.start_time) + k * float(plan.leg_time)
-        t1 = t0 + float(plan.leg_time) if k < len(w) - 2 else t[-1]
-        sel = (t >= t0) & (t <= t1)
-        d = w[k + 1] - w[k]
-        u = d / (np.linalg.norm(d) + 1e-12)
-        dist = np.linalg.norm(p[sel] - w[k + 1], axis=1)
-        inside = np.flatnonzero(dist <= radius)
-        past = (p[sel] - w[k + 1]) @ u
-        legs.append(
-            {
-                "waypoint": w[k + 1].tolist(),
-                "time_to_reach_s": float(t[sel][inside[0]] - t0) if inside.size else None,
-                "overshoot_m": float(max(past.max(), 0.0)),
-            }
-        )
-    rpm = np.asarray(tr.rpm)
-    return {
-        "legs": legs,
-        "altitude_loss_m": float(max(np.max(p[:, 2] - ref[:, 2]), 0.0)),
-        "max_tracking_error_m": float(np.max(np.linalg.norm(p - ref, axis=1))),
-        "rms_tracking_error_m": float(np.sqrt(np.mean(np.sum((p - ref) ** 2, axis=1)))),
-        "mean_rpm": float(rpm.mean()),
-        "rpm_std": float(rpm.std()),
-        "in_domain_fraction": float(np.mean(np.asarray(tr.in_domain))),
-        "final_position": p[-1].tolist(),
-        "dt": dt,
-    }
 
 
 def _wind(w: dict[str, Any]) -> Wind:
@@ -185,7 +148,7 @@ def run(cfg: dict[str, Any], outdir: Path) -> dict[str, Any]:
     }
     figures = []
     if cfg.get("figures", True):
-        from gpg.runs import plots
+        from experiments.runs import plots
 
         figures = plots.flight_figures(traces, noise_simple, plan, outdir / "figures")
     out = {

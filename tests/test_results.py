@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from gpg.runs.results import Comparison, ModelRun, Skipped, read_results, write_results
+from gpg.results import Comparison, ModelRun, Skipped, read_results, write_results
 
 
 def run_record(**over) -> ModelRun:
