@@ -6,7 +6,8 @@ The submodules: :mod:`~gpg.quadrotor.frames` (rotations, the airflow frame ``H``
 :mod:`~gpg.quadrotor.acoustics` (the generator's aerodynamics and tones),
 :mod:`~gpg.quadrotor.generator` (dataset inputs to outputs), :mod:`~gpg.quadrotor.dynamics`
 (the 6-DoF rigid body), :mod:`~gpg.quadrotor.control` (the geometric controller and its
-references) and :mod:`~gpg.quadrotor.rollout` (closed-loop simulation).
+references), :mod:`~gpg.quadrotor.rollout` (closed-loop simulation) and
+:mod:`~gpg.quadrotor.metrics` (how a flight went).
 """
 
 from gpg.quadrotor import (
@@ -16,6 +17,7 @@ from gpg.quadrotor import (
     dynamics,
     frames,
     generator,
+    metrics,
     rollout,
     simple_model,
     simple_noise,
@@ -24,6 +26,7 @@ from gpg.quadrotor import (
 from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
 from gpg.quadrotor.generator import Generator
+from gpg.quadrotor.metrics import flight_metrics
 from gpg.quadrotor.rollout import simulate
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
@@ -44,9 +47,11 @@ __all__ = [
     "bemt",
     "control",
     "dynamics",
+    "flight_metrics",
     "frames",
     "generator",
     "load_vehicle",
+    "metrics",
     "rollout",
     "simple_model",
     "simple_noise",
