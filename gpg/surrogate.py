@@ -55,7 +55,7 @@ from gpg.data.bounds import Bounds
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import Normalizer, Training, simple_model_for
 from gpg.gp.predictor import Predictor
-from gpg.quadrotor.dynamics import AeroModel, Wrench
+from gpg.quadrotor.dynamics import AeroModel, Rotation, RotorSpeeds, Vector3, Wrench
 from gpg.quadrotor.frames import (
     R_WB,
     airflow_frame_rate,
@@ -826,13 +826,7 @@ class SurrogateAero(AeroModel):
 
     surrogate: Surrogate
 
-    def wrench(
-        self,
-        rpm: Float[Array, " 4"],
-        R_WB: Float[Array, "3 3"],
-        v_air: Float[Array, " 3"],
-        omega: Float[Array, " 3"],
-    ) -> Wrench:
+    def wrench(self, rpm: RotorSpeeds, R_WB: Rotation, v_air: Vector3, omega: Vector3) -> Wrench:
         """The surrogate's mean prediction as the aerodynamics of the rigid body.
 
         Args:

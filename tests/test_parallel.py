@@ -215,6 +215,9 @@ HOST_SCRIPT = textwrap.dedent(
 )
 
 
+# Two subprocesses (a stress run of the multi-host path): slow; the fast set keeps the same
+# units over four devices in one process (test_four_devices_give_...).
+@pytest.mark.slow
 def test_two_processes_share_the_bins_and_both_hold_every_result(tmp_path):
     """Two processes on this machine stand for two hosts (jax.distributed with gloo on CPU):
     each computes the bins of its own device, and the row tiles of its share of a

@@ -31,7 +31,16 @@ from gpg.flight.labels import MotorCurve
 from gpg.flight.log import FlightLog, matrix_to_quat, quat_to_matrix
 from gpg.quadrotor import bemt
 from gpg.quadrotor.control import GeometricController, WaypointPlan
-from gpg.quadrotor.dynamics import AeroModel, Quadrotor, State, Wind, Wrench
+from gpg.quadrotor.dynamics import (
+    AeroModel,
+    Quadrotor,
+    Rotation,
+    RotorSpeeds,
+    State,
+    Vector3,
+    Wind,
+    Wrench,
+)
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle, vehicle_config
 
@@ -47,13 +56,7 @@ class BEMTAero(AeroModel):
     config: bemt.BEMTConfig = bemt.BEMTConfig()
 
     @highest
-    def wrench(
-        self,
-        rpm: Float[Array, " 4"],
-        R_WB: Float[Array, "3 3"],
-        v_air: Float[Array, " 3"],
-        omega: Float[Array, " 3"],
-    ) -> Wrench:
+    def wrench(self, rpm: RotorSpeeds, R_WB: Rotation, v_air: Vector3, omega: Vector3) -> Wrench:
         """The BEMT aerodynamic wrench on the vehicle at one state, world frame.
 
         Args:

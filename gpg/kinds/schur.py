@@ -31,8 +31,9 @@ class Schur(Kind):
         """Near sets per bin with the Schur-corrected far set, and the check of ``k_qf ≈ 0``.
 
         Args:
-            arrays: the normalised training arrays (every gradient at every case).
-            hyper: the fitted hyperparameters.
+            arrays: the normalised training cases, all gradients observed (the Schur route
+                needs the whole ``K̄``).
+            hyper: the fitted hyperparameters (σ², l, ν², λ²).
             cfg: the resolved config: ``partition``, ``near``, ``variance_dtype``, ``route``
                 (how the far set's Schur complement is formed) and ``mean``.
             devices: unused: the Schur precompute runs on the host.

@@ -238,7 +238,8 @@ class BlockTriangular(eqx.Module):
             The (q, n) float64 product ``V F``.
 
         Raises:
-            ValueError: if the factor is upper triangular.
+            ValueError: for an upper-triangular factor (only lower ones are banded by rows
+                here).
         """
         if not self.lower:
             raise ValueError("host_lmatmul handles lower-triangular factors")

@@ -32,14 +32,25 @@ from gpg.quadrotor.vehicle import Vehicle
 __all__ = [
     "AeroModel",
     "Quadrotor",
+    "Rotation",
+    "RotorSpeeds",
     "SimpleAero",
     "State",
+    "Vector3",
     "Wind",
     "Wrench",
     "body_parameters",
     "quat_from_euler",
     "quat_to_R",
 ]
+
+# The arguments of AeroModel.wrench, named once for its implementations.
+RotorSpeeds = Float[Array, " 4"]
+"""(4,) rotor speeds r1..r4, rpm."""
+Rotation = Float[Array, "3 3"]
+"""(3, 3) rotation, body to world (``R_WB``)."""
+Vector3 = Float[Array, " 3"]
+"""(3,) vector: a velocity or a rate."""
 
 
 class State(eqx.Module):
@@ -159,13 +170,7 @@ class AeroModel(eqx.Module):
     """The aerodynamic wrench as a function of rotor speeds, attitude, airspeed and body rates."""
 
     @abc.abstractmethod
-    def wrench(
-        self,
-        rpm: Float[Array, " 4"],
-        R_WB: Float[Array, "3 3"],
-        v_air: Float[Array, " 3"],
-        omega: Float[Array, " 3"],
-    ) -> Wrench:
+    def wrench(self, rpm: RotorSpeeds, R_WB: Rotation, v_air: Vector3, omega: Vector3) -> Wrench:
         """The aerodynamic wrench at one flight state.
 
         Args:
@@ -185,13 +190,7 @@ class SimpleAero(AeroModel):
 
     model: SimpleModel
 
-    def wrench(
-        self,
-        rpm: Float[Array, " 4"],
-        R_WB: Float[Array, "3 3"],
-        v_air: Float[Array, " 3"],
-        omega: Float[Array, " 3"],
-    ) -> Wrench:
+    def wrench(self, rpm: RotorSpeeds, R_WB: Rotation, v_air: Vector3, omega: Vector3) -> Wrench:
         """``M``'s body-frame thrust and drag torque, rotated to the world frame.
 
         The airspeed and body rates do not enter ``M``; there are no noise levels, and every

@@ -145,16 +145,19 @@ def cli(*args, cwd):
 
 
 def test_cli_errors_are_one_clear_message(tmp_path):
+    """A bad config or input is one line on stderr, and a failed run leaves no run directory
+    behind."""
     p = cli("+model=gpgs_shur", f"hydra.run.dir={tmp_path}", cwd=ROOT)
     assert p.returncode != 0
     assert "Could not find 'model/gpgs_shur'" in p.stderr and "gpgs_schur" in p.stderr
+    run = tmp_path / "run"
     p = cli(
         "dataset.train=/no/such/train",
         "dataset.test=/no/such/test",
-        f"hydra.run.dir={tmp_path}",
+        f"hydra.run.dir={run}",
         cwd=ROOT,
     )
-    assert p.returncode == 2
+    assert p.returncode == 2 and not run.exists()
     assert (
         p.stderr.strip().splitlines()[-1] == "error: dataset file /no/such/train.npz does not exist"
     )
@@ -183,17 +186,6 @@ def test_cli_run_logs_its_table(smoke_cache, tmp_path):
     assert "| model | train s |" in log and "| gps_1x |" in log
     for name in ("results.json", "results.md"):
         assert os.stat(run / name).st_mode & 0o777 == 0o666 & ~umask()
-
-
-def test_failed_cli_run_leaves_no_run_directory(tmp_path):
-    run = tmp_path / "run"
-    p = cli(
-        "dataset.train=/no/such/train",
-        "dataset.test=/no/such/test",
-        f"hydra.run.dir={run}",
-        cwd=ROOT,
-    )
-    assert p.returncode == 2 and not run.exists()
 
 
 @pytest.mark.slow
