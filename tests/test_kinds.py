@@ -138,6 +138,9 @@ def test_a_registered_toy_kind_builds_predicts_and_checkpoints(toy, tmp_path):
     assert np.all(np.isfinite(g))
 
 
+# A whole comparison run (the experiment): slow; the fast set builds, predicts and checkpoints
+# the same registered kind (test_a_registered_toy_kind_builds_predicts_and_checkpoints).
+@pytest.mark.slow
 def test_a_registered_toy_kind_appears_in_the_comparison(toy, tmp_path):
     from tests.runs.test_compare import user_dataset_config
 
