@@ -5,7 +5,7 @@ from omegaconf import DictConfig
 
 from experiments._hydra import guarded, plain, run_dir
 from experiments.runs import compare
-from experiments.runs.common import conf
+from experiments.runs.config import conf
 from gpg import conf as gpg_conf
 from gpg import models
 

@@ -106,7 +106,7 @@ def smoke_cache(tmp_path_factory):
     pytest-xdist workers share it (the first generates it under a lock, the others load it)."""
     import fcntl
 
-    from experiments.runs.common import conf
+    from experiments.runs.config import conf
     from gpg.data.cache import ensure_datasets
 
     root = tmp_path_factory.getbasetemp()

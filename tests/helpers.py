@@ -64,7 +64,7 @@ def compose_plain(name: str, overrides: Sequence[str] = ()) -> dict[str, Any]:
     from hydra import compose, initialize_config_dir
 
     from experiments._hydra import plain
-    from experiments.runs.common import CONF_DIR
+    from experiments.runs.config import CONF_DIR
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return plain(compose(config_name=name, overrides=list(overrides)))

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments.runs.common import conf
+from experiments.runs.config import conf
 from gpg import conf as gpg_conf
 from gpg import models
 from gpg.config import ModelConfig
@@ -39,7 +39,7 @@ def test_entry_point_configs_read_without_hydra_as_hydra_composes_them(entry):
 
 
 def test_defaults_hydra_alone_reads_are_refused(tmp_path, monkeypatch):
-    import experiments.runs.common as common
+    import experiments.runs.config as common
 
     (tmp_path / "x.yaml").write_text("defaults:\n  - override data: smoke\n  - _self_\n")
     monkeypatch.setattr(common, "CONF_DIR", tmp_path)

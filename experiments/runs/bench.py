@@ -43,19 +43,10 @@ from experiments.runs.bench_export import bench_export, export_table
 from experiments.runs.bench_flight import bench_flight, flight_table
 from experiments.runs.bench_gpu import bench_gpu, gpu_table
 from experiments.runs.bench_solver import bench_solver, solver_table
-from experiments.runs.common import (
-    conf,
-    fit_model,
-    latency,
-    machine,
-    report,
-    set_dispatch,
-    stats,
-    table,
-    time_calls,
-    world_arrays,
-    world_states,
-)
+from experiments.runs.common import fit_model, world_arrays, world_states
+from experiments.runs.config import conf
+from experiments.runs.output import report, table
+from experiments.runs.timing import latency, machine, set_dispatch, stats, time_calls
 from gpg.conf import deep_merge
 from gpg.gp.exact import ExactGP
 from gpg.gp.gram import assemble_gram

@@ -22,8 +22,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from experiments.runs.common import table
 from experiments.runs.design import release_memory
+from experiments.runs.output import table
 from gpg import design
 from gpg.data.cache import ensure_datasets
 from gpg.linalg import memory

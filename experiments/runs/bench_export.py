@@ -19,8 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from experiments.runs.common import latency, report, stats, table
 from experiments.runs.export import CASADI_DRIVER, c_driver, compile_and_time
+from experiments.runs.output import report, table
+from experiments.runs.timing import latency, stats
 
 CALLS = (
     ("mean", "quad_mean(rpm, e, v, f, tq, lv)"),
@@ -30,7 +31,7 @@ CALLS = (
 
 def _casadi(sur, cc: str, flags, where: Path, states, cfg) -> dict[str, Any]:
     """The CasADi function: its own evaluation from Python, and its generated C."""
-    from experiments.runs.common import time_calls
+    from experiments.runs.timing import time_calls
     from gpg import export
 
     f = export.to_casadi(sur, name="quad_ca", variance=False)

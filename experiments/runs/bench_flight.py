@@ -21,7 +21,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from experiments.runs.common import stats, table
+from experiments.runs.output import table
+from experiments.runs.timing import stats
 
 
 def bench_flight(cfg: dict[str, Any]) -> dict[str, Any]:

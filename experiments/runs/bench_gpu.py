@@ -18,7 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.runs.common import conf, report, stats, table, time_calls, world_arrays
+from experiments.runs.common import world_arrays
+from experiments.runs.config import conf
+from experiments.runs.output import report, table
+from experiments.runs.timing import stats, time_calls
 from gpg import models
 from gpg.conf import deep_merge
 from gpg.data.cache import ensure_datasets

@@ -16,7 +16,8 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.runs.common import conf, table
+from experiments.runs.config import conf
+from experiments.runs.output import table
 from gpg import models
 from gpg.conf import deep_merge
 from gpg.data.cache import ensure_datasets

@@ -1,21 +1,18 @@
-"""Small helpers shared by the experiment runners: timing, model building, JSON output, tables."""
+"""What several experiments build the same way: world-frame query arrays, a model fitted and
+timed, the surrogate and vehicle of a flight experiment. The configs are read by
+:mod:`experiments.runs.config`, times measured by :mod:`experiments.runs.timing`, results
+printed by :mod:`experiments.runs.output`."""
 
 from __future__ import annotations
 
 import contextlib
-import itertools
-import logging
-import os
-import platform
-import time
-from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-import jax
 import numpy as np
 
-from gpg import conf as package_conf
+from experiments.runs.config import check_options
+from experiments.runs.timing import set_dispatch
 
 if TYPE_CHECKING:
     from gpg.config import ModelConfig
@@ -24,83 +21,6 @@ if TYPE_CHECKING:
     from gpg.models import Built
     from gpg.quadrotor.simple_model import SimpleModel
     from gpg.quadrotor.simple_noise import SimpleNoise
-
-# The entry points' own configs (compare.yaml, ...), beside this package in the repository
-# (experiments/ and conf/ are both the repository's, neither is installed). The library's
-# configs (data scales, models, vehicles) ship inside gpg (gpg.conf).
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-
-_log = logging.getLogger("experiments.runs")
-
-
-def report(text: str) -> None:
-    """A result for the console and, under Hydra, the run's log file (``<job>.log``): logged
-    at INFO when logging is configured, printed otherwise."""
-    if logging.getLogger().hasHandlers():
-        _log.info(text)
-    else:
-        print(text)
-
-
-def conf(name: str, group: str | None = None) -> dict[str, Any]:
-    """A config file as plain values, without Hydra (for notebooks and scripts):
-    ``conf("smoke", "data")`` reads the data scale ``smoke`` shipped with gpg
-    (:func:`gpg.conf.load`; likewise the groups ``model`` and ``vehicle``); other groups and
-    the entry points' configs are read from the repository's ``conf/``, their defaults lists
-    composed as Hydra does (:func:`gpg.conf.compose`)."""
-    import yaml
-
-    if group in package_conf.GROUPS:
-        return package_conf.load(name, group)
-    path = CONF_DIR / (group or "") / f"{name}.yaml"
-    if not path.is_file():
-        known = sorted(p.stem for p in path.parent.glob("*.yaml") if not p.stem.startswith("_"))
-        raise ValueError(f"no config {path}; known: {known}")
-    own = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    return package_conf.compose(own, str(path), group, conf)
-
-
-def set_dispatch(cfg: Mapping[str, Any]) -> None:
-    """Apply ``cfg['sync_dispatch']`` (default true): run JAX CPU computations on the calling
-    thread. JAX otherwise runs them on a worker thread, and waking the caller afterwards adds a
-    noisy latency per call comparable to a mean prediction (the README's real-time quick start
-    says how much)."""
-    jax.config.update("jax_cpu_enable_async_dispatch", not cfg.get("sync_dispatch", True))
-
-
-def block(x):
-    """Wait for every array in ``x`` (JAX dispatch is asynchronous)."""
-    return jax.block_until_ready(x)
-
-
-def time_calls(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> np.ndarray:
-    """Wall-clock seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls."""
-    for _ in range(warmup):
-        block(fn())
-    out = np.empty(repeats)
-    for i in range(repeats):
-        t0 = time.perf_counter()
-        block(fn())
-        out[i] = time.perf_counter() - t0
-    return out
-
-
-def stats(seconds: np.ndarray) -> dict[str, float]:
-    """Median, 5th and 95th percentile and mean, in seconds."""
-    return {
-        "median_s": float(np.median(seconds)),
-        "p05_s": float(np.percentile(seconds, 5)),
-        "p95_s": float(np.percentile(seconds, 95)),
-        "mean_s": float(np.mean(seconds)),
-        "n": int(seconds.size),
-    }
-
-
-def latency(fn: Callable[..., Any], args_list: Sequence[tuple], n: int) -> dict[str, float]:
-    """:func:`stats` of ``n`` calls ``fn(*args)`` cycling through ``args_list``, after 3
-    untimed warm-up calls."""
-    calls = itertools.cycle(args_list)
-    return stats(time_calls(lambda: fn(*next(calls)), n, warmup=3))
 
 
 def world_arrays(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -171,40 +91,6 @@ def fit_model(
     )
 
 
-def check_options(cfg: Mapping[str, Any], spec: Mapping[str, str]) -> None:
-    """An entry point's top-level options checked before any work, each named when wrong.
-
-    ``spec`` maps a key to its kind: ``count`` (integer >= 1), ``index`` (integer >= 0),
-    ``bool``, ``mapping?`` (a mapping or null), ``devices`` (null or a device count >= 1),
-    ``path`` (a non-empty string), ``path?`` (the same, or null).
-    """
-    for key, kind in spec.items():
-        if key not in cfg:
-            continue
-        v = cfg[key]
-        integer = isinstance(v, int) and not isinstance(v, bool)
-        ok = {
-            "count": integer and v >= 1,
-            "index": integer and v >= 0,
-            "bool": isinstance(v, bool),
-            "mapping?": v is None or isinstance(v, Mapping),
-            "devices": v is None or (integer and v >= 1),
-            "path": isinstance(v, str) and v != "",
-            "path?": v is None or (isinstance(v, str) and v != ""),
-        }[kind]
-        if not ok:
-            want = {
-                "count": "an integer >= 1",
-                "index": "an integer >= 0",
-                "bool": "true or false",
-                "mapping?": "a mapping or null",
-                "devices": "null or a number of devices >= 1",
-                "path": "a path",
-                "path?": "a path or null",
-            }[kind]
-            raise ValueError(f"{key} must be {want}, got {v!r}")
-
-
 def surrogate_from_config(cfg: Mapping[str, Any], vehicle) -> Any:
     """The surrogate a flight experiment uses: ``cfg["surrogate_checkpoint"]`` loaded, or
     ``cfg["model"]`` (its ``name`` and overrides) fitted on the configured training data."""
@@ -232,37 +118,3 @@ def flight_setup(cfg: Mapping[str, Any], options: Mapping[str, str]):
     if sur.simple is None:
         raise ValueError("the surrogate has no simplified model; the controller needs one")
     return vehicle, sur
-
-
-def machine() -> dict[str, Any]:
-    """What the numbers were measured on."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "backend": jax.default_backend(),
-    }
-
-
-def table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str]]) -> str:
-    """A Markdown table: ``columns`` are (key, header, format spec)."""
-    head = "| " + " | ".join(h for _, h, _ in columns) + " |"
-    sep = "|" + "|".join("---" for _ in columns) + "|"
-    lines = [head, sep]
-    for r in rows:
-        cells = []
-        for key, _, spec in columns:
-            v = r.get(key)
-            cells.append("—" if v is None else format(v, spec) if spec else str(v))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)

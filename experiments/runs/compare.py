@@ -20,16 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from experiments.runs.common import (
-    check_options,
-    fit_model,
-    latency,
-    machine,
-    report,
-    set_dispatch,
-    table,
-    world_states,
-)
+from experiments.runs.common import fit_model, world_states
+from experiments.runs.config import check_options
+from experiments.runs.output import report, table
+from experiments.runs.timing import latency, machine, set_dispatch
 from gpg import models
 from gpg.conf import deep_merge
 from gpg.config import ModelConfig

@@ -24,7 +24,9 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from experiments.runs.common import check_options, machine, report
+from experiments.runs.config import check_options
+from experiments.runs.output import report
+from experiments.runs.timing import machine
 from gpg.data.cache import build_generator, load_data
 from gpg.data.dataset import Dataset
 from gpg.data.sampling import FDSteps, generate

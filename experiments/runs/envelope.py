@@ -34,7 +34,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.runs.common import check_options, conf, machine, report, table, world_arrays
+from experiments.runs.common import world_arrays
+from experiments.runs.config import check_options, conf
+from experiments.runs.output import report, table
+from experiments.runs.timing import machine
 from gpg.data.bounds import Bounds
 from gpg.data.cache import build_generator, ensure_datasets
 from gpg.data.convert import body_inputs, body_meta, to_body

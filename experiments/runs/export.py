@@ -27,17 +27,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.runs.common import (
-    check_options,
-    latency,
-    machine,
-    report,
-    set_dispatch,
-    stats,
-    surrogate_from_config,
-    table,
-    time_calls,
-)
+from experiments.runs.common import surrogate_from_config
+from experiments.runs.config import check_options
+from experiments.runs.output import report, table
+from experiments.runs.timing import latency, machine, set_dispatch, stats, time_calls
 from gpg.quadrotor.frames import R_WB
 from gpg.runtime import float64, write_json
 

@@ -33,7 +33,10 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from experiments.runs.common import check_options, flight_setup, machine, report, table
+from experiments.runs.common import flight_setup
+from experiments.runs.config import check_options
+from experiments.runs.output import report, table
+from experiments.runs.timing import machine
 from gpg import checkpoint
 from gpg.flight import correction as fc
 from gpg.flight.labels import Labels, label

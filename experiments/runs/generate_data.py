@@ -13,7 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from experiments.runs.common import check_options, report
+from experiments.runs.config import check_options
+from experiments.runs.output import report
 from gpg.data.cache import ensure
 from gpg.data.dataset import Dataset
 from gpg.data.preprocess import simple_model_for

@@ -19,7 +19,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.runs.common import check_options, machine, report, surrogate_from_config
+from experiments.runs.common import surrogate_from_config
+from experiments.runs.config import check_options
+from experiments.runs.output import report
+from experiments.runs.timing import machine
 from gpg.envs import apg
 from gpg.envs.evaluation import evaluate
 from gpg.envs.quadrotor import EnvParams, QuadrotorEnv

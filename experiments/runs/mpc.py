@@ -36,7 +36,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.runs.common import flight_setup, machine, report
+from experiments.runs.common import flight_setup
+from experiments.runs.output import report
+from experiments.runs.timing import machine
 from gpg.envs.wind import Dryden
 from gpg.mpc import MPPI, pack, unpack
 from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan

@@ -18,7 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.runs.common import flight_setup, machine, report
+from experiments.runs.common import flight_setup
+from experiments.runs.output import report
+from experiments.runs.timing import machine
 from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Quadrotor, SimpleAero, State, Wind
 from gpg.quadrotor.metrics import flight_metrics

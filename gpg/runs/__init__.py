@@ -18,6 +18,15 @@ from types import ModuleType
 __all__: list[str] = []
 
 _MOVED = {"results": "gpg.results"}
+# gpg.runs.common was split by concern: its names are found in these, in this order.
+_SPLIT = {
+    "common": (
+        "experiments.runs.common",
+        "experiments.runs.config",
+        "experiments.runs.timing",
+        "experiments.runs.output",
+    )
+}
 
 
 def _new_name(fullname: str) -> str:
@@ -42,9 +51,10 @@ class _Forward(importlib.abc.MetaPathFinder, importlib.abc.Loader):
             stacklevel=2,
         )
         try:
-            module = importlib.import_module(new)
+            parts = [importlib.import_module(m) for m in _SPLIT.get(spec.name.split(".")[-1], ())]
+            module = _merged(spec.name, parts) if parts else importlib.import_module(new)
         except ModuleNotFoundError as exc:
-            if exc.name not in ("experiments", new):
+            if not (exc.name or "").startswith("experiments"):
                 raise
             raise ImportError(
                 f"{spec.name} moved to {new}, in the gpg repository's experiments/ (not "
@@ -52,11 +62,27 @@ class _Forward(importlib.abc.MetaPathFinder, importlib.abc.Loader):
             ) from exc
         # The import system records this spec on the module it gets back; the module keeps
         # its own, so that it stays what it is at its new place.
-        self._spec = module.__spec__
+        self._spec = module.__spec__ or spec
         return module
 
     def exec_module(self, module: ModuleType) -> None:
         module.__spec__ = self._spec
+
+
+def _merged(name: str, parts: list[ModuleType]) -> ModuleType:
+    """A module whose names are those of ``parts`` (the first that has one wins)."""
+    module = ModuleType(
+        name, f"Deprecated: {name}'s names, now in " + ", ".join(p.__name__ for p in parts)
+    )
+
+    def __getattr__(attr: str):
+        for p in parts:
+            if hasattr(p, attr):
+                return getattr(p, attr)
+        raise AttributeError(f"module {name!r} has no attribute {attr!r}")
+
+    module.__getattr__ = __getattr__
+    return module
 
 
 if not any(isinstance(f, _Forward) for f in sys.meta_path):

@@ -99,7 +99,7 @@ def test_body_frame_surrogate_flies_take_off_hover_and_descent_in_domain(vehicle
     surrogate (data=envelope_smoke) from the ground up 3 m (a vertical climb), hold, and down
     2.5 m (a vertical descent: air from below, where the paper's airflow frame has a gimbal
     lock): every wrench RotorPy asks for is in the surrogate's domain, and it tracks."""
-    from experiments.runs.common import conf
+    from experiments.runs.config import conf
     from gpg import Surrogate
     from gpg.data.cache import ensure_datasets
     from gpg.quadrotor.vehicle import vehicle_config

@@ -39,7 +39,7 @@ def test_publish_lets_the_first_writer_win(tmp_path, monkeypatch):
 
 
 def test_unwritable_cache_is_found_before_generating(tmp_path):
-    from experiments.runs.common import conf
+    from experiments.runs.config import conf
     from gpg.data.cache import ensure_datasets
 
     blocker = tmp_path / "a_file"

@@ -241,7 +241,7 @@ def test_runs_started_in_the_same_second_get_their_own_directories():
     from omegaconf import OmegaConf
 
     import experiments._hydra  # noqa: F401  (registers the resolver, as the entry points do)
-    from experiments.runs.common import CONF_DIR
+    from experiments.runs.config import CONF_DIR
 
     dirs = []
     for _ in range(2):

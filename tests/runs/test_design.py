@@ -51,7 +51,7 @@ def test_ask_then_tell(smoke_cache, tmp_path):
         compose_plain("design", SMALL + [f"cache_dir={smoke_cache}", "step=ask"]), tmp_path / "a"
     )
     assert asked["cases"] == 4
-    from experiments.runs.common import conf
+    from experiments.runs.config import conf
     from gpg.data.cache import build_generator
 
     gen = build_generator(conf("smoke", "data"), conf("sui_endurance", "vehicle"))
@@ -74,7 +74,7 @@ def test_bench_design_suite(smoke_cache):
     """The ``design`` bench suite on smoke data: conditioning equals the rebuild; the refit
     with its likelihood fit is timed when asked for."""
     from experiments.runs.bench_design import bench_design, design_table
-    from experiments.runs.common import conf
+    from experiments.runs.config import conf
 
     cfg = {"data": conf("smoke", "data"), "vehicle": conf("sui_endurance", "vehicle"),
            "cache_dir": str(smoke_cache), "added": 6, "models": ["gpg"], "candidates": 200,

@@ -29,7 +29,7 @@ import jax
 import numpy as np
 import yaml
 
-from experiments.runs.common import CONF_DIR, conf
+from experiments.runs.config import CONF_DIR, conf
 from gpg import models
 from gpg.data.cache import load_data
 from gpg.data.preprocess import prepare, restore, simple_model_for
