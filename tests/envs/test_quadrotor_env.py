@@ -101,14 +101,15 @@ def test_out_of_domain_flag_and_policy(vehicle, synthetic_surrogate):
 
 def test_bad_input(env, vehicle, M):
     params = env.default_params
-    obs, st = env.reset(jax.random.key(0), params)
+    obs, st = jax.jit(env.reset)(jax.random.key(0), params)
     with pytest.raises(ValueError, match="shape \\(4,\\)"):
         env.step(jax.random.key(0), st, jnp.zeros(3), params)
     with pytest.raises(ValueError, match="float array"):
         env.step(jax.random.key(0), st, jnp.zeros(4, jnp.int32), params)
     with pytest.raises(ValueError, match="shape \\(4,\\)"):  # also under jit: shapes are static
         jax.jit(env.step)(jax.random.key(0), st, jnp.zeros(5), params)
-    *_, done, info = env.step(jax.random.key(0), st, jnp.array([0.0, jnp.nan, 0.0, 0.0]), params)
+    nan = jnp.array([0.0, jnp.nan, 0.0, 0.0], jnp.float32)
+    *_, done, info = jax.jit(env.step)(jax.random.key(0), st, nan, params)
     assert bool(info["bad_action"]) and bool(done)
     with pytest.raises(ValueError, match="unknown task"):
         EnvParams.create("circle")
