@@ -136,17 +136,37 @@ def test_exported_functions_document_args_returns_raises():
     assert missing_sections() == []
 
 
+def _parse_warnings(functions, caplog) -> list[str]:
+    """What griffe warns while parsing the docstrings of ``functions`` afresh (``parsed`` is
+    cached: a docstring parsed once before would warn no more)."""
+    with caplog.at_level(logging.WARNING, logger="griffe"):
+        caplog.clear()
+        for fn in functions:
+            if fn.docstring:
+                fn.docstring.parse("google")
+    return [r.getMessage() for r in caplog.records]
+
+
 def test_docstrings_parse_without_warnings(caplog):
     """What mkdocstrings would warn about (``make docs`` is strict): a documented parameter
-    that does not exist, a section that does not parse."""
+    that does not exist or has no type, a section that does not parse."""
     pkg = _griffe_package()
-    with caplog.at_level(logging.WARNING, logger="griffe"):
-        for name in _public_files():
-            mod = pkg if name == "gpg" else pkg[name.removeprefix("gpg.")]
-            for fn in _documented(mod):
-                if fn.docstring:
-                    fn.docstring.parsed  # noqa: B018 (parsing logs the warnings)
-    assert [r.getMessage() for r in caplog.records] == []
+    functions = []
+    for name in _public_files():
+        functions += _documented(pkg if name == "gpg" else pkg[name.removeprefix("gpg.")])
+    assert _parse_warnings(functions, caplog) == []
+
+
+def test_the_parse_check_sees_a_parameter_that_is_not_there(caplog):
+    import griffe
+
+    code = (
+        'def f(a: int) -> int:\n    """Sum.\n\n'
+        '    Args:\n        b: x.\n\n    Returns:\n        y.\n    """\n'
+    )
+    mod = griffe.visit("m", filepath=None, code=code, docstring_parser="google")
+    found = _parse_warnings([mod["f"]], caplog)
+    assert any("'b' does not appear in the function signature" in w for w in found), found
 
 
 def test_the_section_check_sees_a_raise_and_ignores_a_nested_one():
