@@ -232,3 +232,15 @@ def test_the_figure_pattern_finds_times_ratios_and_sizes():
         assert _FIGURE.search(text), text
     for text in ("x1 x2", "10^3", "e.g. 2", "float32", "(N, 3)", "1e-5", "h in ft"):
         assert not _FIGURE.search(text), text
+
+
+def test_the_section_check_asks_for_what_a_function_has():
+    import griffe
+
+    code = (
+        "def f(a: int) -> int:\n    '''No sections.'''\n    if a < 0:\n        raise ValueError\n"
+        "    return a\n\ndef g() -> None:\n    '''Nothing to document.'''\n"
+    )
+    mod = griffe.visit("m", filepath=None, code=code, docstring_parser="google")
+    assert _needs(mod["f"]) == {"parameters", "returns", "raises"}
+    assert _needs(mod["g"]) == set()
