@@ -241,6 +241,6 @@ def test_the_section_check_asks_for_what_a_function_has():
         "def f(a: int) -> int:\n    '''No sections.'''\n    if a < 0:\n        raise ValueError\n"
         "    return a\n\ndef g() -> None:\n    '''Nothing to document.'''\n"
     )
-    mod = griffe.visit("m", filepath=None, code=code, docstring_parser="google")
-    assert _needs(mod["f"]) == {"parameters", "returns", "raises"}
-    assert _needs(mod["g"]) == set()
+    with griffe.temporary_visited_module(code) as mod:
+        assert _needs(mod["f"]) == {"parameters", "returns", "raises"}
+        assert _needs(mod["g"]) == set()
