@@ -37,6 +37,9 @@ def _new_name(fullname: str) -> str:
 class _Forward(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     """Finds ``gpg.runs.<name>`` and loads it as the module at its new place."""
 
+    def __init__(self) -> None:
+        self._specs: dict[str, object] = {}  # old name -> the module's own spec
+
     def find_spec(self, fullname, path, target=None):
         if fullname.startswith(__name__ + ".") and fullname.count(".") == 2:
             return importlib.util.spec_from_loader(fullname, self)
@@ -62,11 +65,11 @@ class _Forward(importlib.abc.MetaPathFinder, importlib.abc.Loader):
             ) from exc
         # The import system records this spec on the module it gets back; the module keeps
         # its own, so that it stays what it is at its new place.
-        self._spec = module.__spec__ or spec
+        self._specs[spec.name] = module.__spec__ or spec
         return module
 
     def exec_module(self, module: ModuleType) -> None:
-        module.__spec__ = self._spec
+        module.__spec__ = self._specs.pop(module.__spec__.name)
 
 
 def _merged(name: str, parts: list[ModuleType]) -> ModuleType:
