@@ -137,6 +137,14 @@ class _Bench:
 def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
     """The benchmark (module docstring); returns what ``results.json`` holds."""
     check_options(cfg, OPTIONS)
+    scenario = cfg.get("scenario", "nominal")
+    if scenario not in ("nominal", "hard"):
+        raise ValueError(f"scenario must be 'nominal' or 'hard', got {scenario!r}")
+    if scenario == "hard":
+        from experiments.runs import flight_hard
+
+        _, prior = flight_setup(cfg, OPTIONS)
+        return flight_hard.run(cfg, out, prior)
     fl = cfg["flights"]
     seconds = sorted(float(s) for s in cfg["seconds"])
     base_s = float(cfg["default_seconds"])

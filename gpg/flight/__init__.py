@@ -9,10 +9,14 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 * :func:`correct` corrects a fitted :class:`~gpg.Surrogate` by labels (a :class:`Corrected`
   model: the prior's mean, scaled, plus values-only discrepancy GPs); :func:`adapt`,
   :func:`update` and :func:`online_step` adapt it label by label at a fixed cost.
+* :func:`identify` finds the vehicle's physical parameters from labels (an
+  :class:`Identification`, written as a vehicle file, its simulator prior regenerated);
+  :func:`estimate_wind` and :func:`with_wind` give labels the wind where none was logged;
+  :mod:`gpg.flight.basis` is the correction's physical basis.
 * :mod:`gpg.flight.synthetic` flies a vehicle with known truth through realistic sensors.
 """
 
-from gpg.flight import synthetic
+from gpg.flight import basis, synthetic
 from gpg.flight.correction import (
     Corrected,
     Online,
@@ -24,12 +28,22 @@ from gpg.flight.correction import (
     update_jit,
     with_online,
 )
+from gpg.flight.identify import Identification, IdentificationWarning, identify
 from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, hover_samples, label
 from gpg.flight.log import CsvFormat, FlightLog, FlightLogWarning, read_csv, write_csv
 from gpg.flight.ulog import read_ulog
+from gpg.flight.wind import WindEstimate, WindWarning, estimate_wind, with_wind
 
 __all__ = [
     "Corrected",
+    "Identification",
+    "IdentificationWarning",
+    "WindEstimate",
+    "WindWarning",
+    "basis",
+    "estimate_wind",
+    "identify",
+    "with_wind",
     "CsvFormat",
     "FlightLog",
     "FlightLogWarning",

@@ -39,6 +39,7 @@ from jaxtyping import Array, ArrayLike, Float
 from gpg._dtype import float64
 from gpg._precision import highest
 from gpg.data.preprocess import Normalizer
+from gpg.flight.basis import PRIORS, TERMS, Explicit, PhysicalBasis, posterior
 from gpg.flight.labels import Labels
 from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
@@ -209,9 +210,11 @@ class Corrected(Predictor):
     docstring; ``m`` is :class:`SimpleBasis`).
 
     Its latent "variance" is a vector: the prior's latent variance, then each ``δ``'s, then
-    ``η``'s per output; :meth:`predictive_variance` turns it into the per-output predictive
-    variance ``ρ² var_prior + var_δ + var_η``: the prior's latent variance (its value noise is
-    the simulator data's), each ``δ``'s with its own value noise (the flights'), ``η``'s.
+    ``η``'s per output, then the integrated coefficients' per output (where the physical basis
+    is used, :mod:`gpg.flight.basis`); :meth:`predictive_variance` turns it into the per-output
+    predictive variance ``ρ² var_prior + var_δ + var_η + var_β``: the prior's latent variance
+    (its value noise is the simulator data's), each ``δ``'s with its own value noise (the
+    flights'), ``η``'s, and ``Rᵀ A⁻¹ R`` of the coefficients.
 
     Attributes:
         prior: the simulator-trained predictor.
@@ -220,6 +223,8 @@ class Corrected(Predictor):
         online: the online term, or None.
         kappa: (6,) ``κ``, the coefficients of ``M``'s own loads, or None.
         basis: ``m`` (:class:`SimpleBasis`) where ``kappa`` is given.
+        explicit: the physical basis with its coefficients integrated out
+            (:class:`gpg.flight.basis.Explicit`), or None (``ρ`` and ``κ`` point estimates).
     """
 
     prior: Predictor
@@ -228,12 +233,32 @@ class Corrected(Predictor):
     online: Online | None = None
     kappa: Float[Array, " 6"] | None = None
     basis: SimpleBasis | None = None
+    explicit: Explicit | None = None
 
     def _mean_terms(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
-        """``κ ⊙ m(x)``, padded to the outputs (zeros without a basis)."""
-        if self.basis is None:
-            return jnp.zeros(self.n_outputs, x.dtype)
-        return self._pad(self.kappa * self.basis(x))
+        """``κ ⊙ m(x)`` and the physical columns' ``hᵀβ̄``, padded to the outputs (zeros
+        without a basis)."""
+        out = jnp.zeros(N_LOADS, x.dtype)
+        if self.basis is not None:
+            out = out + self.kappa * self.basis(x)
+        if self.explicit is not None:
+            out = out + self.explicit.mean(x)
+        return self._pad(out)
+
+    def _explicit_variance(
+        self, x: Float[Array, " D"], prior_mean: Float[Array, " M"]
+    ) -> Float[Array, " 6"]:
+        """The coefficients' share of the variance per load output (:mod:`gpg.flight.basis`)."""
+        e = self.explicit
+        cols = []
+        if e.with_prior:
+            cols.append(prior_mean[:N_LOADS, None])
+        if e.with_simple:
+            cols.append(self.basis(x)[:, None])
+        h = jnp.concatenate([*cols, e.physics(x)], 1)
+        k = jnp.stack([_cross(x[None], d.X, d.hyper.variance, d.hyper.lengthscale)[0]
+                       for d in self.delta])  # fmt: skip
+        return e.variance(h, k)
 
     @property
     def output_scale(self) -> Float[Array, " M"]:
@@ -285,6 +310,9 @@ class Corrected(Predictor):
             "online": None
             if self.online is None
             else {"inducing": int(self.online.Z.shape[0]), "tau": plain(self.online.tau)},
+            "explicit": None
+            if self.explicit is None
+            else {"columns": list(self.explicit.columns), "beta": plain(self.explicit.beta)},
         }
         return out
 
@@ -318,8 +346,8 @@ class Corrected(Predictor):
             The (M,) mean (as :meth:`mean_one`) and the (V,) latent variance: the prior's, then
             each ``δ``'s, then ``η``'s per output (:meth:`predictive_variance` combines them).
         """
-        mean, var = self.prior.mean_var_one(x)
-        mean = self.scale * mean + self._mean_terms(x)
+        prior_mean, var = self.prior.mean_var_one(x)
+        mean = self.scale * prior_mean + self._mean_terms(x)
         parts = [jnp.reshape(var, (1,))]
         for d in self.delta:
             m, v = d.mean_var_one(x)
@@ -329,6 +357,8 @@ class Corrected(Predictor):
             m, v = self.online.mean_var(x)
             mean = mean + self._pad(m)
             parts.append(v)
+        if self.explicit is not None:
+            parts.append(self._explicit_variance(x, prior_mean))
         return mean, jnp.concatenate(parts)
 
     def predictive_variance(self, var: Float[ArrayLike, "*Q V"]) -> Float[Array, "*Q M"]:
@@ -356,12 +386,16 @@ class Corrected(Predictor):
             out = out + jnp.concatenate(
                 [dv, jnp.zeros((*dv.shape[:-1], self.n_outputs - nd), dv.dtype)], axis=-1
             )
-        if self.online is not None:
-            ov = jnp.maximum(var[..., 1 + nd :], 0.0)
+        at = 1 + nd
+        for part in (self.online, self.explicit):
+            if part is None:
+                continue
+            ov = jnp.maximum(var[..., at : at + N_LOADS], 0.0)
             out = out + jnp.concatenate(
                 [ov, jnp.zeros((*ov.shape[:-1], self.n_outputs - ov.shape[-1]), ov.dtype)],
                 axis=-1,
             )
+            at += N_LOADS
         return out
 
     def mean_view(self) -> Corrected:
@@ -484,6 +518,7 @@ def correct(
     prior: Surrogate,
     labels: Labels | Sequence[Labels],
     *,
+    basis: str = "physical",
     scale: bool = True,
     use_prior: bool = True,
     simple_term: bool = True,
@@ -498,8 +533,13 @@ def correct(
         prior: a fitted surrogate (its GP mean is ``μ_sim``; a corrected one is corrected
             anew from its prior).
         labels: :func:`gpg.flight.label` of one or more flights.
-        scale: fit ``ρ`` per load output (weighted least squares of the labels on the prior's
-            mean, then ``δ`` on what is left); False keeps ``ρ = 1``.
+        basis: ``"physical"``: the prior's mean, ``M``'s loads and the physical terms of
+            :mod:`gpg.flight.basis` (drag, rotor drag, inflow) as explicit basis functions
+            whose coefficients are integrated out under a Gaussian prior, so that their
+            uncertainty widens the band where no flight went; ``"regression"``: ``ρ`` and
+            ``κ`` as weighted least-squares point estimates (the form before the physical
+            basis), then ``δ`` on what is left.
+        scale: fit ``ρ`` per load output; False keeps ``ρ = 1``.
         use_prior: False sets ``ρ = 0`` for the loads: a values-only GP on the flights
             alone (residuals against ``M``), the baseline that has no simulator knowledge.
         simple_term: also fit ``κ``, the coefficient of ``M``'s own loads
@@ -519,8 +559,11 @@ def correct(
         checkpoints take it.
 
     Raises:
-        ValueError: no labels, fewer than 8, or labels with NaN (naming the array).
+        ValueError: no labels, fewer than 8, labels with NaN (naming the array), or an
+            unknown ``basis``.
     """
+    if basis not in ("physical", "regression"):
+        raise ValueError(f"basis must be 'physical' or 'regression', got {basis!r}")
     parts = [labels] if isinstance(labels, Labels) else list(labels)
     if not parts:
         raise ValueError("correct needs labels of at least one flight")
@@ -537,29 +580,40 @@ def correct(
         X, Y, V = X[keep], Y[keep], V[keep]
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
     with_m = simple_term and prior.simple is not None
-    basis = SimpleBasis(prior.simple, prior.normalizer, prior.frame) if with_m else None
-    m = None if basis is None else np.asarray(jax.vmap(basis)(jnp.asarray(X)))
-    rho6, kappa = _regression(Y, V, mu, m, fit_rho=use_prior and scale, use_prior=use_prior)
+    simple = SimpleBasis(prior.simple, prior.normalizer, prior.frame) if with_m else None
+    m = None if simple is None else np.asarray(jax.vmap(simple)(jnp.asarray(X)))
     rho = np.ones(prior.model.n_outputs)  # the levels keep ρ = 1
+    explicit = None
+    if basis == "regression":
+        rho6, kappa = _regression(Y, V, mu, m, fit_rho=use_prior and scale, use_prior=use_prior)
+        R = Y - rho6 * mu - (0.0 if m is None else kappa * m)
+        deltas = tuple(
+            _fit_delta(X, R[:, j], V[:, j], subset_size, max_steps, seed + j)
+            for j in range(N_LOADS)
+        )
+    else:
+        fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
+        # Without M the rotor terms' moments are not known: their torque columns are zero.
+        hubs = jnp.zeros((4, 3)) if prior.simple is None else prior.simple.positions
+        physics = PhysicalBasis(prior.normalizer, hubs, prior.frame)
+        rho6, kappa, deltas, explicit = _fit_explicit(
+            X, Y, V, mu, m, physics, fixed_rho, subset_size, max_steps, seed
+        )
     rho[:N_LOADS] = rho6
-    R = Y - rho6 * mu
-    if basis is not None:
-        R = R - kappa * m
-    deltas = tuple(
-        _fit_delta(X, R[:, j], V[:, j], subset_size, max_steps, seed + j) for j in range(N_LOADS)
-    )
     model = Corrected(
         prior=prior.model,
         scale=jnp.asarray(rho),
         delta=deltas,
-        kappa=None if basis is None else jnp.asarray(kappa),
-        basis=basis,
+        kappa=None if simple is None else jnp.asarray(kappa),
+        basis=simple,
+        explicit=explicit,
     )
     cfg = dict(prior.config)
     cfg["flight_correction"] = {
+        "basis": basis,
         "scale": bool(scale),
         "use_prior": bool(use_prior),
-        "simple_term": basis is not None,
+        "simple_term": simple is not None,
         "n_labels": int(X.shape[0]),
         "flights": [p.name for p in parts],
     }
@@ -569,6 +623,56 @@ def correct(
         model_name=f"{prior.model_name}+flight",
         config_json=json.dumps(cfg, sort_keys=True),
     )
+
+
+def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
+                  seed):  # fmt: skip
+    """The physical basis with integrated coefficients (:mod:`gpg.flight.basis`), per load
+    output: ``β`` first by weighted least squares under its prior with the labels' noise, the
+    discrepancy's hyperparameters on what is left, then ``β``'s posterior given that GP and
+    the discrepancy conditioned on ``y − Hβ̄``. A fixed ``ρ`` (1, or 0 without the prior)
+    moves the prior's mean into the targets instead of a column."""
+    phys = np.asarray(jax.vmap(physics)(jnp.asarray(X)))  # (N, 6, T)
+    n_out = N_LOADS
+    rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
+    kappa = np.zeros(n_out)
+    betas, Gs, chols, deltas = [], [], [], []
+    names = (["prior"] if fixed_rho is None else []) + (["simple"] if m is not None else [])
+    names += list(TERMS)
+    sd = np.array([PRIORS[n] for n in names])
+    b = np.array([1.0 if n == "prior" else 0.0 for n in names])
+    for j in range(n_out):
+        cols = ([mu[:, j]] if fixed_rho is None else []) + ([m[:, j]] if m is not None else [])
+        H = np.column_stack([*cols, phys[:, j, :]])
+        y = Y[:, j] - (0.0 if fixed_rho is None else float(fixed_rho)) * mu[:, j]
+        # β first under its prior with the labels' own noise (plus the same 1e-3 floor as
+        # the regression), so that the GP's hyperparameters see what the basis leaves.
+        w = 1.0 / (V[:, j] + 1e-3)
+        beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
+        r0 = y - H @ beta0
+        gp0 = _fit_delta(X, r0, V[:, j], subset_size, max_steps, seed + j)
+        both = ExactGP.fit(X, np.column_stack([H, y]), hyper=gp0.hyper, row_noise=V[:, j])
+        alpha = np.asarray(both.alpha)
+        beta, chol = posterior(H, alpha[:, :-1], alpha[:, -1], b, sd)
+        gp = ExactGP.fit(X, (y - H @ beta)[:, None], hyper=gp0.hyper, row_noise=V[:, j])
+        deltas.append(gp.with_output_scale(jnp.ones(1)))
+        k = 0
+        if fixed_rho is None:
+            rho[j], k = beta[0], 1
+        if m is not None:
+            kappa[j], k = beta[k], k + 1
+        betas.append(beta[k:])
+        Gs.append(alpha[:, :-1])
+        chols.append(chol)
+    explicit = Explicit(
+        physics=physics,
+        beta=jnp.asarray(np.stack(betas)),
+        G=jnp.asarray(np.stack(Gs)),
+        cov_chol=jnp.asarray(np.stack(chols)),
+        with_prior=fixed_rho is None,
+        with_simple=m is not None,
+    )
+    return rho, kappa, tuple(deltas), explicit
 
 
 def _regression(Y, V, mu, m, *, fit_rho: bool, use_prior: bool):

@@ -44,7 +44,7 @@ from gpg.quadrotor.dynamics import (
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle, vehicle_config
 
-__all__ = ["BEMTAero", "Flight", "Sensors", "fly", "perturbed", "random_plan"]
+__all__ = ["BEMTAero", "Flight", "Sensors", "figure_eight", "fly", "perturbed", "random_plan"]
 
 
 class BEMTAero(AeroModel):
@@ -129,6 +129,9 @@ class Sensors:
         rpm_delay: s, the ESC telemetry's lag.
         voltage: V at the start and the end of a 10-minute flight (linear sag).
         curve: the motors' static curve (commands from rotor speeds).
+        log_rate: Hz the log keeps (every ``rate / log_rate``-th sample); None: ``rate``.
+        rpm_logged: the log has the ESC telemetry's rotor speeds (False: commands only).
+        imu: the log has the accelerometer's specific force (False: none).
     """
 
     rate: float = 200.0
@@ -143,6 +146,23 @@ class Sensors:
     rpm_delay: float = 0.02
     voltage: tuple[float, float] = (16.6, 15.2)
     curve: MotorCurve = MotorCurve(c1=5200.0, c2=2100.0, v_ref=16.0, command_range=(0.0, 1.0))
+    log_rate: float | None = None
+    rpm_logged: bool = True
+    imu: bool = True
+
+    def __post_init__(self):
+        if self.log_rate is not None:
+            k = self.rate / self.log_rate
+            if not (self.log_rate > 0 and abs(k - round(k)) < 1e-9 and round(k) >= 1):
+                raise ValueError(
+                    f"log_rate must divide rate ({self.rate} Hz) into whole steps, got "
+                    f"{self.log_rate}"
+                )
+
+    @property
+    def every(self) -> int:
+        """Simulation steps per logged sample."""
+        return 1 if self.log_rate is None else int(round(self.rate / self.log_rate))
 
 
 @dataclass(frozen=True)
@@ -201,6 +221,45 @@ def random_plan(
     return WaypointPlan.create(w, start_time=0.5, leg_time=lt, yaw="travel")
 
 
+def figure_eight(
+    duration: float,
+    *,
+    center: tuple[float, float, float] = (0.0, 0.0, -10.0),
+    size: tuple[float, float] = (4.0, 2.0),
+    period: float = 8.0,
+    yaw: float | str = 0.0,
+    points: int = 16,
+    hold_s: float = 0.5,
+) -> WaypointPlan:
+    """A figure-eight (a lemniscate of Gerono in the horizontal plane, ``x = a sin s``,
+    ``y = b sin s cos s``) flown again and again, as in a wind tunnel: the manoeuvres that
+    make drag and wind separable.
+
+    Args:
+        duration: s to cover (laps are added past it).
+        center: its centre (NED, m).
+        size: ``(a, b)``, m: half its length along x and its half-width along y.
+        period: s per lap.
+        yaw: a fixed heading (rad), or ``"travel"`` (the nose along each leg).
+        points: waypoints per lap (minimum-jerk legs between them).
+        hold_s: s of hover at the centre before the first lap.
+
+    Returns:
+        The plan.
+    """
+    laps = int(np.ceil(duration / period)) + 1
+    s = np.linspace(0.0, 2 * np.pi * laps, points * laps + 1)
+    a, b = size
+    w = np.column_stack(
+        [
+            center[0] + a * np.sin(s),
+            center[1] + b * np.sin(s) * np.cos(s),
+            np.full(s.size, center[2]),
+        ]
+    )
+    return WaypointPlan.create(w, start_time=hold_s, leg_time=period / points, yaw=yaw)
+
+
 _PHYSICS = bemt.BEMTConfig()  # the generator's own settings
 
 
@@ -257,21 +316,22 @@ def fly(
     volt = v0 + (v1 - v0) * t / 600.0 + rng.normal(0, 0.02, n)
     cmd = _commands(sensors.curve, np.asarray(st.rpm_cmd), volt)
     v_wind = np.asarray(jax.vmap(wind)(jnp.asarray(t)))
+    k = slice(None, None, sensors.every)
     log = FlightLog(
-        t=t,
-        position=st.p + rng.normal(0, sensors.position_noise, (n, 3)),
-        velocity=st.v + rng.normal(0, sensors.velocity_noise, (n, 3)),
-        quaternion=matrix_to_quat(R_meas),
-        rates=gyro,
-        rpm=rpm_tel,
-        command=cmd,
-        specific_force=f_B,
-        wind=v_wind if wind_in_log else None,
-        voltage=volt,
+        t=t[k],
+        position=(st.p + rng.normal(0, sensors.position_noise, (n, 3)))[k],
+        velocity=(st.v + rng.normal(0, sensors.velocity_noise, (n, 3)))[k],
+        quaternion=matrix_to_quat(R_meas)[k],
+        rates=gyro[k],
+        rpm=rpm_tel[k] if sensors.rpm_logged else None,
+        command=cmd[k],
+        specific_force=f_B[k] if sensors.imu else None,
+        wind=v_wind[k] if wind_in_log else None,
+        voltage=volt[k],
         name=name,
     )
-    euler = np.asarray(jax.vmap(euler_from_R)(jnp.asarray(R)))
-    return Flight(log, wr.force, wr.torque, st.rpm, euler, st.v - v_wind)
+    euler = np.asarray(jax.vmap(euler_from_R)(jnp.asarray(R[k])))
+    return Flight(log, wr.force[k], wr.torque[k], st.rpm[k], euler, (st.v - v_wind)[k])
 
 
 def ctrl_thrust_coefficient(ctrl: GeometricController) -> Float[Array, ""]:

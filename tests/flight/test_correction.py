@@ -64,6 +64,11 @@ def corrected(synthetic_surrogate, flights):
     return fc.correct(synthetic_surrogate, flights, **FIT)
 
 
+@pytest.fixture(scope="module")
+def regression(synthetic_surrogate, flights):
+    return fc.correct(synthetic_surrogate, flights, basis="regression", **FIT)
+
+
 def _rbf(A, B, var, ls):
     d = (A[:, None, :] - B[None, :, :]) / ls
     return var * np.exp(-0.5 * np.sum(d * d, -1))
@@ -83,13 +88,13 @@ def test_training_rows_are_the_gp_frame_residuals(synthetic_surrogate, flights):
     )
 
 
-def test_corrected_mean_and_variance_compose(corrected, flights):
+def test_corrected_mean_and_variance_compose(regression, flights):
     """``ρ ⊙ μ_prior + κ ⊙ m + δ`` and ``ρ² c var_prior + c_δ (var_δ + ν_δ²)``: each δ
     evaluated here in NumPy from its training inputs, α and hyperparameters (``m`` has a test
-    of its own below)."""
-    m = corrected.model
-    assert isinstance(m, fc.Corrected) and len(m.delta) == 6
-    X, _, _ = fc.training_rows(corrected, flights)
+    of its own below); ``ρ`` and ``κ`` as point estimates (``basis="regression"``)."""
+    m = regression.model
+    assert isinstance(m, fc.Corrected) and len(m.delta) == 6 and m.explicit is None
+    X, _, _ = fc.training_rows(regression, flights)
     Xq = X[:7] + 0.01
     mean, var = m.predict_unclipped(Xq)
     p_mean, p_var = m.prior.predict_unclipped(Xq)
@@ -357,3 +362,92 @@ def test_simple_term_recovers_a_thrust_coefficient(synthetic_surrogate, flights)
     R = np.asarray(R_WB(x[4:7]))
     expect = np.concatenate([R @ F_B, R @ tau_B]) / np.asarray(sur.normalizer.y_std[:6])
     np.testing.assert_allclose(c.model.basis(jnp.asarray(X[0])), expect, rtol=1e-12)
+
+
+def test_physical_basis_integrated_out(corrected, flights):
+    """The physical basis with its coefficients integrated out (Rasmussen and Williams 2.7),
+    against NumPy written here: ``β̄ = A⁻¹(Hᵀ K⁻¹ y + B⁻¹ b)``, the mean
+    ``h_*ᵀ β̄ + k_*ᵀ K⁻¹ (y − H β̄)`` and the variance's added ``Rᵀ A⁻¹ R``,
+    ``R = h_* − Hᵀ K⁻¹ k_*``, with ``K`` each discrepancy's kernel plus the labels' own noise
+    and its ``ν²``; the band wider where the basis extrapolates (twice the fastest label)."""
+    from gpg.flight.basis import PRIORS, TERMS
+
+    m = corrected.model
+    e = m.explicit
+    assert e is not None and e.columns == ("prior", "simple", *TERMS)
+    X, Y, V = fc.training_rows(corrected, flights)
+    mu = np.asarray(m.prior.predict_mean(X))[:, :6]
+    simple = np.asarray(jax.vmap(m.basis)(jnp.asarray(X)))
+    phys = np.asarray(jax.vmap(e.physics)(jnp.asarray(X)))
+    sd = np.array([PRIORS[c] for c in e.columns])
+    b = np.zeros(sd.size)
+    b[0] = 1.0
+    near = X[:5] + 0.01
+    far = near.copy()
+    far[:, 7] = 2 * X[:, 7].max() - X[:, 7].min()  # the airspeed, normalised: far above
+    Xq = np.concatenate([near, far])
+    mean, var = m.predict_unclipped(Xq)
+    pv = np.asarray(m.predictive_variance(var))
+    p_mean, p_var = (np.asarray(a) for a in m.prior.predict_unclipped(Xq))
+    hq_simple = np.asarray(jax.vmap(m.basis)(jnp.asarray(Xq)))
+    hq_phys = np.asarray(jax.vmap(e.physics)(jnp.asarray(Xq)))
+    total = np.zeros(Xq.shape[0])
+    for j, d in enumerate(m.delta):
+        h = d.hyper
+        ls, s2, nu = np.asarray(h.lengthscale), float(h.variance), float(h.noise)
+        K = _rbf(X, X, s2, ls) + np.diag(V[:, j] + nu)
+        H = np.column_stack([mu[:, j], simple[:, j], phys[:, j]])
+        Ki = np.linalg.inv(K)
+        A = np.diag(1 / sd**2) + H.T @ Ki @ H
+        beta = np.linalg.solve(A, H.T @ Ki @ Y[:, j] + b / sd**2)
+        got = np.concatenate([[m.scale[j], m.kappa[j]], np.asarray(e.beta[j])])
+        np.testing.assert_allclose(got, beta, rtol=1e-6, atol=1e-8)
+        kq = _rbf(Xq, X, s2, ls)
+        hq = np.column_stack([p_mean[:, j], hq_simple[:, j], hq_phys[:, j]])
+        expect = hq @ beta + kq @ Ki @ (Y[:, j] - H @ beta)
+        np.testing.assert_allclose(np.asarray(mean)[:, j], expect, rtol=1e-6, atol=1e-7)
+        R = hq - kq @ Ki @ H
+        v_beta = np.einsum("qp,pr,qr->q", R, np.linalg.inv(A), R)
+        v_delta = s2 - np.einsum("qn,nm,qm->q", kq, Ki, kq) + nu
+        v_prior = np.maximum(p_var, 0) * float(m.prior.output_scale[j]) * float(m.scale[j]) ** 2
+        np.testing.assert_allclose(pv[:, j], v_prior + v_delta + v_beta, rtol=1e-6)
+        total += v_beta / v_beta.mean()
+    # wider where no label went: each far query against the same query at its own speed
+    assert np.all(total[5:] > total[:5])
+
+
+def test_physical_columns_in_closed_form(corrected):
+    """The basis's drag, rotor-drag, inflow and edgewise columns at one input, written out in
+    NumPy from the airflow frame's angles and speed (``v_B = R_HBᵀ (V, 0, 0)``)."""
+    from scipy.spatial.transform import Rotation
+
+    from gpg.flight.basis import AIR_DENSITY, RPM_REF
+
+    e = corrected.model.explicit
+    norm = corrected.normalizer
+    x = np.array([3200.0, 3900.0, 3500.0, 4100.0, 0.4, -0.2, 0.15, 7.0])
+    xn = np.asarray(norm.x(jnp.asarray(x)))
+    R = Rotation.from_euler("ZYX", x[4:7]).as_matrix()  # R_HB = Rz(yaw) Ry(pitch) Rx(roll)
+    v = R.T @ np.array([x[7], 0.0, 0.0])
+    s = np.linalg.norm(v)
+    p = np.asarray(corrected.simple.positions)
+    w = x[:4] / RPM_REF
+    cols = []
+    for a in range(3):
+        f = np.zeros(3)
+        f[a] = -0.5 * AIR_DENSITY * s * v[a]
+        cols.append(np.concatenate([R @ f, np.zeros(3)]))
+    for fi in (
+        -w[:, None] * np.array([v[0], v[1], 0.0]),
+        w[:, None] * np.array([0.0, 0.0, v[2]]),
+        np.tile([0.0, 0.0, -(v[0] ** 2 + v[1] ** 2)], (4, 1)),
+    ):
+        cols.append(np.concatenate([R @ fi.sum(0), R @ np.cross(p, fi).sum(0)]))
+    expect = np.stack(cols, 1) / np.asarray(norm.y_std[:6])[:, None]
+    np.testing.assert_allclose(np.asarray(e.physics(jnp.asarray(xn))), expect, rtol=1e-10,
+                               atol=1e-12)  # fmt: skip
+
+
+def test_correct_refuses_an_unknown_basis(synthetic_surrogate, flights):
+    with pytest.raises(ValueError, match="basis must be 'physical' or 'regression'"):
+        fc.correct(synthetic_surrogate, flights, basis="linear")

@@ -1,0 +1,397 @@
+"""The hard scenario of the sim-to-real benchmark (``python -m experiments.flight_logs
+scenario=hard``): a vehicle no vehicle file describes, logged as real flights are, tested at
+winds no training flight had.
+
+The "real" vehicle (``hard.real``) differs strongly from every vehicle file: several times the
+drag areas, a smaller rotor with wider blades (another thrust coefficient), more profile drag,
+a stronger wake. The user's vehicle file (``hard.vehicle``) is the nearest built-in vehicle
+with the measured mass. The closed-loop simulator flies the real vehicle through
+``hard.sensors``: logged at 50 Hz, motor commands only (no rotor speeds), no IMU. Training
+flights fly figure-eights and random walks in steady winds along x (``hard.train_winds``, known
+as in a wind tunnel); test flights at a faster wind (``hard.test_wind``) and in a gusting one
+(``hard.gust``) given to the models as its mean only. The motor curve is fitted on the calm
+flight's hover (:meth:`gpg.flight.MotorCurve.fit_hover`) and the labels come from the velocity
+(:func:`gpg.flight.label`, ``source="velocity"``).
+
+Models, each predicting at the test labels' states (the curve's rotor speeds, the log's
+attitude and air velocity), scored against the true force at those instants (MSE of the force
+vector, N², and the 95 % coverage per component):
+
+* ``prior``: the nominal vehicle's simulator prior alone;
+* ``corrected_regression``: the correction before the physical basis
+  (``correct(prior, labels, basis="regression")``);
+* ``values_only``: the values-only GP on the flights alone (``use_prior=False``);
+* ``ridge``: a linear fit on (ground velocity, quaternion, commands), no wind;
+* ``identified_prior``: the simulator prior of the identified vehicle
+  (:func:`gpg.flight.identify`, :meth:`gpg.flight.Identification.prior`), alone;
+* ``identified``: that prior corrected with the physical basis (the route of the guide);
+* ``identified_estimated_wind``: the same, corrected with labels whose wind was estimated
+  (:func:`gpg.flight.estimate_wind`) instead of given;
+* ``oracle``: the true vehicle's own simulator prior, uncorrected, at the true states.
+
+Also: the identified parameters against the truth, the wind estimates' RMS error per training
+flight, and the seconds each stage took.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from experiments.runs.output import report, table
+from experiments.runs.timing import machine
+from gpg import conf
+from gpg.data.cache import ensure
+from gpg.flight import correction as fc
+from gpg.flight.identify import hover_coefficients, identify
+from gpg.flight.labels import Labels, MotorCurve, label
+from gpg.flight.log import read_csv, write_csv
+from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed, random_plan
+from gpg.flight.wind import estimate_wind, with_wind
+from gpg.quadrotor.bemt import BEMTConfig
+from gpg.quadrotor.control import GeometricController
+from gpg.quadrotor.dynamics import Wind
+from gpg.quadrotor.vehicle import Vehicle, vehicle_config
+from gpg.runtime import float64, write_json
+from gpg.surrogate import Surrogate
+
+__all__ = ["run"]
+
+
+@dataclasses.dataclass
+class _Test:
+    """A test flight at its label instants: the labels, the truth there, the commands."""
+
+    name: str
+    labels: Labels
+    force: np.ndarray
+    rpm: np.ndarray
+    euler: np.ndarray
+    v_air: np.ndarray
+    quaternion: np.ndarray
+    command: np.ndarray
+
+
+def _flight(h, real, ctrl, physics, sensors, name, wind: Wind, kind, seed, logs, wind_in_log):
+    dur = float(h["flight_s"])
+    rng = np.random.default_rng(seed)
+    if kind == "eight":
+        e = h["figure_eight"]
+        plan = figure_eight(dur, size=tuple(e["size"]), period=float(e["period"]),
+                            yaw=float(np.pi), hold_s=float(e["hold_s"]))  # fmt: skip
+    else:
+        r = h["random_walk"]
+        plan = random_plan(rng, dur, box=float(r["box"]), step=tuple(r["step"]),
+                           leg_time=tuple(r["leg_time"]))  # fmt: skip
+    f = fly(real, ctrl, plan, wind, dur, sensors=sensors, seed=seed, bemt_config=physics,
+            name=name, wind_in_log=wind_in_log)  # fmt: skip
+    path = write_csv(f.log, logs / f"{name}.csv")
+    return dataclasses.replace(f, log=read_csv(path))
+
+
+def _at_labels(f: Flight, lab: Labels):
+    i = np.searchsorted(f.log.t, lab.t)
+    return i
+
+
+def _mse(pred_force, truth) -> float:
+    return float(np.mean(np.sum((np.asarray(pred_force) - truth) ** 2, 1)))
+
+
+def _score(sur: Surrogate, test: _Test, *, truth_states: bool = False) -> dict[str, float]:
+    lab = test.labels
+    if truth_states:
+        p = sur.predict_batch(test.rpm, test.euler, test.v_air)
+    else:
+        p = sur.predict_batch(lab.rpm, lab.euler, lab.v_air)
+    e = np.asarray(p.force) - test.force
+    sd = np.sqrt(np.asarray(p.variance)[:, :3])
+    return {
+        "mse": _mse(p.force, test.force),
+        "coverage95": float(np.mean(np.abs(e) <= 1.959964 * sd)),
+    }
+
+
+def _ridge_features(v, q, u):
+    return np.column_stack([np.ones(len(v)), v, q, u])
+
+
+def _ridge(train: list[tuple[np.ndarray, np.ndarray]], lam: float):
+    X = np.concatenate([a for a, _ in train])
+    Y = np.concatenate([b for _, b in train])
+    mu, sd = X.mean(0), X.std(0)
+    sd[sd == 0] = 1.0
+    Z = (X - mu) / sd
+    Z[:, 0] = 1.0
+    A = Z.T @ Z + lam * np.eye(Z.shape[1])
+    A[0, 0] -= lam  # the intercept is not shrunk
+    W = np.linalg.solve(A, Z.T @ Y)
+
+    def predict(Xq):
+        Zq = (Xq - mu) / sd
+        Zq[:, 0] = 1.0
+        return Zq @ W
+
+    return predict
+
+
+def _prior_of(vehicle_cfg, data_cfg, model, cache_dir, progress) -> Surrogate:
+    _, train, _, _, _ = ensure(data_cfg, vehicle_cfg, cache_dir, progress=progress)
+    name = dict(model).pop("name")
+    opts = {k: v for k, v in model.items() if k != "name"}
+    return Surrogate.fit(train, name, opts or None, vehicle=Vehicle.from_config(vehicle_cfg))
+
+
+@float64
+def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, Any]:
+    """The hard scenario (module docstring); returns what ``results.json`` holds."""
+    h = cfg["hard"]
+    progress = bool(cfg.get("progress", True))
+    stages: dict[str, float] = {}
+    t0 = time.perf_counter()
+    logs = out / "logs"
+    base_cfg = vehicle_config(h["vehicle"]["base"])
+    user_cfg = copy.deepcopy(base_cfg)
+    for k, v in (h["vehicle"].get("changes") or {}).items():
+        user_cfg[k] = v
+    user_cfg["name"] = f"{base_cfg['name']}_user"
+    user = Vehicle.from_config(user_cfg)
+    real = perturbed(base_cfg, h["real"]["changes"])
+    real_cfg = _real_config(base_cfg, h["real"]["changes"])
+    physics = BEMTConfig(wake_gain=float(h["real"]["wake_gain"]),
+                         interference=bool(h["real"]["interference"]))  # fmt: skip
+    simple = nominal_prior.simple
+    ctrl = GeometricController.create(user, simple)
+    s = {k: (tuple(v) if isinstance(v, list) else v) for k, v in h["sensors"].items()}
+    s["curve"] = MotorCurve(**{k: (tuple(v) if isinstance(v, list) else v)
+                               for k, v in s["curve"].items()})  # fmt: skip
+    sensors = Sensors(**s)
+    seed = int(h["seed"])
+    # Training flights: each wind, a figure-eight and a random walk; the wind known (a tunnel).
+    plan = [(w, kind) for w in h["train_winds"] for kind in ("eight", "walk")]
+    bar = tqdm(total=len(plan) + 2, desc="flying", disable=not progress)
+    train = []
+    for i, (w, kind) in enumerate(plan):
+        f = _flight(
+            h,
+            real,
+            ctrl,
+            physics,
+            sensors,
+            f"train{i:02d}_{kind}_{w:g}",
+            Wind.constant(np.array([float(w), 0.0, 0.0])),
+            kind,
+            seed + i,
+            logs,
+            True,
+        )
+        train.append((float(w), f))
+        bar.update()
+    gust = h["gust"]
+    tests_raw = {
+        "steady": _flight(h, real, ctrl, physics, sensors, "test_steady",
+                          Wind.constant(np.array([float(h["test_wind"]), 0.0, 0.0])), "eight",
+                          seed + 100, logs, True),
+        "gust": _flight(h, real, ctrl, physics, sensors, "test_gust",
+                        Wind(np.array([float(gust["mean"]), 0.0, 0.0]),
+                             np.array([float(gust["amplitude"]), 0.0, 0.0]),
+                             np.asarray(float(gust["period_s"])), np.asarray(0.0)),
+                        "eight", seed + 101, logs, True),
+    }  # fmt: skip
+    bar.update(2)
+    bar.close()
+    stages["fly_s"] = time.perf_counter() - t0
+
+    # The motor curve from the calm figure-eight's hover, labels from the velocity.
+    t1 = time.perf_counter()
+    calm = next(f for w, f in train if w == 0.0)
+    curve = MotorCurve.fit_hover(calm.log, user, simple)
+    lab_opts = {"rate": float(h["label_rate"]), "source": "velocity", "curve": curve}
+    train_labels = [label(f.log, user, reference=simple, **lab_opts) for _, f in train]
+    tests = {}
+    for name, f in tests_raw.items():
+        log = f.log
+        if name == "gust":  # the model is given the wind's mean only
+            log = dataclasses.replace(log, wind=np.broadcast_to(log.wind.mean(0), log.wind.shape))
+        lab = label(log, user, reference=simple, **lab_opts)
+        i = _at_labels(f, lab)
+        tests[name] = _Test(name, lab, f.force[i], f.rpm[i], f.euler[i], f.v_air[i],
+                            f.log.quaternion[i], f.log.command[i])  # fmt: skip
+    stages["label_s"] = time.perf_counter() - t1
+
+    # Identification on the training flights (their winds known).
+    t1 = time.perf_counter()
+    idc = h["identify"]
+    ident = identify(
+        train_labels,
+        user_cfg,
+        free=tuple(idc["free"]),
+        max_labels=int(idc["max_labels"]),
+        max_steps=int(idc["max_steps"]),
+    )
+    ident.write(out / "identified_vehicle.yaml", overwrite=True)
+    stages["identify_s"] = time.perf_counter() - t1
+
+    data_cfg = conf.load(h["data"], "data")
+    t1 = time.perf_counter()
+    id_prior = _prior_of(ident.config, data_cfg, cfg["model"], cfg["cache_dir"], progress)
+    stages["identified_prior_s"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    corr = {k: v for k, v in cfg["correct"].items() if k in ("max_labels", "subset_size")}
+    models: dict[str, Surrogate] = {
+        "prior": nominal_prior,
+        "corrected_regression": fc.correct(nominal_prior, train_labels, basis="regression", **corr),
+        "values_only": fc.correct(
+            nominal_prior, train_labels, use_prior=False, simple_term=False, **corr
+        ),  # fmt: skip
+        "identified_prior": id_prior,
+        "identified": fc.correct(id_prior, train_labels, **corr),
+    }
+    stages["correct_s"] = time.perf_counter() - t1
+
+    # The wind estimated on every training flight as if none had been logged.
+    t1 = time.perf_counter()
+    wind_rows, est_labels = [], []
+    for (w, f), lab in zip(train, train_labels, strict=True):
+        blind = dataclasses.replace(
+            lab, v_air=lab.v_air + f.log.wind[np.searchsorted(f.log.t, lab.t)]
+        )
+        est = estimate_wind(blind, ident, knot_s=float(h["wind"]["knot_s"]),
+                            drift=float(h["wind"]["drift"]))  # fmt: skip
+        true_w = f.log.wind[np.searchsorted(f.log.t, lab.t)]
+        err = est.wind[:, :2] - true_w[:, :2]
+        wind_rows.append({"flight": lab.name, "wind": w, "estimated_mean": est.mean.tolist(),
+                          "rms_error": float(np.sqrt(np.mean(np.sum(err**2, 1)))),
+                          "sd_median": float(np.median(est.sd[:, 0])),
+                          "informed": est.informed.tolist()})  # fmt: skip
+        est_labels.append(with_wind(blind, est))
+    models["identified_estimated_wind"] = fc.correct(id_prior, est_labels, **corr)
+    stages["wind_s"] = time.perf_counter() - t1
+
+    t1 = time.perf_counter()
+    oracle = _prior_of(real_cfg, data_cfg, cfg["model"], cfg["cache_dir"], progress)
+    stages["oracle_prior_s"] = time.perf_counter() - t1
+
+    # Scores.
+    ridge = _ridge(
+        [(_ridge_features(f.log.velocity[_at_labels(f, lb)], f.log.quaternion[_at_labels(f, lb)],
+                          f.log.command[_at_labels(f, lb)]), lb.force)
+         for (_, f), lb in zip(train, train_labels, strict=True)],
+        float(h["ridge_lambda"]),
+    )  # fmt: skip
+    rows = []
+    for name, test in tests.items():
+        row: dict[str, Any] = {"test": name, "labels": len(test.labels)}
+        for m, sur in models.items():
+            row.update({f"{m}_{k}": v for k, v in _score(sur, test).items()})
+        row.update({f"oracle_{k}": v for k, v in _score(oracle, test, truth_states=True).items()})
+        v_ground = test.labels.v_air + tests_raw[name].log.wind[
+            np.searchsorted(tests_raw[name].log.t, test.labels.t)]  # fmt: skip
+        if name == "gust":
+            v_ground = test.labels.v_air + float(gust["mean"]) * np.array([1.0, 0, 0])
+        pr = ridge(_ridge_features(v_ground, test.quaternion, test.command))
+        row["ridge_mse"] = _mse(pr, test.force)
+        row["noise_floor"] = float(np.mean(np.sum(test.labels.force_var, 1)))
+        rows.append(row)
+        jax.clear_caches()
+    truth = _truth_parameters(real_cfg, base_cfg, physics)
+    params = {k: {**v, "truth": truth.get(k)} for k, v in ident.parameters.items()}
+    P_F_real, _ = hover_coefficients(real, BEMTConfig())
+    P_F_id = float(ident.config["simple_model"]["thrust_coefficient"])
+    # With commands only the flights fix the thrust per command, not P_F alone (the curve's
+    # gain and P_F trade): each rotor's thrust at the calm flight's median hover command.
+    u = np.median(calm.log.command, 0, keepdims=True)
+    volt = np.median(calm.log.voltage, keepdims=True)
+    thrust_at_hover = {
+        "identified": float(np.mean(P_F_id * ident.curve(curve).rpm(u, volt) ** 2)),
+        "truth": float(np.mean(P_F_real * sensors.curve.rpm(u, volt) ** 2)),
+    }
+    results = {
+        "config": cfg,
+        "machine": machine(),
+        "tests": rows,
+        "identification": {
+            "parameters": params,
+            "unidentified": list(ident.unidentified),
+            "steps": ident.steps,
+            "converged": ident.converged,
+            "residual_rms": ident.residual_rms.tolist(),
+            "thrust_coefficient": {"identified": P_F_id, "truth": P_F_real},
+            "thrust_at_hover_command": thrust_at_hover,
+        },
+        "curve": dataclasses.asdict(curve),
+        "wind": wind_rows,
+        "labels": {"train": int(sum(len(lb) for lb in train_labels))},
+        "stages_s": stages,
+        "seconds_total": time.perf_counter() - t0,
+    }
+    write_json(out / "results.json", results)
+    report(_report(results))
+    return results
+
+
+def _real_config(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """The real vehicle's file mapping (as :func:`gpg.flight.synthetic.perturbed` builds it)."""
+    v = perturbed(base, changes)
+    cfg = copy.deepcopy(base)
+    for key, value in changes.items():
+        *path, last = key.split(".")
+        node = cfg
+        for p in path:
+            node = node[p]
+        old = node[last]
+        if isinstance(value, dict):
+            sc = float(value["scale"])
+            node[last] = [sc * float(x) for x in old] if isinstance(old, list) else sc * float(old)
+        else:
+            node[last] = value
+    cfg["name"] = v.name
+    return cfg
+
+
+def _truth_parameters(real_cfg, base_cfg, physics) -> dict[str, float]:
+    """The real vehicle's values of :data:`gpg.flight.identify.PARAMETERS`."""
+    out = {
+        "rotor.radius": float(real_cfg["rotor"]["radius"]),
+        "rotor.chord": float(np.mean(np.asarray(real_cfg["rotor"]["chord_in"])
+                                     / np.asarray(base_cfg["rotor"]["chord_in"]))),
+        "airfoil.lift_slope": float(real_cfg["airfoil"]["lift_slope"]),
+        "airfoil.alpha_zero_lift_deg": float(real_cfg["airfoil"]["alpha_zero_lift_deg"]),
+        "airfoil.cd0": float(real_cfg["airfoil"]["cd0"]),
+        "motor.gain": 1.0,
+    }  # fmt: skip
+    for i, a in enumerate("xyz"):
+        out[f"drag_area.{a}"] = float(real_cfg["drag_area"][i])
+    return out
+
+
+def _report(res) -> str:
+    cols = [("test", "test", "s")]
+    for m in ("prior", "corrected_regression", "values_only", "identified_prior", "identified",
+              "identified_estimated_wind", "oracle"):  # fmt: skip
+        cols.append((f"{m}_mse", f"{m} MSE", ".3g"))
+    cols += [("ridge_mse", "ridge MSE", ".3g"), ("noise_floor", "noise", ".3g"),
+             ("identified_coverage95", "identified cov95", ".3f")]  # fmt: skip
+    lines = ["hard scenario, force MSE (N²) against the truth:", table(res["tests"], cols)]
+    ident = res["identification"]
+    for k, p in ident["parameters"].items():
+        lines.append(
+            f"  {k}: {p['value']:.4g} ± {p['se']:.2g} (truth {p['truth']}, "
+            f"file {p['nominal']:.4g}){'' if p['identified'] else ' NOT IDENTIFIED'}"
+        )
+    th = ident["thrust_at_hover_command"]
+    lines.append(f"  P_F identified {ident['thrust_coefficient']['identified']:.4g}, truth "
+                 f"{ident['thrust_coefficient']['truth']:.4g}; thrust per rotor at the hover "
+                 f"command {th['identified']:.4g} N, truth {th['truth']:.4g} N")  # fmt: skip
+    for w in res["wind"]:
+        lines.append(f"  wind {w['flight']}: estimated {np.round(w['estimated_mean'], 2)}, "
+                     f"RMS error {w['rms_error']:.3f} m/s")  # fmt: skip
+    lines.append("stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in res["stages_s"].items()))
+    return "\n".join(lines)

@@ -1,0 +1,595 @@
+"""The vehicle identified from its flights: the physical parameters of gpg's own physics that
+explain the labels (the calibration step of Kennedy and O'Hagan: fit the simulator's
+parameters ``θ`` first, so that the discrepancy learns only what the physics cannot).
+
+The model of a label is the blade-element-momentum physics that the generator runs
+(:func:`gpg.quadrotor.bemt.aero`: the four rotors' thrust, torque, H-force and hub moments, the
+wake interference, the airframe drag) for the vehicle with ``θ`` applied, at the label's rotor
+speeds, attitude and air velocity. The parameters are named by the vehicle file's keys
+(:data:`PARAMETERS`): ``rotor.radius`` and ``rotor.chord`` (the blade's size and solidity, which
+set the thrust and torque coefficients and the rotor drag), the airfoil's ``lift_slope``,
+``alpha_zero_lift_deg`` and ``cd0``, the airframe's ``drag_area`` per body axis, and
+``motor.gain``, a factor on the rotor speeds where they come from commands through a motor
+curve.
+
+The estimate is the maximum of the labels' likelihood times a weak prior on ``θ`` around the
+vehicle file's values (a factor of :data:`PARAMETERS`' ``prior`` on scales, degrees on
+shifts): each label's own noise variance plus a model-error variance per component, itself
+estimated from the residuals (so that the standard errors carry what the physics misses).
+The maximum is found by Levenberg-Marquardt on the whitened residuals, with the Jacobian of
+the physics by ``jax.jacfwd`` (one compiled program for every choice of free parameters: the
+loop itself is a handful of NumPy solves of the parameters' size). The standard errors come from
+the posterior's Gauss-Newton curvature ``(JᵀJ + P)⁻¹``. A parameter whose direction the
+flights do not determine (an eigenvalue of the data's information, in units of the prior's,
+under :data:`IDENTIFIABLE`) is named in :attr:`Identification.unidentified`: it keeps its prior
+value and the vehicle file says so. With commands only, ``motor.gain`` and the rotor's size
+are such a pair: a rotor that gives more thrust per rpm and a curve that gives fewer rpm per
+command explain the same flights.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import yaml
+from jaxtyping import Array, Float
+
+if TYPE_CHECKING:
+    from gpg.surrogate import Surrogate
+
+from gpg._dtype import float64
+from gpg._io import atomic_write
+from gpg._precision import highest
+from gpg.flight.labels import Labels, MotorCurve
+from gpg.quadrotor import bemt
+from gpg.quadrotor.frames import R_WB
+from gpg.quadrotor.simple_model import fit_coefficients
+from gpg.quadrotor.vehicle import Vehicle, vehicle_config
+
+__all__ = [
+    "DEFAULT_FREE",
+    "PARAMETERS",
+    "Identification",
+    "IdentificationWarning",
+    "identify",
+]
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """How one parameter enters: ``scale`` multiplies the file's value by ``e^θ``, ``shift``
+    adds ``θ``; the prior is ``θ ~ N(0, prior²)`` (``prior`` a log-factor or the shift's
+    units)."""
+
+    kind: str
+    prior: float
+    unit: str
+
+
+PARAMETERS: dict[str, ParameterSpec] = {
+    "rotor.radius": ParameterSpec("scale", math.log(1.5), "m"),
+    "rotor.chord": ParameterSpec("scale", math.log(2.0), "x the file's chord"),
+    "airfoil.lift_slope": ParameterSpec("scale", math.log(1.5), "1/rad"),
+    "airfoil.alpha_zero_lift_deg": ParameterSpec("shift", 3.0, "deg"),
+    "airfoil.cd0": ParameterSpec("scale", math.log(3.0), ""),
+    "drag_area.x": ParameterSpec("scale", math.log(5.0), "m²"),
+    "drag_area.y": ParameterSpec("scale", math.log(5.0), "m²"),
+    "drag_area.z": ParameterSpec("scale", math.log(5.0), "m²"),
+    "motor.gain": ParameterSpec("scale", math.log(1.5), "x the curve's rpm"),
+}
+"""The parameters :func:`identify` can free, by vehicle-file key, with their priors."""
+
+DEFAULT_FREE = (
+    "rotor.radius",
+    "rotor.chord",
+    "airfoil.cd0",
+    "drag_area.x",
+    "drag_area.y",
+    "drag_area.z",
+)
+"""What :func:`identify` frees by default: the rotor's size, its profile drag, the airframe."""
+
+# A direction of θ whose data information is under this many times the prior's is not
+# identified by the flights: there the posterior is mostly the prior.
+IDENTIFIABLE = 4.0
+# Labels of a component whose whitened residual RMS stays above this after the fit say the
+# physics misses something big: warned (the discrepancy must carry it).
+_DRAG_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+class IdentificationWarning(UserWarning):
+    """A parameter the flights cannot identify, or a fit that did not converge."""
+
+
+@dataclass(frozen=True)
+class Identification:
+    """A vehicle identified from its flights (:func:`identify`).
+
+    Attributes:
+        vehicle: the identified vehicle (generator part included).
+        config: its vehicle file's mapping (:meth:`write` writes it).
+        parameters: per freed parameter: ``value``, ``se`` (standard error, the value's
+            units), ``nominal`` (the file's), ``unit`` and ``identified`` (False: the flights
+            do not determine it; it keeps the prior's value).
+        unidentified: the names of the parameters the flights cannot identify.
+        model_noise: (6,) the model-error variance per load component (N², N²m²), world.
+        residual_rms: (6,) the labels' RMS residual per component after the fit.
+        n_labels: labels the fit used.
+        steps: Levenberg-Marquardt steps taken (all passes).
+        converged: whether the last pass converged.
+        motor_gain: the rotor speeds' factor (1 unless ``motor.gain`` was freed).
+        physics: the blade-element-momentum settings the parameters hold for.
+    """
+
+    vehicle: Vehicle
+    config: dict[str, Any]
+    parameters: dict[str, dict[str, Any]]
+    unidentified: tuple[str, ...]
+    model_noise: np.ndarray
+    residual_rms: np.ndarray
+    n_labels: int
+    steps: int
+    converged: bool
+    motor_gain: float = 1.0
+    physics: bemt.BEMTConfig = field(default_factory=bemt.BEMTConfig)
+
+    def curve(self, curve: MotorCurve) -> MotorCurve:
+        """A motor curve with the identified gain applied (``motor.gain``).
+
+        Args:
+            curve: the curve the labels' rotor speeds came from.
+
+        Returns:
+            The curve whose speeds are ``motor_gain`` times ``curve``'s.
+        """
+        g = self.motor_gain
+        return MotorCurve(curve.c1 * g, curve.c2 * g, curve.v_ref, curve.command_range,
+                          curve.residual_rpm * g, curve.source)  # fmt: skip
+
+    def prior(
+        self,
+        data: str | Mapping[str, Any] = "default",
+        model: str = "gpgs_hybrid",
+        config: Mapping[str, Any] | None = None,
+        *,
+        cache_dir: str | Path = "data/cache",
+        progress: bool = True,
+    ) -> Surrogate:
+        """The simulator's prior of the identified vehicle: its data generated (cached by the
+        vehicle file's hash, as every dataset: :func:`gpg.data.cache.ensure`) and the
+        surrogate fitted on them, so that the prior carries this vehicle's physics.
+
+        Args:
+            data: a ``data`` config of the package (``"default"``, ``"smoke"``) or its mapping.
+            model: the surrogate's model name (:data:`gpg.models.NAMES`).
+            config: overrides of the model's options.
+            cache_dir: the dataset cache.
+            progress: progress bars while generating.
+
+        Returns:
+            The fitted :class:`~gpg.Surrogate` (its ``M`` is the identified vehicle's).
+        """
+        from gpg import conf
+        from gpg.data.cache import ensure
+        from gpg.surrogate import Surrogate
+
+        data_cfg = conf.load(data, "data") if isinstance(data, str) else dict(data)
+        _, train, _, _, _ = ensure(data_cfg, self.config, cache_dir, progress=progress)
+        return Surrogate.fit(train, model, config, vehicle=self.vehicle)
+
+    def summary(self) -> str:
+        """The parameter table as text: value ± standard error, the file's value.
+
+        Returns:
+            One line per parameter, then the unidentified ones named.
+        """
+        lines = [f"{'parameter':30s} {'value':>12s} {'± se':>10s} {'file':>12s}"]
+        for k, p in self.parameters.items():
+            flag = "" if p["identified"] else "  (not identified: prior)"
+            lines.append(
+                f"{k:30s} {p['value']:12.5g} {p['se']:10.2g} {p['nominal']:12.5g} {p['unit']}"
+                + flag
+            )
+        if self.unidentified:
+            lines.append("not identified by these flights: " + ", ".join(self.unidentified))
+        return "\n".join(lines)
+
+    def write(self, path: str | Path, *, overwrite: bool = False) -> Path:
+        """The identified vehicle as a vehicle file that :func:`~gpg.quadrotor.load_vehicle`
+        and the generator read; its header lists the parameters with their standard errors
+        and names the unidentified ones.
+
+        Args:
+            path: the YAML file to write (atomically).
+            overwrite: replace an existing file.
+
+        Returns:
+            The path written.
+
+        Raises:
+            FileExistsError: the file exists and ``overwrite`` is False.
+        """
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists: pass overwrite=True to replace it")
+        head = ["# Identified from flights by gpg.flight.identify (value ± standard error)."]
+        head += ["# " + line for line in self.summary().splitlines()]
+        text = "\n".join(head) + "\n" + yaml.safe_dump(self.config, sort_keys=False)
+        atomic_write(path, text.encode())
+        return path
+
+
+def _get(cfg: dict[str, Any], name: str) -> float:
+    if name.startswith("drag_area."):
+        return float(cfg["drag_area"][_DRAG_AXES[name.split(".")[1]]])
+    if name == "rotor.chord":
+        return 1.0
+    if name == "motor.gain":
+        return 1.0
+    section, _, leaf = name.partition(".")
+    return float(cfg[section][leaf])
+
+
+def _set(cfg: dict[str, Any], name: str, value: float) -> None:
+    if name.startswith("drag_area."):
+        cfg["drag_area"] = [float(v) for v in cfg["drag_area"]]
+        cfg["drag_area"][_DRAG_AXES[name.split(".")[1]]] = float(value)
+    elif name == "rotor.chord":
+        cfg["rotor"]["chord_in"] = [round(float(c) * value, 6) for c in cfg["rotor"]["chord_in"]]
+    elif name != "motor.gain":
+        section, _, leaf = name.partition(".")
+        cfg[section][leaf] = float(value)
+
+
+def _apply(vehicle: Vehicle, names: tuple[str, ...], theta: Float[Array, " P"]) -> Vehicle:
+    """The vehicle with ``θ`` applied (traceable: a differentiable function of ``θ``)."""
+    for i, name in enumerate(names):
+        s, d = jnp.exp(theta[i]), theta[i]
+        if name == "rotor.radius":
+            vehicle = eqx.tree_at(lambda v: v.rotor.radius, vehicle, vehicle.rotor.radius * s)
+        elif name == "rotor.chord":
+            vehicle = eqx.tree_at(lambda v: v.rotor.chord, vehicle, vehicle.rotor.chord * s)
+        elif name == "airfoil.lift_slope":
+            vehicle = eqx.tree_at(
+                lambda v: v.airfoil.lift_slope, vehicle, vehicle.airfoil.lift_slope * s
+            )
+        elif name == "airfoil.alpha_zero_lift_deg":
+            vehicle = eqx.tree_at(
+                lambda v: v.airfoil.alpha_zero_lift,
+                vehicle,
+                vehicle.airfoil.alpha_zero_lift + jnp.deg2rad(d),
+            )
+        elif name == "airfoil.cd0":
+            vehicle = eqx.tree_at(lambda v: v.airfoil.cd0, vehicle, vehicle.airfoil.cd0 * s)
+        elif name.startswith("drag_area."):
+            k = _DRAG_AXES[name.split(".")[1]]
+            vehicle = eqx.tree_at(
+                lambda v: v.drag_area, vehicle, vehicle.drag_area.at[k].multiply(s)
+            )
+    return vehicle
+
+
+@eqx.filter_jit
+@highest
+def physics_loads(
+    vehicle: Vehicle,
+    cfg: bemt.BEMTConfig,
+    rpm: Float[Array, "N 4"],
+    euler: Float[Array, "N 3"],
+    v_air: Float[Array, "N 3"],
+) -> Float[Array, "N 6"]:
+    """The physics' world-frame force and torque at many states (what a label measures).
+
+    Args:
+        vehicle: a full vehicle (generator part included).
+        cfg: the physics' settings.
+        rpm: (N, 4) rotor speeds, rpm.
+        euler: (N, 3) (yaw, pitch, roll), rad.
+        v_air: (N, 3) air velocity, world, m/s.
+
+    Returns:
+        (N, 6) the force (N) and torque (N·m), world frame.
+    """
+
+    def one(r, e, v):
+        res = bemt.aero(vehicle, cfg, r, R_WB(e), v)
+        return jnp.concatenate([res.force_W, res.torque_W])
+
+    return jax.vmap(one)(rpm, euler, v_air)
+
+
+ALL = tuple(PARAMETERS)  # θ's order inside: one compiled program serves any choice of free
+
+
+@eqx.filter_jit
+@highest
+def loads_and_jacobian(
+    vehicle: Vehicle,
+    cfg: bemt.BEMTConfig,
+    theta: Float[Array, " 9"],
+    directions: Float[Array, "9 F"],
+    rpm: Float[Array, "N 4"],
+    euler: Float[Array, "N 3"],
+    v_air: Float[Array, "N 3"],
+) -> tuple[Float[Array, "N 6"], Float[Array, "N 6 F"]]:
+    """The physics' loads with ``θ`` applied, and their derivatives along ``directions``.
+
+    ``θ`` holds every parameter of :data:`PARAMETERS`, in its order (a log-factor on a
+    scale, a shift's own units); the rotor speeds are multiplied by ``e^θ`` of
+    ``motor.gain``. The derivatives are taken along the columns of ``directions`` only
+    (the free parameters' unit vectors): forward mode costs one pass per column.
+
+    Args:
+        vehicle: the vehicle file's vehicle (θ = 0).
+        cfg: the physics' settings.
+        theta: (9,) the parameters.
+        directions: (9, F) the directions of the derivatives.
+        rpm: (N, 4) rotor speeds, rpm.
+        euler: (N, 3) attitudes, rad.
+        v_air: (N, 3) air velocities, world, m/s.
+
+    Returns:
+        The (N, 6) world-frame force and torque and their (N, 6, F) derivatives.
+    """
+
+    def f(phi):
+        th = theta + directions @ phi
+        veh = _apply(vehicle, ALL, th)
+        out = physics_loads(veh, cfg, rpm * jnp.exp(th[ALL.index("motor.gain")]), euler, v_air)
+        return out, out
+
+    phi = jnp.zeros(directions.shape[1], theta.dtype)
+    J, out = jax.jacfwd(f, has_aux=True)(phi)
+    return out, J
+
+
+def _levenberg_marquardt(fun, theta, prior_sd, free, max_steps: int):
+    """Damped Gauss-Newton on ``½‖r(θ)‖² + ½‖θ/sd‖²`` over the free entries of ``θ``, from
+    ``fun(θ) -> (r, ∂r/∂θ)``: the step ``(JᵀJ + P + μ diag(JᵀJ + P)) δ = −(Jᵀr + Pθ)``,
+    ``μ`` shrunk after a step that lowers the cost and grown after one that does not.
+    Converged when no free entry moves by more than 1e-6 (log-factors and degrees: far
+    below any standard error)."""
+    P = np.diag(1.0 / prior_sd[free] ** 2)
+    r, J = fun(theta)
+    cost = 0.5 * (r @ r + theta[free] @ P @ theta[free])
+    mu, steps, converged = 1e-3, 0, False
+    while steps < max_steps:
+        steps += 1
+        Jf = J[:, free]
+        H = Jf.T @ Jf + P
+        g = Jf.T @ r + P @ theta[free]
+        delta = -np.linalg.solve(H + mu * np.diag(np.diag(H)), g)
+        trial = theta.copy()
+        trial[free] += delta
+        r2, J2 = fun(trial)
+        cost2 = 0.5 * (r2 @ r2 + trial[free] @ P @ trial[free])
+        if np.isfinite(cost2) and cost2 <= cost:
+            theta, r, J, cost, mu = trial, r2, J2, cost2, max(mu / 10, 1e-9)
+            if np.max(np.abs(delta)) < 1e-6:
+                converged = True
+                break
+        else:
+            mu *= 10
+            if mu > 1e8:
+                converged = np.max(np.abs(delta)) < 1e-4
+                break
+    return theta, J, steps, converged
+
+
+def _pick(labels: Labels, n: int) -> np.ndarray:
+    """At most ``n`` labels, spread evenly over each flight's labels (every flight kept)."""
+    if len(labels) <= n:
+        return np.arange(len(labels))
+    return np.unique(np.linspace(0, len(labels) - 1, n).round().astype(int))
+
+
+@float64
+def identify(
+    labels: Labels | Sequence[Labels],
+    vehicle: str | Path | Mapping[str, Any],
+    *,
+    free: Sequence[str] = DEFAULT_FREE,
+    loads: str = "both",
+    physics: bemt.BEMTConfig | None = None,
+    max_labels: int = 400,
+    max_steps: int = 40,
+    passes: int = 3,
+) -> Identification:
+    """The vehicle's physical parameters from flight labels, by maximum likelihood (module
+    docstring).
+
+    Args:
+        labels: :func:`gpg.flight.label` of one or more flights (their air velocity must be
+            known: the log's wind, or :func:`gpg.flight.with_wind`).
+        vehicle: the vehicle file (name, path or mapping) whose values are the starting point
+            and the prior's centre: the measured mass, inertia and layout, and the generator's
+            part (rotor, airfoil, drag areas), from the nearest known vehicle where the
+            vehicle's own are unknown.
+        free: the parameters to fit, by key of :data:`PARAMETERS`.
+        loads: ``"force"``, ``"torque"`` or ``"both"``: which labels enter the likelihood.
+        physics: the blade-element-momentum settings (default: the generator's).
+        max_labels: at most this many labels (spread over the flights in time; the physics
+            costs about a millisecond a label and step on two cores).
+        max_steps: Levenberg-Marquardt steps per pass.
+        passes: fits alternated with the model-error variances' estimate.
+
+    Returns:
+        The :class:`Identification`: the vehicle, its file, the parameters with standard
+        errors, the unidentified ones named.
+
+    Raises:
+        ValueError: no labels, an unknown parameter or ``loads``, a vehicle without the
+            generator's part, or labels with NaN.
+    """
+    parts = [labels] if isinstance(labels, Labels) else list(labels)
+    if not parts or not all(isinstance(p, Labels) for p in parts):
+        raise ValueError("identify needs gpg.flight.Labels (label your logs first)")
+    lab = Labels.concatenate(parts)
+    names = tuple(free)
+    unknown = [n for n in names if n not in PARAMETERS]
+    if unknown or not names or len(set(names)) != len(names):
+        raise ValueError(f"free must name distinct parameters of {sorted(PARAMETERS)}, got {names}")
+    if loads not in ("force", "torque", "both"):
+        raise ValueError(f"loads must be 'force', 'torque' or 'both', got {loads!r}")
+    if len(lab) < 2 * len(names):
+        raise ValueError(f"identify needs at least {2 * len(names)} labels, got {len(lab)}")
+    cfg0 = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
+    veh0 = Vehicle.from_config(cfg0).require_generator()
+    physics = bemt.BEMTConfig() if physics is None else physics
+    rows = _pick(lab, max_labels)
+    rpm, euler, v_air = (np.asarray(a, float)[rows] for a in (lab.rpm, lab.euler, lab.v_air))
+    y = np.concatenate([lab.force, lab.torque], 1)[rows]
+    var = np.concatenate([lab.force_var, lab.torque_var], 1)[rows]
+    for nm, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air), ("loads", y), ("var", var)):
+        if not np.isfinite(a).all():
+            raise ValueError(f"labels hold NaN or inf in {nm}")
+    use = np.zeros(6, bool)
+    use[:3] = loads in ("force", "both")
+    use[3:] = loads in ("torque", "both")
+    sd_all = np.array([PARAMETERS[n].prior for n in ALL])
+    free_i = np.array([ALL.index(n) for n in names])
+    sd = sd_all[free_i]
+    states = tuple(jnp.asarray(a) for a in (rpm, euler, v_air))
+
+    E = jnp.asarray(np.eye(len(ALL))[:, free_i])
+
+    def physics_at(th):
+        out, Jf = loads_and_jacobian(veh0, physics, jnp.asarray(th), E, *states)
+        J = np.zeros((*out.shape, len(ALL)))
+        J[:, :, free_i] = np.asarray(Jf)
+        return np.asarray(out), J
+
+    theta = np.zeros(len(ALL))
+    pred, _ = physics_at(theta)
+    model_var = np.maximum(np.mean((y - pred) ** 2 - var, 0), 1e-6 * np.mean(y**2, 0) + 1e-12)
+    steps, converged = 0, False
+    for _ in range(max(1, passes)):
+        w = np.where(use, 1.0 / np.sqrt(var + model_var), 0.0)
+
+        def fun(th, w=w):
+            out, J = physics_at(th)
+            return ((y - out) * w).ravel(), -(J * w[:, :, None]).reshape(-1, len(ALL))
+
+        theta, J, n_steps, converged = _levenberg_marquardt(fun, theta, sd_all, free_i,
+                                                            max_steps)  # fmt: skip
+        steps += n_steps
+        pred, _ = physics_at(theta)
+        model_var = np.maximum(np.mean((y - pred) ** 2 - var, 0), 1e-6 * np.mean(y**2, 0) + 1e-12)
+    w = np.where(use, 1.0 / np.sqrt(var + model_var), 0.0)
+    _, J = fun(theta, w)
+    Jf = J[:, free_i]
+    info = Jf.T @ Jf
+    cov = np.linalg.inv(info + np.diag(1.0 / sd**2))
+    se_theta = np.sqrt(np.diag(cov))
+    weak = _weak_parameters(info, sd, names)
+    theta = theta[free_i]
+    if not converged:
+        warnings.warn(
+            f"identify: Levenberg-Marquardt did not converge in {max_steps} steps a pass; the "
+            "parameters are the last iterate",
+            IdentificationWarning,
+            stacklevel=2,
+        )
+    if weak:
+        warnings.warn(
+            "identify: the flights do not determine "
+            + ", ".join(weak)
+            + " (a near-singular information matrix): they keep the vehicle file's values "
+            "within their prior; fly manoeuvres that excite them, or fix them (free=)",
+            IdentificationWarning,
+            stacklevel=2,
+        )
+    params: dict[str, dict[str, Any]] = {}
+    cfg = copy.deepcopy(cfg0)
+    gain = 1.0
+    for i, n in enumerate(names):
+        spec = PARAMETERS[n]
+        nominal = _get(cfg0, n)
+        if n in weak:
+            th, se = 0.0, float(spec.prior)
+        else:
+            th, se = float(theta[i]), float(se_theta[i])
+        if spec.kind == "scale":
+            value, se_value = nominal * math.exp(th), nominal * math.exp(th) * se
+        else:
+            value, se_value = nominal + th, se
+        params[n] = {"value": value, "se": se_value, "nominal": nominal, "unit": spec.unit,
+                     "identified": n not in weak}  # fmt: skip
+        if n == "motor.gain":
+            gain = value
+        else:
+            _set(cfg, n, value)
+    cfg["name"] = f"{cfg0.get('name', 'vehicle')}_identified"
+    veh = Vehicle.from_config(cfg)
+    P_F, T_z = hover_coefficients(veh, physics)
+    cfg["simple_model"] = {"thrust_coefficient": P_F, "torque_coefficient": T_z}
+    final = np.zeros(len(ALL))
+    final[free_i] = np.where(weak_mask(names, weak), 0.0, theta)
+    resid = y - physics_at(final)[0]
+    return Identification(
+        vehicle=Vehicle.from_config(cfg),
+        config=cfg,
+        parameters=params,
+        unidentified=tuple(weak),
+        model_noise=model_var,
+        residual_rms=np.sqrt(np.mean(resid**2, 0)),
+        n_labels=int(rows.size),
+        steps=steps,
+        converged=bool(converged),
+        motor_gain=float(gain),
+        physics=physics,
+    )
+
+
+def weak_mask(names: tuple[str, ...], weak: Sequence[str]) -> np.ndarray:
+    """(P,) True for the parameters in ``weak``."""
+    return np.array([n in weak for n in names])
+
+
+def _weak_parameters(info: np.ndarray, sd: np.ndarray, names: tuple[str, ...]) -> list[str]:
+    """The parameters that load on a direction the data barely inform: eigenvectors of the
+    data's information in prior units, ``S I S`` (``S = diag(sd)``), with an eigenvalue under
+    :data:`IDENTIFIABLE`; a parameter is named where its share of such a vector is over a
+    fifth."""
+    scaled = info * sd[:, None] * sd[None, :]
+    lam, vec = np.linalg.eigh(0.5 * (scaled + scaled.T))
+    weak: set[int] = set()
+    for k in np.flatnonzero(lam < IDENTIFIABLE):
+        share = vec[:, k] ** 2
+        weak.update(int(i) for i in np.flatnonzero(share > 0.2))
+    return [names[i] for i in sorted(weak)]
+
+
+@highest
+def _hover(vehicle: Vehicle, cfg: bemt.BEMTConfig, rpm: Float[Array, " S"]):
+    def one(r):
+        res = bemt.aero(vehicle, cfg, jnp.full(4, r), jnp.eye(3), jnp.zeros(3))
+        return res.rotors.thrust, res.rotors.torque
+
+    return jax.vmap(one)(rpm)
+
+
+def hover_coefficients(vehicle: Vehicle, cfg: bemt.BEMTConfig | None = None) -> tuple[float, float]:
+    """``M``'s ``P_F`` and ``T_z`` of a vehicle, fitted to its physics' hover sweep (2000 to
+    6000 rpm, as :func:`gpg.quadrotor.simple_model.fit_to_generator`).
+
+    Args:
+        vehicle: a full vehicle.
+        cfg: the physics' settings (default: the generator's).
+
+    Returns:
+        ``P_F`` (N/rpm²) and ``T_z`` (N·m/rpm²).
+    """
+    rpm = np.arange(2000.0, 6001.0, 500.0)
+    T, Q = _hover(vehicle, bemt.BEMTConfig() if cfg is None else cfg, jnp.asarray(rpm))
+    return fit_coefficients(np.repeat(rpm, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())

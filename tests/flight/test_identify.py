@@ -1,0 +1,131 @@
+"""gpg.flight.identify: the vehicle's physical parameters from labels, by maximum likelihood
+through gpg's own physics; against labels made by that physics for a vehicle whose values
+are known."""
+
+import math
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg.flight import IdentificationWarning, identify
+from gpg.flight.identify import PARAMETERS, hover_coefficients, physics_loads
+from gpg.flight.labels import Labels
+from gpg.flight.synthetic import perturbed
+from gpg.quadrotor import bemt
+from gpg.quadrotor.vehicle import load_vehicle, vehicle_config
+
+# A coarser blade grid for the truth and the fit alike: the identification is checked, not
+# the physics' resolution (the inflow's iterations are the generator's: fewer do not converge).
+PHYSICS = bemt.BEMTConfig(n_radial=6, n_azimuth=8)
+TRUE = {"drag_area.x": 0.075, "drag_area.z": 0.12, "rotor.chord": 1.1}
+SIGMA_F, SIGMA_T = 0.3, 0.05  # N, N·m: the labels' noise
+N = 120  # labels: one shape, so that every test reuses the physics' compiled programs
+
+
+def _labels(vehicle, n, seed, speed=1.0):
+    """Labels of ``vehicle``'s physics at flight-like states in winds of 0-10 m/s (times
+    ``speed``)."""
+    rng = np.random.default_rng(seed)
+    rpm = rng.uniform(3000, 5000, (n, 4))
+    euler = np.column_stack(
+        [rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n)]
+    )
+    v = speed * np.column_stack([rng.uniform(0, 10, n), rng.normal(0, 2, n), rng.normal(0, 1, n)])
+    y = np.asarray(physics_loads(vehicle, PHYSICS, *(jnp.asarray(a) for a in (rpm, euler, v))))
+    f = y[:, :3] + SIGMA_F * rng.normal(size=(n, 3))
+    t = y[:, 3:] + SIGMA_T * rng.normal(size=(n, 3))
+    return Labels(t=np.arange(n) * 0.1, rpm=rpm, euler=euler, v_air=v, force=f, torque=t,
+                  force_var=np.full((n, 3), SIGMA_F**2), torque_var=np.full((n, 3), SIGMA_T**2),
+                  model_force=0 * f, model_torque=0 * t, name="synthetic")  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def real():
+    base = vehicle_config("sui_endurance")
+    drag = list(base["drag_area"])
+    drag[0], drag[2] = TRUE["drag_area.x"], TRUE["drag_area.z"]
+    return perturbed(base, {"drag_area": drag, "rotor.chord_in": {"scale": TRUE["rotor.chord"]}})
+
+
+@pytest.fixture(scope="module")
+def identified(real):
+    lab = _labels(real, N, seed=0)
+    return identify(lab, "sui_endurance", free=tuple(TRUE), physics=PHYSICS, max_steps=30,
+                    passes=2)  # fmt: skip
+
+
+def test_parameters_recovered_within_their_standard_errors(identified):
+    """Each parameter within 3 standard errors of the truth, the standard errors small against
+    the prior (the labels inform them), and the fit's residual at the labels' noise."""
+    assert identified.converged and not identified.unidentified
+    for name, truth in TRUE.items():
+        p = identified.parameters[name]
+        assert p["identified"]
+        assert abs(p["value"] - truth) <= 3 * p["se"], (name, p, truth)
+        assert p["se"] < 0.05 * truth  # far inside the prior's factor
+    assert identified.parameters["drag_area.x"]["nominal"] == pytest.approx(0.0251)
+    np.testing.assert_allclose(identified.residual_rms[:3], SIGMA_F, rtol=0.3)
+
+
+def test_vehicle_file_written_and_read(identified, tmp_path):
+    """The identified vehicle as a file: load_vehicle reads it, the generator accepts it, its
+    values are the identified ones and M's coefficients are its physics' hover fit."""
+    path = identified.write(tmp_path / "mine.yaml")
+    text = path.read_text()
+    assert text.startswith("# Identified from flights") and "drag_area.x" in text
+    veh = load_vehicle(path)
+    veh.require_generator()
+    assert veh.name == "sui_endurance_identified"
+    assert float(veh.drag_area[0]) == pytest.approx(identified.parameters["drag_area.x"]["value"])
+    chord0 = np.asarray(load_vehicle("sui_endurance").rotor.chord)
+    np.testing.assert_allclose(
+        np.asarray(veh.rotor.chord) / chord0, identified.parameters["rotor.chord"]["value"],
+        rtol=1e-5)  # fmt: skip
+    P_F, T_z = hover_coefficients(veh, PHYSICS)
+    assert float(veh.thrust_coefficient) == pytest.approx(P_F, rel=1e-12)
+    assert float(veh.torque_coefficient) == pytest.approx(T_z, rel=1e-12)
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        identified.write(path)
+
+
+def test_a_pair_the_flights_cannot_tell_apart_is_named(real):
+    """Rotor speeds from a motor curve: in hover the curve's gain and the blade's chord trade
+    (more thrust per rpm, fewer rpm per command), and without airspeed the airframe's drag
+    does nothing. Force labels of hover alone: all three named in a warning, kept at the
+    file's values, flagged in the summary the vehicle file's header carries."""
+    hover = _labels(real, N, seed=1, speed=0.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always", IdentificationWarning)
+        out = identify(hover, "sui_endurance", free=("rotor.chord", "motor.gain", "drag_area.x"),
+                       loads="force", physics=PHYSICS, max_steps=10, passes=1)  # fmt: skip
+    msg = " ".join(str(w.message) for w in seen if w.category is IdentificationWarning)
+    assert all(n in msg for n in ("rotor.chord", "motor.gain", "drag_area.x")), msg
+    assert set(out.unidentified) == {"rotor.chord", "motor.gain", "drag_area.x"}
+    assert out.parameters["rotor.chord"]["value"] == 1.0 and out.motor_gain == 1.0
+    assert out.parameters["motor.gain"]["se"] == pytest.approx(PARAMETERS["motor.gain"].prior)
+    assert "not identified" in out.summary()
+
+
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        ({"free": ("drag_area.w",)}, "free must name distinct parameters"),
+        ({"free": ("drag_area.x", "drag_area.x")}, "free must name distinct parameters"),
+        ({"loads": "thrust"}, "loads must be"),
+    ],
+)
+def test_bad_options_named(kw, message):
+    lab = _labels(load_vehicle("sui_endurance"), N, seed=2)
+    with pytest.raises(ValueError, match=message):
+        identify(lab, "sui_endurance", physics=PHYSICS, **kw)
+
+
+def test_needs_labels_and_a_generator_vehicle():
+    with pytest.raises(ValueError, match="needs gpg.flight.Labels"):
+        identify([], "sui_endurance")
+    lab = _labels(load_vehicle("sui_endurance"), N, seed=2)
+    with pytest.raises(ValueError, match="cannot drive the built-in generator"):
+        identify(lab, "minimal_example", physics=PHYSICS)
+    assert math.isfinite(PARAMETERS["drag_area.x"].prior)
