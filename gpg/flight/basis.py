@@ -41,9 +41,9 @@ TERMS = ("drag_x", "drag_y", "drag_z", "rotor_drag", "inflow", "edgewise")
 """The physical columns of :class:`PhysicalBasis`, in order."""
 
 PRIORS = {
-    "prior": 0.3,  # ρ about 1 (the simulator's own scale is right to within ~30 %)
-    "simple": 0.3,  # κ about 0: M's coefficients right to within ~30 %
-    "drag_x": 0.1,  # m², a drag area (a 2-3 kg quadrotor's are 0.02-0.1)
+    "prior": 0.3,  # ρ about 1: the simulator's own scale, give or take a third
+    "simple": 0.3,  # κ about 0: M's coefficients, give or take a third
+    "drag_x": 0.1,  # m², a drag area (a small quadrotor's are a few hundredths)
     "drag_y": 0.1,
     "drag_z": 0.1,
     "rotor_drag": 0.5,  # N per m/s, per rotor at RPM_REF

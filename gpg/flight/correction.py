@@ -565,40 +565,26 @@ def correct(
     if basis not in ("physical", "regression"):
         raise ValueError(f"basis must be 'physical' or 'regression', got {basis!r}")
     parts = [labels] if isinstance(labels, Labels) else list(labels)
-    if not parts:
-        raise ValueError("correct needs labels of at least one flight")
-    lab = Labels.concatenate(parts)
-    if len(lab) < 8:
-        raise ValueError(f"correct needs at least 8 labels, got {len(lab)}")
     prior = base(prior)
-    X, Y, V = training_rows(prior, lab)
-    for name, a in (("X", X), ("Y", Y), ("noise", V)):
-        if not np.isfinite(a).all():
-            raise ValueError(f"labels give non-finite GP {name} rows: check the labels' arrays")
-    if X.shape[0] > max_labels:
-        keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
-        X, Y, V = X[keep], Y[keep], V[keep]
+    X, Y, V = _label_rows(prior, parts, max_labels)
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
-    with_m = simple_term and prior.simple is not None
-    simple = SimpleBasis(prior.simple, prior.normalizer, prior.frame) if with_m else None
+    simple = None
+    if simple_term and prior.simple is not None:
+        simple = SimpleBasis(prior.simple, prior.normalizer, prior.frame)
     m = None if simple is None else np.asarray(jax.vmap(simple)(jnp.asarray(X)))
     rho = np.ones(prior.model.n_outputs)  # the levels keep ρ = 1
     explicit = None
+    fit = (subset_size, max_steps, seed)
     if basis == "regression":
         rho6, kappa = _regression(Y, V, mu, m, fit_rho=use_prior and scale, use_prior=use_prior)
         R = Y - rho6 * mu - (0.0 if m is None else kappa * m)
-        deltas = tuple(
-            _fit_delta(X, R[:, j], V[:, j], subset_size, max_steps, seed + j)
-            for j in range(N_LOADS)
-        )
+        deltas = tuple(_fit_delta(X, R[:, j], V[:, j], *fit[:2], seed + j) for j in range(N_LOADS))
     else:
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
         # Without M the rotor terms' moments are not known: their torque columns are zero.
         hubs = jnp.zeros((4, 3)) if prior.simple is None else prior.simple.positions
         physics = PhysicalBasis(prior.normalizer, hubs, prior.frame)
-        rho6, kappa, deltas, explicit = _fit_explicit(
-            X, Y, V, mu, m, physics, fixed_rho, subset_size, max_steps, seed
-        )
+        rho6, kappa, deltas, explicit = _fit_explicit(X, Y, V, mu, m, physics, fixed_rho, *fit)
     rho[:N_LOADS] = rho6
     model = Corrected(
         prior=prior.model,
@@ -623,6 +609,24 @@ def correct(
         model_name=f"{prior.model_name}+flight",
         config_json=json.dumps(cfg, sort_keys=True),
     )
+
+
+def _label_rows(prior: Surrogate, parts: list[Labels], max_labels: int):
+    """The labels of every flight as the GP's rows (:func:`training_rows`), checked, evenly
+    thinned in time to ``max_labels``."""
+    if not parts:
+        raise ValueError("correct needs labels of at least one flight")
+    lab = Labels.concatenate(parts)
+    if len(lab) < 8:
+        raise ValueError(f"correct needs at least 8 labels, got {len(lab)}")
+    X, Y, V = training_rows(prior, lab)
+    for name, a in (("X", X), ("Y", Y), ("noise", V)):
+        if not np.isfinite(a).all():
+            raise ValueError(f"labels give non-finite GP {name} rows: check the labels' arrays")
+    if X.shape[0] > max_labels:
+        keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
+        X, Y, V = X[keep], Y[keep], V[keep]
+    return X, Y, V
 
 
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,

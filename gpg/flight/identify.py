@@ -30,6 +30,7 @@ command explain the same flights.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -153,8 +154,8 @@ class Identification:
             The curve whose speeds are ``motor_gain`` times ``curve``'s.
         """
         g = self.motor_gain
-        return MotorCurve(curve.c1 * g, curve.c2 * g, curve.v_ref, curve.command_range,
-                          curve.residual_rpm * g, curve.source)  # fmt: skip
+        return dataclasses.replace(curve, c1=curve.c1 * g, c2=curve.c2 * g,
+                                   residual_rpm=curve.residual_rpm * g)  # fmt: skip
 
     def prior(
         self,
@@ -431,68 +432,17 @@ def identify(
         ValueError: no labels, an unknown parameter or ``loads``, a vehicle without the
             generator's part, or labels with NaN.
     """
-    parts = [labels] if isinstance(labels, Labels) else list(labels)
-    if not parts or not all(isinstance(p, Labels) for p in parts):
-        raise ValueError("identify needs gpg.flight.Labels (label your logs first)")
-    lab = Labels.concatenate(parts)
     names = tuple(free)
-    unknown = [n for n in names if n not in PARAMETERS]
-    if unknown or not names or len(set(names)) != len(names):
-        raise ValueError(f"free must name distinct parameters of {sorted(PARAMETERS)}, got {names}")
-    if loads not in ("force", "torque", "both"):
-        raise ValueError(f"loads must be 'force', 'torque' or 'both', got {loads!r}")
-    if len(lab) < 2 * len(names):
-        raise ValueError(f"identify needs at least {2 * len(names)} labels, got {len(lab)}")
+    data = _data(labels, names, loads, max_labels)
     cfg0 = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
     veh0 = Vehicle.from_config(cfg0).require_generator()
     physics = bemt.BEMTConfig() if physics is None else physics
-    rows = _pick(lab, max_labels)
-    rpm, euler, v_air = (np.asarray(a, float)[rows] for a in (lab.rpm, lab.euler, lab.v_air))
-    y = np.concatenate([lab.force, lab.torque], 1)[rows]
-    var = np.concatenate([lab.force_var, lab.torque_var], 1)[rows]
-    for nm, a in (("rpm", rpm), ("euler", euler), ("v_air", v_air), ("loads", y), ("var", var)):
-        if not np.isfinite(a).all():
-            raise ValueError(f"labels hold NaN or inf in {nm}")
-    use = np.zeros(6, bool)
-    use[:3] = loads in ("force", "both")
-    use[3:] = loads in ("torque", "both")
-    sd_all = np.array([PARAMETERS[n].prior for n in ALL])
-    free_i = np.array([ALL.index(n) for n in names])
-    sd = sd_all[free_i]
-    states = tuple(jnp.asarray(a) for a in (rpm, euler, v_air))
-
-    E = jnp.asarray(np.eye(len(ALL))[:, free_i])
-
-    def physics_at(th):
-        out, Jf = loads_and_jacobian(veh0, physics, jnp.asarray(th), E, *states)
-        J = np.zeros((*out.shape, len(ALL)))
-        J[:, :, free_i] = np.asarray(Jf)
-        return np.asarray(out), J
-
-    theta = np.zeros(len(ALL))
-    pred, _ = physics_at(theta)
-    model_var = np.maximum(np.mean((y - pred) ** 2 - var, 0), 1e-6 * np.mean(y**2, 0) + 1e-12)
-    steps, converged = 0, False
-    for _ in range(max(1, passes)):
-        w = np.where(use, 1.0 / np.sqrt(var + model_var), 0.0)
-
-        def fun(th, w=w):
-            out, J = physics_at(th)
-            return ((y - out) * w).ravel(), -(J * w[:, :, None]).reshape(-1, len(ALL))
-
-        theta, J, n_steps, converged = _levenberg_marquardt(fun, theta, sd_all, free_i,
-                                                            max_steps)  # fmt: skip
-        steps += n_steps
-        pred, _ = physics_at(theta)
-        model_var = np.maximum(np.mean((y - pred) ** 2 - var, 0), 1e-6 * np.mean(y**2, 0) + 1e-12)
-    w = np.where(use, 1.0 / np.sqrt(var + model_var), 0.0)
-    _, J = fun(theta, w)
-    Jf = J[:, free_i]
-    info = Jf.T @ Jf
-    cov = np.linalg.inv(info + np.diag(1.0 / sd**2))
-    se_theta = np.sqrt(np.diag(cov))
+    fit = _Fit(veh0, physics, names, data)
+    theta, model_var, steps, converged = fit.run(passes, max_steps)
+    info = fit.information(theta, model_var)
+    sd = fit.sd_all[fit.free]
+    se_theta = np.sqrt(np.diag(np.linalg.inv(info + np.diag(1.0 / sd**2))))
     weak = _weak_parameters(info, sd, names)
-    theta = theta[free_i]
     if not converged:
         warnings.warn(
             f"identify: Levenberg-Marquardt did not converge in {max_steps} steps a pass; the "
@@ -509,16 +459,117 @@ def identify(
             IdentificationWarning,
             stacklevel=2,
         )
+    theta[fit.free[weak_mask(names, weak)]] = 0.0
+    params, cfg, gain = _identified_file(cfg0, names, theta[fit.free], se_theta, weak, physics)
+    resid = data["y"] - fit.loads(theta)[0]
+    return Identification(
+        vehicle=Vehicle.from_config(cfg),
+        config=cfg,
+        parameters=params,
+        unidentified=tuple(weak),
+        model_noise=model_var,
+        residual_rms=np.sqrt(np.mean(resid**2, 0)),
+        n_labels=int(data["y"].shape[0]),
+        steps=steps,
+        converged=bool(converged),
+        motor_gain=float(gain),
+        physics=physics,
+    )
+
+
+def _data(labels, names: tuple[str, ...], loads: str, max_labels: int) -> dict[str, Any]:
+    """The labels' arrays the likelihood reads (at most ``max_labels``), checked, and which
+    load components enter it."""
+    parts = [labels] if isinstance(labels, Labels) else list(labels)
+    if not parts or not all(isinstance(p, Labels) for p in parts):
+        raise ValueError("identify needs gpg.flight.Labels (label your logs first)")
+    lab = Labels.concatenate(parts)
+    unknown = [n for n in names if n not in PARAMETERS]
+    if unknown or not names or len(set(names)) != len(names):
+        raise ValueError(f"free must name distinct parameters of {sorted(PARAMETERS)}, got {names}")
+    if loads not in ("force", "torque", "both"):
+        raise ValueError(f"loads must be 'force', 'torque' or 'both', got {loads!r}")
+    if len(lab) < 2 * len(names):
+        raise ValueError(f"identify needs at least {2 * len(names)} labels, got {len(lab)}")
+    rows = _pick(lab, max_labels)
+    out = {
+        "rpm": np.asarray(lab.rpm, float)[rows],
+        "euler": np.asarray(lab.euler, float)[rows],
+        "v_air": np.asarray(lab.v_air, float)[rows],
+        "y": np.concatenate([lab.force, lab.torque], 1)[rows],
+        "var": np.concatenate([lab.force_var, lab.torque_var], 1)[rows],
+    }
+    for nm, a in out.items():
+        if not np.isfinite(a).all():
+            raise ValueError(f"labels hold NaN or inf in {nm}")
+    use = np.zeros(6, bool)
+    use[:3] = loads in ("force", "both")
+    use[3:] = loads in ("torque", "both")
+    out["use"] = use
+    return out
+
+
+class _Fit:
+    """The likelihood of :func:`identify`: the physics at the labels, whitened residuals, the
+    Levenberg-Marquardt passes alternated with the model-error variances' estimate."""
+
+    def __init__(self, veh0: Vehicle, physics: bemt.BEMTConfig, names, data):
+        self.veh0, self.physics, self.data = veh0, physics, data
+        self.free = np.array([ALL.index(n) for n in names])
+        self.sd_all = np.array([PARAMETERS[n].prior for n in ALL])
+        self.E = jnp.asarray(np.eye(len(ALL))[:, self.free])
+        self.states = tuple(jnp.asarray(data[k]) for k in ("rpm", "euler", "v_air"))
+
+    def loads(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The physics' loads (N, 6) and their Jacobian (N, 6, 9), zero off the free columns."""
+        out, Jf = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta), self.E,
+                                     *self.states)  # fmt: skip
+        J = np.zeros((*out.shape, len(ALL)))
+        J[:, :, self.free] = np.asarray(Jf)
+        return np.asarray(out), J
+
+    def model_var(self, theta: np.ndarray) -> np.ndarray:
+        """Each component's variance left beyond the labels' noise (a floor keeps it > 0)."""
+        y, var = self.data["y"], self.data["var"]
+        r = y - self.loads(theta)[0]
+        return np.maximum(np.mean(r**2 - var, 0), 1e-6 * np.mean(y**2, 0) + 1e-12)
+
+    def residuals(self, theta: np.ndarray, model_var: np.ndarray):
+        """The whitened residuals and their Jacobian in θ."""
+        d = self.data
+        w = np.where(d["use"], 1.0 / np.sqrt(d["var"] + model_var), 0.0)
+        out, J = self.loads(theta)
+        return ((d["y"] - out) * w).ravel(), -(J * w[:, :, None]).reshape(-1, len(ALL))
+
+    def run(self, passes: int, max_steps: int):
+        theta = np.zeros(len(ALL))
+        model_var = self.model_var(theta)
+        steps, converged = 0, False
+        for _ in range(max(1, passes)):
+            theta, _, n, converged = _levenberg_marquardt(
+                lambda th, mv=model_var: self.residuals(th, mv),
+                theta, self.sd_all, self.free, max_steps,
+            )  # fmt: skip
+            steps += n
+            model_var = self.model_var(theta)
+        return theta, model_var, steps, converged
+
+    def information(self, theta: np.ndarray, model_var: np.ndarray) -> np.ndarray:
+        """The data's Fisher information over the free parameters, ``JᵀJ``."""
+        J = self.residuals(theta, model_var)[1][:, self.free]
+        return J.T @ J
+
+
+def _identified_file(cfg0, names, theta, se_theta, weak, physics):
+    """The parameters' table, the identified vehicle file (``M``'s coefficients fitted to its
+    hover) and the motor gain."""
     params: dict[str, dict[str, Any]] = {}
     cfg = copy.deepcopy(cfg0)
     gain = 1.0
     for i, n in enumerate(names):
         spec = PARAMETERS[n]
         nominal = _get(cfg0, n)
-        if n in weak:
-            th, se = 0.0, float(spec.prior)
-        else:
-            th, se = float(theta[i]), float(se_theta[i])
+        th, se = (0.0, float(spec.prior)) if n in weak else (float(theta[i]), float(se_theta[i]))
         if spec.kind == "scale":
             value, se_value = nominal * math.exp(th), nominal * math.exp(th) * se
         else:
@@ -530,25 +581,9 @@ def identify(
         else:
             _set(cfg, n, value)
     cfg["name"] = f"{cfg0.get('name', 'vehicle')}_identified"
-    veh = Vehicle.from_config(cfg)
-    P_F, T_z = hover_coefficients(veh, physics)
+    P_F, T_z = hover_coefficients(Vehicle.from_config(cfg), physics)
     cfg["simple_model"] = {"thrust_coefficient": P_F, "torque_coefficient": T_z}
-    final = np.zeros(len(ALL))
-    final[free_i] = np.where(weak_mask(names, weak), 0.0, theta)
-    resid = y - physics_at(final)[0]
-    return Identification(
-        vehicle=Vehicle.from_config(cfg),
-        config=cfg,
-        parameters=params,
-        unidentified=tuple(weak),
-        model_noise=model_var,
-        residual_rms=np.sqrt(np.mean(resid**2, 0)),
-        n_labels=int(rows.size),
-        steps=steps,
-        converged=bool(converged),
-        motor_gain=float(gain),
-        physics=physics,
-    )
+    return params, cfg, gain
 
 
 def weak_mask(names: tuple[str, ...], weak: Sequence[str]) -> np.ndarray:

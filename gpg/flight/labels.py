@@ -75,6 +75,8 @@ class MotorCurve:
             thrust-balance residual converted to rpm for a fit from hover).
         source: ``"speeds"`` (fitted to measured rotor speeds), ``"hover"`` (thrust balances
             weight) or ``"given"``.
+        time_constant: s, the motors' first-order lag behind the curve's static speed
+            (0: none); applied where :meth:`rpm` is given the samples' times.
     """
 
     c1: float
@@ -83,16 +85,23 @@ class MotorCurve:
     command_range: tuple[float, float] = (0.0, 1.0)
     residual_rpm: float = float("nan")
     source: str = "given"
+    time_constant: float = 0.0
 
-    def rpm(self, command: np.ndarray, voltage: np.ndarray | None = None) -> np.ndarray:
+    def rpm(
+        self, command: np.ndarray, voltage: np.ndarray | None = None, t: np.ndarray | None = None
+    ) -> np.ndarray:
         """Rotor speeds (rpm) of motor commands through the curve.
 
         Commands outside :attr:`command_range` warn (:class:`FlightLogWarning`) with their
-        count: the curve is extrapolated there. Negative speeds are clipped to 0.
+        count: the curve is extrapolated there. Negative speeds are clipped to 0. Given the
+        samples' times, the speeds follow the curve's static speed with the first-order lag
+        :attr:`time_constant` (the motors' own: a command that jumps is not a speed that
+        jumps).
 
         Args:
             command: (T, 4) motor commands, 0..1.
             voltage: (T,) battery voltage, V; None: the reference :attr:`v_ref`.
+            t: (T,) the samples' times, s; None: no lag.
 
         Returns:
             (T, 4) rotor speeds, rpm.
@@ -109,7 +118,8 @@ class MotorCurve:
                 stacklevel=2,
             )
         s = _scaled(u, voltage, self.v_ref)
-        return np.maximum(self.c1 * s + self.c2 * s * s, 0.0)
+        static = np.maximum(self.c1 * s + self.c2 * s * s, 0.0)
+        return static if t is None else first_order_lag(t, static, self.time_constant)
 
     @classmethod
     def fit_speeds(
@@ -140,48 +150,75 @@ class MotorCurve:
         return cls(float(c1), float(c2), v_ref, rng, res, "speeds")
 
     @classmethod
-    def fit_hover(cls, log: FlightLog, vehicle: Vehicle, simple: SimpleModel) -> MotorCurve:
-        """Fit the curve to the log's hover, where no rotor speeds are logged.
+    def fit_hover(
+        cls,
+        log: FlightLog,
+        vehicle: Vehicle,
+        simple: SimpleModel,
+        *,
+        max_speed: float = 1.0,
+        max_tilt_deg: float = 10.0,
+    ) -> MotorCurve:
+        """Fit the curve where no rotor speeds are logged, from slow flight (hover by default).
 
-        ``M``'s thrust of the curve's rotor speeds balances the measured thrust ``−m f_z`` (the
-        accelerometer; the weight where the log has none) on samples that hover (speed under
-        1 m/s, tilt under 10°, rotors turning); ``M``'s roll and pitch moments balance too.
+        ``M``'s thrust of the curve's rotor speeds balances the measured thrust ``−F_z``
+        (body z of the measured aerodynamic force: the accelerometer's specific force times
+        the mass, or, without an IMU, the mass times the velocity's spline derivative less
+        gravity, as :func:`label` measures it), and ``M``'s roll and pitch moments balance
+        the measured ones (Euler's equation on the body rates), on samples slower than
+        ``max_speed``, tilted less than ``max_tilt_deg``, rotors turning; the speeds lag the
+        curve by the vehicle file's ``motor.time_constant`` (kept in the curve). Measured, not
+        assumed equal to the weight: the samples of a take-off's transient count as well as
+        a steady hover's, and widen the commands the curve sees. At slow speed the drag is
+        small against the thrust; raise ``max_speed`` to take in a calm flight's manoeuvres.
 
         Args:
-            log: the flight, with motor commands and a hover.
-            vehicle: its mass and gravity.
+            log: the flight, with motor commands and slow flight.
+            vehicle: its mass, inertia and gravity.
             simple: ``M``, whose allocation turns rotor speeds into thrust and moments.
+            max_speed: m/s, the fastest samples used.
+            max_tilt_deg: deg, the most tilted samples used.
 
         Returns:
             The fitted curve (``source="hover"``); its residual is the thrust balance's,
             converted to rpm (a relative thrust error ``e`` is a rotor-speed error ``e/2``).
 
         Raises:
-            ValueError: the log has no motor commands, or fewer than 20 hover samples.
+            ValueError: the log has no motor commands, or fewer than 20 samples to fit.
         """
         if log.command is None:
             raise ValueError(f"{log.name}: fit_hover needs motor commands in the log")
         m, g = float(vehicle.mass), float(vehicle.gravity)
         R = log.R_WB()
         tilt = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
-        hover = (np.linalg.norm(log.velocity, axis=1) < 1.0) & (tilt < 10.0)
-        hover &= log.command.min(1) > 0.05
+        dt = float(np.median(np.diff(log.t)))
+        src = "imu" if log.specific_force is not None else "velocity"
+        F_B, _, tau_B, _, edges = _measured_loads(log, vehicle, R, src, dt)
+        hover = (np.linalg.norm(log.velocity, axis=1) < max_speed) & (tilt < max_tilt_deg)
+        hover &= (log.command.min(1) > 0.05) & ~edges
         if hover.sum() < 20:
             raise ValueError(
-                f"{log.name}: only {int(hover.sum())} hover samples (speed < 1 m/s, tilt < 10°, "
-                "rotors turning): give the curve in the vehicle file or log rotor speeds"
+                f"{log.name}: only {int(hover.sum())} samples to fit the motor curve on (speed "
+                f"< {max_speed:g} m/s, tilt < {max_tilt_deg:g}°, rotors turning): give the "
+                "curve in the vehicle file or log rotor speeds"
             )
         u = log.command[hover]
-        V = None if log.voltage is None else log.voltage[hover]
-        v_ref = 1.0 if V is None else float(np.median(V))
-        s = _scaled(u, None if V is None else V[:, None], v_ref)
-        thrust = m * (-log.specific_force[hover, 2] if log.specific_force is not None else g)
+        V = None if log.voltage is None else log.voltage
+        v_ref = 1.0 if V is None else float(np.median(V[hover]))
+        s_all = _scaled(log.command, None if V is None else V[:, None], v_ref)
+        # The speed lags the curve's static speed c1 s + c2 s²: linear in (c1, c2), so the
+        # lag is applied to s and s² once, over the whole log.
+        tau = float(vehicle.motor_time_constant)
+        s, s2 = (first_order_lag(log.t, a, tau)[hover] for a in (s_all, s_all**2))
+        thrust, moments = -F_B[hover, 2], tau_B[hover, :2]
         A = np.asarray(simple.allocation)
 
         def resid(c):
-            w = c[0] * s + c[1] * s * s
+            w = c[0] * s + c[1] * s2
             load = (w * w) @ A.T  # (ΣT, τx, τy, τz)
-            return np.concatenate([(load[:, 0] - thrust) / (m * g), load[:, 1:3].ravel()])
+            return np.concatenate(
+                [(load[:, 0] - thrust) / (m * g), (load[:, 1:3] - moments).ravel()]
+            )
 
         hover_rpm = float(simple.hover_rpm(m * g))
         c0 = np.array([hover_rpm / max(float(np.median(s)), 1e-3), 0.0])
@@ -190,7 +227,22 @@ class MotorCurve:
         # a relative thrust error e is a relative rotor-speed error e/2
         res = float(np.sqrt(np.mean(r**2)) / 2 * hover_rpm)
         rng = (float(u.min()), float(u.max()))
-        return cls(float(sol.x[0]), float(sol.x[1]), v_ref, rng, res, "hover")
+        return cls(float(sol.x[0]), float(sol.x[1]), v_ref, rng, res, "hover", tau)
+
+
+def first_order_lag(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
+    """``x`` (T, ...) passed through a first-order lag of time constant ``tau`` (s), exactly
+    for inputs held between samples: ``y_k = y_{k−1} + (1 − e^{−Δt/τ}) (x_k − y_{k−1})``,
+    starting at ``x_0``; ``tau`` 0 returns ``x``."""
+    x = np.asarray(x, float)
+    if tau <= 0:
+        return x
+    a = -np.expm1(-np.diff(np.asarray(t, float)) / tau)
+    y = np.empty_like(x)
+    y[0] = x[0]
+    for k in range(1, x.shape[0]):
+        y[k] = y[k - 1] + a[k - 1] * (x[k] - y[k - 1])
+    return y
 
 
 def hover_samples(log: FlightLog, rpm: np.ndarray, *, min_height: float = 0.3) -> np.ndarray:
@@ -456,9 +508,11 @@ def label(
             ``[-max_delay, max_delay]`` that best correlates the fast parts (under
             :data:`DELAY_HIGHPASS_S`) of ``M``'s thrust and the measured one (rotor speeds from
             ESC telemetry lag the IMU); 0 for a log slower than 20 Hz, and 0 with a
-            :class:`~gpg.flight.log.FlightLogWarning` where the best lag is at the bound.
+            :class:`~gpg.flight.log.FlightLogWarning` where the best lag is at the bound; 0 for
+            speeds from commands (the curve's ``time_constant`` is their lag).
         curve: motor commands to rotor speeds, for a log without rotor speeds (default: fitted
-            from the log's hover, :meth:`MotorCurve.fit_hover`).
+            from the log's hover, :meth:`MotorCurve.fit_hover`); its ``time_constant`` lags
+            the speeds behind the commands.
         takeoff_s: seconds dropped after each take-off and before each landing.
         saturation: a rotor at this fraction of its speed range (or command) is saturated.
 
@@ -483,7 +537,7 @@ def label(
     rpm = log.rpm
     if rpm is None:
         curve = MotorCurve.fit_hover(log, vehicle, simple) if curve is None else curve
-        rpm = curve.rpm(log.command, log.voltage)
+        rpm = curve.rpm(log.command, log.voltage, log.t)
     _check_rpm_unit(log.name, rpm, simple, m * g)
     thrust_M = (rpm**2).sum(1) * float(simple.P_F)
     R = log.R_WB()
@@ -494,8 +548,11 @@ def label(
     drop["edges"] = int((keep & edges).sum())
     keep &= ~edges
 
-    # The rotor-speed channel's lag, removed by reading it that much later.
-    if delay == "estimate":
+    # The rotor-speed channel's lag, removed by reading it that much later. Speeds from
+    # commands have none to remove: the curve's own lag is the motors'.
+    if delay == "estimate" and log.rpm is None:
+        lag = 0.0
+    elif delay == "estimate":
         lag = _estimate_delay(log.t, thrust_M, -F_B[:, 2], keep, max_delay)
     else:
         lag = float(delay)

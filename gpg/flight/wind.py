@@ -179,43 +179,15 @@ def estimate_wind(
         ValueError: labels of several flights (times that go back), fewer than 10 labels, a
             bad option.
     """
-    if not isinstance(labels, Labels):
-        raise ValueError("estimate_wind needs one flight's gpg.flight.Labels")
-    if axes not in ("xy", "xyz"):
-        raise ValueError(f"axes must be 'xy' or 'xyz', got {axes!r}")
-    if not (knot_s > 0 and drift > 0 and max_sd > 0 and start_sd > 0):
-        raise ValueError("knot_s, drift, max_sd and start_sd must be > 0")
-    t = np.asarray(labels.t, float)
-    if len(labels) < 10:
-        raise ValueError(f"estimate_wind needs at least 10 labels, got {len(labels)}")
-    if np.any(np.diff(t) <= 0):
-        raise ValueError(
-            "estimate_wind takes one flight at a time: the labels' times do not increase "
-            "(labels of several flights concatenated?)"
-        )
+    t = _checked(labels, axes, knot_s, drift, max_sd, start_sd)
     f = force_model(model)
     nax = len(axes)
-    knot_t = np.arange(t[0], t[-1] + knot_s, knot_s)
+    knot_t, Phi, D = _knots(t, knot_s, drift, start_sd)
     K = knot_t.size
-    # Linear interpolation weights of each label on the knots.
-    j = np.clip(np.searchsorted(knot_t, t, side="right") - 1, 0, K - 2) if K > 1 else 0 * t
-    Phi = np.zeros((t.size, K))
-    if K > 1:
-        a = (t - knot_t[j]) / (knot_t[j + 1] - knot_t[j])
-        Phi[np.arange(t.size), j] = 1 - a
-        Phi[np.arange(t.size), j + 1] = a
-    else:
-        Phi[:, 0] = 1.0
-    # The prior's precision over the knots (per axis): the start, and the random walk.
-    D = np.zeros((K, K))
-    D[0, 0] = 1.0 / start_sd**2
-    for k in range(K - 1):
-        q = 1.0 / (drift**2 * (knot_t[k + 1] - knot_t[k]))
-        D[k : k + 2, k : k + 2] += q * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    Dk = np.kron(D, np.eye(nax))
     rpm, euler, v_g = (jnp.asarray(a, float) for a in (labels.rpm, labels.euler, labels.v_air))
     y = np.asarray(labels.force, float)
     var = np.asarray(labels.force_var, float)
-    Dk = np.kron(D, np.eye(nax))
 
     def system(W, model_var):
         """The residuals, the Gauss-Newton matrix and gradient, and the cost at ``W``."""
@@ -230,62 +202,116 @@ def estimate_wind(
         cost = 0.5 * (np.sum(wgt * r * r) + x @ Dk @ x)
         return r, A, g, cost
 
+    def error_var(r):
+        return np.maximum(np.mean(r**2 - var, 0), 1e-4 * np.mean(y**2, 0) + 1e-9)
+
     W = np.zeros((K, 3))
-    r, _, _, _ = system(W, np.ones(3))
     # The model's error variance: first from the calm guess (conservative), then refitted.
-    model_var = np.maximum(np.mean(r**2 - var, 0), 1e-4 * np.mean(y**2, 0) + 1e-9)
+    model_var = error_var(system(W, np.ones(3))[0])
     it = 0
     for _ in range(2):
-        r, A, g, cost = system(W, model_var)
-        mu = 1e-3
-        for _ in range(max_iter):
-            it += 1
-            step = np.linalg.solve(A + mu * np.diag(np.diag(A)), g).reshape(K, nax)
-            trial = W.copy()
-            trial[:, :nax] += step
-            r2, A2, g2, cost2 = system(trial, model_var)
-            if np.isfinite(cost2) and cost2 <= cost:
-                W, r, A, g, cost, mu = trial, r2, A2, g2, cost2, max(mu / 10, 1e-9)
-                if np.max(np.abs(step)) < 1e-3:
-                    break
-            else:
-                mu *= 10
-                if mu > 1e8:
-                    break
-        model_var = np.maximum(np.mean(r**2 - var, 0), 1e-4 * np.mean(y**2, 0) + 1e-9)
-    _, A, _, _ = system(W, model_var)
-    cov = np.linalg.inv(A)  # (K·nax)², the knots' posterior covariance
-    cov4 = cov.reshape(K, nax, K, nax)
+        W, r, n = _damped_gauss_newton(system, W, model_var, nax, max_iter)
+        it += n
+        model_var = error_var(r)
+    A = system(W, model_var)[1]
+    cov4 = np.linalg.inv(A).reshape(K, nax, K, nax)  # the knots' posterior covariance
     sd = np.zeros((t.size, 3))
     sd[:, :nax] = np.sqrt(np.maximum(np.einsum("nk,kala,nl->na", Phi, cov4, Phi), 0.0))
     w_t = Phi @ W
     _, Jv = (np.asarray(a) for a in _linearised(f, rpm, euler, v_g - jnp.asarray(w_t)))
-    force_var = np.einsum("nca,na->nc", Jv**2, sd**2)
     informed = np.zeros(3, bool)
     informed[:nax] = np.median(sd[:, :nax], 0) <= max_sd
-    weak = [("x", "y", "z")[a] for a in range(nax) if not informed[a]]
+    _warn(labels, sd, informed, nax, max_sd, min_manoeuvre)
+    return WindEstimate(t=t, wind=w_t, sd=sd, knot_t=knot_t, knots=W,
+                        force_var=np.einsum("nca,na->nc", Jv**2, sd**2), model_var=model_var,
+                        informed=informed, iterations=it, name=labels.name)  # fmt: skip
+
+
+def _checked(labels, axes, knot_s, drift, max_sd, start_sd) -> np.ndarray:
+    """The labels' times, after the options and the labels are checked."""
+    if not isinstance(labels, Labels):
+        raise ValueError("estimate_wind needs one flight's gpg.flight.Labels")
+    if axes not in ("xy", "xyz"):
+        raise ValueError(f"axes must be 'xy' or 'xyz', got {axes!r}")
+    if not (knot_s > 0 and drift > 0 and max_sd > 0 and start_sd > 0):
+        raise ValueError("knot_s, drift, max_sd and start_sd must be > 0")
+    t = np.asarray(labels.t, float)
+    if len(labels) < 10:
+        raise ValueError(f"estimate_wind needs at least 10 labels, got {len(labels)}")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError(
+            "estimate_wind takes one flight at a time: the labels' times do not increase "
+            "(labels of several flights concatenated?)"
+        )
+    return t
+
+
+def _knots(t: np.ndarray, knot_s: float, drift: float, start_sd: float):
+    """The knots' times, each label's linear interpolation weights on them (N, K), and the
+    prior's precision over them: a wide start and the random walk between knots."""
+    knot_t = np.arange(t[0], t[-1] + knot_s, knot_s)
+    K = knot_t.size
+    Phi = np.zeros((t.size, K))
+    if K > 1:
+        j = np.clip(np.searchsorted(knot_t, t, side="right") - 1, 0, K - 2)
+        a = (t - knot_t[j]) / (knot_t[j + 1] - knot_t[j])
+        Phi[np.arange(t.size), j] = 1 - a
+        Phi[np.arange(t.size), j + 1] = a
+    else:
+        Phi[:, 0] = 1.0
+    D = np.zeros((K, K))
+    D[0, 0] = 1.0 / start_sd**2
+    for k in range(K - 1):
+        q = 1.0 / (drift**2 * (knot_t[k + 1] - knot_t[k]))
+        D[k : k + 2, k : k + 2] += q * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    return knot_t, Phi, D
+
+
+def _damped_gauss_newton(system, W, model_var, nax: int, max_iter: int):
+    """Levenberg-Marquardt steps on the knots from ``W``: a step that lowers the cost is
+    taken and the damping shrunk, else the damping grows; stops when no knot moves by a
+    millimetre per second. Returns the knots, the residuals there and the steps taken."""
+    r, A, g, cost = system(W, model_var)
+    mu, n = 1e-3, 0
+    for _ in range(max_iter):
+        n += 1
+        step = np.linalg.solve(A + mu * np.diag(np.diag(A)), g).reshape(W.shape[0], nax)
+        trial = W.copy()
+        trial[:, :nax] += step
+        r2, A2, g2, cost2 = system(trial, model_var)
+        if np.isfinite(cost2) and cost2 <= cost:
+            W, r, A, g, cost, mu = trial, r2, A2, g2, cost2, max(mu / 10, 1e-9)
+            if np.max(np.abs(step)) < 1e-3:
+                break
+        else:
+            mu *= 10
+            if mu > 1e8:
+                break
+    return W, r, n
+
+
+def _warn(labels: Labels, sd, informed, nax: int, max_sd: float, min_manoeuvre: float) -> None:
+    """What the flight cannot tell, named: axes without manoeuvres, axes not informed."""
+    axis = ("x", "y", "z")
     # Without manoeuvres along an axis a constant error of the force model reads as wind:
     # the estimate is then the model's, not the flight's.
-    still = [("x", "y", "z")[a] for a in range(nax)
-             if np.std(np.asarray(labels.v_air)[:, a]) < min_manoeuvre]  # fmt: skip
+    still = [axis[a] for a in range(nax) if np.std(np.asarray(labels.v_air)[:, a]) < min_manoeuvre]
     if still:
         warnings.warn(
             f"{labels.name}: no manoeuvres along {', '.join(still)} (ground velocity sd under "
             f"{min_manoeuvre:g} m/s): a bias of the force model there reads as wind",
             WindWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
+    weak = [axis[a] for a in range(nax) if not informed[a]]
     if weak:
         warnings.warn(
             f"{labels.name}: the flight does not determine the wind along {', '.join(weak)} "
             f"(posterior sd {np.round(np.median(sd[:, :nax], 0), 2).tolist()} m/s above "
             f"{max_sd:g}): too few manoeuvres or too little airspeed to tell drag from wind",
             WindWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    return WindEstimate(t=t, wind=w_t, sd=sd, knot_t=knot_t, knots=W, force_var=force_var,
-                        model_var=model_var, informed=informed, iterations=it,
-                        name=labels.name)  # fmt: skip
 
 
 def with_wind(labels: Labels, estimate: WindEstimate) -> Labels:

@@ -1,6 +1,8 @@
 """gpg.flight.labels: loads from measured motion against closed forms, noise, dropped segments,
 delays, motor curves and calibration."""
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -197,8 +199,10 @@ def test_calibration_from_hover_labels_zero_within_noise(veh, M):
         specific_force=f_B,
         voltage=V,
     )
+    # this log's motors follow their commands at once: a vehicle without a motor lag
+    veh = eqx.tree_at(lambda v: v.motor_time_constant, veh, jnp.asarray(0.0))
     fitted = MotorCurve.fit_hover(log, veh, M)
-    assert fitted.source == "hover"
+    assert fitted.source == "hover" and fitted.time_constant == 0.0
     # the curve absorbs the thrust coefficient's error: M's thrust of its speeds is the truth
     thrust_fit = P_F * (fitted.rpm(u, V[:, None]) ** 2).sum(1)
     np.testing.assert_allclose(thrust_fit, P_true * (rpm_true**2).sum(1), rtol=2e-3)
