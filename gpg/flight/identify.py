@@ -19,7 +19,10 @@ estimated from the residuals (so that the standard errors carry what the physics
 The maximum is found by Levenberg-Marquardt on the whitened residuals, with the Jacobian of
 the physics by ``jax.jacfwd`` (one compiled program for every choice of free parameters: the
 loop itself is a handful of NumPy solves of the parameters' size). The standard errors come from
-the posterior's Gauss-Newton curvature ``(JᵀJ + P)⁻¹``. A parameter whose direction the
+the posterior's Gauss-Newton curvature ``(JᵀJ + P)⁻¹``, the data's part divided by
+``(1 + ρ)/(1 − ρ)`` for the lag-one correlation ``ρ`` of consecutive labels' residuals (what
+the physics misses varies slowly along a flight: correlated residuals inform less than as many
+independent ones). A parameter whose direction the
 flights do not determine (an eigenvalue of the data's information, in units of the prior's,
 under :data:`IDENTIFIABLE`) is named in :attr:`Identification.unidentified`: it keeps its prior
 value and the vehicle file says so. With commands only, ``motor.gain`` and the rotor's size
@@ -91,14 +94,15 @@ PARAMETERS: dict[str, ParameterSpec] = {
 """The parameters :func:`identify` can free, by vehicle-file key, with their priors."""
 
 DEFAULT_FREE = (
-    "rotor.radius",
     "rotor.chord",
     "airfoil.cd0",
     "drag_area.x",
     "drag_area.y",
     "drag_area.z",
 )
-"""What :func:`identify` frees by default: the rotor's size, its profile drag, the airframe."""
+"""What :func:`identify` frees by default: the blade's chord (the thrust and torque
+coefficients), its profile drag, the airframe's drag areas. The radius trades with the chord
+on most flights (both scale the thrust); free it where the flights span the inflow's range."""
 
 # A direction of θ whose data information is under this many times the prior's is not
 # identified by the flights: there the posterior is mostly the prior.
@@ -439,7 +443,9 @@ def identify(
     physics = bemt.BEMTConfig() if physics is None else physics
     fit = _Fit(veh0, physics, names, data)
     theta, model_var, steps, converged = fit.run(passes, max_steps)
-    info = fit.information(theta, model_var)
+    # Residuals correlated in time (what the physics misses varies slowly along a flight)
+    # carry less information than as many independent ones: the AR(1) effective count.
+    info = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
     sd = fit.sd_all[fit.free]
     se_theta = np.sqrt(np.diag(np.linalg.inv(info + np.diag(1.0 / sd**2))))
     weak = _weak_parameters(info, sd, names)
@@ -553,6 +559,15 @@ class _Fit:
             steps += n
             model_var = self.model_var(theta)
         return theta, model_var, steps, converged
+
+    def correlation_factor(self, theta: np.ndarray, model_var: np.ndarray) -> float:
+        """``(1 + ρ)/(1 − ρ)`` for the lag-one correlation ``ρ`` of consecutive labels'
+        whitened residuals (the used components pooled; at least 1, at most 100)."""
+        r = self.residuals(theta, model_var)[0].reshape(-1, 6)[:, self.data["use"]]
+        r = r - r.mean(0)
+        rho = float(np.sum(r[1:] * r[:-1]) / max(np.sum(r * r), 1e-300))
+        rho = min(max(rho, 0.0), 0.98)
+        return (1 + rho) / (1 - rho)
 
     def information(self, theta: np.ndarray, model_var: np.ndarray) -> np.ndarray:
         """The data's Fisher information over the free parameters, ``JᵀJ``."""

@@ -34,6 +34,7 @@ SMOKE = [
         (["default_seconds=7"], "default_seconds 7 must be one of seconds"),
         (["seconds=[5,10,60]", "default_seconds=10"], "seconds go to 60.0 s"),
         (["progress=maybe"], "progress must be true or false"),
+        (["scenario=harder"], "scenario must be 'nominal' or 'hard'"),
     ],
 )
 def test_options_checked_before_any_work(bad, message, tmp_path):
@@ -62,3 +63,39 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     sur = checkpoint.load(tmp_path / "corrected")
     assert sur.model_name.endswith("+flight")
     assert np.isfinite(res["targets"]["corrected_vs_sim_only"])
+
+
+HARD = [
+    "scenario=hard",
+    "data=smoke",
+    "data.chunk=32",
+    "hard.data=smoke",
+    "hard.flight_s=10",
+    "hard.train_winds=[0.0,6.0]",
+    "hard.test_wind=10.0",
+    "hard.figure_eight.hold_s=3.0",
+    "hard.identify.max_labels=120",
+    "hard.identify.max_steps=15",
+    "progress=false",
+]
+
+
+@pytest.mark.slow
+def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
+    """The hard scenario at a smoke size: every model scored on both test winds, the
+    identified vehicle written as a file the generator reads, the winds estimated."""
+    from gpg.quadrotor.vehicle import load_vehicle
+
+    cfg = compose_plain("flight_logs", [*HARD, f"cache_dir={smoke_cache}"])
+    res = flight_logs.run(cfg, tmp_path)
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert finite_numbers(saved["tests"]) and [r["test"] for r in res["tests"]] == [
+        "steady",
+        "gust",
+    ]
+    for key in ("prior", "corrected_regression", "values_only", "identified_prior", "identified",
+                "identified_estimated_wind", "oracle"):  # fmt: skip
+        assert res["tests"][0][f"{key}_mse"] > 0
+    load_vehicle(tmp_path / "identified_vehicle.yaml").require_generator()
+    assert len(res["wind"]) == 4 and all(np.isfinite(w["rms_error"]) for w in res["wind"])
+    assert set(res["identification"]["parameters"]) == set(cfg["hard"]["identify"]["free"])
