@@ -526,6 +526,7 @@ def correct(
     subset_size: int = 400,
     max_steps: int = 200,
     seed: int = 0,
+    calibrate: bool = True,
 ) -> Surrogate:
     """The surrogate ``prior`` corrected by flight ``labels`` (module docstring).
 
@@ -552,6 +553,11 @@ def correct(
         max_steps: BFGS steps of each discrepancy's hyperparameter fit
             (:func:`gpg.gp.fit.fit_hyperparameters`).
         seed: the subsets' seed.
+        calibrate: with the physical basis and labels of two flights or more, scale each
+            component's discrepancy and coefficient variance so that every flight, held out
+            and predicted from the others, is covered as the band says (the mean of its
+            squared standardised errors; only widened, never narrowed): a band honest for a
+            flight in conditions the others did not have, not only within them.
 
     Returns:
         A :class:`~gpg.Surrogate` whose model is :class:`Corrected`: ``predict`` gives the
@@ -566,7 +572,7 @@ def correct(
         raise ValueError(f"basis must be 'physical' or 'regression', got {basis!r}")
     parts = [labels] if isinstance(labels, Labels) else list(labels)
     prior = base(prior)
-    X, Y, V = _label_rows(prior, parts, max_labels)
+    X, Y, V, groups = _label_rows(prior, parts, max_labels)
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
     simple = None
     if simple_term and prior.simple is not None:
@@ -584,7 +590,9 @@ def correct(
         # Without M the rotor terms' moments are not known: their torque columns are zero.
         hubs = jnp.zeros((4, 3)) if prior.simple is None else prior.simple.positions
         physics = PhysicalBasis(prior.normalizer, hubs, prior.frame)
-        rho6, kappa, deltas, explicit = _fit_explicit(X, Y, V, mu, m, physics, fixed_rho, *fit)
+        rho6, kappa, deltas, explicit = _fit_explicit(
+            X, Y, V, mu, m, physics, fixed_rho, *fit, groups=groups if calibrate else None
+        )
     rho[:N_LOADS] = rho6
     model = Corrected(
         prior=prior.model,
@@ -611,26 +619,49 @@ def correct(
     )
 
 
+def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
+    """The mean squared standardised error of each flight predicted from the others (the
+    same hyperparameters; the coefficients' posterior and the discrepancy conditioned anew),
+    at least 1: the factor that makes the band cover a flight the model did not see."""
+    z2 = []
+    for g in np.unique(groups):
+        tr, te = groups != g, groups == g
+        if tr.sum() < 8:
+            continue
+        gp = ExactGP.fit(X[tr], np.column_stack([H[tr], y[tr]]), hyper=hyper, row_noise=noise[tr])
+        alpha = np.asarray(gp.alpha)
+        beta, chol = posterior(H[tr], alpha[:, :-1], alpha[:, -1], b, sd)
+        kq = np.asarray(_cross(jnp.asarray(X[te]), jnp.asarray(X[tr]), hyper.variance,
+                               hyper.lengthscale))  # fmt: skip
+        mean = H[te] @ beta + kq @ (alpha[:, -1] - alpha[:, :-1] @ beta)
+        _, latent = gp.predict_unclipped(X[te])
+        r = H[te] - kq @ alpha[:, :-1]
+        var = np.maximum(np.asarray(latent), 0) + float(hyper.noise) + np.sum((r @ chol) ** 2, 1)
+        z2.append((y[te] - mean) ** 2 / (var + noise[te]))
+    return max(1.0, float(np.mean(np.concatenate(z2)))) if z2 else 1.0
+
+
 def _label_rows(prior: Surrogate, parts: list[Labels], max_labels: int):
     """The labels of every flight as the GP's rows (:func:`training_rows`), checked, evenly
-    thinned in time to ``max_labels``."""
+    thinned in time to ``max_labels``; and each row's flight (its index in ``parts``)."""
     if not parts:
         raise ValueError("correct needs labels of at least one flight")
     lab = Labels.concatenate(parts)
     if len(lab) < 8:
         raise ValueError(f"correct needs at least 8 labels, got {len(lab)}")
     X, Y, V = training_rows(prior, lab)
+    groups = np.repeat(np.arange(len(parts)), [len(p) for p in parts])
     for name, a in (("X", X), ("Y", Y), ("noise", V)):
         if not np.isfinite(a).all():
             raise ValueError(f"labels give non-finite GP {name} rows: check the labels' arrays")
     if X.shape[0] > max_labels:
         keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
-        X, Y, V = X[keep], Y[keep], V[keep]
-    return X, Y, V
+        X, Y, V, groups = X[keep], Y[keep], V[keep], groups[keep]
+    return X, Y, V, groups
 
 
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
-                  seed):  # fmt: skip
+                  seed, *, groups=None):  # fmt: skip
     """The physical basis with integrated coefficients (:mod:`gpg.flight.basis`), per load
     output: ``β`` first by weighted least squares under its prior with the labels' noise, the
     discrepancy's hyperparameters on what is left, then ``β``'s posterior given that GP and
@@ -659,7 +690,9 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         alpha = np.asarray(both.alpha)
         beta, chol = posterior(H, alpha[:, :-1], alpha[:, -1], b, sd)
         gp = ExactGP.fit(X, (y - H @ beta)[:, None], hyper=gp0.hyper, row_noise=V[:, j])
-        deltas.append(gp.with_output_scale(jnp.ones(1)))
+        c = 1.0 if groups is None else _held_out_scale(X, H, y, V[:, j], gp0.hyper, b, sd, groups)
+        deltas.append(gp.with_output_scale(jnp.full(1, c)))
+        chol = chol * np.sqrt(c)
         k = 0
         if fixed_rho is None:
             rho[j], k = beta[0], 1

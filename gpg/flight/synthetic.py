@@ -30,7 +30,7 @@ from gpg._precision import highest
 from gpg.flight.labels import MotorCurve
 from gpg.flight.log import FlightLog, matrix_to_quat, quat_to_matrix
 from gpg.quadrotor import bemt
-from gpg.quadrotor.control import GeometricController, WaypointPlan
+from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan
 from gpg.quadrotor.dynamics import (
     AeroModel,
     Quadrotor,
@@ -44,7 +44,16 @@ from gpg.quadrotor.dynamics import (
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle, vehicle_config
 
-__all__ = ["BEMTAero", "Flight", "Sensors", "figure_eight", "fly", "perturbed", "random_plan"]
+__all__ = [
+    "BEMTAero",
+    "Flight",
+    "Lemniscate",
+    "Sensors",
+    "figure_eight",
+    "fly",
+    "perturbed",
+    "random_plan",
+]
 
 
 class BEMTAero(AeroModel):
@@ -221,43 +230,78 @@ def random_plan(
     return WaypointPlan.create(w, start_time=0.5, leg_time=lt, yaw="travel")
 
 
+class Lemniscate(eqx.Module):
+    """A figure-eight reference flown continuously (a lemniscate of Gerono in the horizontal
+    plane, ``x = a sin s``, ``y = b sin s cos s``), its phase ``s`` accelerated uniformly from
+    rest over ``ramp`` seconds: position, velocity and acceleration in closed form, at one
+    heading. The reference of :func:`figure_eight`.
+
+    Attributes:
+        center: (3,) NED, m.
+        size: (2,) ``(a, b)``, m.
+        omega: rad/s, the phase's rate once up to speed (``2π`` per lap).
+        start: s, the hover before the phase starts.
+        ramp: s, the phase's run-up.
+        yaw: rad, the heading.
+    """
+
+    center: Float[Array, " 3"]
+    size: Float[Array, " 2"]
+    omega: Float[Array, ""]
+    start: Float[Array, ""]
+    ramp: Float[Array, ""]
+    yaw: Float[Array, ""]
+
+    def __call__(self, t: Float[Array, ""]) -> Reference:
+        tt = jnp.maximum(t - self.start, 0.0)
+        up = tt < self.ramp
+        w = self.omega
+        s = jnp.where(up, 0.5 * w * tt**2 / self.ramp, w * (tt - 0.5 * self.ramp))
+        sd = jnp.where(up, w * tt / self.ramp, w)
+        sdd = jnp.where(up & (t > self.start), w / self.ramp, 0.0)
+        a, b = self.size[0], self.size[1]
+        zero = jnp.zeros_like(s)
+        p = jnp.stack([a * jnp.sin(s), 0.5 * b * jnp.sin(2 * s), zero])
+        dp = jnp.stack([a * jnp.cos(s), b * jnp.cos(2 * s), zero])
+        ddp = jnp.stack([-a * jnp.sin(s), -2 * b * jnp.sin(2 * s), zero])
+        return Reference(p=self.center + p, v=dp * sd, a=ddp * sd**2 + dp * sdd, yaw=self.yaw)
+
+
 def figure_eight(
-    duration: float,
     *,
     center: tuple[float, float, float] = (0.0, 0.0, -10.0),
     size: tuple[float, float] = (4.0, 2.0),
     period: float = 8.0,
-    yaw: float | str = 0.0,
-    points: int = 16,
+    yaw: float = 0.0,
     hold_s: float = 0.5,
-) -> WaypointPlan:
-    """A figure-eight (a lemniscate of Gerono in the horizontal plane, ``x = a sin s``,
-    ``y = b sin s cos s``) flown again and again, as in a wind tunnel: the manoeuvres that
-    make drag and wind separable.
+    ramp_s: float | None = None,
+) -> Lemniscate:
+    """A figure-eight flown again and again, as in a wind tunnel: the smooth manoeuvres that
+    make drag and wind separable (:class:`Lemniscate`).
 
     Args:
-        duration: s to cover (laps are added past it).
         center: its centre (NED, m).
         size: ``(a, b)``, m: half its length along x and its half-width along y.
         period: s per lap.
-        yaw: a fixed heading (rad), or ``"travel"`` (the nose along each leg).
-        points: waypoints per lap (minimum-jerk legs between them).
-        hold_s: s of hover at the centre before the first lap.
+        yaw: the heading (rad).
+        hold_s: s of hover at the centre first.
+        ramp_s: s of the phase's run-up from rest (default: one lap).
 
     Returns:
-        The plan.
+        The reference.
     """
-    laps = int(np.ceil(duration / period)) + 1
-    s = np.linspace(0.0, 2 * np.pi * laps, points * laps + 1)
-    a, b = size
-    w = np.column_stack(
-        [
-            center[0] + a * np.sin(s),
-            center[1] + b * np.sin(s) * np.cos(s),
-            np.full(s.size, center[2]),
-        ]
+    ramp = period if ramp_s is None else ramp_s
+    if not (period > 0 and ramp > 0 and hold_s >= 0):
+        raise ValueError(f"period and ramp_s must be > 0 and hold_s >= 0, got {period}, {ramp}, "
+                         f"{hold_s}")  # fmt: skip
+    return Lemniscate(
+        center=jnp.asarray(center, float),
+        size=jnp.asarray(size, float),
+        omega=jnp.asarray(2 * np.pi / period),
+        start=jnp.asarray(float(hold_s)),
+        ramp=jnp.asarray(float(ramp)),
+        yaw=jnp.asarray(float(yaw)),
     )
-    return WaypointPlan.create(w, start_time=hold_s, leg_time=period / points, yaw=yaw)
 
 
 _PHYSICS = bemt.BEMTConfig()  # the generator's own settings
@@ -282,7 +326,9 @@ def fly(
     Args:
         real: the vehicle flown (its mass, inertia, motors and BEMT physics are the truth).
         ctrl: the controller (it knows only the simplified model of the nominal vehicle).
-        plan: the reference trajectory.
+        plan: the reference trajectory (a function of time, e.g. a
+            :class:`~gpg.quadrotor.control.WaypointPlan` or a :class:`Lemniscate`; the flight
+            starts in hover at its position at t = 0).
         wind: the wind (world, m/s).
         duration: seconds.
         sensors: the sensor model.
@@ -298,7 +344,7 @@ def fly(
     n = int(round(duration * sensors.rate))
     quad = Quadrotor.from_vehicle(real, BEMTAero(real, bemt_config))
     rpm0 = float(np.sqrt(float(real.weight) / (4 * float(ctrl_thrust_coefficient(ctrl)))))
-    s0 = State.hover(plan.waypoints[0], jnp.full(4, rpm0))
+    s0 = State.hover(plan(jnp.asarray(0.0)).p, jnp.full(4, rpm0))
     states, wrenches, t = _simulate(quad, ctrl, plan, wind, s0, dt, n)
     truth = jax.tree.map(np.asarray, (states, wrenches))
     (st, wr), t = truth, np.asarray(t)

@@ -39,7 +39,14 @@ import numpy as np
 from gpg._dtype import float64
 from gpg.flight.labels import Labels
 
-__all__ = ["WindEstimate", "WindWarning", "estimate_wind", "force_model", "with_wind"]
+__all__ = [
+    "WindEstimate",
+    "WindWarning",
+    "estimate_wind",
+    "force_model",
+    "wind_variance",
+    "with_wind",
+]
 
 
 class WindWarning(UserWarning):
@@ -338,3 +345,32 @@ def with_wind(labels: Labels, estimate: WindEstimate) -> Labels:
         v_air=labels.v_air - estimate.wind,
         force_var=labels.force_var + estimate.force_var,
     )
+
+
+def wind_variance(
+    model: Any,
+    rpm: np.ndarray,
+    euler: np.ndarray,
+    v_air: np.ndarray,
+    wind_sd: np.ndarray,
+) -> np.ndarray:
+    """The force's variance from an uncertain wind, to first order: ``Σ_a (∂F_c/∂v_a)² σ_a²``.
+
+    For predictions at a wind known only roughly (a gusting wind given as its mean, an
+    estimate with its standard deviation): add it to the predictive variance of the force.
+
+    Args:
+        model: the force model (:func:`force_model`).
+        rpm: (N, 4) rotor speeds, rpm.
+        euler: (N, 3) attitudes, rad.
+        v_air: (N, 3) the air velocities used, world, m/s.
+        wind_sd: (N, 3) or (3,) the wind's standard deviation per axis, m/s.
+
+    Returns:
+        (N, 3) the force's added variance per component, N².
+    """
+    f = force_model(model)
+    args = (jnp.asarray(a, float) for a in (rpm, euler, v_air))
+    _, Jv = (np.asarray(a) for a in _linearised(f, *args))
+    sd = np.broadcast_to(np.asarray(wind_sd, float), (Jv.shape[0], 3))
+    return np.einsum("nca,na->nc", Jv**2, sd**2)

@@ -451,3 +451,47 @@ def test_physical_columns_in_closed_form(corrected):
 def test_correct_refuses_an_unknown_basis(synthetic_surrogate, flights):
     with pytest.raises(ValueError, match="basis must be 'physical' or 'regression'"):
         fc.correct(synthetic_surrogate, flights, basis="linear")
+
+
+def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights):
+    """Labels of two flights: each component's discrepancy and coefficient variance scaled by
+    the mean squared standardised error of each flight predicted from the other (at least 1),
+    written out here in NumPy for the first force component; calibrate=False keeps 1."""
+    from gpg.flight.basis import PRIORS
+
+    half = len(flights) // 2
+    a = dataclasses.replace(flights.take(slice(0, half)), name="a")
+    b_ = dataclasses.replace(flights.take(slice(half, None)), name="b")
+    cal = fc.correct(synthetic_surrogate, [a, b_], **FIT)
+    raw = fc.correct(synthetic_surrogate, [a, b_], calibrate=False, **FIT)
+    m = cal.model
+    X, Y, V = fc.training_rows(cal, Labels.concatenate([a, b_]))
+    groups = np.repeat([0, 1], [half, len(flights) - half])
+    d = m.delta[0]
+    h = d.hyper
+    ls, s2, nu = np.asarray(h.lengthscale), float(h.variance), float(h.noise)
+    mu = np.asarray(m.prior.predict_mean(X))[:, 0]
+    Xj = jnp.asarray(X)
+    simple, phys = jax.vmap(m.basis)(Xj)[:, 0], jax.vmap(m.explicit.physics)(Xj)[:, 0]
+    H = np.column_stack([mu, np.asarray(simple), np.asarray(phys)])
+    sd = np.array([PRIORS[c] for c in m.explicit.columns])
+    b = np.zeros(sd.size)
+    b[0] = 1.0
+    z2 = []
+    for g in (0, 1):
+        tr, te = groups != g, groups == g
+        Ki = np.linalg.inv(_rbf(X[tr], X[tr], s2, ls) + np.diag(V[tr, 0] + nu))
+        A = np.diag(1 / sd**2) + H[tr].T @ Ki @ H[tr]
+        beta = np.linalg.solve(A, H[tr].T @ Ki @ Y[tr, 0] + b / sd**2)
+        kq = _rbf(X[te], X[tr], s2, ls)
+        mean = H[te] @ beta + kq @ Ki @ (Y[tr, 0] - H[tr] @ beta)
+        R = H[te] - kq @ Ki @ H[tr]
+        var = s2 - np.einsum("qn,nm,qm->q", kq, Ki, kq) + nu
+        var += np.einsum("qp,pr,qr->q", R, np.linalg.inv(A), R)
+        z2.append((Y[te, 0] - mean) ** 2 / (var + V[te, 0]))
+    c = max(1.0, float(np.mean(np.concatenate(z2))))
+    np.testing.assert_allclose(float(d.output_scale[0]), c, rtol=1e-6)
+    assert float(raw.model.delta[0].output_scale[0]) == 1.0
+    np.testing.assert_allclose(
+        np.asarray(m.explicit.cov_chol[0]), np.asarray(raw.model.explicit.cov_chol[0]) * np.sqrt(c),
+        rtol=1e-6, atol=1e-12)  # fmt: skip

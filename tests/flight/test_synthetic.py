@@ -1,6 +1,8 @@
 """gpg.flight.synthetic's plans and sensor options (the flights themselves run in the
 benchmark's slow test)."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -8,17 +10,25 @@ from gpg.flight.synthetic import Sensors, figure_eight
 
 
 def test_figure_eight_is_a_lemniscate():
-    """Waypoints on ``x = a sin s``, ``y = b sin s cos s`` around the centre, enough laps for
-    the duration, the hover held first."""
-    plan = figure_eight(20.0, center=(1.0, 2.0, -5.0), size=(3.0, 1.5), period=8.0, points=16,
-                        hold_s=4.0)  # fmt: skip
-    w = np.asarray(plan.waypoints)
-    s = np.linspace(0.0, 2 * np.pi * 4, 16 * 4 + 1)  # ceil(20 / 8) + 1 laps
-    np.testing.assert_allclose(w[:, 0], 1.0 + 3.0 * np.sin(s), atol=1e-12)
-    np.testing.assert_allclose(w[:, 1], 2.0 + 1.5 * np.sin(s) * np.cos(s), atol=1e-12)
-    np.testing.assert_allclose(w[:, 2], -5.0)
-    assert float(plan.leg_time) == pytest.approx(0.5) and float(plan.start_time) == 4.0
-    np.testing.assert_allclose(np.asarray(plan.yaw), 0.0)
+    """The reference on ``x = a sin s``, ``y = b sin s cos s`` around the centre, at rest in
+    the hold, its phase run up uniformly; velocity and acceleration the derivatives of the
+    position (central differences)."""
+    plan = figure_eight(center=(1.0, 2.0, -5.0), size=(3.0, 1.5), period=8.0, yaw=0.5,
+                        hold_s=4.0, ramp_s=2.0)  # fmt: skip
+    ref = jax.vmap(plan)(jnp.linspace(0.0, 4.0, 5))
+    np.testing.assert_allclose(ref.p, np.tile([1.0, 2.0, -5.0], (5, 1)), atol=1e-12)
+    np.testing.assert_allclose(ref.v, 0.0, atol=1e-12)
+    w = 2 * np.pi / 8.0
+    t = jnp.asarray([4.5, 5.5, 7.0, 13.3])
+    s = np.where(t - 4.0 < 2.0, 0.5 * w * (t - 4.0) ** 2 / 2.0, w * (t - 4.0 - 1.0))
+    r = jax.vmap(plan)(t)
+    np.testing.assert_allclose(r.p[:, 0], 1.0 + 3.0 * np.sin(s), atol=1e-12)
+    np.testing.assert_allclose(r.p[:, 1], 2.0 + 1.5 * np.sin(s) * np.cos(s), atol=1e-12)
+    np.testing.assert_allclose(r.yaw, 0.5)
+    h = 1e-4
+    up, dn = jax.vmap(plan)(t + h), jax.vmap(plan)(t - h)
+    np.testing.assert_allclose(r.v, (up.p - dn.p) / (2 * h), atol=1e-6)
+    np.testing.assert_allclose(r.a, (up.v - dn.v) / (2 * h), atol=1e-5)
 
 
 def test_sensors_log_rate_divides_the_rate():

@@ -111,3 +111,19 @@ def test_bad_input_refused():
     other = dataclasses.replace(lab, t=lab.t + 1.0)
     with pytest.raises(ValueError, match="not of these labels"):
         with_wind(other, est)
+
+
+def test_wind_variance_is_the_force_slope_squared():
+    """``Σ_a (∂F_c/∂v_a)² σ_a²`` against central differences of the force model."""
+    from gpg.flight.wind import wind_variance
+
+    rng = np.random.default_rng(3)
+    rpm, euler, v = 3600 + 100 * rng.normal(size=(4, 4)), np.zeros((4, 3)), rng.normal(size=(4, 3))
+    sd = np.array([1.5, 0.5, 0.0])
+    got = wind_variance(drag_model, rpm, euler, v, sd)
+    h = 1e-6
+    for n in range(4):
+        J = np.stack([(np.asarray(drag_model(rpm[n], euler[n], v[n] + h * e))
+                       - np.asarray(drag_model(rpm[n], euler[n], v[n] - h * e))) / (2 * h)
+                      for e in np.eye(3)], 1)  # fmt: skip
+        np.testing.assert_allclose(got[n], (J**2) @ sd**2, rtol=1e-6)
