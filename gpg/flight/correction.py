@@ -568,11 +568,9 @@ def correct(
         ValueError: no labels, fewer than 8, labels with NaN (naming the array), or an
             unknown ``basis``.
     """
-    if basis not in ("physical", "regression"):
-        raise ValueError(f"basis must be 'physical' or 'regression', got {basis!r}")
     parts = [labels] if isinstance(labels, Labels) else list(labels)
     prior = base(prior)
-    X, Y, V, groups = _label_rows(prior, parts, max_labels)
+    X, Y, V, groups = _label_rows(prior, parts, max_labels, basis)
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
     simple = None
     if simple_term and prior.simple is not None:
@@ -587,11 +585,8 @@ def correct(
         deltas = tuple(_fit_delta(X, R[:, j], V[:, j], *fit[:2], seed + j) for j in range(N_LOADS))
     else:
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
-        # Without M the rotor terms' moments are not known: their torque columns are zero.
-        hubs = jnp.zeros((4, 3)) if prior.simple is None else prior.simple.positions
-        physics = PhysicalBasis(prior.normalizer, hubs, prior.frame)
         rho6, kappa, deltas, explicit = _fit_explicit(
-            X, Y, V, mu, m, physics, fixed_rho, *fit, groups=groups if calibrate else None
+            X, Y, V, mu, m, _physics(prior), fixed_rho, *fit, groups=groups if calibrate else None
         )
     rho[:N_LOADS] = rho6
     model = Corrected(
@@ -619,6 +614,13 @@ def correct(
     )
 
 
+def _physics(prior: Surrogate) -> PhysicalBasis:
+    """The physical columns in the prior's frame and units; without ``M`` the rotors' hubs are
+    not known, and the rotor terms' torque columns are zero."""
+    hubs = jnp.zeros((4, 3)) if prior.simple is None else prior.simple.positions
+    return PhysicalBasis(prior.normalizer, hubs, prior.frame)
+
+
 def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
     """The mean squared standardised error of each flight predicted from the others (the
     same hyperparameters; the coefficients' posterior and the discrepancy conditioned anew),
@@ -641,9 +643,11 @@ def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
     return max(1.0, float(np.mean(np.concatenate(z2)))) if z2 else 1.0
 
 
-def _label_rows(prior: Surrogate, parts: list[Labels], max_labels: int):
+def _label_rows(prior: Surrogate, parts: list[Labels], max_labels: int, basis: str):
     """The labels of every flight as the GP's rows (:func:`training_rows`), checked, evenly
     thinned in time to ``max_labels``; and each row's flight (its index in ``parts``)."""
+    if basis not in ("physical", "regression"):
+        raise ValueError(f"basis must be 'physical' or 'regression', got {basis!r}")
     if not parts:
         raise ValueError("correct needs labels of at least one flight")
     lab = Labels.concatenate(parts)

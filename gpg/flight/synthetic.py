@@ -289,6 +289,9 @@ def figure_eight(
 
     Returns:
         The reference.
+
+    Raises:
+        ValueError: a period or run-up not positive, or a negative hold.
     """
     ramp = period if ramp_s is None else ramp_s
     if not (period > 0 and ramp > 0 and hold_s >= 0):

@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from gpg.flight import IdentificationWarning, identify
-from gpg.flight.identify import PARAMETERS, hover_coefficients, physics_loads
+from gpg.flight.identify import (
+    ALL,
+    PARAMETERS,
+    _apply,
+    _get,
+    hover_coefficients,
+    loads_and_jacobian,
+)
 from gpg.flight.labels import Labels
 from gpg.flight.synthetic import perturbed
 from gpg.quadrotor import bemt
@@ -22,18 +29,22 @@ PHYSICS = bemt.BEMTConfig(n_radial=6, n_azimuth=8)
 TRUE = {"drag_area.x": 0.075, "drag_area.z": 0.12, "rotor.chord": 1.1}
 SIGMA_F, SIGMA_T = 0.3, 0.05  # N, N·m: the labels' noise
 N = 120  # labels: one shape, so that every test reuses the physics' compiled programs
+BASE = load_vehicle("sui_endurance")
 
 
-def _labels(vehicle, n, seed, speed=1.0):
-    """Labels of ``vehicle``'s physics at flight-like states in winds of 0-10 m/s (times
-    ``speed``)."""
+def _labels(theta, n, seed, speed=1.0):
+    """Labels of the physics with the parameters ``theta`` (all of PARAMETERS, in order) at
+    flight-like states in winds of 0-10 m/s (times ``speed``): the program identify compiles,
+    so that the tests compile it once."""
     rng = np.random.default_rng(seed)
     rpm = rng.uniform(3000, 5000, (n, 4))
     euler = np.column_stack(
         [rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n)]
     )
     v = speed * np.column_stack([rng.uniform(0, 10, n), rng.normal(0, 2, n), rng.normal(0, 1, n)])
-    y = np.asarray(physics_loads(vehicle, PHYSICS, *(jnp.asarray(a) for a in (rpm, euler, v))))
+    states = (jnp.asarray(a) for a in (rpm, euler, v))
+    y, _ = loads_and_jacobian(BASE, PHYSICS, jnp.asarray(theta), jnp.eye(9)[:, :3], *states)
+    y = np.asarray(y)
     f = y[:, :3] + SIGMA_F * rng.normal(size=(n, 3))
     t = y[:, 3:] + SIGMA_T * rng.normal(size=(n, 3))
     return Labels(t=np.arange(n) * 0.1, rpm=rpm, euler=euler, v_air=v, force=f, torque=t,
@@ -41,8 +52,17 @@ def _labels(vehicle, n, seed, speed=1.0):
                   model_force=0 * f, model_torque=0 * t, name="synthetic")  # fmt: skip
 
 
+def _theta(values):
+    """θ of the vehicle file's values ``values`` (log-factors on sui_endurance's)."""
+    th = np.zeros(len(ALL))
+    for name, v in values.items():
+        th[ALL.index(name)] = math.log(v / _get(vehicle_config("sui_endurance"), name))
+    return th
+
+
 @pytest.fixture(scope="module")
 def real():
+    """The "real" vehicle's file: sui_endurance with TRUE's values."""
     base = vehicle_config("sui_endurance")
     drag = list(base["drag_area"])
     drag[0], drag[2] = TRUE["drag_area.x"], TRUE["drag_area.z"]
@@ -50,10 +70,19 @@ def real():
 
 
 @pytest.fixture(scope="module")
-def identified(real):
-    lab = _labels(real, N, seed=0)
+def identified():
+    lab = _labels(_theta(TRUE), N, seed=0)
     return identify(lab, "sui_endurance", free=tuple(TRUE), physics=PHYSICS, max_steps=30,
                     passes=2)  # fmt: skip
+
+
+def test_parameters_applied_as_the_vehicle_file_says(real):
+    """θ of the real vehicle's values applied to the file's vehicle is that vehicle (so the
+    labels made through θ are the real vehicle's)."""
+    applied = _apply(BASE, ALL, jnp.asarray(_theta(TRUE)))
+    np.testing.assert_allclose(applied.drag_area, real.drag_area, rtol=1e-12)
+    np.testing.assert_allclose(applied.rotor.chord, real.rotor.chord, rtol=1e-12)
+    np.testing.assert_allclose(applied.rotor.radius, real.rotor.radius, rtol=1e-12)
 
 
 def test_parameters_recovered_within_their_standard_errors(identified):
@@ -90,12 +119,12 @@ def test_vehicle_file_written_and_read(identified, tmp_path):
         identified.write(path)
 
 
-def test_a_pair_the_flights_cannot_tell_apart_is_named(real):
+def test_a_pair_the_flights_cannot_tell_apart_is_named():
     """Rotor speeds from a motor curve: in hover the curve's gain and the blade's chord trade
     (more thrust per rpm, fewer rpm per command), and without airspeed the airframe's drag
     does nothing. Force labels of hover alone: all three named in a warning, kept at the
     file's values, flagged in the summary the vehicle file's header carries."""
-    hover = _labels(real, N, seed=1, speed=0.0)
+    hover = _labels(_theta(TRUE), N, seed=1, speed=0.0)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always", IdentificationWarning)
         out = identify(hover, "sui_endurance", free=("rotor.chord", "motor.gain", "drag_area.x"),
@@ -117,7 +146,7 @@ def test_a_pair_the_flights_cannot_tell_apart_is_named(real):
     ],
 )
 def test_bad_options_named(kw, message):
-    lab = _labels(load_vehicle("sui_endurance"), N, seed=2)
+    lab = _labels(np.zeros(len(ALL)), N, seed=2)
     with pytest.raises(ValueError, match=message):
         identify(lab, "sui_endurance", physics=PHYSICS, **kw)
 
@@ -125,7 +154,7 @@ def test_bad_options_named(kw, message):
 def test_needs_labels_and_a_generator_vehicle():
     with pytest.raises(ValueError, match="needs gpg.flight.Labels"):
         identify([], "sui_endurance")
-    lab = _labels(load_vehicle("sui_endurance"), N, seed=2)
+    lab = _labels(np.zeros(len(ALL)), N, seed=2)
     with pytest.raises(ValueError, match="cannot drive the built-in generator"):
         identify(lab, "minimal_example", physics=PHYSICS)
     assert math.isfinite(PARAMETERS["drag_area.x"].prior)
