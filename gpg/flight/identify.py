@@ -362,7 +362,7 @@ def _levenberg_marquardt(fun, theta, prior_sd, free, max_steps: int):
     """Damped Gauss-Newton on ``½‖r(θ)‖² + ½‖θ/sd‖²`` over the free entries of ``θ``, from
     ``fun(θ) -> (r, ∂r/∂θ)``: the step ``(JᵀJ + P + μ diag(JᵀJ + P)) δ = −(Jᵀr + Pθ)``,
     ``μ`` shrunk after a step that lowers the cost and grown after one that does not.
-    Converged when no free entry moves by more than 1e-6 (log-factors and degrees: far
+    Converged when no free entry moves by more than 1e-4 (log-factors and degrees: far
     below any standard error)."""
     P = np.diag(1.0 / prior_sd[free] ** 2)
     r, J = fun(theta)
@@ -380,7 +380,7 @@ def _levenberg_marquardt(fun, theta, prior_sd, free, max_steps: int):
         cost2 = 0.5 * (r2 @ r2 + trial[free] @ P @ trial[free])
         if np.isfinite(cost2) and cost2 <= cost:
             theta, r, J, cost, mu = trial, r2, J2, cost2, max(mu / 10, 1e-9)
-            if np.max(np.abs(delta)) < 1e-6:
+            if np.max(np.abs(delta)) < 1e-4:
                 converged = True
                 break
         else:
