@@ -58,7 +58,7 @@ from gpg.flight.log import read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed, random_plan
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
 from gpg.quadrotor.bemt import BEMTConfig
-from gpg.quadrotor.control import GeometricController
+from gpg.quadrotor.control import GeometricController, WaypointPlan
 from gpg.quadrotor.dynamics import Wind
 from gpg.quadrotor.vehicle import Vehicle, vehicle_config
 from gpg.runtime import float64, write_json
@@ -87,8 +87,17 @@ def _flight(h, real, ctrl, physics, sensors, name, wind: Wind, kind, seed, logs,
     rng = np.random.default_rng(seed)
     if kind == "eight":
         e = h["figure_eight"]
-        plan = figure_eight(size=tuple(e["size"]), period=float(e["period"]), yaw=float(np.pi),
-                            hold_s=float(e["hold_s"]))  # fmt: skip
+        if e["smooth"]:
+            plan = figure_eight(size=tuple(e["size"]), period=float(e["period"]),
+                                yaw=float(np.pi), hold_s=float(e["hold_s"]))  # fmt: skip
+        else:  # stop and go: minimum-jerk legs between points of the lemniscate
+            laps = int(np.ceil(dur / float(e["period"]))) + 1
+            s = np.linspace(0.0, 2 * np.pi * laps, 16 * laps + 1)
+            a, b = e["size"]
+            w = np.column_stack([a * np.sin(s), b * np.sin(s) * np.cos(s), np.full(s.size, -10.0)])
+            leg = float(e["period"]) / 16
+            plan = WaypointPlan.create(w, start_time=float(e["hold_s"]), leg_time=leg,
+                                       yaw=float(np.pi))  # fmt: skip
     else:
         r = h["random_walk"]
         plan = random_plan(rng, dur, box=float(r["box"]), step=tuple(r["step"]),

@@ -25,8 +25,8 @@ the physics misses varies slowly along a flight: correlated residuals inform les
 independent ones). A parameter whose direction the
 flights do not determine (an eigenvalue of the data's information, in units of the prior's,
 under :data:`IDENTIFIABLE`) is named in :attr:`Identification.unidentified`: it keeps its prior
-value and the vehicle file says so. With commands only, ``motor.gain`` and the rotor's size
-are such a pair: a rotor that gives more thrust per rpm and a curve that gives fewer rpm per
+value, the others are fitted again beside it, and the vehicle file says so. With commands
+only, ``motor.gain`` and the rotor's size are such a pair: a rotor that gives more thrust per rpm and a curve that gives fewer rpm per
 command explain the same flights.
 """
 
@@ -447,8 +447,19 @@ def identify(
     # carry less information than as many independent ones: the AR(1) effective count.
     info = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
     sd = fit.sd_all[fit.free]
-    se_theta = np.sqrt(np.diag(np.linalg.inv(info + np.diag(1.0 / sd**2))))
     weak = _weak_parameters(info, sd, names)
+    if weak and len(weak) < len(names):
+        # The others fitted again with the weak ones held at the file's values: a vehicle
+        # consistent with what it keeps, not the joint fit's values beside reset ones.
+        fit = _Fit(veh0, physics, tuple(n for n in names if n not in weak), data)
+        theta, model_var, n, converged = fit.run(passes, max_steps)
+        steps += n
+        info_kept = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
+        keep = np.array([n not in weak for n in names])
+        info = np.zeros((len(names), len(names)))
+        info[np.ix_(keep, keep)] = info_kept
+        fit.free = np.array([ALL.index(n) for n in names])
+    se_theta = np.sqrt(np.diag(np.linalg.inv(info + np.diag(1.0 / sd**2))))
     if not converged:
         warnings.warn(
             f"identify: Levenberg-Marquardt did not converge in {max_steps} steps a pass; the "
