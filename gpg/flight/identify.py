@@ -26,8 +26,8 @@ independent ones). A parameter whose direction the
 flights do not determine (an eigenvalue of the data's information, in units of the prior's,
 under :data:`IDENTIFIABLE`) is named in :attr:`Identification.unidentified`: it keeps its prior
 value, the others are fitted again beside it, and the vehicle file says so. With commands
-only, ``motor.gain`` and the rotor's size are such a pair: a rotor that gives more thrust per rpm and a curve that gives fewer rpm per
-command explain the same flights.
+only, ``motor.gain`` and the rotor's size are such a pair: a rotor that gives more thrust per
+rpm and a curve that gives fewer rpm per command explain the same flights.
 """
 
 from __future__ import annotations
