@@ -269,7 +269,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
             nominal_prior, train_labels, use_prior=False, simple_term=False, **corr
         ),  # fmt: skip
         "identified_prior": id_prior,
-        "identified": fc.correct(id_prior, train_labels, **corr),
+        "identified": fc.correct(id_prior, train_labels, basis="physical", **corr),
     }
     stages["correct_s"] = time.perf_counter() - t1
 
@@ -289,7 +289,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                           "sd_median": float(np.median(est.sd[:, 0])),
                           "informed": est.informed.tolist()})  # fmt: skip
         est_labels.append(with_wind(blind, est))
-    models["identified_estimated_wind"] = fc.correct(id_prior, est_labels, **corr)
+    models["identified_estimated_wind"] = fc.correct(id_prior, est_labels, basis="physical", **corr)
     stages["wind_s"] = time.perf_counter() - t1
 
     t1 = time.perf_counter()

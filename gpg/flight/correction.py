@@ -518,7 +518,7 @@ def correct(
     prior: Surrogate,
     labels: Labels | Sequence[Labels],
     *,
-    basis: str = "physical",
+    basis: str = "regression",
     scale: bool = True,
     use_prior: bool = True,
     simple_term: bool = True,
@@ -534,12 +534,13 @@ def correct(
         prior: a fitted surrogate (its GP mean is ``μ_sim``; a corrected one is corrected
             anew from its prior).
         labels: :func:`gpg.flight.label` of one or more flights.
-        basis: ``"physical"``: the prior's mean, ``M``'s loads and the physical terms of
-            :mod:`gpg.flight.basis` (drag, rotor drag, inflow) as explicit basis functions
-            whose coefficients are integrated out under a Gaussian prior, so that their
-            uncertainty widens the band where no flight went; ``"regression"``: ``ρ`` and
-            ``κ`` as weighted least-squares point estimates (the form before the physical
-            basis), then ``δ`` on what is left.
+        basis: ``"regression"``: ``ρ`` and ``κ`` as weighted least-squares point estimates,
+            then ``δ`` on what is left (for a prior of the same vehicle, flown where the
+            flights went); ``"physical"``: the prior's mean, ``M``'s loads and the physical
+            terms of :mod:`gpg.flight.basis` (drag, rotor drag, inflow) as explicit basis
+            functions whose coefficients are integrated out under a Gaussian prior, so that
+            their uncertainty widens the band where no flight went (for an identified
+            vehicle's prior, and winds or speeds the flights did not reach).
         scale: fit ``ρ`` per load output; False keeps ``ρ = 1``.
         use_prior: False sets ``ρ = 0`` for the loads: a values-only GP on the flights
             alone (residuals against ``M``), the baseline that has no simulator knowledge.
@@ -553,7 +554,7 @@ def correct(
         max_steps: BFGS steps of each discrepancy's hyperparameter fit
             (:func:`gpg.gp.fit.fit_hyperparameters`).
         seed: the subsets' seed.
-        calibrate: with the physical basis and labels of two flights or more, scale each
+        calibrate: with ``basis="physical"`` and labels of two flights or more, scale each
             component's discrepancy and coefficient variance so that every flight, held out
             and predicted from the others, is covered as the band says (the mean of its
             squared standardised errors; only widened, never narrowed): a band honest for a

@@ -61,12 +61,12 @@ def flights(synthetic_surrogate):
 
 @pytest.fixture(scope="module")
 def corrected(synthetic_surrogate, flights):
-    return fc.correct(synthetic_surrogate, flights, **FIT)
+    return fc.correct(synthetic_surrogate, flights, basis="physical", **FIT)
 
 
 @pytest.fixture(scope="module")
 def regression(synthetic_surrogate, flights):
-    return fc.correct(synthetic_surrogate, flights, basis="regression", **FIT)
+    return fc.correct(synthetic_surrogate, flights, **FIT)
 
 
 def _rbf(A, B, var, ls):
@@ -462,8 +462,8 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights):
     half = len(flights) // 2
     a = dataclasses.replace(flights.take(slice(0, half)), name="a")
     b_ = dataclasses.replace(flights.take(slice(half, None)), name="b")
-    cal = fc.correct(synthetic_surrogate, [a, b_], **FIT)
-    raw = fc.correct(synthetic_surrogate, [a, b_], calibrate=False, **FIT)
+    cal = fc.correct(synthetic_surrogate, [a, b_], basis="physical", **FIT)
+    raw = fc.correct(synthetic_surrogate, [a, b_], basis="physical", calibrate=False, **FIT)
     m = cal.model
     X, Y, V = fc.training_rows(cal, Labels.concatenate([a, b_]))
     groups = np.repeat([0, 1], [half, len(flights) - half])

@@ -158,3 +158,19 @@ def test_needs_labels_and_a_generator_vehicle():
     with pytest.raises(ValueError, match="cannot drive the built-in generator"):
         identify(lab, "minimal_example", physics=PHYSICS)
     assert math.isfinite(PARAMETERS["drag_area.x"].prior)
+
+
+def test_the_others_refitted_beside_an_unidentified_one():
+    """Hover labels: the chord is identified by the thrust, the airframe's drag is not (no
+    airspeed). The drag keeps the file's value and the chord is fitted again beside it: it
+    comes out at the truth (the labels' drag is the truth's, but at rest drag is nothing)."""
+    hover = _labels(_theta(TRUE), N, seed=3, speed=0.0)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always", IdentificationWarning)
+        out = identify(hover, "sui_endurance", free=("rotor.chord", "drag_area.x"),
+                       physics=PHYSICS, max_steps=20, passes=1)  # fmt: skip
+    assert any("drag_area.x" in str(w.message) for w in seen)
+    assert out.unidentified == ("drag_area.x",)
+    chord = out.parameters["rotor.chord"]
+    assert chord["identified"] and abs(chord["value"] - TRUE["rotor.chord"]) <= 3 * chord["se"]
+    assert out.parameters["drag_area.x"]["value"] == pytest.approx(0.0251)
