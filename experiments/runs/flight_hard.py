@@ -268,6 +268,9 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         "values_only": fc.correct(
             nominal_prior, train_labels, use_prior=False, simple_term=False, **corr
         ),  # fmt: skip
+        "flights_physical": fc.correct(
+            nominal_prior, train_labels, use_prior=False, basis="physical", **corr
+        ),  # fmt: skip
         "identified_prior": id_prior,
         "identified": fc.correct(id_prior, train_labels, basis="physical", **corr),
     }

@@ -441,24 +441,10 @@ def identify(
     cfg0 = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
     veh0 = Vehicle.from_config(cfg0).require_generator()
     physics = bemt.BEMTConfig() if physics is None else physics
-    fit = _Fit(veh0, physics, names, data)
-    theta, model_var, steps, converged = fit.run(passes, max_steps)
-    # Residuals correlated in time (what the physics misses varies slowly along a flight)
-    # carry less information than as many independent ones: the AR(1) effective count.
-    info = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
+    fit, theta, model_var, steps, converged, info, weak = _fit_and_flag(
+        veh0, physics, names, data, passes, max_steps
+    )
     sd = fit.sd_all[fit.free]
-    weak = _weak_parameters(info, sd, names)
-    if weak and len(weak) < len(names):
-        # The others fitted again with the weak ones held at the file's values: a vehicle
-        # consistent with what it keeps, not the joint fit's values beside reset ones.
-        fit = _Fit(veh0, physics, tuple(n for n in names if n not in weak), data)
-        theta, model_var, n, converged = fit.run(passes, max_steps)
-        steps += n
-        info_kept = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
-        keep = np.array([n not in weak for n in names])
-        info = np.zeros((len(names), len(names)))
-        info[np.ix_(keep, keep)] = info_kept
-        fit.free = np.array([ALL.index(n) for n in names])
     se_theta = np.sqrt(np.diag(np.linalg.inv(info + np.diag(1.0 / sd**2))))
     if not converged:
         warnings.warn(
@@ -492,6 +478,29 @@ def identify(
         motor_gain=float(gain),
         physics=physics,
     )
+
+
+def _fit_and_flag(veh0, physics, names, data, passes: int, max_steps: int):
+    """The fit, the parameters the flights do not determine, and the others fitted again
+    beside them held at the file's values (a vehicle consistent with what it keeps, not the
+    joint fit's values beside reset ones). Returns the fit (its ``free`` all of ``names``),
+    θ, the model-error variances, the steps, convergence, the information and the weak."""
+    fit = _Fit(veh0, physics, names, data)
+    theta, model_var, steps, converged = fit.run(passes, max_steps)
+    # Residuals correlated in time (what the physics misses varies slowly along a flight)
+    # carry less information than as many independent ones: the AR(1) effective count.
+    info = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
+    weak = _weak_parameters(info, fit.sd_all[fit.free], names)
+    if weak and len(weak) < len(names):
+        fit = _Fit(veh0, physics, tuple(n for n in names if n not in weak), data)
+        theta, model_var, n, converged = fit.run(passes, max_steps)
+        steps += n
+        kept = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
+        keep = np.array([n not in weak for n in names])
+        info = np.zeros((len(names), len(names)))
+        info[np.ix_(keep, keep)] = kept
+        fit.free = np.array([ALL.index(n) for n in names])
+    return fit, theta, model_var, steps, converged, info, weak
 
 
 def _data(labels, names: tuple[str, ...], loads: str, max_labels: int) -> dict[str, Any]:
@@ -535,6 +544,7 @@ class _Fit:
         self.free = np.array([ALL.index(n) for n in names])
         self.sd_all = np.array([PARAMETERS[n].prior for n in ALL])
         self.E = jnp.asarray(np.eye(len(ALL))[:, self.free])
+        self.columns = self.free.copy()  # the parameters E differentiates along
         self.states = tuple(jnp.asarray(data[k]) for k in ("rpm", "euler", "v_air"))
 
     def loads(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -542,7 +552,7 @@ class _Fit:
         out, Jf = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta), self.E,
                                      *self.states)  # fmt: skip
         J = np.zeros((*out.shape, len(ALL)))
-        J[:, :, self.free] = np.asarray(Jf)
+        J[:, :, self.columns] = np.asarray(Jf)
         return np.asarray(out), J
 
     def model_var(self, theta: np.ndarray) -> np.ndarray:
