@@ -55,7 +55,7 @@ from gpg.flight import correction as fc
 from gpg.flight.identify import hover_coefficients, identify
 from gpg.flight.labels import Labels, MotorCurve, label
 from gpg.flight.log import read_csv, write_csv
-from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed, random_plan
+from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed_config, random_plan
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController, WaypointPlan
@@ -178,8 +178,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         user_cfg[k] = v
     user_cfg["name"] = f"{base_cfg['name']}_user"
     user = Vehicle.from_config(user_cfg)
-    real = perturbed(base_cfg, h["real"]["changes"])
-    real_cfg = _real_config(base_cfg, h["real"]["changes"])
+    real_cfg = perturbed_config(base_cfg, h["real"]["changes"])
+    real = Vehicle.from_config(real_cfg)
     physics = BEMTConfig(wake_gain=float(h["real"]["wake_gain"]),
                          interference=bool(h["real"]["interference"]))  # fmt: skip
     simple = nominal_prior.simple
@@ -306,12 +306,14 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     stages["oracle_prior_s"] = time.perf_counter() - t1
 
     # Scores.
+    def features(f: Flight, lb: Labels) -> np.ndarray:
+        i = _at_labels(f, lb)
+        return _ridge_features(f.log.velocity[i], f.log.quaternion[i], f.log.command[i])
+
     ridge = _ridge(
-        [(_ridge_features(f.log.velocity[_at_labels(f, lb)], f.log.quaternion[_at_labels(f, lb)],
-                          f.log.command[_at_labels(f, lb)]), lb.force)
-         for (_, f), lb in zip(train, train_labels, strict=True)],
+        [(features(f, lb), lb.force) for (_, f), lb in zip(train, train_labels, strict=True)],
         float(h["ridge_lambda"]),
-    )  # fmt: skip
+    )
     rows = []
     for name, test in tests.items():
         row: dict[str, Any] = {"test": name, "labels": len(test.labels)}
@@ -327,7 +329,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         row["noise_floor"] = float(np.mean(np.sum(test.labels.force_var, 1)))
         rows.append(row)
         jax.clear_caches()
-    truth = _truth_parameters(real_cfg, base_cfg, physics)
+    truth = _truth_parameters(real_cfg, base_cfg)
     params = {k: {**v, "truth": truth.get(k)} for k, v in ident.parameters.items()}
     P_F_real, _ = hover_coefficients(real, BEMTConfig())
     P_F_id = float(ident.config["simple_model"]["thrust_coefficient"])
@@ -372,26 +374,7 @@ def _by_wind(train, labels: list[Labels]) -> list[Labels]:
     ]
 
 
-def _real_config(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
-    """The real vehicle's file mapping (as :func:`gpg.flight.synthetic.perturbed` builds it)."""
-    v = perturbed(base, changes)
-    cfg = copy.deepcopy(base)
-    for key, value in changes.items():
-        *path, last = key.split(".")
-        node = cfg
-        for p in path:
-            node = node[p]
-        old = node[last]
-        if isinstance(value, dict):
-            sc = float(value["scale"])
-            node[last] = [sc * float(x) for x in old] if isinstance(old, list) else sc * float(old)
-        else:
-            node[last] = value
-    cfg["name"] = v.name
-    return cfg
-
-
-def _truth_parameters(real_cfg, base_cfg, physics) -> dict[str, float]:
+def _truth_parameters(real_cfg, base_cfg) -> dict[str, float]:
     """The real vehicle's values of :data:`gpg.flight.identify.PARAMETERS`."""
     out = {
         "rotor.radius": float(real_cfg["rotor"]["radius"]),

@@ -107,8 +107,6 @@ on most flights (both scale the thrust); free it where the flights span the infl
 # A direction of θ whose data information is under this many times the prior's is not
 # identified by the flights: there the posterior is mostly the prior.
 IDENTIFIABLE = 4.0
-# Labels of a component whose whitened residual RMS stays above this after the fit say the
-# physics misses something big: warned (the discrepancy must carry it).
 _DRAG_AXES = {"x": 0, "y": 1, "z": 2}
 
 
@@ -423,8 +421,8 @@ def identify(
         free: the parameters to fit, by key of :data:`PARAMETERS`.
         loads: ``"force"``, ``"torque"`` or ``"both"``: which labels enter the likelihood.
         physics: the blade-element-momentum settings (default: the generator's).
-        max_labels: at most this many labels (spread over the flights in time; the physics
-            costs about a millisecond a label and step on two cores).
+        max_labels: at most this many labels (spread over the flights in time; every step
+            evaluates the physics and its derivatives at each).
         max_steps: Levenberg-Marquardt steps per pass.
         passes: fits alternated with the model-error variances' estimate.
 
@@ -462,7 +460,7 @@ def identify(
             IdentificationWarning,
             stacklevel=2,
         )
-    theta[fit.free[weak_mask(names, weak)]] = 0.0
+    theta[fit.free[_weak_mask(names, weak)]] = 0.0
     params, cfg, gain = _identified_file(cfg0, names, theta[fit.free], se_theta, weak, physics)
     resid = data["y"] - fit.loads(theta)[0]
     return Identification(
@@ -546,14 +544,21 @@ class _Fit:
         self.E = jnp.asarray(np.eye(len(ALL))[:, self.free])
         self.columns = self.free.copy()  # the parameters E differentiates along
         self.states = tuple(jnp.asarray(data[k]) for k in ("rpm", "euler", "v_air"))
+        self._last: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None
 
     def loads(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The physics' loads (N, 6) and their Jacobian (N, 6, 9), zero off the free columns."""
+        """The physics' loads (N, 6) and their Jacobian (N, 6, 9), zero off the free columns.
+
+        The last θ's are kept: the model-error variances, the information and the residuals
+        after a pass all read the physics at the θ the pass ended on."""
+        if self._last is not None and np.array_equal(self._last[0], theta):
+            return self._last[1]
         out, Jf = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta), self.E,
                                      *self.states)  # fmt: skip
         J = np.zeros((*out.shape, len(ALL)))
         J[:, :, self.columns] = np.asarray(Jf)
-        return np.asarray(out), J
+        self._last = (np.array(theta), (np.asarray(out), J))
+        return self._last[1]
 
     def model_var(self, theta: np.ndarray) -> np.ndarray:
         """Each component's variance left beyond the labels' noise (a floor keeps it > 0)."""
@@ -583,7 +588,8 @@ class _Fit:
 
     def correlation_factor(self, theta: np.ndarray, model_var: np.ndarray) -> float:
         """``(1 + ρ)/(1 − ρ)`` for the lag-one correlation ``ρ`` of consecutive labels'
-        whitened residuals (the used components pooled; at least 1, at most 100)."""
+        whitened residuals (the used components pooled; ``ρ`` clipped to [0, 0.98], so the
+        factor is between 1 and 99)."""
         r = self.residuals(theta, model_var)[0].reshape(-1, 6)[:, self.data["use"]]
         r = r - r.mean(0)
         rho = float(np.sum(r[1:] * r[:-1]) / max(np.sum(r * r), 1e-300))
@@ -622,7 +628,7 @@ def _identified_file(cfg0, names, theta, se_theta, weak, physics):
     return params, cfg, gain
 
 
-def weak_mask(names: tuple[str, ...], weak: Sequence[str]) -> np.ndarray:
+def _weak_mask(names: tuple[str, ...], weak: Sequence[str]) -> np.ndarray:
     """(P,) True for the parameters in ``weak``."""
     return np.array([n in weak for n in names])
 

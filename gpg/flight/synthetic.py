@@ -52,6 +52,7 @@ __all__ = [
     "figure_eight",
     "fly",
     "perturbed",
+    "perturbed_config",
     "random_plan",
 ]
 
@@ -93,7 +94,25 @@ def perturbed(
             for lists); None: no change.
 
     Returns:
-        The vehicle, its name suffixed ``_real``.
+        The vehicle of :func:`perturbed_config`.
+
+    Raises:
+        ValueError: a key the file does not have, or a mapping other than ``{"scale": s}``.
+    """
+    return Vehicle.from_config(perturbed_config(vehicle, changes))
+
+
+def perturbed_config(
+    vehicle: str | Mapping[str, Any] = "sui_endurance", changes: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """The vehicle file's mapping with some of its values changed (:func:`perturbed`'s).
+
+    Args:
+        vehicle: a name in ``conf/vehicle``, a YAML path or the file's mapping.
+        changes: as :func:`perturbed`'s.
+
+    Returns:
+        A new mapping (``vehicle``'s is not changed), its name suffixed ``_real``.
 
     Raises:
         ValueError: a key the file does not have, or a mapping other than ``{"scale": s}``.
@@ -118,7 +137,7 @@ def perturbed(
         else:
             node[last] = value
     cfg["name"] = f"{cfg['name']}_real"
-    return Vehicle.from_config(cfg)
+    return cfg
 
 
 @dataclass(frozen=True)

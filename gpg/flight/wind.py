@@ -196,9 +196,11 @@ def estimate_wind(
     y = np.asarray(labels.force, float)
     var = np.asarray(labels.force_var, float)
 
+    linearised = _at_knots(f, rpm, euler, v_g, Phi)
+
     def system(W, model_var):
         """The residuals, the Gauss-Newton matrix and gradient, and the cost at ``W``."""
-        F, Jv = (np.asarray(a) for a in _linearised(f, rpm, euler, v_g - jnp.asarray(Phi @ W)))
+        F, Jv = linearised(W)
         r = y - F
         wgt = 1.0 / (var + model_var)  # (N, 3)
         Jw = -Jv[:, :, :nax]  # dF/dw = −J_v, over the estimated axes
@@ -225,7 +227,7 @@ def estimate_wind(
     sd = np.zeros((t.size, 3))
     sd[:, :nax] = np.sqrt(np.maximum(np.einsum("nk,kala,nl->na", Phi, cov4, Phi), 0.0))
     w_t = Phi @ W
-    _, Jv = (np.asarray(a) for a in _linearised(f, rpm, euler, v_g - jnp.asarray(w_t)))
+    _, Jv = linearised(W)
     informed = np.zeros(3, bool)
     informed[:nax] = np.median(sd[:, :nax], 0) <= max_sd
     _warn(labels, sd, informed, nax, max_sd, min_manoeuvre)
@@ -251,6 +253,21 @@ def _checked(labels, axes, knot_s, drift, max_sd, start_sd) -> np.ndarray:
             "(labels of several flights concatenated?)"
         )
     return t
+
+
+def _at_knots(f, rpm, euler, v_g, Phi):
+    """``linearised(W)``: the force and its Jacobian in the air velocity with the wind of the
+    knots ``W``, the last kept (each pass starts, and the estimate ends, where the previous
+    evaluation was)."""
+    last: list = [None, None]
+
+    def linearised(W):
+        if last[0] is None or not np.array_equal(last[0], W):
+            out = _linearised(f, rpm, euler, v_g - jnp.asarray(Phi @ W))
+            last[:] = [W.copy(), tuple(np.asarray(a) for a in out)]
+        return last[1]
+
+    return linearised
 
 
 def _knots(t: np.ndarray, knot_s: float, drift: float, start_sd: float):
