@@ -8,8 +8,10 @@ and what one adaptation update costs (:mod:`gpg.flight`).
 * ``update``: :func:`gpg.flight.online_step` from Python, once per label, on a model of the
   sizes a user has: a ``gpgs_hybrid`` prior of ``n_points`` (data=default's 1000 by default, on
   synthetic data with fixed hyperparameters: the cost depends on the sizes only) corrected by
-  ``labels`` labels (60 s at 10 Hz), with ``inducing`` inducing inputs; median and spread of
-  ``updates`` calls, and the online state's bytes before and after them.
+  ``labels`` labels (60 s at 10 Hz), with ``inducing`` inducing inputs (today's term,
+  :func:`gpg.flight.adapt`) and with its physical basis's coefficients tracked instead
+  (:func:`gpg.flight.track`); median and spread of ``updates`` calls each, and the online
+  state's bytes before and after them.
 """
 
 from __future__ import annotations
@@ -88,25 +90,39 @@ def _update(cfg: dict[str, Any]) -> dict[str, Any]:
         model_force=np.zeros((n, 3)), model_torque=np.zeros((n, 3)),
     )  # fmt: skip
     corrected = flight.correct(prior, labels, subset_size=min(n, 400))
-    adapted = flight.adapt(corrected, inducing=int(cfg["inducing"]), t0=0.0)
-    step = flight.online_step(adapted)
-    online = adapted.model.online
-    cols = labels.columns()
-    before = sum(x.nbytes for x in jax.tree.leaves(online))
-    seconds = []
-    for k in range(int(cfg["updates"]) + 10):
-        i = k % n
-        args = [c[i] for c in cols]
-        args[0] = args[0] + (k // n) * n / 10.0
-        t0 = time.perf_counter()
-        online = step(online, *args)
-        jax.block_until_ready(online.mean)
-        seconds.append(time.perf_counter() - t0)
-    after = sum(x.nbytes for x in jax.tree.leaves(online))
+    terms = {
+        "inducing": flight.adapt(corrected, inducing=int(cfg["inducing"]), t0=0.0),
+        "tracked": flight.track(corrected, t0=0.0),  # the default drift: one filter
+    }
     return {
         "n_points": int(cfg["n_points"]),
         "labels": n,
         "inducing": int(cfg["inducing"]),
+        "terms": {k: _updates(sur, labels, int(cfg["updates"])) for k, sur in terms.items()},
+    }
+
+
+def _updates(sur, labels, updates: int) -> dict[str, Any]:
+    """``updates`` calls of the compiled step, once a label from Python (the labels replayed,
+    time moving on), and the state's bytes before and after."""
+    from gpg import flight
+
+    n = len(labels)
+    step = flight.online_step(sur)
+    state = flight.online_state(sur)
+    cols = labels.columns()
+    before = sum(x.nbytes for x in jax.tree.leaves(state))
+    seconds = []
+    for k in range(updates + 10):
+        i = k % n
+        args = [c[i] for c in cols]
+        args[0] = args[0] + (k // n) * n / 10.0
+        t0 = time.perf_counter()
+        state = step(state, *args)
+        jax.block_until_ready(state.mean)
+        seconds.append(time.perf_counter() - t0)
+    after = sum(x.nbytes for x in jax.tree.leaves(state))
+    return {
         "update_s": stats(np.asarray(seconds[10:])),  # the first calls compile
         "online_bytes": {"before": int(before), "after": int(after)},
     }
@@ -119,10 +135,15 @@ def flight_table(res: dict[str, Any]) -> str:
         {"what": f"read_ulog + label, {lg['flown_s']:.1f} s flown at {lg['rate_hz']:.0f} Hz",
          "median": lg["read_and_label_s"]["median_s"] * 1e3,
          "note": f"{lg['times_faster_than_flown']:.0f}x faster than flown"},
-        {"what": f"online update, prior of {up['n_points']} points, {up['labels']} labels, "
-                 f"{up['inducing']} inducing", "median": up["update_s"]["median_s"] * 1e3,
-         "note": f"state {up['online_bytes']['before']} -> {up['online_bytes']['after']} bytes"},
     ]  # fmt: skip
+    for name, what in (("inducing", f"{up['inducing']} inducing"),
+                       ("tracked", "tracked coefficients")):  # fmt: skip
+        u = up["terms"][name]
+        rows.append({"what": f"online update, prior of {up['n_points']} points, "
+                             f"{up['labels']} labels, {what}",
+                     "median": u["update_s"]["median_s"] * 1e3,
+                     "note": f"state {u['online_bytes']['before']} -> "
+                             f"{u['online_bytes']['after']} bytes"})  # fmt: skip
     return table(rows, [("what", "flight", ""), ("median", "ms (median)", ".3f"), ("note", "", "")])
 
 

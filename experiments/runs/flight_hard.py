@@ -56,6 +56,7 @@ from gpg.flight.identify import hover_coefficients, identify
 from gpg.flight.labels import Labels, MotorCurve, label
 from gpg.flight.log import read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed_config, random_plan
+from gpg.flight.tracking import fit_drift, track
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController, WaypointPlan
@@ -305,6 +306,20 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     oracle = _prior_of(real_cfg, data_cfg, cfg["model"], cfg["cache_dir"], progress)
     stages["oracle_prior_s"] = time.perf_counter() - t1
 
+    # Adaptation, prequential: the identified and corrected model updated label by label on
+    # each test flight, each label predicted before it is used.
+    t1 = time.perf_counter()
+    n_fit = int(cfg["track"]["max_labels"])
+    drift = fit_drift(models["identified"], by_wind, max_labels=n_fit)
+    stages["fit_drift_s"] = time.perf_counter() - t1
+    other = fit_drift(models["identified"], by_wind, max_labels=n_fit,
+                      fast=tuple(float(f) for f in cfg["track"]["compare_fast"]))  # fmt: skip
+    t1 = time.perf_counter()
+    adaptive = prequential_rows(
+        models["identified"], tests, drift, cfg["adapt"], out, progress, other=other
+    )
+    stages["prequential_s"] = time.perf_counter() - t1
+
     # Scores.
     def features(f: Flight, lb: Labels) -> np.ndarray:
         i = _at_labels(f, lb)
@@ -345,6 +360,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         "config": cfg,
         "machine": machine(),
         "tests": rows,
+        "adaptation": adaptive,
         "identification": {
             "parameters": params,
             "unidentified": list(ident.unidentified),
@@ -363,6 +379,88 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     write_json(out / "results.json", results)
     report(_report(results))
     return results
+
+
+def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
+                     progress: bool, other=None) -> dict[str, Any]:  # fmt: skip
+    """Each test flight through the offline model, today's inducing-point adaptation and the
+    tracked coefficients (the fitted drift, the default one, and ``other``, a drift fitted
+    with another bank, where given), each label predicted
+    before it is used (:func:`gpg.flight.prequential`): the force MSE against the truth and
+    against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
+    test gives one, as offline), the labels' noise floor; the per-label update cost from
+    Python; the figure of the error along the flights."""
+    from experiments.runs.flight_logs import prequential_scores, update_cost
+
+    rows, curves = [], {}
+    for name, test in tqdm(tests.items(), desc="prequential", disable=not progress):
+        lab = test.labels
+        t0 = float(lab.t[0])
+        models = {
+            "none": offline,
+            "inducing": fc.adapt(
+                offline, inducing=int(adapt_cfg["inducing"]), tau=float(adapt_cfg["tau"]), t0=t0
+            ),  # fmt: skip
+            "tracked": track(offline, drift, t0=t0),
+            "tracked_default": track(offline, None, t0=t0),
+        }
+        if other is not None:
+            models["tracked_other"] = track(offline, other, t0=t0)
+        extra = None
+        if test.wind_sd is not None:
+            extra = wind_variance(offline, lab.rpm, lab.euler, lab.v_air, test.wind_sd)
+        row: dict[str, Any] = {"test": name, "labels": len(lab),
+                               "noise_floor": float(np.mean(np.sum(lab.force_var, 1)))}  # fmt: skip
+        for m, sur in models.items():
+            sc, e = prequential_scores(sur, lab, test.force, extra)
+            row.update({f"{m}_{k}": v for k, v in sc.items()})
+            curves[(name, m)] = (lab.t - t0, np.sum(e**2, 1))
+            row[f"{m}_lag1"] = _lag1(lab.t, e)
+        rows.append(row)
+        jax.clear_caches()
+    cost = update_cost(track(offline, drift, t0=float(tests["steady"].labels.t[0])),
+                       tests["steady"].labels, 600.0)  # fmt: skip
+    _prequential_figure(out / "figures", curves)
+    return {"drift": dataclasses.asdict(drift), "tests": rows, "tracked_update": cost,
+            "other": None if other is None else dataclasses.asdict(other)}  # fmt: skip
+
+
+def _lag1(t: np.ndarray, e: np.ndarray) -> list[float]:
+    """Each component's correlation between the errors of consecutive labels (one label period
+    apart; pairs across a dropped stretch left out): how much of the next error the last one
+    tells, what any online update can at best remove."""
+    dt = np.diff(t)
+    pair = np.abs(dt - np.median(dt)) < 1e-6
+    return [float(np.corrcoef(e[:-1, c][pair], e[1:, c][pair])[0, 1]) for c in range(3)]
+
+
+def _prequential_figure(where: Path, curves) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    where.mkdir(parents=True, exist_ok=True)
+    tests = sorted({t for t, _ in curves})
+    fig, axes = plt.subplots(len(tests), 1, figsize=(8, 3 * len(tests)), sharex=True)
+    styles = {"none": ("k--", "no adaptation"), "inducing": ("C1", "inducing-point term (today)"),
+              "tracked": ("C0", "tracked coefficients, fitted drift"),
+              "tracked_default": ("C2:", "tracked coefficients, default drift")}  # fmt: skip
+    for ax, test in zip(np.atleast_1d(axes), tests, strict=True):
+        for m, (style, label_) in styles.items():
+            t, err = curves[(test, m)]
+            k = min(50, len(err))  # 5 s at 10 labels a second
+            ax.semilogy(t[k - 1 :], np.convolve(err, np.ones(k) / k, "valid"), style, lw=1,
+                        label=label_)  # fmt: skip
+        ax.set_ylabel("force error² (N²), 5 s mean")
+        ax.set_title(test, fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+    np.atleast_1d(axes)[0].legend(fontsize=8)
+    np.atleast_1d(axes)[-1].set_xlabel("time since the flight's first label (s)")
+    fig.tight_layout()
+    for ext in ("png", "pdf"):
+        fig.savefig(where / f"prequential_along_flight.{ext}", dpi=150)
+    plt.close(fig)
 
 
 def _by_wind(train, labels: list[Labels]) -> list[Labels]:
@@ -412,5 +510,18 @@ def _report(res) -> str:
     for w in res["wind"]:
         lines.append(f"  wind {w['flight']}: estimated {np.round(w['estimated_mean'], 2)}, "
                      f"RMS error {w['rms_error']:.3f} m/s")  # fmt: skip
+    ad = res["adaptation"]
+    d = ad["drift"]
+    lines.append(f"prequential (each label predicted before it is used); drift fitted: tau "
+                 f"{d['tau']:.3g} s, spread {d['spread']:.3g}, bias tau {d['bias_tau']:.3g} s "
+                 f"and sd {d['bias_sd']:.3g}, bank {d['fast']}:")  # fmt: skip
+    pcols = [("test", "test", "s")]
+    for m in ("none", "inducing", "tracked", "tracked_default", "tracked_other"):
+        pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
+    pcols.append(("noise_floor", "noise", ".3g"))
+    lines.append(table(ad["tests"], pcols))
+    u = ad["tracked_update"]
+    lines.append(f"tracked update from Python: {u['median_ms']:.3f} ms median (p10 "
+                 f"{u['p10_ms']:.3f}, p90 {u['p90_ms']:.3f}, {u['n']} updates)")  # fmt: skip
     lines.append("stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in res["stages_s"].items()))
     return "\n".join(lines)

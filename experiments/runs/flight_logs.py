@@ -14,10 +14,13 @@ simulator-only prior, the prior corrected by ``seconds`` of flight (:func:`gpg.f
 and a values-only GP on the same seconds without the prior (``use_prior=False``; and the same
 with ``κ``, the fitted coefficient of ``M``'s own loads, ``values_only_m``), the
 corrected model's 95 % coverage (per component), for each number of seconds (the curve);
-then adaptation (:func:`gpg.flight.adapt`): a flight into a wind none of the training flights
-had, the model corrected on calm flights updated label by label, each label predicted before it
-is used, against an offline correction fitted on another flight in that wind; its update cost
-and the online state's size over a 10-minute stream. ``results.json`` holds everything with the
+then adaptation: a flight into a wind none of the training flights had, the model corrected
+on calm flights updated label by label by the inducing-point term (:func:`gpg.flight.adapt`)
+and by its tracked coefficients (:func:`gpg.flight.track`, the drift fitted on ``track.
+fit_flights`` training flights), each label predicted before it is used (at the labels'
+states), against an offline correction fitted on another flight in that wind; the same
+prequential scores on the test flights; each update's cost and the online state's size over a
+10-minute stream. ``results.json`` holds everything with the
 resolved config; ``figures/`` the curve and a flight's force against the prediction with its
 95 % band.
 """
@@ -42,6 +45,7 @@ from gpg.flight import correction as fc
 from gpg.flight.labels import Labels, label
 from gpg.flight.log import read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
+from gpg.flight.tracking import fit_drift, prequential, track
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController
 from gpg.quadrotor.dynamics import Wind
@@ -158,7 +162,7 @@ def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
     curve, corrected = _curve(bench, train_labels, tests, seconds, base_s)
     checkpoint.save(out / "corrected", corrected, overwrite=True)
     default = next(r for r in curve if r["seconds"] == base_s)
-    adapt = _adaptation(bench, corrected, _first(train_labels, base_s))
+    adapt = _adaptation(bench, corrected, _first(train_labels, base_s), train_labels, tests)
     targets = {
         "corrected_vs_sim_only": default["corrected_force_rmse"] / default["sim_only_force_rmse"],
         "corrected_vs_values_only": default["corrected_force_rmse"]
@@ -166,7 +170,8 @@ def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
         "corrected_vs_values_only_m": default["corrected_force_rmse"]
         / default["values_only_m_force_rmse"],
         "coverage95": default["corrected_coverage95"],
-        "adaptation_vs_offline": adapt["ratio"],
+        "adaptation_vs_offline": adapt["models"]["inducing"]["ratio"],
+        "tracked_vs_offline": adapt["models"]["tracked"]["ratio"],
         "label_speed": float(sum(d for _, d in label_s) / sum(s for s, _ in label_s)),
     }
     train_all = Labels.concatenate(train_labels)
@@ -279,85 +284,115 @@ def _scores(sur, tests) -> dict[str, float]:
     }
 
 
-def _adaptation(bench: _Bench, corrected, base_labels: Labels) -> dict[str, Any]:
+def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tests):
     """Into a wind no training flight had: the corrected model adapted label by label (each
-    label predicted before it is used) against an offline correction fitted on another
-    flight in that wind; then updates timed over a long stream."""
+    label predicted before it is used, :func:`gpg.flight.prequential`) by today's inducing-point
+    term and by the tracked coefficients (their drift fitted on training flights), against an
+    offline correction fitted on another flight in that wind; the same on the held-out test
+    flights; then the updates' cost over a long stream."""
     a = bench.cfg["adapt"]
     wind = [float(v) for v in a["wind"]]
     f_off = bench.flight("windy_offline", float(a["offline_s"]), wind)
     f_ad = bench.flight("windy_adapt", float(a["flight_s"]), wind)
     l_off, l_ad = bench.labelled(f_off), bench.labelled(f_ad)
     offline = bench.correct([base_labels, l_off])
-    adapted = fc.adapt(corrected, inducing=int(a["inducing"]), tau=float(a["tau"]),
-                       t0=float(l_ad.t[0]))  # fmt: skip
-    step = fc.online_step(adapted)
+    k = int(bench.cfg["track"]["fit_flights"])
+    drift = fit_drift(corrected, train_labels[:k], max_labels=int(bench.cfg["track"]["max_labels"]))
+
+    def prepared(t0: float) -> dict[str, Any]:
+        return {
+            "none": corrected,
+            "inducing": fc.adapt(
+                corrected, inducing=int(a["inducing"]), tau=float(a["tau"]), t0=t0
+            ),  # fmt: skip
+            "tracked": track(corrected, drift, t0=t0),
+        }
+
     truth = _truth(f_ad, l_ad)
-    cols = l_ad.columns()
-    online = adapted.model.online
-    err = np.empty(len(l_ad))
-    for i in range(len(l_ad)):
-        p = fc.with_online(adapted, online).predict(truth.rpm[i], truth.euler[i], truth.v_air[i])
-        err[i] = float(np.sum((np.asarray(p.force) - truth.force[i]) ** 2))
-        online = step(online, *(c[i] for c in cols))
     tt = l_ad.t - l_ad.t[0]
     after = tt >= float(a["check_s"])
 
     def rmse(sur):
-        p = sur.predict_batch(truth.rpm[after], truth.euler[after], truth.v_air[after])
+        # at the labels' states, as the prequential predictions are (what a user's log gives)
+        p = sur.predict_batch(l_ad.rpm[after], l_ad.euler[after], l_ad.v_air[after])
         return float(np.sqrt(np.mean(np.sum((np.asarray(p.force) - truth.force[after]) ** 2, 1))))
 
-    adapted_rmse, off_rmse = float(np.sqrt(np.mean(err[after]))), rmse(offline)
-    windows = [
-        {
-            "from_s": float(lo),
-            "adapted_rmse": float(np.sqrt(err[(tt >= lo) & (tt < lo + 5)].mean())),
-        }
-        for lo in np.arange(0.0, tt[-1], 5.0)
-        if ((tt >= lo) & (tt < lo + 5)).any()
-    ]
+    off_rmse = rmse(offline)
+    out: dict[str, Any] = {"wind": wind, "check_s": float(a["check_s"]), "offline_rmse": off_rmse,
+                           "corrected_rmse": rmse(corrected), "sim_only_rmse": rmse(bench.prior),
+                           "drift": dataclasses.asdict(drift), "models": {}}  # fmt: skip
+    for name, sur in prepared(float(l_ad.t[0])).items():
+        sc, e = prequential_scores(sur, l_ad, truth.force)
+        err = np.sum(e**2, 1)
+        windows = [
+            {"from_s": float(lo), "rmse": float(np.sqrt(err[(tt >= lo) & (tt < lo + 5)].mean()))}
+            for lo in np.arange(0.0, tt[-1], 5.0)
+            if ((tt >= lo) & (tt < lo + 5)).any()
+        ]
+        adapted = float(np.sqrt(np.mean(err[after])))
+        out["models"][name] = {**sc, "rmse_after": adapted, "ratio": adapted / off_rmse,
+                               "windows": windows}  # fmt: skip
+    rows = []
+    for f, _ in tests:
+        lab = bench.labelled(f)
+        row: dict[str, Any] = {"test": f.log.name, "labels": len(lab),
+                               "noise_floor": float(np.mean(np.sum(lab.force_var, 1)))}  # fmt: skip
+        for name, sur in prepared(float(lab.t[0])).items():
+            sc, _ = prequential_scores(sur, lab, _truth(f, lab).force)
+            row.update({f"{name}_{k}": v for k, v in sc.items()})
+        rows.append(row)
+    out["tests"] = rows
+    seconds = float(a["stream_s"])
+    models = prepared(float(l_ad.t[0]))
+    out["cost"] = {m: update_cost(models[m], l_ad, seconds, bench.progress)
+                   for m in ("inducing", "tracked")}  # fmt: skip
+    return out
+
+
+def prequential_scores(sur, lab: Labels, truth_force, extra_var=None):
+    """The one-step-ahead force predictions of ``sur`` along a flight (:func:`gpg.flight.
+    prequential`) scored: MSE against the truth and against the labels (N², the error vector's
+    squared norm), the 95 % band's coverage of the truth per component (``extra_var``, (N, 3),
+    added to the band: a wind known only as its RMS); and each label's error vector."""
+    pre = prequential(sur, lab)
+    e = pre.force - truth_force
+    sd = np.sqrt(pre.variance[:, :3] + (0.0 if extra_var is None else extra_var))
     return {
-        "wind": wind,
-        "check_s": float(a["check_s"]),
-        "adapted_rmse": adapted_rmse,
-        "offline_rmse": off_rmse,
-        "corrected_rmse": rmse(corrected),
-        "sim_only_rmse": rmse(bench.prior),
-        "ratio": adapted_rmse / off_rmse,
-        "windows": windows,
-        **_stream(bench, adapted, l_ad),
-    }
+        "mse": float(np.mean(np.sum(e**2, 1))),
+        "mse_labels": float(np.mean(np.sum((pre.force - lab.force) ** 2, 1))),
+        "coverage95": float(np.mean(np.abs(e) <= 1.959964 * sd)),
+    }, e
 
 
-def _stream(bench: _Bench, adapted, lab: Labels) -> dict[str, Any]:
-    """Updates once a step from Python over ``adapt.stream_s`` seconds of labels (the flight's
-    replayed, time moving on): their cost, and the online state's bytes before and after."""
-    rate = float(bench.cfg["label"]["rate"])
-    n = int(round(float(bench.cfg["adapt"]["stream_s"]) * rate))
+def update_cost(adapted, lab: Labels, seconds: float, progress: bool = False) -> dict[str, Any]:
+    """Updates once a step from Python (:func:`gpg.flight.online_step`) over ``seconds`` of
+    labels (the flight's replayed, time moving on): their cost in ms (median, 10th and 90th
+    percentiles, the first ten calls left out: they compile), and the online state's bytes
+    before and after."""
+    rate = 1.0 / float(np.median(np.diff(lab.t)))
+    n = int(round(seconds * rate))
     step = fc.online_step(adapted)
     cols = lab.columns()
-    online = adapted.model.online
-    nbytes0 = sum(x.nbytes for x in jax.tree.leaves(online))
+    state = fc.online_state(adapted)
+    nbytes0 = sum(x.nbytes for x in jax.tree.leaves(state))
     period = float(lab.t[-1] - lab.t[0]) + 1.0 / rate
     per = []
-    for k in tqdm(range(n), desc="stream", disable=not bench.progress):
+    for k in tqdm(range(n), desc="stream", disable=not progress):
         i = k % len(lab)
         args = [c[i] for c in cols]
         args[0] = args[0] + (k // len(lab)) * period
         t0 = time.perf_counter()
-        online = step(online, *args)
-        jax.block_until_ready(online.mean)
+        state = step(state, *args)
+        jax.block_until_ready(state.mean)
         per.append(time.perf_counter() - t0)
-    nbytes1 = sum(x.nbytes for x in jax.tree.leaves(online))
-    ms = np.asarray(per[10:]) * 1e3  # the first calls compile
+    ms = np.asarray(per[10:]) * 1e3
     return {
-        "update_ms": {
-            "median": float(np.median(ms)),
-            "p10": float(np.percentile(ms, 10)),
-            "p90": float(np.percentile(ms, 90)),
-            "n": int(ms.size),
-        },
-        "online_bytes": {"start": int(nbytes0), "end": int(nbytes1), "updates": n},
+        "median_ms": float(np.median(ms)),
+        "p10_ms": float(np.percentile(ms, 10)),
+        "p90_ms": float(np.percentile(ms, 90)),
+        "n": int(ms.size),
+        "bytes_start": int(nbytes0),
+        "bytes_end": int(sum(x.nbytes for x in jax.tree.leaves(state))),
     }
 
 
@@ -376,14 +411,27 @@ def _report(curve, default, adapt, targets) -> str:
         ("corrected_coverage95", "coverage 95 %", ".3f"),
     ]
     lines = ["residual-force RMSE on held-out flights against the truth:", table(curve, cols)]
+    d = adapt["drift"]
     lines.append(
-        f"adaptation into a {adapt['wind']} m/s wind, after {adapt['check_s']:.0f} s: "
-        f"{adapt['adapted_rmse']:.3f} N against {adapt['offline_rmse']:.3f} N offline on that "
-        f"wind (x{adapt['ratio']:.2f}), corrected on calm flights {adapt['corrected_rmse']:.3f}"
-        f" N; update {adapt['update_ms']['median']:.3f} ms (median of "
-        f"{adapt['update_ms']['n']}); online state {adapt['online_bytes']['start']} -> "
-        f"{adapt['online_bytes']['end']} bytes over {adapt['online_bytes']['updates']} updates"
+        f"adaptation into a {adapt['wind']} m/s wind (offline on that wind "
+        f"{adapt['offline_rmse']:.3f} N, corrected on calm flights {adapt['corrected_rmse']:.3f}"
+        f" N); drift fitted: tau {d['tau']:.3g} s, spread {d['spread']:.3g}"
     )
+    for name, r in adapt["models"].items():
+        cost = adapt["cost"].get(name)
+        lines.append(
+            f"  {name}: after {adapt['check_s']:.0f} s {r['rmse_after']:.3f} N "
+            f"(x{r['ratio']:.2f} of offline); prequential MSE {r['mse']:.3g} N², coverage "
+            f"{r['coverage95']:.3f}"
+            + ("" if cost is None else f"; update {cost['median_ms']:.3f} ms (median of "
+               f"{cost['n']}), state {cost['bytes_start']} -> {cost['bytes_end']} bytes")
+        )  # fmt: skip
+    pcols = [("test", "test", "s")]
+    for m in ("none", "inducing", "tracked"):
+        pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
+    pcols.append(("noise_floor", "noise", ".3g"))
+    lines.append("prequential on the test flights:")
+    lines.append(table(adapt["tests"], pcols))
     lines.append("targets: " + ", ".join(f"{k} {v:.3g}" for k, v in targets.items()))
     return "\n".join(lines)
 

@@ -7,8 +7,11 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
   (:class:`Labels`); :class:`MotorCurve` and :func:`calibrate_simple` turn commands into rotor
   speeds and fit ``M`` to a hover.
 * :func:`correct` corrects a fitted :class:`~gpg.Surrogate` by labels (a :class:`Corrected`
-  model: the prior's mean, scaled, plus values-only discrepancy GPs); :func:`adapt`,
-  :func:`update` and :func:`online_step` adapt it label by label at a fixed cost.
+  model: the prior's mean, scaled, plus values-only discrepancy GPs); :func:`track` follows
+  its physical basis's coefficients online (a Kalman filter, its drift fitted by
+  :func:`fit_drift`), :func:`adapt` adds an inducing-point term instead; :func:`update` and
+  :func:`online_step` update either label by label at a fixed cost, :func:`prequential` runs
+  a flight through them.
 * :func:`identify` finds the vehicle's physical parameters from labels (an
   :class:`Identification`, written as a vehicle file, its simulator prior regenerated);
   :func:`estimate_wind` and :func:`with_wind` give labels the wind where none was logged;
@@ -23,6 +26,7 @@ from gpg.flight.correction import (
     adapt,
     base,
     correct,
+    online_state,
     online_step,
     update,
     update_jit,
@@ -31,11 +35,21 @@ from gpg.flight.correction import (
 from gpg.flight.identify import Identification, IdentificationWarning, identify
 from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, hover_samples, label
 from gpg.flight.log import CsvFormat, FlightLog, FlightLogWarning, read_csv, write_csv
+from gpg.flight.tracking import (
+    Drift,
+    Prequential,
+    Tracker,
+    default_drift,
+    fit_drift,
+    prequential,
+    track,
+)
 from gpg.flight.ulog import read_ulog
 from gpg.flight.wind import WindEstimate, WindWarning, estimate_wind, with_wind
 
 __all__ = [
     "Corrected",
+    "Drift",
     "Identification",
     "IdentificationWarning",
     "WindEstimate",
@@ -50,16 +64,23 @@ __all__ = [
     "Labels",
     "MotorCurve",
     "Online",
+    "Prequential",
+    "Tracker",
     "adapt",
     "base",
     "calibrate_simple",
     "correct",
+    "default_drift",
+    "fit_drift",
     "hover_samples",
     "label",
+    "online_state",
     "online_step",
+    "prequential",
     "read_csv",
     "read_ulog",
     "synthetic",
+    "track",
     "update",
     "update_jit",
     "with_online",

@@ -57,6 +57,7 @@ __all__ = [
     "base",
     "correct",
     "online_step",
+    "online_state",
     "update",
     "update_jit",
     "with_online",
@@ -211,10 +212,12 @@ class Corrected(Predictor):
 
     Its latent "variance" is a vector: the prior's latent variance, then each ``δ``'s, then
     ``η``'s per output, then the integrated coefficients' per output (where the physical basis
-    is used, :mod:`gpg.flight.basis`); :meth:`predictive_variance` turns it into the per-output
-    predictive variance ``ρ² var_prior + var_δ + var_η + var_β``: the prior's latent variance
-    (its value noise is the simulator data's), each ``δ``'s with its own value noise (the
-    flights'), ``η``'s, and ``Rᵀ A⁻¹ R`` of the coefficients.
+    is used, :mod:`gpg.flight.basis`), then the tracked coefficients' per output (where they
+    are followed online, :mod:`gpg.flight.tracking`); :meth:`predictive_variance` turns it into
+    the per-output predictive variance ``ρ² var_prior + var_δ + var_η + var_β + var_w``: the
+    prior's latent variance (its value noise is the simulator data's), each ``δ``'s with its
+    own value noise (the flights'), ``η``'s, ``Rᵀ A⁻¹ R`` of the coefficients, and
+    ``hᵀ Σ_w h`` of their tracked drift.
 
     Attributes:
         prior: the simulator-trained predictor.
@@ -225,6 +228,8 @@ class Corrected(Predictor):
         basis: ``m`` (:class:`SimpleBasis`) where ``kappa`` is given.
         explicit: the physical basis with its coefficients integrated out
             (:class:`gpg.flight.basis.Explicit`), or None (``ρ`` and ``κ`` point estimates).
+        tracker: the basis's coefficients' drift followed online
+            (:class:`gpg.flight.tracking.Tracker`), or None.
     """
 
     prior: Predictor
@@ -234,6 +239,8 @@ class Corrected(Predictor):
     kappa: Float[Array, " 6"] | None = None
     basis: SimpleBasis | None = None
     explicit: Explicit | None = None
+    # gpg.flight.tracking.Tracker (that module builds on this one: no import back)
+    tracker: eqx.Module | None = None
 
     def _mean_terms(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
         """``κ ⊙ m(x)`` and the physical columns' ``hᵀβ̄``, padded to the outputs (zeros
@@ -313,6 +320,9 @@ class Corrected(Predictor):
             "explicit": None
             if self.explicit is None
             else {"columns": list(self.explicit.columns), "beta": plain(self.explicit.beta)},
+            "tracker": None
+            if self.tracker is None
+            else {"tau": plain(self.tracker.tau), "spread": plain(self.tracker.spread)},
         }
         return out
 
@@ -329,12 +339,55 @@ class Corrected(Predictor):
             (M,) the mean (normalised units); ``δ``, ``κ`` and ``η`` add to the load outputs
             only, the levels keep ``ρ = 1``.
         """
-        out = self.scale * self.prior.mean_one(x) + self._mean_terms(x)
-        if self.delta:
-            out = out + self._pad(jnp.concatenate([d.mean_one(x) for d in self.delta]))
+        prior_mean = self.prior.mean_one(x)
+        out = self.offline_mean(x, prior_mean)
         if self.online is not None:
             out = out + self._pad(self.online.mean_var(x)[0])
+        if self.tracker is not None:
+            out = out + self._pad(self.tracker.mean_var(self.tracker_columns(x, prior_mean))[0])
         return out
+
+    def offline_mean(
+        self, x: Float[Array, " D"], prior_mean: Float[Array, " M"]
+    ) -> Float[Array, " M"]:
+        """The mean without its online parts (``η``, the tracked drift): ``ρ ⊙ μ_prior + κ ⊙ m
+        + hᵀβ̄ + δ``, the reference an online update's residual is taken against.
+
+        Args:
+            x: (D,) a normalised input.
+            prior_mean: (M,) the prior's mean at ``x`` (computed once by the caller).
+
+        Returns:
+            (M,) the offline mean (normalised units).
+        """
+        out = self.scale * prior_mean + self._mean_terms(x)
+        if self.delta:
+            out = out + self._pad(jnp.concatenate([d.mean_one(x) for d in self.delta]))
+        return out
+
+    def tracker_columns(
+        self, x: Float[Array, " D"], prior_mean: Float[Array, " M"]
+    ) -> Float[Array, "6 P"]:
+        """The tracked coefficients' columns ``h(x)`` per load output: the prior's mean, ``M``'s
+        loads (where the model has ``M``), the physical terms, then a constant (the bias).
+
+        Args:
+            x: (D,) a normalised input.
+            prior_mean: (M,) the prior's mean at ``x``.
+
+        Returns:
+            (6, P) the columns (normalised units per unit coefficient).
+
+        Raises:
+            ValueError: the model tracks no coefficients.
+        """
+        if self.tracker is None:
+            raise ValueError("tracker_columns needs a model prepared by gpg.flight.track")
+        cols = [prior_mean[:N_LOADS, None]]
+        if self.tracker.with_simple:
+            cols.append(self.basis(x)[:, None])
+        cols += [self.tracker.physics(x), self.tracker.bias_column()]
+        return jnp.concatenate(cols, 1)
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, " V"]]:
         """The corrected mean and the latent variance's parts at one query.
@@ -344,7 +397,8 @@ class Corrected(Predictor):
 
         Returns:
             The (M,) mean (as :meth:`mean_one`) and the (V,) latent variance: the prior's, then
-            each ``δ``'s, then ``η``'s per output (:meth:`predictive_variance` combines them).
+            each ``δ``'s, then ``η``'s, the coefficients' and the tracked drift's per output,
+            where the model has them (:meth:`predictive_variance` combines them).
         """
         prior_mean, var = self.prior.mean_var_one(x)
         mean = self.scale * prior_mean + self._mean_terms(x)
@@ -357,15 +411,21 @@ class Corrected(Predictor):
             m, v = self.online.mean_var(x)
             mean = mean + self._pad(m)
             parts.append(v)
-        if self.explicit is not None:
+        if self.explicit is not None and self.tracker is None:
             parts.append(self._explicit_variance(x, prior_mean))
+        if self.tracker is not None:
+            m, v = self.tracker.mean_var(self.tracker_columns(x, prior_mean))
+            mean = mean + self._pad(m)
+            parts.append(v)
         return mean, jnp.concatenate(parts)
 
     def predictive_variance(self, var: Float[ArrayLike, "*Q V"]) -> Float[Array, "*Q M"]:
         """Each output's predictive variance from the latent parts of :meth:`mean_var_one`.
 
         ``ρ² var_prior`` scaled by the prior's output scale, plus each ``δ``'s predictive
-        variance (its own value noise, the flights', included) and ``η``'s, on the load outputs.
+        variance (its own value noise, the flights', included), ``η``'s and the coefficients',
+        on the load outputs. A tracked model's loads have the filter's band instead: the
+        tracked drift's ``hᵀ Σ h`` plus its discrepancy ``v`` (:mod:`gpg.flight.tracking`).
 
         Args:
             var: (..., V) the latent variance parts.
@@ -387,7 +447,10 @@ class Corrected(Predictor):
                 [dv, jnp.zeros((*dv.shape[:-1], self.n_outputs - nd), dv.dtype)], axis=-1
             )
         at = 1 + nd
-        for part in (self.online, self.explicit):
+        # A tracker carries the coefficients' offline covariance in its own: their share is
+        # the tracker's, not counted twice.
+        explicit = self.explicit if self.tracker is None else None
+        for part in (self.online, explicit, self.tracker):
             if part is None:
                 continue
             ov = jnp.maximum(var[..., at : at + N_LOADS], 0.0)
@@ -396,6 +459,13 @@ class Corrected(Predictor):
                 axis=-1,
             )
             at += N_LOADS
+        if self.tracker is not None:
+            # The tracked model's band on the loads is the filter's own: hᵀΣh plus the
+            # discrepancy v its drift was fitted with (what the held-out flights left after
+            # tracking), in place of the offline δ's and the prior's latent parts, which
+            # stood for errors the tracked coefficients now follow.
+            tracked = jnp.maximum(var[..., at - N_LOADS : at], 0.0) + self.tracker.noise
+            out = jnp.concatenate([tracked, out[..., N_LOADS:]], axis=-1)
         return out
 
     def mean_view(self) -> Corrected:
@@ -571,7 +641,7 @@ def correct(
     """
     parts = [labels] if isinstance(labels, Labels) else list(labels)
     prior = base(prior)
-    X, Y, V, groups = _label_rows(prior, parts, max_labels, basis)
+    X, Y, V, groups, _ = _label_rows(prior, parts, max_labels, basis)
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
     simple = None
     if simple_term and prior.simple is not None:
@@ -623,10 +693,27 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
 
 
 def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
-    """The mean squared standardised error of each flight predicted from the others (the
-    same hyperparameters; the coefficients' posterior and the discrepancy conditioned anew),
-    at least 1: the factor that makes the band cover a flight the model did not see. Dense
-    LAPACK on the host: one factorisation per flight, and no program compiled per shape."""
+    """The mean squared standardised error of each flight predicted from the others
+    (:func:`_held_out`), at least 1: the factor that makes the band cover a flight the model did
+    not see."""
+    z2 = [(y[te] - mean) ** 2 / (var + noise[te])
+          for te, mean, var, _ in _held_out(X, H, y, noise, hyper, b, sd, groups)]  # fmt: skip
+    return max(1.0, float(np.mean(np.concatenate(z2)))) if z2 else 1.0
+
+
+def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups):
+    """Each group of labels predicted from the others by one load output's physical basis
+    (coefficients integrated out, prior ``N(b, diag(sd²))``) and discrepancy GP (``hyper``,
+    the labels' ``noise`` on the diagonal), the same hyperparameters throughout: the
+    coefficients' posterior and the discrepancy conditioned anew without the group. Dense
+    LAPACK on the host: one factorisation per group, and no program compiled per shape.
+
+    Returns:
+        A list of ``(mask, mean, variance, cov)``: the group's rows, their held-out mean and
+        latent variance (the discrepancy's, its ``ν²`` and the coefficients'; not the labels'
+        noise), and the coefficients' posterior covariance without the group (P, P).
+        A group whose complement has fewer than 8 labels is left out.
+    """
     from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
     s2, nu = float(hyper.variance), float(hyper.noise)
@@ -636,7 +723,7 @@ def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
         d2 = np.sum(A * A, 1)[:, None] + np.sum(B * B, 1)[None, :] - 2 * A @ B.T
         return s2 * np.exp(-0.5 * np.maximum(d2, 0.0))
 
-    z2 = []
+    out = []
     for g in np.unique(groups):
         tr, te = groups != g, groups == g
         if tr.sum() < 8:
@@ -650,13 +737,13 @@ def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
         v = solve_triangular(np.tril(L[0]), kq.T, lower=True)
         r = H[te] - kq @ KiH
         var = np.maximum(s2 - np.sum(v * v, 0), 0) + nu + np.sum((r @ chol) ** 2, 1)
-        z2.append((y[te] - mean) ** 2 / (var + noise[te]))
-    return max(1.0, float(np.mean(np.concatenate(z2)))) if z2 else 1.0
+        out.append((te, mean, var, chol @ chol.T))
+    return out
 
 
 def _label_rows(prior: Surrogate, parts: list[Labels], max_labels: int, basis: str):
     """The labels of every flight as the GP's rows (:func:`training_rows`), checked, evenly
-    thinned in time to ``max_labels``; and each row's flight (its index in ``parts``)."""
+    thinned in time to ``max_labels``; each row's flight (its index in ``parts``) and time."""
     if basis not in ("physical", "regression"):
         raise ValueError(f"basis must be 'physical' or 'regression', got {basis!r}")
     if not parts:
@@ -665,14 +752,15 @@ def _label_rows(prior: Surrogate, parts: list[Labels], max_labels: int, basis: s
     if len(lab) < 8:
         raise ValueError(f"correct needs at least 8 labels, got {len(lab)}")
     X, Y, V = training_rows(prior, lab)
+    t = np.asarray(lab.t, float)
     groups = np.repeat(np.arange(len(parts)), [len(p) for p in parts])
     for name, a in (("X", X), ("Y", Y), ("noise", V)):
         if not np.isfinite(a).all():
             raise ValueError(f"labels give non-finite GP {name} rows: check the labels' arrays")
     if X.shape[0] > max_labels:
         keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
-        X, Y, V, groups = X[keep], Y[keep], V[keep], groups[keep]
-    return X, Y, V, groups
+        X, Y, V, groups, t = X[keep], Y[keep], V[keep], groups[keep], t[keep]
+    return X, Y, V, groups, t
 
 
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
@@ -687,13 +775,9 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
     kappa = np.zeros(n_out)
     betas, Gs, chols, deltas = [], [], [], []
-    names = (["prior"] if fixed_rho is None else []) + (["simple"] if m is not None else [])
-    names += list(TERMS)
-    sd = np.array([PRIORS[n] for n in names])
-    b = np.array([1.0 if n == "prior" else 0.0 for n in names])
+    b, sd = _coefficient_prior(fixed_rho is None, m is not None)
     for j in range(n_out):
-        cols = ([mu[:, j]] if fixed_rho is None else []) + ([m[:, j]] if m is not None else [])
-        H = np.column_stack([*cols, phys[:, j, :]])
+        H = _basis_columns(mu if fixed_rho is None else None, m, phys, j)
         y = Y[:, j] - (0.0 if fixed_rho is None else float(fixed_rho)) * mu[:, j]
         # β first under its prior with the labels' own noise (plus the same 1e-3 floor as
         # the regression), so that the GP's hyperparameters see what the basis leaves.
@@ -725,6 +809,23 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         with_simple=m is not None,
     )
     return rho, kappa, tuple(deltas), explicit
+
+
+def _coefficient_prior(with_prior: bool, with_simple: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The physical basis's coefficients' prior mean and standard deviations (:data:`PRIORS`,
+    physical units), in the columns' order: the prior's mean (``ρ``, about 1), ``M``'s loads
+    (``κ``), then :data:`TERMS`."""
+    names = (["prior"] if with_prior else []) + (["simple"] if with_simple else []) + list(TERMS)
+    sd = np.array([PRIORS[n] for n in names])
+    return np.array([1.0 if n == "prior" else 0.0 for n in names]), sd
+
+
+def _basis_columns(mu, m, phys, j: int) -> np.ndarray:
+    """Load output ``j``'s columns ``H`` (N, P) at N rows: the prior's mean ``mu`` (N, 6; None:
+    no column), ``M``'s loads ``m`` (N, 6; None: none) and the physical terms ``phys``
+    (N, 6, T)."""
+    cols = ([] if mu is None else [mu[:, j]]) + ([] if m is None else [m[:, j]])
+    return np.column_stack([*cols, phys[:, j, :]])
 
 
 def _regression(Y, V, mu, m, *, fit_rho: bool, use_prior: bool):
@@ -797,11 +898,9 @@ def adapt(
         A :class:`~gpg.Surrogate` whose :class:`Corrected` model carries the online term.
 
     Raises:
-        ValueError: ``inducing`` under 1, ``tau`` not positive, or ``inputs`` not (n, D).
+        ValueError: ``inducing`` under 1, ``tau`` not positive, ``inputs`` not (n, D), or a
+            model that already tracks its coefficients (:func:`gpg.flight.track`).
     """
-    from scipy.cluster.vq import kmeans2
-    from scipy.stats import qmc
-
     if inducing < 1:
         raise ValueError(f"inducing must be >= 1, got {inducing}")
     if not tau > 0:
@@ -811,17 +910,13 @@ def adapt(
         ones = jnp.ones(sur.model.n_outputs)
         m = Corrected(prior=sur.model, scale=ones, delta=())
         sur = dataclasses.replace(sur, model=m, model_name=f"{sur.model_name}+flight")
-    d = m.n_inputs
-    if inputs is None:
-        if m.delta:
-            inputs = np.asarray(m.delta[0].X)
-        else:
-            inputs = 2 * qmc.LatinHypercube(d=d, seed=seed).random(max(4 * inducing, 256)) - 1
-    pts = np.asarray(inputs, dtype=float)
-    if pts.ndim != 2 or pts.shape[1] != d:
-        raise ValueError(f"inputs must be (n, {d}) normalised inputs, got {pts.shape}")
-    k = min(inducing, len(np.unique(pts, axis=0)))
-    Z, _ = kmeans2(pts, k, seed=seed, minit="++")
+    if m.tracker is not None:
+        raise ValueError(
+            "adapt: the model already follows its basis's coefficients online "
+            "(gpg.flight.track); adapt the model before tracking, not both"
+        )
+    Z = _inducing_inputs(m, inducing, inputs, seed)
+    k, d = Z.shape
     if m.delta:
         var = np.array([float(g.hyper.variance) for g in m.delta])
         ls = np.stack([np.broadcast_to(np.asarray(g.hyper.lengthscale), (d,)) for g in m.delta])
@@ -861,15 +956,17 @@ def update(
     force_var: Float[ArrayLike, " 3"],
     torque_var: Float[ArrayLike, " 3"],
 ) -> Surrogate:
-    """``sur`` (from :func:`adapt`) after one labelled sample at time ``t``.
+    """``sur`` (from :func:`adapt` or :func:`gpg.flight.track`) after one labelled sample at
+    time ``t``.
 
-    The online term is relaxed since its last update and conditioned on the label's residual
-    against the offline model (prior, ``κ`` and ``δ``). Pure and jittable: a ``lax.scan`` over
-    labels carries the surrogate (:meth:`gpg.flight.Labels.columns` gives its ``xs``); from
-    Python, :func:`update_jit`.
+    The online state (``η``'s weights, or the tracked coefficients' drift) is relaxed since
+    its last update and conditioned on the label's residual against the offline model (prior,
+    ``κ``, the basis and ``δ``). Pure and jittable: a ``lax.scan`` over labels carries the
+    surrogate (:meth:`gpg.flight.Labels.columns` gives its ``xs``); from Python,
+    :func:`update_jit` or :func:`online_step`.
 
     Args:
-        sur: a surrogate prepared by :func:`adapt`.
+        sur: a surrogate prepared by :func:`adapt` or :func:`gpg.flight.track`.
         t: the label's time, s.
         rpm: (4,) rotor speeds, rpm.
         euler: (3,) (yaw, pitch, roll), rad.
@@ -880,67 +977,117 @@ def update(
         torque_var: (3,) the torque's noise variances.
 
     Returns:
-        The surrogate with its online term updated.
+        The surrogate with its online state updated.
 
     Raises:
-        ValueError: ``sur`` carries no online term (not from :func:`adapt`).
+        ValueError: ``sur`` carries no online state (not from :func:`adapt` or ``track``).
     """
-    m = sur.model
-    if not isinstance(m, Corrected) or m.online is None:
-        raise ValueError("update needs a surrogate prepared by gpg.flight.adapt")
+    state = online_state(sur, "update")
     args = (jnp.asarray(a) for a in (rpm, euler, v_air, force, torque, force_var, torque_var))
-    x, y, r = gp_rows(sur, *args)
-    offline = eqx.tree_at(lambda c: c.online, m, None)
-    resid = y - offline.mean_one(x)[:N_LOADS]
-    online = m.online.relaxed(t).measured(x, resid, r)
-    return eqx.tree_at(lambda s: s.model.online, sur, online)
+    return with_online(sur, advance(sur, state, t, *args))
 
 
 update_jit = jax.jit(update)
 
 
-def with_online(sur: Surrogate, online: Online) -> Surrogate:
-    """``sur`` (from :func:`adapt`) carrying the online state ``online``.
+def online_state(sur: Surrogate, who: str = "online_state") -> Online | eqx.Module:
+    """The online state of an adapted or tracked surrogate.
+
+    Args:
+        sur: a surrogate prepared by :func:`adapt` or :func:`gpg.flight.track`.
+        who: the caller's name, for the error.
+
+    Returns:
+        Its :class:`Online` term or its :class:`~gpg.flight.tracking.Tracker`.
+
+    Raises:
+        ValueError: ``sur`` carries neither.
+    """
+    m = sur.model
+    if isinstance(m, Corrected):
+        if m.online is not None:
+            return m.online
+        if m.tracker is not None:
+            return m.tracker
+    raise ValueError(f"{who} needs a surrogate prepared by gpg.flight.adapt or gpg.flight.track")
+
+
+def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_var, torque_var):
+    """The online ``state`` (:func:`online_state`'s kind) after one label: relaxed to ``t``,
+    then conditioned on the label's residual against ``sur``'s offline mean (its own online
+    part is not read). Pure: the step of :func:`update`, :func:`online_step` and
+    :func:`gpg.flight.prequential`."""
+    x, y, r = gp_rows(sur, rpm, euler, v_air, force, torque, force_var, torque_var)
+    m = sur.model
+    prior_mean = m.prior.mean_one(x)
+    resid = y - m.offline_mean(x, prior_mean)[:N_LOADS]
+    state = state.relaxed(t)
+    if isinstance(state, Online):
+        return state.measured(x, resid, r)
+    with_state = eqx.tree_at(lambda c: c.tracker, m, state, is_leaf=lambda a: a is None)
+    h = with_state.tracker_columns(x, prior_mean)
+    return state.measured(h, resid, r)
+
+
+def offline_model(m: Corrected) -> Corrected:
+    """``m`` without its online parts (``η``, the tracked drift): what the residuals of online
+    updates are taken against.
+
+    Args:
+        m: a corrected model.
+
+    Returns:
+        The same model with ``online`` and ``tracker`` None.
+    """
+    return eqx.tree_at(lambda c: (c.online, c.tracker), m, (None, None),
+                       is_leaf=lambda a: a is None)  # fmt: skip
+
+
+def with_online(sur: Surrogate, online: Online | eqx.Module) -> Surrogate:
+    """``sur`` (from :func:`adapt` or :func:`gpg.flight.track`) carrying the online state
+    ``online``.
 
     Puts back a state that :func:`online_step` advanced, for predictions.
 
     Args:
-        sur: a surrogate prepared by :func:`adapt`.
-        online: the online term to carry.
+        sur: a surrogate prepared by :func:`adapt` or :func:`gpg.flight.track`.
+        online: the state to carry, of the kind ``sur`` has.
 
     Returns:
         The surrogate with ``online`` in place of its own.
     """
-    return eqx.tree_at(lambda s: s.model.online, sur, online)
+    none = lambda a: a is None  # noqa: E731
+    if isinstance(online, Online):
+        return eqx.tree_at(lambda s: s.model.online, sur, online, is_leaf=none)
+    return eqx.tree_at(lambda s: s.model.tracker, sur, online, is_leaf=none)
 
 
-def online_step(sur: Surrogate) -> Callable[..., Online]:
+def online_step(sur: Surrogate) -> Callable[..., Online | eqx.Module]:
     """A compiled step for loops that update once a step from Python.
 
-    ``step(online, t, rpm, euler, v_air, force, torque, force_var, torque_var) -> Online`` is
-    :func:`update` on the online state alone. The offline model's arrays are flattened once
-    here (the mean's only), not at every call, and only the small online state goes in and
-    out; :func:`with_online` puts a state back into the surrogate for predictions.
+    ``step(state, t, rpm, euler, v_air, force, torque, force_var, torque_var) -> state`` is
+    :func:`update` on the online state alone (:class:`Online` or the tracked coefficients').
+    The offline model's arrays are flattened once here (the mean's only), not at every call,
+    and only the small online state goes in and out; :func:`with_online` puts a state back
+    into the surrogate for predictions.
 
     Args:
-        sur: a surrogate prepared by :func:`adapt` (its online term is the start state only).
+        sur: a surrogate prepared by :func:`adapt` or :func:`gpg.flight.track` (its online
+            state is the start state only).
 
     Returns:
         The step function.
 
     Raises:
-        ValueError: ``sur`` carries no online term (not from :func:`adapt`).
+        ValueError: ``sur`` carries no online state.
     """
-    m = sur.model
-    if not isinstance(m, Corrected) or m.online is None:
-        raise ValueError("online_step needs a surrogate prepared by gpg.flight.adapt")
-    offline = eqx.tree_at(lambda s: s.model, sur, eqx.tree_at(lambda c: c.online, m, None))
-    offline = eqx.tree_at(lambda s: s.model, offline, offline.model.mean_view())
+    online_state(sur, "online_step")
+    offline = eqx.tree_at(lambda s: s.model, sur, offline_model(sur.model).mean_view())
     leaves, treedef = jax.tree_util.tree_flatten(offline)
     leaves = tuple(leaves)
     fn = _online_step_fn(treedef)
 
-    def step(online: Online, t, rpm, euler, v_air, force, torque, force_var, torque_var):
+    def step(online, t, rpm, euler, v_air, force, torque, force_var, torque_var):
         return fn(leaves, online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
 
     return step
@@ -952,11 +1099,29 @@ def _online_step_fn(treedef):
     @highest
     def fn(leaves, online, t, rpm, euler, v_air, force, torque, force_var, torque_var):
         sur = jax.tree_util.tree_unflatten(treedef, leaves)
-        x, y, r = gp_rows(sur, rpm, euler, v_air, force, torque, force_var, torque_var)
-        resid = y - sur.model.mean_one(x)[:N_LOADS]
-        return online.relaxed(t).measured(x, resid, r)
+        return advance(sur, online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
 
     return fn
+
+
+def _inducing_inputs(m: Corrected, inducing: int, inputs, seed: int) -> np.ndarray:
+    """``Z``: k-means centres of ``inputs`` (default: ``δ``'s training inputs, else the prior
+    box's Latin hypercube), at most ``inducing`` of them."""
+    from scipy.cluster.vq import kmeans2
+    from scipy.stats import qmc
+
+    d = m.n_inputs
+    if inputs is None:
+        if m.delta:
+            inputs = np.asarray(m.delta[0].X)
+        else:
+            inputs = 2 * qmc.LatinHypercube(d=d, seed=seed).random(max(4 * inducing, 256)) - 1
+    pts = np.asarray(inputs, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != d:
+        raise ValueError(f"inputs must be (n, {d}) normalised inputs, got {pts.shape}")
+    k = min(inducing, len(np.unique(pts, axis=0)))
+    Z, _ = kmeans2(pts, k, seed=seed, minit="++")
+    return Z
 
 
 def _whitening(Z: np.ndarray, var: np.ndarray, ls: np.ndarray) -> np.ndarray:

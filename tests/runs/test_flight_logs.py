@@ -55,8 +55,12 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     for key in ("sim_only", "corrected", "values_only", "values_only_m", "corrected_unscaled"):
         assert d[f"{key}_force_rmse"] > 0
     a = saved["adaptation"]
-    assert a["online_bytes"]["start"] == a["online_bytes"]["end"]  # fixed memory
-    assert a["update_ms"]["median"] > 0 and len(a["windows"]) >= 2
+    for name in ("inducing", "tracked"):
+        c = a["cost"][name]
+        assert c["bytes_start"] == c["bytes_end"] and c["median_ms"] > 0  # fixed memory
+        assert len(a["models"][name]["windows"]) >= 2
+    assert {f"{m}_mse" for m in ("none", "inducing", "tracked")} <= set(a["tests"][0])
+    assert a["drift"]["source"] == "fitted"
     for fig in ("error_vs_seconds", "force_along_flight"):
         assert (tmp_path / "figures" / f"{fig}.png").is_file()
     assert sorted(p.name for p in (tmp_path / "logs").glob("*.csv"))[0] == "test00.csv"
@@ -99,3 +103,7 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     load_vehicle(tmp_path / "identified_vehicle.yaml").require_generator()
     assert len(res["wind"]) == 4 and all(np.isfinite(w["rms_error"]) for w in res["wind"])
     assert set(res["identification"]["parameters"]) == set(cfg["hard"]["identify"]["free"])
+    ad = res["adaptation"]
+    assert [r["test"] for r in ad["tests"]] == ["steady", "gust"] and finite_numbers(ad["tests"])
+    assert ad["tracked_update"]["bytes_start"] == ad["tracked_update"]["bytes_end"]
+    assert (tmp_path / "figures" / "prequential_along_flight.png").is_file()

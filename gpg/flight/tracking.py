@@ -1,0 +1,620 @@
+"""The physical basis's coefficients followed online: a Kalman filter on their drift.
+
+A new wind, a payload or a worn rotor changes a few physical coefficients (a drag area per
+axis, a thrust gain), not the shape of the function. :func:`track` gives a corrected model a
+state that follows them label by label. For each load output ``j``,
+
+    y_j(x_t) = m_j(x_t) + h_j(x_t)ᵀ w_j(t) + e_t,    e_t ~ N(0, r_t + v_j),
+
+with ``m`` the offline corrected mean, ``h_j`` the columns of the correction's physical basis
+(:mod:`gpg.flight.basis`: the prior's mean, whose coefficient is ``ρ``; ``M``'s loads, ``κ``;
+airframe drag per axis, rotor drag, inflow, edgewise) and a constant (a bias: a force no column
+explains), ``w_j`` the coefficients' drift from their offline values (in their physical units),
+``r_t`` the label's own noise and ``v_j`` the discrepancy left that no column follows. The drift
+is an Ornstein-Uhlenbeck process back to the offline posterior: between labels ``Δt`` apart,
+with ``a = e^{−Δt/τ}`` for the basis's coefficients and ``e^{−Δt/τ_b}`` for the bias,
+
+    w ← a ⊙ w,    Σ ← (a aᵀ) ⊙ (Σ − Σ_∞) + Σ_∞,    Σ_∞ = C₀ + diag(s² σ_B², s_b²),
+
+with ``C₀`` the coefficients' offline posterior covariance (the physical basis's ``A⁻¹``; zero
+for the regression form and the bias), ``σ_B`` their prior standard deviations
+(:data:`gpg.flight.basis.PRIORS`), ``s`` the drift's spread in those units and ``s_b`` the
+bias's. A flight starts from ``N(0, Σ_∞)``; each label is one rank-one update per output. Cost
+per label ``O(P²)`` per output (``P = 9`` with ``M``), fixed memory, pure for ``lax.scan``.
+The prediction adds ``hᵀ w̄`` to the offline mean; its band on the loads is the filter's own,
+``hᵀ Σ h + v``: the offline coefficients' share and the discrepancy's are in it, so the band
+narrows as the flight tells the coefficients and widens where the columns grow (a faster wind).
+
+:func:`fit_drift` fits ``τ``, ``s``, ``τ_b``, ``s_b`` and ``v`` by maximising the prequential
+likelihood (each label predicted before the filter sees it) of training flights, each predicted
+by the physical basis fitted on the others (held out: the condition a new flight is in), so
+that no time constant is set by hand; :func:`default_drift` is the start for a vehicle never
+flown. A :class:`Drift` may also name faster members (``fast``): a bank of filters whose
+biases relax faster, weighted by their predictive densities with a fixed share (Herbster and
+Warmuth's switching), for a force that changes faster than any training flight showed (a
+gust).
+:func:`prequential` runs any adapted model over a flight and returns what it predicted before
+each update.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float
+
+from gpg._dtype import float64
+from gpg._precision import highest
+from gpg.flight import correction as fc
+from gpg.flight.basis import TERMS, PhysicalBasis
+from gpg.flight.labels import Labels
+from gpg.surrogate import Surrogate, predict_state
+
+__all__ = [
+    "DEFAULT_SPREAD",
+    "DEFAULT_TAU",
+    "Drift",
+    "Prequential",
+    "Tracker",
+    "default_drift",
+    "fit_drift",
+    "prequential",
+    "track",
+]
+
+N_LOADS = fc.N_LOADS
+DEFAULT_TAU = 60.0
+"""s: the default drift's time constant (:func:`default_drift`)."""
+DEFAULT_SPREAD = 1.0
+"""The default drift's spread, in the coefficients' prior standard deviations."""
+DEFAULT_BIAS_TAU = 1.0
+"""s: the default bias's time constant."""
+DEFAULT_BIAS_SD = 1.0
+"""The default bias's stationary standard deviation, in :data:`BIAS_SCALE` units."""
+BIAS_SCALE = (1.0, 1.0, 1.0, 0.1, 0.1, 0.1)
+"""N, N·m: the bias column's unit per load output (a force of 1 N, a torque of 0.1 N·m)."""
+BANKS = ((), (1.0,))
+"""The banks :func:`fit_drift` chooses among by their held-out prequential likelihood: one
+filter, or one beside a member whose bias relaxes within a second (s)."""
+SHARE = 0.01
+"""The bank's switching rate: each label, this share of the weight is spread over all members
+(fixed-share), so that a member out of favour can win again within tens of labels."""
+# Bounds of the fitted drift: τ from a tenth of a second (faster than labels come) to a day,
+# the spread from a thousandth to a hundred prior standard deviations.
+TAU_RANGE = (0.1, 86400.0)
+SPREAD_RANGE = (1e-3, 1e2)
+
+
+@dataclass(frozen=True)
+class Drift:
+    """The drift of the tracked coefficients (module docstring).
+
+    Attributes:
+        tau: s, ``τ``: how fast the coefficients move (and return to their offline values).
+        spread: ``s``, the drift's stationary standard deviation in prior standard deviations.
+        bias_tau: s, ``τ_b``: the bias's time constant (what the last labels' error says of
+            the next one's).
+        bias_sd: ``s_b``, the bias's stationary standard deviation (:data:`BIAS_SCALE` units).
+        noise: (6,) ``v_j``, the discrepancy each load output's measurements carry beyond the
+            labels' own noise (the surrogate's normalised units).
+        log_likelihood: the prequential log likelihood per label where fitted, else NaN.
+        labels: the labels it was fitted on (0: not fitted).
+        source: ``"fitted"`` or ``"default"``.
+        fast: s, the bias time constants of the bank's other members (module docstring);
+            empty (the default): one filter.
+        share: the bank's switching rate per label.
+    """
+
+    tau: float
+    spread: float
+    noise: tuple[float, ...]
+    bias_tau: float = DEFAULT_BIAS_TAU
+    bias_sd: float = DEFAULT_BIAS_SD
+    log_likelihood: float = float("nan")
+    labels: int = 0
+    source: str = "default"
+    fast: tuple[float, ...] = ()
+    share: float = SHARE
+
+    @property
+    def bias_taus(self) -> tuple[float, ...]:
+        """The members' bias time constants: ``bias_tau``, then ``fast``."""
+        return (float(self.bias_tau), *(float(f) for f in self.fast))
+
+
+def _relax(mean, cov, a, stationary):
+    """The OU step with a rate per column (``a``, (P,)): ``w ← a ⊙ w``,
+    ``Σ ← (a aᵀ) ⊙ (Σ − Σ_∞) + Σ_∞`` (``Σ_∞``: (6, P, P), block-diagonal between columns of
+    different rates, so that the step's noise is a covariance)."""
+    return a * mean, jnp.outer(a, a) * (cov - stationary) + stationary
+
+
+_relax_bank = jax.vmap(_relax, in_axes=(0, 0, 0, None))
+
+
+def _measure(mean, cov, h, y, r):
+    """One rank-one update per output (rows of ``h``); also each output's one-step-ahead log
+    density of ``y``."""
+    Sh = jnp.einsum("jpq,jq->jp", cov, h)
+    s = jnp.sum(h * Sh, 1) + r
+    e = y - jnp.sum(h * mean, 1)
+    k = Sh / s[:, None]
+    mean = mean + k * e[:, None]
+    cov = cov - k[:, :, None] * Sh[:, None, :]
+    cov = 0.5 * (cov + jnp.swapaxes(cov, 1, 2))  # keep it symmetric under rounding
+    return mean, cov, -0.5 * (jnp.log(2 * jnp.pi * s) + e**2 / s)
+
+
+_measure_bank = jax.vmap(_measure, in_axes=(0, 0, None, None, None))
+
+
+def _reweigh(log_weight, ll, share):
+    """The members' weights after a label (``ll``: each member's log density of it, (K,)):
+    Bayes' rule, then the fixed share; and the mixture's log density of the label."""
+    joint = log_weight + ll
+    total = jax.scipy.special.logsumexp(joint)
+    k = log_weight.shape[0]
+    w = (1.0 - share) * jnp.exp(joint - total) + share / k
+    return jnp.log(w), total
+
+
+class Tracker(eqx.Module):
+    """The tracked drift ``w`` of the physical basis's coefficients (module docstring): a bank
+    of K filters that differ in the bias's ``τ_b``, weighted by how well each predicted the
+    labels.
+
+    Attributes:
+        physics: the physical columns.
+        prior_sd: (B,) ``σ_B`` (B = P − 1), the basis coefficients' prior standard deviations
+            (physical units).
+        offline_cov: (6, P, P) the coefficients' offline posterior covariance (zeros where the
+            correction has none: the regression form, the bias).
+        mean: (K, 6, P) each member's posterior mean of the drift per load output.
+        cov: (K, 6, P, P) its posterior covariance.
+        log_weight: (K,) the members' log weights.
+        t: () s, the time of the last update.
+        tau: () s, ``τ``.
+        spread: () ``s``.
+        bias_tau: (K,) s, each member's ``τ_b``.
+        bias_sd: () ``s_b``.
+        noise: (6,) ``v_j`` (normalised units).
+        share: () the switching rate per label (fixed-share).
+        with_simple: ``M``'s loads are a column (after the prior's mean).
+    """
+
+    physics: PhysicalBasis
+    prior_sd: Float[Array, " B"]
+    offline_cov: Float[Array, "6 P P"]
+    mean: Float[Array, "K 6 P"]
+    cov: Float[Array, "K 6 P P"]
+    log_weight: Float[Array, " K"]
+    t: Float[Array, ""]
+    tau: Float[Array, ""]
+    spread: Float[Array, ""]
+    bias_tau: Float[Array, " K"]
+    bias_sd: Float[Array, ""]
+    noise: Float[Array, " 6"]
+    share: Float[Array, ""]
+    with_simple: bool = eqx.field(static=True, default=True)
+
+    def bias_column(self) -> Float[Array, "6 1"]:
+        """The bias column in normalised units.
+
+        Returns:
+            (6, 1) :data:`BIAS_SCALE` over the load outputs' scales.
+        """
+        y_std = self.physics.normalizer.y_std[:N_LOADS]
+        return (jnp.asarray(BIAS_SCALE, y_std.dtype) / y_std)[:, None]
+
+    @property
+    def stationary(self) -> Float[Array, "6 P P"]:
+        """``Σ_∞ = C₀ + S``: the offline posterior's covariance plus the drift's
+        ``S = s² diag(σ_B²)``, per load output (the law the drift returns to)."""
+        return self.offline_cov + _drift_cov(self.spread, self.prior_sd, self.bias_sd)
+
+    @highest
+    def relaxed(self, t: Float[ArrayLike, ""]) -> Tracker:
+        """The drift's law at time ``t``: each member's OU step since :attr:`t` (a ``t``
+        before it counts as no time: the state never runs backwards).
+
+        Args:
+            t: the time (s) to relax to.
+
+        Returns:
+            The tracker with its means, covariances and time advanced.
+        """
+        dt = jnp.maximum(jnp.asarray(t, self.t.dtype) - self.t, 0.0)
+        a = _rates(dt, self.tau, self.bias_tau, self.prior_sd.shape[0])  # (K, P)
+        mean, cov = _relax_bank(self.mean, self.cov, a, self.stationary)
+        return eqx.tree_at(lambda o: (o.mean, o.cov, o.t), self, (mean, cov, self.t + dt))
+
+    @highest
+    def measured(
+        self, h: Float[Array, "6 P"], y: Float[Array, " 6"], r: Float[Array, " 6"]
+    ) -> Tracker:
+        """One Kalman update per member and output with the residual ``y`` against the offline
+        mean; the members reweighed by their predictive densities of it.
+
+        Args:
+            h: (6, P) the columns at the label (:meth:`gpg.flight.Corrected.tracker_columns`).
+            y: (6,) the label's residual against the offline mean (normalised, GP frame).
+            r: (6,) its own noise variance; :attr:`noise` is added.
+
+        Returns:
+            The tracker conditioned on the label (not relaxed first: see :meth:`relaxed`).
+        """
+        mean, cov, ll = _measure_bank(self.mean, self.cov, h, y, r + self.noise)
+        lw, _ = _reweigh(self.log_weight, jnp.sum(ll, 1), self.share)
+        return eqx.tree_at(lambda o: (o.mean, o.cov, o.log_weight), self, (mean, cov, lw))
+
+    @highest
+    def mean_var(self, h: Float[Array, "6 P"]) -> tuple[Float[Array, " 6"], Float[Array, " 6"]]:
+        """The drift's share of the prediction at columns ``h``: the members' mixture of
+        ``hᵀ w̄`` and ``hᵀ Σ h`` (its mean, and its variance with the members' spread).
+
+        Args:
+            h: (6, P) the columns at the query.
+
+        Returns:
+            The (6,) mean and (6,) variance per load output (normalised units).
+        """
+        m = jnp.einsum("jp,kjp->kj", h, self.mean)
+        v = jnp.einsum("jp,kjpq,jq->kj", h, self.cov, h)
+        w = jnp.exp(self.log_weight)[:, None]
+        mean = jnp.sum(w * m, 0)
+        return mean, jnp.maximum(jnp.sum(w * (v + m**2), 0) - mean**2, 0.0)
+
+
+def _drift_cov(spread, prior_sd, bias_sd):
+    """``S``: the drift's stationary covariance, the basis's ``s² diag(σ_B²)`` then ``s_b²``."""
+    return jnp.diag(jnp.concatenate([(spread * prior_sd) ** 2, jnp.reshape(bias_sd**2, (1,))]))
+
+
+def _rates(dt, tau, bias_taus, n_basis: int):
+    """Each member's per-column ``a = e^{−Δt/τ}`` (K, P): the basis's (one ``τ``), then the
+    bias's (the member's own)."""
+    k = bias_taus.shape[0]
+    a = jnp.broadcast_to(jnp.exp(-dt / tau), (k, n_basis))
+    return jnp.concatenate([a, jnp.exp(-dt / bias_taus)[:, None]], 1)
+
+
+def _offline_cov(m, p: int) -> np.ndarray:
+    """The offline posterior covariance of the tracked columns' coefficients (6, P, P): the
+    physical basis's ``A⁻¹`` where the correction integrated it (its columns placed by name),
+    zeros elsewhere."""
+    out = np.zeros((N_LOADS, p, p))
+    e = m.explicit
+    if e is None:
+        return out
+    names = ["prior", *(["simple"] if m.basis is not None else []), *TERMS]
+    idx = np.array([names.index(c) for c in e.columns])
+    chol = np.asarray(e.cov_chol)
+    out[:, idx[:, None], idx[None, :]] = chol @ np.swapaxes(chol, 1, 2)
+    return out
+
+
+def default_drift(sur: Surrogate) -> Drift:
+    """The drift for a vehicle never flown: ``τ`` = :data:`DEFAULT_TAU`, ``s`` =
+    :data:`DEFAULT_SPREAD`, and ``v_j`` the discrepancy's own prior variance (its signal
+    variance and value noise, times its output scale) where the model is corrected, else a
+    tenth of the data's variance.
+
+    Args:
+        sur: the model to track.
+
+    Returns:
+        The default :class:`Drift`.
+    """
+    m = sur.model
+    if isinstance(m, fc.Corrected) and len(m.delta) == N_LOADS:
+        noise = tuple(float((d.hyper.variance + d.hyper.noise) * d.output_scale[0])
+                      for d in m.delta)  # fmt: skip
+    else:
+        noise = (0.1,) * N_LOADS
+    return Drift(tau=DEFAULT_TAU, spread=DEFAULT_SPREAD, noise=noise)
+
+
+@float64
+def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Surrogate:
+    """``sur`` (corrected or not) with its physical basis's coefficients followed online.
+
+    Update it with :func:`gpg.flight.update` (or :func:`gpg.flight.online_step` from Python,
+    ``lax.scan`` inside JAX), predict with it as with any surrogate.
+
+    Args:
+        sur: the model to track: a corrected one (either basis) or a prior (the prior's mean
+            and ``M``'s loads then become columns with coefficients 1 and 0).
+        drift: the drift's ``τ``, spread and noise (:func:`fit_drift`); default
+            :func:`default_drift`.
+        t0: s, the time of the first update.
+
+    Returns:
+        A :class:`~gpg.Surrogate` whose :class:`~gpg.flight.Corrected` model tracks.
+
+    Raises:
+        ValueError: a model adapted by :func:`gpg.flight.adapt`, or a drift whose time
+            constants or spread are not positive, whose share is not in [0, 1) or whose
+            ``noise`` is not 6 non-negative numbers.
+    """
+    drift = default_drift(sur) if drift is None else drift
+    noise = np.asarray(drift.noise, float)
+    if not (drift.tau > 0 and min(drift.bias_taus) > 0 and drift.spread > 0):
+        raise ValueError(
+            f"drift.tau, drift.bias_tau, drift.fast and drift.spread must be > 0, got "
+            f"{drift.tau}, {drift.bias_taus}, {drift.spread}"
+        )
+    if not drift.bias_sd >= 0:
+        raise ValueError(f"drift.bias_sd must be >= 0, got {drift.bias_sd}")
+    if not 0 <= drift.share < 1:
+        raise ValueError(f"drift.share must be in [0, 1), got {drift.share}")
+    if noise.shape != (N_LOADS,) or not np.all(noise >= 0):
+        raise ValueError(f"drift.noise must be {N_LOADS} numbers >= 0, got {drift.noise}")
+    m = sur.model
+    if not isinstance(m, fc.Corrected):
+        m = fc.Corrected(prior=m, scale=jnp.ones(m.n_outputs), delta=())
+        sur = dataclasses.replace(sur, model=m, model_name=f"{sur.model_name}+flight")
+    if m.online is not None:
+        raise ValueError(
+            "track: the model carries the inducing-point term of gpg.flight.adapt; track the "
+            "corrected model itself (gpg.flight.correct), not both"
+        )
+    if m.basis is None and sur.simple is not None:  # M's loads become a column, κ = 0
+        simple = fc.SimpleBasis(sur.simple, sur.normalizer, sur.frame)
+        m = eqx.tree_at(lambda c: (c.basis, c.kappa), m, (simple, jnp.zeros(N_LOADS)),
+                        is_leaf=lambda a: a is None)  # fmt: skip
+    physics = m.explicit.physics if m.explicit is not None else fc._physics(fc.base(sur))
+    _, sd = fc._coefficient_prior(True, m.basis is not None)
+    p = sd.size + 1
+    c0 = _offline_cov(m, p)
+    stat = c0 + np.asarray(_drift_cov(drift.spread, jnp.asarray(sd), drift.bias_sd))
+    k = len(drift.bias_taus)
+    tracker = Tracker(
+        physics=physics,
+        prior_sd=jnp.asarray(sd),
+        offline_cov=jnp.asarray(c0),
+        mean=jnp.zeros((k, N_LOADS, p)),
+        cov=jnp.broadcast_to(jnp.asarray(stat), (k, N_LOADS, p, p)),
+        log_weight=jnp.full(k, -math.log(k)),
+        t=jnp.asarray(float(t0)),
+        tau=jnp.asarray(float(drift.tau)),
+        spread=jnp.asarray(float(drift.spread)),
+        bias_tau=jnp.asarray(drift.bias_taus),
+        bias_sd=jnp.asarray(float(drift.bias_sd)),
+        noise=jnp.asarray(noise),
+        share=jnp.asarray(float(drift.share)),
+        with_simple=m.basis is not None,
+    )
+    m = eqx.tree_at(lambda c: c.tracker, m, tracker, is_leaf=lambda a: a is None)
+    return dataclasses.replace(sur, model=m)
+
+
+@float64
+def fit_drift(
+    sur: Surrogate,
+    labels: Sequence[Labels],
+    *,
+    max_labels: int = 1500,
+    max_steps: int = 200,
+    fast: Sequence[float] | None = None,
+    share: float = SHARE,
+) -> Drift:
+    """The drift that best predicts new flights, label by label (module docstring).
+
+    Each part of ``labels`` (a flight, or the flights of one wind) is predicted by the
+    physical basis and discrepancy fitted on the other parts (with ``sur``'s discrepancy
+    hyperparameters, the coefficients integrated out as in ``correct(basis="physical")``), and
+    the filter runs over it from the stationary law, restarting at each flight (where the time
+    runs back). ``τ``, ``s``, the first member's ``τ_b``, ``s_b`` and ``v`` maximise the sum
+    of the bank's one-step-ahead log densities (optimistix BFGS on their logarithms, from the
+    best of a small grid); the ``fast`` members keep their bias time constants (steady
+    training flights cannot tell them: a gust can, and the bank's weights decide in flight).
+
+    Args:
+        sur: a corrected model (:func:`gpg.flight.correct`): its discrepancy hyperparameters.
+        labels: two or more parts, in time order within each.
+        max_labels: at most this many labels (evenly thinned in time beyond).
+        max_steps: BFGS steps.
+        fast: s, the bank's other members' bias time constants; None (the default): each of
+            :data:`BANKS`, the one whose fit predicts the held-out flights best.
+        share: the bank's switching rate per label (:data:`SHARE`).
+
+    Returns:
+        The fitted :class:`Drift` (``source="fitted"``).
+
+    Raises:
+        ValueError: fewer than two parts, ``sur`` not corrected by flights, or a ``fast``
+            time constant not positive or a ``share`` outside [0, 1).
+    """
+    parts = [labels] if isinstance(labels, Labels) else list(labels)
+    if len(parts) < 2:
+        raise ValueError(
+            f"fit_drift needs labels of two or more flights or winds (each predicted from the "
+            f"others), got {len(parts)}; use gpg.flight.default_drift for one"
+        )
+    m = sur.model
+    if not isinstance(m, fc.Corrected) or len(m.delta) != N_LOADS:
+        raise ValueError("fit_drift needs a model corrected by gpg.flight.correct")
+    banks = BANKS if fast is None else (tuple(fast),)
+    if not all(f > 0 for b in banks for f in b) or not 0 <= share < 1:
+        raise ValueError(f"fast must be > 0 s and share in [0, 1), got {fast}, {share}")
+    data, v0 = _held_out_sequences(sur, parts, max_labels)
+    fits = [_fit_bank(data, v0, tuple(float(f) for f in b), float(share), max_steps)
+            for b in banks]  # fmt: skip
+    return max(fits, key=lambda d: d.log_likelihood)
+
+
+def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int) -> Drift:
+    """:func:`fit_drift` for one bank."""
+    args = (data, jnp.asarray(fast, float).reshape(-1), share)
+    theta0 = _grid_start(args, v0)
+    solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+    sol = optx.minimise(_neg_loglik, solver, theta0, args=args, max_steps=max_steps, throw=False)
+    theta = sol.value
+    if not bool(jnp.isfinite(_neg_loglik(theta, args))):
+        theta = theta0
+    tau, spread, bias_tau, bias_sd, noise = _unpack(theta)
+    return Drift(
+        tau=float(tau),
+        spread=float(spread),
+        noise=tuple(float(v) for v in noise),
+        bias_tau=float(bias_tau),
+        bias_sd=float(bias_sd),
+        log_likelihood=-float(_neg_loglik(theta, args)),
+        labels=int(data[0].shape[0]),
+        source="fitted",
+        fast=fast,
+        share=share,
+    )
+
+
+def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
+    """Every label's residual against the basis fitted without its part, its columns, noise,
+    time and whether a flight starts there; and each output's mean held-out variance (the
+    start of ``v``)."""
+    prior = fc.base(sur)
+    X, Y, V, groups, t = fc._label_rows(prior, parts, max_labels, "physical")
+    mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
+    ms = None
+    if prior.simple is not None:
+        simple = fc.SimpleBasis(prior.simple, prior.normalizer, prior.frame)
+        ms = np.asarray(jax.vmap(simple)(jnp.asarray(X)))
+    phys = np.asarray(jax.vmap(fc._physics(prior))(jnp.asarray(X)))
+    b, sd = fc._coefficient_prior(True, ms is not None)
+    resid = np.full(Y.shape, np.nan)
+    H = np.stack([fc._basis_columns(mu, ms, phys, j) for j in range(N_LOADS)], 1)  # (N, 6, P)
+    bias = np.asarray(BIAS_SCALE) / np.asarray(prior.normalizer.y_std[:N_LOADS])
+    v0 = np.zeros(N_LOADS)
+    p = sd.size
+    c0 = np.zeros((len(X), N_LOADS, p + 1, p + 1))  # the bias has no offline posterior
+    for j, d in enumerate(sur.model.delta):
+        outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd, groups)
+        for te, mean, _, cov in outs:
+            resid[te, j] = Y[te, j] - mean
+            c0[te, j, :p, :p] = cov
+        v0[j] = np.mean(np.concatenate([var for _, _, var, _ in outs]))
+    keep = np.all(np.isfinite(resid), 1)
+    start = np.ones(len(t), bool)
+    start[1:] = (groups[1:] != groups[:-1]) | (np.diff(t) <= 0)
+    start = start[keep]
+    start[0] = True
+    Ht = np.concatenate([H, np.broadcast_to(bias[None, :, None], (len(H), N_LOADS, 1))], 2)
+    rows = (t[keep], start, Ht[keep], resid[keep], V[keep], c0[keep], sd)
+    return tuple(jnp.asarray(a) for a in rows), v0
+
+
+def _unpack(theta):
+    """``θ = (log τ, log s, log τ_b, log s_b, log v)`` to its values, ``τ`` and the spreads
+    kept in their ranges."""
+    (t_lo, t_hi), (s_lo, s_hi) = np.log(TAU_RANGE), np.log(SPREAD_RANGE)
+    tau, bias_tau = (jnp.exp(jnp.clip(theta[i], t_lo, t_hi)) for i in (0, 2))
+    spread, bias_sd = (jnp.exp(jnp.clip(theta[i], s_lo, s_hi)) for i in (1, 3))
+    return tau, spread, bias_tau, bias_sd, jnp.exp(theta[4:])
+
+
+@jax.jit
+def _neg_loglik(theta, args):
+    """Minus the prequential log likelihood per label of the bank with ``θ = (log τ, log s,
+    log v)`` and the other members' ``fast`` time constants over the held-out sequences."""
+    (t, start, H, y, r, c0, sd), fast, share = args
+    tau, spread, bias_tau, bias_sd, noise = _unpack(theta)
+    bias_taus = jnp.concatenate([bias_tau[None], fast])
+    k, p = bias_taus.shape[0], sd.shape[0] + 1
+    drift = _drift_cov(spread, sd, bias_sd)
+    mean0 = jnp.zeros((k, N_LOADS, p))
+    lw0 = jnp.full(k, -jnp.log(k))
+
+    def body(carry, row):
+        mean, cov, lw, t_prev = carry
+        ti, st, h, yi, ri, ci = row
+        stat = ci + drift  # the law each row's group returns to
+        a = _rates(jnp.maximum(ti - t_prev, 0.0), tau, bias_taus, p - 1)
+        mean, cov = _relax_bank(mean, cov, a, stat)
+        cov0 = jnp.broadcast_to(stat, cov.shape)
+        mean, cov, lw = (jnp.where(st, x0, x) for x, x0 in ((mean, mean0), (cov, cov0), (lw, lw0)))
+        mean, cov, ll = _measure_bank(mean, cov, h, yi, ri + noise)
+        lw, total = _reweigh(lw, jnp.sum(ll, 1), share)
+        return (mean, cov, lw, ti), total
+
+    cov_init = jnp.broadcast_to(c0[0] + drift, (k, N_LOADS, p, p))
+    _, ll = jax.lax.scan(body, (mean0, cov_init, lw0, t[0]), (t, start, H, y, r, c0))
+    return -jnp.mean(ll)
+
+
+def _grid_start(args, v0) -> Float[Array, " 10"]:
+    """The best of a small grid of ``τ``, ``s``, ``τ_b`` and ``s_b``, with ``v`` at the
+    held-out variance."""
+    best, best_val = None, np.inf
+    log_v = np.log(np.maximum(v0, 1e-8))
+    for tau, spread, bias_tau, bias_sd in itertools.product(
+        (10.0, 60.0, 600.0), (0.1, 0.3, 1.0), (0.3, 3.0), (0.1, 1.0)
+    ):
+        theta = jnp.asarray(np.log([tau, spread, bias_tau, bias_sd]).tolist() + log_v.tolist())
+        val = float(_neg_loglik(theta, args))
+        if val < best_val:
+            best, best_val = theta, val
+    return best
+
+
+@dataclass(frozen=True)
+class Prequential:
+    """What an adapted model predicted at each label before it saw it (:func:`prequential`).
+
+    Attributes:
+        force: (N, 3) predicted force, world, N.
+        torque: (N, 3) predicted torque, world, N·m.
+        variance: (N, 6) their predictive variances (the model's band, not the labels' noise).
+        final: the model after the last label.
+    """
+
+    force: np.ndarray
+    torque: np.ndarray
+    variance: np.ndarray
+    final: Surrogate
+
+
+def prequential(sur: Surrogate, labels: Labels) -> Prequential:
+    """Each label predicted, then used: a whole flight through an adapted model in one
+    compiled ``lax.scan`` (a model without an online state just predicts).
+
+    Args:
+        sur: a model prepared by :func:`track` or :func:`gpg.flight.adapt`, or any surrogate.
+        labels: one flight's labels, in time order.
+
+    Returns:
+        The one-step-ahead predictions at the labels' states and the final model.
+
+    Raises:
+        ValueError: ``labels`` is not :class:`~gpg.flight.Labels` or is empty.
+    """
+    if not isinstance(labels, Labels) or len(labels) == 0:
+        raise ValueError("prequential needs the labels of one flight (gpg.flight.Labels)")
+    m = sur.model
+    adaptive = isinstance(m, fc.Corrected) and (m.online is not None or m.tracker is not None)
+    if not adaptive:
+        p = sur.predict_batch(labels.rpm, labels.euler, labels.v_air)
+        return Prequential(np.asarray(p.force), np.asarray(p.torque),
+                           np.asarray(p.variance)[:, :6], sur)  # fmt: skip
+    state = fc.online_state(sur)
+    offline = dataclasses.replace(sur, model=fc.offline_model(m))
+    cols = tuple(jnp.asarray(c) for c in labels.columns())
+    state, (f, tq, var) = _prequential_scan(offline, state, cols)
+    return Prequential(np.asarray(f), np.asarray(tq), np.asarray(var)[:, :6],
+                       fc.with_online(sur, state))  # fmt: skip
+
+
+@jax.jit
+def _prequential_scan(offline: Surrogate, state, cols):
+    def body(st, row):
+        p = predict_state(fc.with_online(offline, st), row[1], row[2], row[3], True)
+        return fc.advance(offline, st, *row), (p.force, p.torque, p.variance)
+
+    return jax.lax.scan(body, state, cols)

@@ -1,0 +1,297 @@
+"""gpg.flight.tracking: the physical basis's coefficients followed online, against a batch
+posterior and a Kalman filter written here in NumPy."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg.flight import correction as fc
+from gpg.flight import tracking as tk
+from gpg.flight.basis import PRIORS, TERMS
+from gpg.flight.labels import Labels
+from tests.flight.test_correction import N_LABELS, _states
+
+FIT = {"subset_size": N_LABELS // 2, "max_steps": 15}  # these tests check the filter's algebra
+
+
+def _labels(sur, rng, n, *, drag, t0=0.0, name="f"):
+    """Labels of a vehicle whose loads are the prior's plus an airframe drag of area ``drag``
+    (m², every axis, world frame), noise known."""
+    rpm, euler, v_air = _states(rng, n)
+    p = sur.predict_batch(rpm, euler, v_air, mean_only=True)
+    M = np.asarray(sur.simple.values(np.concatenate([rpm, euler], 1)))
+    speed = np.linalg.norm(v_air, axis=1, keepdims=True)
+    force = np.asarray(p.force) - 0.5 * 1.225 * drag * speed * v_air
+    fvar, tvar = np.full((n, 3), 0.05**2), np.full((n, 3), 0.005**2)
+    return Labels(
+        t=t0 + np.arange(n) * 0.1,
+        rpm=rpm,
+        euler=euler,
+        v_air=v_air,
+        force=force + 0.05 * rng.normal(size=force.shape),
+        torque=np.asarray(p.torque) + 0.005 * rng.normal(size=(n, 3)),
+        force_var=fvar,
+        torque_var=tvar,
+        model_force=M[:, :3],
+        model_torque=M[:, 3:],
+        name=name,
+    )
+
+
+@pytest.fixture(scope="module")
+def flights(synthetic_surrogate):
+    rng = np.random.default_rng(4)
+    return [_labels(synthetic_surrogate, rng, N_LABELS // 2, drag=a, name=f"w{a}")
+            for a in (0.0, 0.03)]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def corrected(synthetic_surrogate, flights):
+    return fc.correct(synthetic_surrogate, flights, basis="physical", **FIT)
+
+
+def _rows(sur, lab, i):
+    """The GP row of label ``i``, the residual against the offline mean and the columns."""
+    out = _rows_jit(sur, *(jnp.asarray(c[i]) for c in lab.columns()[1:]))
+    return tuple(np.asarray(a) for a in out)
+
+
+@jax.jit
+def _rows_jit(sur, *row):
+    m = sur.model
+    x, y, r = fc.gp_rows(sur, *row)
+    pm = m.prior.mean_one(x)
+    return x, y - m.offline_mean(x, pm)[:6], r, m.tracker_columns(x, pm)
+
+
+def test_filter_is_the_batch_posterior(corrected, flights):
+    """Without drift (τ far beyond the flight), label-by-label updates give the Bayesian linear
+    regression's batch posterior of the residuals on the columns, prior N(0, C₀ + S) (C₀ the
+    offline posterior's covariance of the basis's coefficients, S = diag(s² σ_B², s_b²)), noise
+    the labels' own plus v; inside lax.scan and once a step from Python alike; the prediction
+    adds hᵀw̄ to the offline mean, and its band on the loads is hᵀΣh + v."""
+    drift = tk.Drift(tau=1e12, spread=0.5, noise=(0.01,) * 6, bias_tau=1e12, bias_sd=0.7)
+    sur = tk.track(corrected, drift, t0=0.0)
+    lab = flights[1]
+    n = 20
+    cols = [jnp.asarray(c[:n]) for c in lab.columns()]
+    scanned, _ = jax.lax.scan(lambda s, x: (fc.update(s, *x), None), sur, tuple(cols))
+    rows = [_rows(sur, lab, i) for i in range(n)]
+    sd = np.array([PRIORS[c] for c in ("prior", "simple", *TERMS)])
+    S = np.diag(np.concatenate([(0.5 * sd) ** 2, [0.7**2]]))
+    e = corrected.model.explicit
+    assert e.columns == ("prior", "simple", *TERMS)
+    C0 = np.zeros((6, sd.size + 1, sd.size + 1))
+    C0[:, :-1, :-1] = np.einsum("jpq,jrq->jpr", e.cov_chol, e.cov_chol)
+    tr = scanned.model.tracker
+    for j in range(6):
+        Hm = np.stack([h[j] for *_, h in rows])
+        y = np.array([r[1][j] for r in rows])
+        w = 1.0 / (np.array([r[2][j] for r in rows]) + 0.01)
+        A = np.linalg.inv(C0[j] + S) + Hm.T @ (Hm * w[:, None])
+        cov = np.linalg.inv(A)
+        mean = cov @ (Hm.T @ (w * y))
+        np.testing.assert_allclose(tr.mean[0, j], mean, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(tr.cov[0, j], cov, rtol=1e-6, atol=1e-12)
+    step = fc.online_step(sur)
+    st = fc.online_state(sur)
+    for i in range(n):
+        st = step(st, *(c[i] for c in cols))
+    np.testing.assert_allclose(st.mean, tr.mean, rtol=1e-10, atol=1e-12)
+    for a, b in zip(jax.tree.leaves(st), jax.tree.leaves(fc.online_state(sur)), strict=True):
+        assert a.shape == b.shape and a.dtype == b.dtype  # fixed memory
+    # the prediction: the offline model's plus the drift's share, in mean and variance
+    q = [np.asarray(a[0]) for a in (lab.rpm, lab.euler, lab.v_air)]
+    tracked = fc.with_online(sur, st)
+    x, _, _, h = _rows(tracked, lab, 0)
+    mean, var = tracked.model.mean_var_one(jnp.asarray(x))
+    mean0, var0 = corrected.model.mean_var_one(jnp.asarray(x))
+    np.testing.assert_allclose(np.asarray(mean - mean0)[:6], np.sum(h * st.mean[0], 1), rtol=1e-9)
+    pv = np.asarray(tracked.model.predictive_variance(var))
+    band = np.einsum("jp,jpq,jq->j", h, st.cov[0], h) + 0.01
+    np.testing.assert_allclose(pv[:6], band, rtol=1e-9)
+    pv0 = np.asarray(corrected.model.predictive_variance(var0))
+    np.testing.assert_allclose(pv[6:], pv0[6:], rtol=1e-12)  # the levels keep the prior's
+    p = tracked.predict(*q)
+    assert np.all(np.isfinite(np.asarray(p.variance)))
+
+
+def _bank_reference(sur, lab, n, tau, spread, noise, share, bias_taus, bias_sd):
+    """The bank written out in NumPy: per member the OU step (the basis's coefficients at
+    ``τ``, the bias at the member's own rate, back to the offline posterior plus the drift)
+    and the Kalman update, the weights by Bayes' rule on the members' predictive densities
+    (summed over outputs), then the fixed share."""
+    sd = np.array([PRIORS[c] for c in ("prior", "simple", *TERMS)])
+    k, p = len(bias_taus), sd.size + 1
+    e = sur.model.explicit
+    S = np.zeros((6, p, p))
+    S[:, :-1, :-1] = np.einsum("jpq,jrq->jpr", e.cov_chol, e.cov_chol)
+    S += np.diag(np.concatenate([(spread * sd) ** 2, [bias_sd**2]]))
+    mean, cov = np.zeros((k, 6, p)), np.broadcast_to(S, (k, 6, p, p)).copy()
+    w, t_prev = np.full(k, 1.0 / k), lab.t[0]
+    for i in range(n):
+        _, y, r, h = _rows(sur, lab, i)
+        dens = np.zeros(k)
+        for m, bias_tau in enumerate(bias_taus):
+            dt = lab.t[i] - t_prev
+            a = np.concatenate([np.full(p - 1, np.exp(-dt / tau)), [np.exp(-dt / bias_tau)]])
+            for j in range(6):
+                mean[m, j] = a * mean[m, j]
+                cov[m, j] = np.outer(a, a) * (cov[m, j] - S[j]) + S[j]
+                Sh = cov[m, j] @ h[j]
+                s = h[j] @ Sh + r[j] + noise
+                e = y[j] - h[j] @ mean[m, j]
+                dens[m] += -0.5 * (np.log(2 * np.pi * s) + e**2 / s)
+                kg = Sh / s
+                mean[m, j] = mean[m, j] + kg * e
+                cov[m, j] = cov[m, j] - np.outer(kg, Sh)
+        t_prev = lab.t[i]
+        w = w * np.exp(dens - dens.max())
+        w = (1 - share) * w / w.sum() + share / k
+    return mean, cov, w, S
+
+
+def test_bank_against_numpy_and_relaxes_to_the_stationary_law(corrected, flights):
+    """A bank of two members (the coefficients' τ 0.3 s, the biases' 2 s and 0.1 s) against
+    NumPy written here: each member's Ornstein-Uhlenbeck step (mean ×a, covariance
+    (a aᵀ)⊙(Σ − Σ_∞) + Σ_∞) and update, the weights and the prediction's mixture; ten τ
+    without labels return the basis block to Σ_∞; a time before the last update does not
+    run it back."""
+    drift = tk.Drift(tau=0.3, spread=2.0, noise=(0.02,) * 6, fast=(0.1,), share=0.05,
+                     bias_tau=2.0, bias_sd=0.5)  # fmt: skip
+    sur = tk.track(corrected, drift, t0=flights[1].t[0])
+    lab = flights[1]
+    s = sur
+    for i in range(6):
+        s = fc.update_jit(s, *(c[i] for c in lab.columns()))
+    mean, cov, w, S = _bank_reference(sur, lab, 6, 0.3, 2.0, 0.02, 0.05, (2.0, 0.1), 0.5)
+    tr = s.model.tracker
+    np.testing.assert_allclose(tr.mean, mean, rtol=1e-6, atol=1e-10)
+    np.testing.assert_allclose(tr.cov, cov, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(np.exp(tr.log_weight), w, rtol=1e-6)
+    h = _rows(s, lab, 7)[3]
+    m_k = np.einsum("jp,kjp->kj", h, mean)
+    v_k = np.einsum("jp,kjpq,jq->kj", h, cov, h)
+    mix = np.sum(w[:, None] * m_k, 0)
+    got_m, got_v = tr.mean_var(jnp.asarray(h))
+    np.testing.assert_allclose(got_m, mix, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(got_v, np.sum(w[:, None] * (v_k + m_k**2), 0) - mix**2,
+                               rtol=1e-6, atol=1e-12)  # fmt: skip
+    later = tr.relaxed(float(tr.t) + 3.0)  # ten τ of the coefficients
+    b = slice(0, -1)  # the basis block (the bias relaxes at its own rate)
+    np.testing.assert_allclose(later.mean[1, :, b], np.exp(-10.0) * np.asarray(tr.mean[1, :, b]),
+                               rtol=1e-9)  # fmt: skip
+    # what is left of the covariance after ten τ is e^-20 of it
+    left = 2 * np.exp(-20.0) * float(np.abs(tr.cov[1]).max())
+    np.testing.assert_allclose(later.cov[1][:, b, b], S[:, b, b], rtol=1e-9, atol=left)
+    same = tr.relaxed(float(tr.t) - 5.0)  # a = 1: (Σ − Σ_∞) + Σ_∞, a rounding of Σ_∞'s size
+    np.testing.assert_allclose(same.cov, tr.cov, rtol=0, atol=4 * np.finfo(float).eps * S.max())
+
+
+def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights):
+    """The drift fitted on flights of different drag (each predicted from the other) against
+    its likelihood written here: the fitted θ is at least as likely as the grid's start and
+    as the default, and the likelihood is the filter's prequential one (a NumPy filter over
+    the same held-out residuals gives the same number)."""
+    drift = tk.fit_drift(corrected, flights)
+    assert drift.source == "fitted" and drift.labels == N_LABELS
+    # the bank chosen by the held-out likelihood: no other is more likely
+    for fast in tk.BANKS:
+        assert drift.log_likelihood >= tk.fit_drift(corrected, flights, fast=fast).log_likelihood
+    assert tk.TAU_RANGE[0] <= drift.tau <= tk.TAU_RANGE[1]
+    data, v0 = tk._held_out_sequences(corrected, flights, 1500)
+    args = (data, jnp.asarray(drift.fast), drift.share)
+    theta = jnp.asarray(np.log([drift.tau, drift.spread, drift.bias_tau, drift.bias_sd,
+                                *drift.noise]))  # fmt: skip
+    ll = -float(tk._neg_loglik(theta, args))
+    np.testing.assert_allclose(ll, drift.log_likelihood, rtol=1e-9)
+    assert ll >= -float(tk._neg_loglik(tk._grid_start(args, v0), args)) - 1e-9
+    # one member (no fast ones): the likelihood is the filter's, written out here, each
+    # label's law the held-out posterior of its part plus the drift
+    one = (data, jnp.zeros(0), 0.0)
+    t, start, H, y, r, c0, sd = (np.asarray(a) for a in data)
+    D = np.diag(np.concatenate([(drift.spread * sd) ** 2, [drift.bias_sd**2]]))
+    total = 0.0
+    for j in range(6):
+        for i in range(len(t)):
+            S = c0[i, j] + D
+            if start[i]:
+                m, C = np.zeros(sd.size + 1), S.copy()
+            else:
+                dt = max(t[i] - t[i - 1], 0.0)
+                a = np.full(sd.size + 1, np.exp(-dt / drift.tau))
+                a[-1] = np.exp(-dt / drift.bias_tau)
+                m, C = a * m, np.outer(a, a) * (C - S) + S
+            s = H[i, j] @ C @ H[i, j] + r[i, j] + drift.noise[j]
+            e = y[i, j] - H[i, j] @ m
+            total += -0.5 * (np.log(2 * np.pi * s) + e**2 / s)
+            k = C @ H[i, j] / s
+            m, C = m + k * e, C - np.outer(k, C @ H[i, j])
+    np.testing.assert_allclose(-float(tk._neg_loglik(theta, one)), total / len(t), rtol=1e-7)
+    with pytest.raises(ValueError, match="two or more"):
+        tk.fit_drift(corrected, flights[:1])
+    with pytest.raises(ValueError, match="corrected by gpg.flight.correct"):
+        tk.fit_drift(synthetic_surrogate, flights)
+
+
+def test_prequential_predicts_before_it_updates(corrected, flights):
+    """prequential's one compiled scan: the i-th prediction is the model after i updates,
+    as a once-a-step loop from Python gives it; a model without an online state predicts."""
+    sur = tk.track(corrected, tk.Drift(tau=5.0, spread=1.0, noise=(0.01,) * 6),
+                   t0=flights[1].t[0])  # fmt: skip
+    lab = flights[1].take(slice(0, 8))
+    pre = tk.prequential(sur, lab)
+    step, st = fc.online_step(sur), fc.online_state(sur)
+    for i in range(len(lab)):
+        p = fc.with_online(sur, st).predict(lab.rpm[i], lab.euler[i], lab.v_air[i])
+        np.testing.assert_allclose(pre.force[i], p.force, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(pre.variance[i], np.asarray(p.variance)[:6], rtol=1e-9)
+        st = step(st, *(c[i] for c in lab.columns()))
+    np.testing.assert_allclose(fc.online_state(pre.final).mean, st.mean, rtol=1e-10, atol=1e-12)
+    plain = tk.prequential(corrected, lab)
+    np.testing.assert_allclose(
+        plain.force, corrected.predict_batch(lab.rpm, lab.euler, lab.v_air).force, rtol=1e-12
+    )
+    with pytest.raises(ValueError, match="labels of one flight"):
+        tk.prequential(sur, lab.take(slice(0, 0)))
+
+
+def test_track_checks_and_composes(synthetic_surrogate, corrected, flights):
+    """track takes a prior (its mean and M become columns) or a corrected model, refuses a bad
+    drift and an adapted model; a tracked model is a JAX function (jit, vmap, forward and
+    reverse derivatives of its prediction against central differences)."""
+    with pytest.raises(ValueError, match="must be > 0"):
+        tk.track(corrected, tk.Drift(tau=0.0, spread=1.0, noise=(0.0,) * 6))
+    with pytest.raises(ValueError, match="6 numbers"):
+        tk.track(corrected, tk.Drift(tau=1.0, spread=1.0, noise=(0.0,) * 5))
+    with pytest.raises(ValueError, match="inducing-point term"):
+        tk.track(fc.adapt(corrected, inducing=4))
+    with pytest.raises(ValueError, match="already follows"):
+        fc.adapt(tk.track(corrected))
+    with pytest.raises(ValueError, match="prepared by gpg.flight.adapt or gpg.flight.track"):
+        fc.online_step(corrected)
+    plain = tk.track(synthetic_surrogate)
+    assert plain.model.tracker.mean.shape == (1, 6, 3 + len(TERMS))
+    with pytest.raises(ValueError, match="share must be"):
+        tk.track(corrected, tk.Drift(tau=1.0, spread=1.0, noise=(0.0,) * 6, share=1.0))
+    d = tk.default_drift(corrected)
+    assert d.noise[0] == pytest.approx(
+        float((corrected.model.delta[0].hyper.variance + corrected.model.delta[0].hyper.noise)
+              * corrected.model.delta[0].output_scale[0]))  # fmt: skip
+    lab = flights[0]
+    s = fc.update_jit(plain, *(c[0] for c in lab.columns()))
+    v = jnp.asarray(lab.v_air[:4])
+    f = jax.jit(jax.vmap(lambda a: s.predict(lab.rpm[0], lab.euler[0], a).force[0]))
+    assert np.all(np.isfinite(np.asarray(f(v))))
+    g = jax.grad(lambda a: s.predict(lab.rpm[0], lab.euler[0], a).force[0])(v[0])
+    eps = 1e-5
+    e = jnp.array([eps, 0.0, 0.0])
+    fd = (s.predict(lab.rpm[0], lab.euler[0], v[0] + e).force[0]
+          - s.predict(lab.rpm[0], lab.euler[0], v[0] - e).force[0]) / (2 * eps)  # fmt: skip
+    np.testing.assert_allclose(float(g[0]), float(fd), rtol=1e-5, atol=1e-7)
+    fwd = jax.jacfwd(lambda a: s.predict(lab.rpm[0], lab.euler[0], a).force)(v[0])
+    np.testing.assert_allclose(np.asarray(fwd)[0], np.asarray(g), rtol=1e-8, atol=1e-10)
+    assert dataclasses.is_dataclass(d)
