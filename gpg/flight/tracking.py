@@ -27,12 +27,12 @@ narrows as the flight tells the coefficients and widens where the columns grow (
 
 :func:`fit_drift` fits ``τ``, ``s``, ``τ_b``, ``s_b`` and ``v`` by maximising the prequential
 likelihood (each label predicted before the filter sees it) of training flights, each predicted
-by the physical basis fitted on the others (held out: the condition a new flight is in), so
-that no time constant is set by hand; :func:`default_drift` is the start for a vehicle never
-flown. A :class:`Drift` may also name faster members (``fast``): a bank of filters whose
-biases relax faster, weighted by their predictive densities with a fixed share (Herbster and
-Warmuth's switching), for a force that changes faster than any training flight showed (a
-gust).
+by a model that did not see it (the corrected model itself, or the physical basis fitted on
+the others: the condition a new flight is in), so that no time constant is set by hand;
+:func:`default_drift` is the start for a vehicle never flown. A :class:`Drift` may also name
+faster members (``fast``): a bank of filters whose biases relax faster, weighted by their
+predictive densities with a fixed share (Herbster and Warmuth's switching), for a force that
+changes faster than any training flight showed (a gust).
 :func:`prequential` runs any adapted model over a flight and returns what it predicted before
 each update.
 """
@@ -287,15 +287,15 @@ def _rates(dt, tau, bias_taus, n_basis: int):
     return jnp.concatenate([a, jnp.exp(-dt / bias_taus)[:, None]], 1)
 
 
-def _offline_cov(m, p: int) -> np.ndarray:
+def _offline_cov(m, p: int, with_simple: bool) -> np.ndarray:
     """The offline posterior covariance of the tracked columns' coefficients (6, P, P): the
-    physical basis's ``A⁻¹`` where the correction integrated it (its columns placed by name),
-    zeros elsewhere."""
+    physical basis's ``A⁻¹`` where the correction integrated it (its columns placed by name
+    among the prior's mean, ``M``'s loads where ``with_simple``, the terms), zeros elsewhere."""
     out = np.zeros((N_LOADS, p, p))
     e = m.explicit
     if e is None:
         return out
-    names = ["prior", *(["simple"] if m.basis is not None else []), *TERMS]
+    names = ["prior", *(["simple"] if with_simple else []), *TERMS]
     idx = np.array([names.index(c) for c in e.columns])
     chol = np.asarray(e.cov_chol)
     out[:, idx[:, None], idx[None, :]] = chol @ np.swapaxes(chol, 1, 2)
@@ -374,7 +374,7 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
     physics = m.explicit.physics if m.explicit is not None else fc._physics(fc.base(sur))
     _, sd = fc._coefficient_prior(True, m.basis is not None)
     p = sd.size + 1
-    c0 = _offline_cov(m, p)
+    c0 = _offline_cov(m, p, m.basis is not None)
     stat = c0 + np.asarray(_drift_cov(drift.spread, jnp.asarray(sd), drift.bias_sd))
     k = len(drift.bias_taus)
     tracker = Tracker(
@@ -409,14 +409,16 @@ def fit_drift(
 ) -> Drift:
     """The drift that best predicts new flights, label by label (module docstring).
 
-    Each part of ``labels`` (a flight, or the flights of one wind) is predicted by the
-    physical basis and discrepancy fitted on the other parts (with ``sur``'s discrepancy
-    hyperparameters, the coefficients integrated out as in ``correct(basis="physical")``), and
-    the filter runs over it from the stationary law, restarting at each flight (where the time
-    runs back). ``τ``, ``s``, the first member's ``τ_b``, ``s_b`` and ``v`` maximise the sum
-    of the bank's one-step-ahead log densities (optimistix BFGS on their logarithms, from the
-    best of a small grid); the ``fast`` members keep their bias time constants (steady
-    training flights cannot tell them: a gust can, and the bank's weights decide in flight).
+    Each part of ``labels`` (a flight, or the flights of one wind) is predicted by a model
+    that did not see it: ``sur`` itself where its correction did not take the part (by the
+    labels' name), else the physical basis and discrepancy fitted on the other parts (with
+    ``sur``'s discrepancy hyperparameters, the coefficients integrated out as in
+    ``correct(basis="physical")``). The filter runs over it from the stationary law,
+    restarting at each flight (where the time runs back). ``τ``, ``s``, the first member's
+    ``τ_b``, ``s_b`` and ``v`` maximise the sum of the bank's one-step-ahead log densities
+    (optimistix BFGS on their logarithms, from the best of a small grid); the ``fast``
+    members keep their bias time constants (steady training flights cannot tell them: a gust
+    can, and the bank's weights decide in flight).
 
     Args:
         sur: a corrected model (:func:`gpg.flight.correct`): its discrepancy hyperparameters.
@@ -477,9 +479,10 @@ def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int) -
 
 
 def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
-    """Every label's residual against the basis fitted without its part, its columns, noise,
-    time and whether a flight starts there; and each output's mean held-out variance (the
-    start of ``v``)."""
+    """Every label's residual against a model that did not see its part (``sur`` itself where
+    its correction did not take the part, by name; else the basis fitted without it), with
+    that model's coefficient covariance, the columns, noise, time and whether a flight starts
+    there; and each output's mean held-out variance (the start of ``v``)."""
     prior = fc.base(sur)
     X, Y, V, groups, t = fc._label_rows(prior, parts, max_labels, "physical")
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
@@ -501,6 +504,15 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
             resid[te, j] = Y[te, j] - mean
             c0[te, j, :p, :p] = cov
         v0[j] = np.mean(np.concatenate([var for _, _, var, _ in outs]))
+    # A part the model was not corrected on is predicted by the model itself: the drift is
+    # then fitted for the model it will track, not for one refitted without the part.
+    seen = set(sur.config.get("flight_correction", {}).get("flights", []))
+    unseen = np.isin(groups, [g for g, lab in enumerate(parts) if lab.name not in seen])
+    if unseen.any():
+        own = fc.offline_model(sur.model)
+        mean = jax.vmap(lambda x: own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS])
+        resid[unseen] = Y[unseen] - np.asarray(mean(jnp.asarray(X[unseen])))
+        c0[unseen] = _offline_cov(own, p + 1, ms is not None)
     keep = np.all(np.isfinite(resid), 1)
     start = np.ones(len(t), bool)
     start[1:] = (groups[1:] != groups[:-1]) | (np.diff(t) <= 0)
