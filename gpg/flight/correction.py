@@ -701,12 +701,13 @@ def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
     return max(1.0, float(np.mean(np.concatenate(z2)))) if z2 else 1.0
 
 
-def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups):
+def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None):
     """Each group of labels predicted from the others by one load output's physical basis
     (coefficients integrated out, prior ``N(b, diag(sd²))``) and discrepancy GP (``hyper``,
     the labels' ``noise`` on the diagonal), the same hyperparameters throughout: the
     coefficients' posterior and the discrepancy conditioned anew without the group. Dense
     LAPACK on the host: one factorisation per group, and no program compiled per shape.
+    ``predict`` names the groups to predict (default: every one).
 
     Returns:
         A list of ``(mask, mean, variance, cov)``: the group's rows, their held-out mean and
@@ -724,7 +725,7 @@ def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups):
         return s2 * np.exp(-0.5 * np.maximum(d2, 0.0))
 
     out = []
-    for g in np.unique(groups):
+    for g in np.unique(groups) if predict is None else predict:
         tr, te = groups != g, groups == g
         if tr.sum() < 8:
             continue

@@ -498,16 +498,19 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
     v0 = np.zeros(N_LOADS)
     p = sd.size
     c0 = np.zeros((len(X), N_LOADS, p + 1, p + 1))  # the bias has no offline posterior
-    for j, d in enumerate(sur.model.delta):
-        outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd, groups)
-        for te, mean, _, cov in outs:
-            resid[te, j] = Y[te, j] - mean
-            c0[te, j, :p, :p] = cov
-        v0[j] = np.mean(np.concatenate([var for _, _, var, _ in outs]))
     # A part the model was not corrected on is predicted by the model itself: the drift is
     # then fitted for the model it will track, not for one refitted without the part.
     seen = set(sur.config.get("flight_correction", {}).get("flights", []))
-    unseen = np.isin(groups, [g for g, lab in enumerate(parts) if lab.name not in seen])
+    refit = [g for g, lab in enumerate(parts) if lab.name in seen]
+    unseen = ~np.isin(groups, refit)
+    for j, d in enumerate(sur.model.delta):
+        outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd, groups, refit)
+        for te, mean, _, cov in outs:
+            resid[te, j] = Y[te, j] - mean
+            c0[te, j, :p, :p] = cov
+        # v starts at the held-out variance, or at the discrepancy's own where none was refit
+        var = [v for _, _, v, _ in outs] or [np.atleast_1d(d.hyper.variance + d.hyper.noise)]
+        v0[j] = np.mean(np.concatenate(var))
     if unseen.any():
         own = fc.offline_model(sur.model)
         mean = jax.vmap(lambda x: own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS])
@@ -533,6 +536,7 @@ def _unpack(theta):
 
 
 @jax.jit
+@highest
 def _neg_loglik(theta, args):
     """Minus the prequential log likelihood per label of the bank with ``θ = (log τ, log s,
     log v)`` and the other members' ``fast`` time constants over the held-out sequences."""
@@ -624,6 +628,7 @@ def prequential(sur: Surrogate, labels: Labels) -> Prequential:
 
 
 @jax.jit
+@highest
 def _prequential_scan(offline: Surrogate, state, cols):
     def body(st, row):
         p = predict_state(fc.with_online(offline, st), row[1], row[2], row[3], True)
