@@ -64,3 +64,17 @@ def require_shape(name: str, arr: np.ndarray, shape: tuple) -> None:
     if not ok:
         want = "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+
+
+def no_hash(self) -> int:
+    """``__hash__`` of a model that holds arrays: a ``TypeError`` that says what to jit instead.
+
+    ``jax.jit(model.predict)`` hashes the bound method, hence the model and its arrays; were it
+    hashable, jit would bake the arrays into the program as constants (slow to compile, one
+    program per model). The model belongs among the arguments."""
+    name = type(self).__name__
+    raise TypeError(
+        f"a {name} holds arrays and has no hash, so jax.jit cannot take its bound methods "
+        f"(jax.jit(model.predict)): pass the model as an argument, "
+        f"jax.jit({name}.predict)(model, ...), or use equinox.filter_jit(model.predict)"
+    )

@@ -47,6 +47,7 @@ from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from gpg import models, parallel
+from gpg._checks import no_hash
 from gpg._deprecated import deprecated
 from gpg._dtype import float64
 from gpg._precision import highest
@@ -119,6 +120,8 @@ MAX_FRAME_RATE = 10.0
 
 class Surrogate(eqx.Module):
     """A fitted model plus everything to go from a world-frame state to world-frame outputs."""
+
+    __hash__ = no_hash  # jax.jit(model.predict): say what to call instead
 
     model: Predictor
     normalizer: Normalizer

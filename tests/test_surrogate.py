@@ -424,3 +424,16 @@ def test_fit_arguments_of_the_wrong_kind_are_named(data):
     bad = {"hyper": {"fit": False, "lengthscale": [1.0, 2.0, 3.0]}}
     with pytest.raises(ValueError, match="hyper.lengthscale has 3 values; the model has 8 inputs"):
         Surrogate.fit(data, "gpg", bad)
+
+
+def test_jit_of_a_bound_predict_says_what_to_call(synthetic_surrogate):
+    """``jax.jit(sur.predict)`` cannot hash the surrogate's arrays (and baking them into the
+    program would be worse): the error says what to call, and that call equals ``predict``."""
+    sur = synthetic_surrogate
+    state = (jnp.full(4, 4000.0), jnp.array([0.1, 0.05, -0.02]), jnp.array([3.0, 1.0, 0.0]))
+    with pytest.raises(TypeError, match=r"jax.jit\(Surrogate.predict\)\(model, ...\).*filter_jit"):
+        jax.jit(sur.predict)(*state)
+    want = sur.predict(*state)
+    for got in (jax.jit(Surrogate.predict)(sur, *state), eqx.filter_jit(sur.predict)(*state)):
+        np.testing.assert_allclose(got.force, want.force, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(got.variance, want.variance, rtol=1e-12, atol=1e-15)

@@ -4,7 +4,9 @@ and what one adaptation update costs (:mod:`gpg.flight`).
 * ``log``: :func:`gpg.flight.read_ulog` plus :func:`gpg.flight.label` of a ULog file (the test
   fixture by default: a real PX4 log), timed together, median of ``repeats`` after a warm-up
   (the one-off calibration of ``M`` to the log's hover timed apart), as seconds flown per
-  second of work.
+  second of work; and the checks that reading runs, each timed alone as a share of reading
+  and labelling: the signals against each other (:func:`gpg.flight.consistency`) and the
+  walk over the file's messages that finds a file cut short.
 * ``update``: :func:`gpg.flight.online_step` from Python, once per label, on a model of the
   sizes a user has: a ``gpgs_hybrid`` prior of ``n_points`` (data=default's 1000 by default, on
   synthetic data with fixed hyperparameters: the cost depends on the sizes only) corrected by
@@ -33,7 +35,7 @@ def bench_flight(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def _log(cfg: dict[str, Any]) -> dict[str, Any]:
-    from gpg.flight import FlightLogWarning, calibrate_simple, label, read_ulog
+    from gpg.flight import FlightLogWarning, calibrate_simple, consistency, label, read_ulog
     from gpg.quadrotor.vehicle import load_vehicle
 
     veh = load_vehicle(cfg["vehicle"])
@@ -51,6 +53,17 @@ def _log(cfg: dict[str, Any]) -> dict[str, Any]:
         lab = label(read_ulog(cfg["path"], rate=rate), veh, reference=M)
         seconds.append(time.perf_counter() - t0)
     s = stats(np.asarray(seconds))
+    from gpg.flight.ulog import cut_bytes
+
+    checks, walks = [], []
+    for _ in range(10 * int(cfg["repeats"])):  # a millisecond's work: more repeats
+        t0 = time.perf_counter()
+        consistency(log)
+        t1 = time.perf_counter()
+        cut_bytes(cfg["path"])
+        checks.append(t1 - t0)
+        walks.append(time.perf_counter() - t1)
+    c, w = stats(np.asarray(checks)), stats(np.asarray(walks))
     return {
         "path": str(cfg["path"]),
         "flown_s": log.duration,
@@ -61,6 +74,10 @@ def _log(cfg: dict[str, Any]) -> dict[str, Any]:
         "read_and_label_s": s,
         "calibrate_s": calibrate_s,
         "times_faster_than_flown": log.duration / s["median_s"],
+        "consistency_s": c,
+        "consistency_share": c["median_s"] / s["median_s"],
+        "integrity_s": w,
+        "integrity_share": w["median_s"] / s["median_s"],
     }
 
 
@@ -135,6 +152,12 @@ def flight_table(res: dict[str, Any]) -> str:
         {"what": f"read_ulog + label, {lg['flown_s']:.1f} s flown at {lg['rate_hz']:.0f} Hz",
          "median": lg["read_and_label_s"]["median_s"] * 1e3,
          "note": f"{lg['times_faster_than_flown']:.0f}x faster than flown"},
+        {"what": "of which the signals' consistency checks",
+         "median": lg["consistency_s"]["median_s"] * 1e3,
+         "note": f"{100 * lg['consistency_share']:.2f} % of read + label"},
+        {"what": "of which the file's integrity walk (a message cut short?)",
+         "median": lg["integrity_s"]["median_s"] * 1e3,
+         "note": f"{100 * lg['integrity_share']:.2f} % of read + label"},
     ]  # fmt: skip
     for name, what in (("inducing", f"{up['inducing']} inducing"),
                        ("tracked", "tracked coefficients")):  # fmt: skip

@@ -45,7 +45,7 @@ from gpg.flight import correction as fc
 from gpg.flight.labels import Labels, label
 from gpg.flight.log import read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
-from gpg.flight.tracking import fit_drift, prequential, track
+from gpg.flight.tracking import default_drift, fit_drift, prequential, track
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController
 from gpg.quadrotor.dynamics import Wind
@@ -296,8 +296,13 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     f_ad = bench.flight("windy_adapt", float(a["flight_s"]), wind)
     l_off, l_ad = bench.labelled(f_off), bench.labelled(f_ad)
     offline = bench.correct([base_labels, l_off])
-    k = int(bench.cfg["track"]["fit_flights"])
-    drift = fit_drift(corrected, train_labels[:k], max_labels=int(bench.cfg["track"]["max_labels"]))
+    parts = train_labels[: int(bench.cfg["track"]["fit_flights"])]
+    # one training flight (a short run) has no held-out flight to fit the drift on
+    drift = (
+        fit_drift(corrected, parts, max_labels=int(bench.cfg["track"]["max_labels"]))
+        if len(parts) >= 2
+        else default_drift(corrected)
+    )
 
     def prepared(t0: float) -> dict[str, Any]:
         return {

@@ -2,7 +2,9 @@
 corrected by flights, adaptation while flying (docs: "From flight logs").
 
 * :func:`read_csv` / :func:`read_ulog` read a flight into a :class:`FlightLog` (gpg's frames
-  and units, checked); :class:`CsvFormat` says how a CSV differs from them.
+  and units, checked); :class:`CsvFormat` says how a CSV differs from them; :func:`consistency`
+  checks its signals against each other (each an :class:`Agreement`; the readers refuse a log
+  whose signals disagree).
 * :func:`label` turns measured motion into force and torque labels with their noise
   (:class:`Labels`); :class:`MotorCurve` and :func:`calibrate_simple` turn commands into rotor
   speeds and fit ``M`` to a hover.
@@ -20,6 +22,7 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 """
 
 from gpg.flight import basis, synthetic
+from gpg.flight.consistency import Agreement, consistency
 from gpg.flight.correction import (
     Corrected,
     Online,
@@ -48,7 +51,9 @@ from gpg.flight.ulog import read_ulog
 from gpg.flight.wind import WindEstimate, WindWarning, estimate_wind, with_wind
 
 __all__ = [
+    "Agreement",
     "Corrected",
+    "consistency",
     "Drift",
     "Identification",
     "IdentificationWarning",

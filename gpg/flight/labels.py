@@ -30,6 +30,7 @@ samples where a rotor is saturated (at ``saturation`` of its range, padded by
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ import numpy as np
 from scipy import ndimage, optimize
 from scipy.interpolate import make_smoothing_spline
 
+from gpg._checks import as_float_array
 from gpg.flight.log import GAP_FACTOR, FlightLog, FlightLogWarning
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.simple_model import SimpleModel
@@ -58,6 +60,9 @@ NOISE_WINDOW_S = 1.0  # s, window of the rolling noise estimate
 GCV_WINDOW = 300  # samples: the smoothing parameter is chosen by GCV on one such window
 DELAY_HIGHPASS_S = 0.2  # s, the high-pass window of the delay's cross-correlation
 EDGE_S = 0.1  # s dropped at each end of a segment, where the spline has one side only
+MAX_DELAY_S = 0.5  # s: a rotor-speed channel's lag is tens of ms; more is a unit mistake
+# Above this share of vanishing second differences a signal is an interpolation, not samples.
+INTERPOLATED_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,27 @@ class MotorCurve:
     source: str = "given"
     time_constant: float = 0.0
 
+    def __post_init__(self):
+        for key in ("c1", "c2", "v_ref", "time_constant"):
+            _number(f"MotorCurve.{key}", getattr(self, key))
+        if not self.v_ref > 0:
+            raise ValueError(f"MotorCurve.v_ref must be a positive voltage, got {self.v_ref!r}")
+        if self.time_constant < 0:
+            raise ValueError(f"MotorCurve.time_constant must be >= 0 s, got {self.time_constant!r}")
+        if not self.c1 + self.c2 > 0:
+            raise ValueError(
+                f"MotorCurve: c1 + c2 (the speed at full command) must be positive, got "
+                f"c1={self.c1!r}, c2={self.c2!r}"
+            )
+        rng = self.command_range
+        if (
+            isinstance(rng, (str, bytes))
+            or len(tuple(rng)) != 2
+            or not all(math.isfinite(_number("MotorCurve.command_range", v)) for v in rng)
+            or not rng[0] <= rng[1]
+        ):
+            raise ValueError(f"MotorCurve.command_range must be (low, high), got {rng!r}")
+
     def rpm(
         self, command: np.ndarray, voltage: np.ndarray | None = None, t: np.ndarray | None = None
     ) -> np.ndarray:
@@ -105,8 +131,25 @@ class MotorCurve:
 
         Returns:
             (T, 4) rotor speeds, rpm.
+
+        Raises:
+            ValueError: a command not (T, 4) or (4,), a voltage or times of another length,
+                a voltage not positive.
         """
-        u = np.asarray(command, dtype=float)
+        u = as_float_array("command", command, ndim=(1, 2))
+        if u.shape[-1] != 4:
+            raise ValueError(f"command must have shape (T, 4) or (4,), got {u.shape}")
+        if voltage is not None:
+            V = as_float_array("voltage", voltage, ndim=(0, 1, 2))
+            if V.shape not in ((), u.shape[:-1], (*u.shape[:-1], 1)):
+                raise ValueError(
+                    f"voltage must have shape {u.shape[:-1]} (one per row of command), got "
+                    f"{V.shape}"
+                )
+            if np.any(~(V > 0)):
+                raise ValueError("voltage must be positive (V) and finite")
+        if t is not None and np.shape(t) != u.shape[:-1]:
+            raise ValueError(f"t must have shape {u.shape[:-1]}, got {np.shape(t)}")
         lo, hi = self.command_range
         out = (u < lo - 1e-9) | (u > hi + 1e-9)
         if out.any():
@@ -137,12 +180,34 @@ class MotorCurve:
 
         Returns:
             The fitted curve (``source="speeds"``), with its RMS residual and command range.
+
+        Raises:
+            ValueError: commands and speeds of other shapes than (T, 4) each (or a voltage
+                not (T,)), NaN or inf, or fewer than two command levels above idle.
         """
-        u, w = np.asarray(command, float).ravel(), np.asarray(rpm, float).ravel()
+        command = as_float_array("command", command, ndim=2)
+        rpm = as_float_array("rpm", rpm, ndim=2)
+        if command.shape[1:] != (4,) or rpm.shape != command.shape:
+            raise ValueError(
+                f"command and rpm must both have shape (T, 4), got {command.shape} and {rpm.shape}"
+            )
+        if voltage is not None and np.shape(voltage) != command.shape[:1]:
+            raise ValueError(
+                f"voltage must have shape {command.shape[:1]}, got {np.shape(voltage)}"
+            )
+        for what, a in (("command", command), ("rpm", rpm), ("voltage", voltage)):
+            if a is not None and not np.all(np.isfinite(a)):
+                raise ValueError(f"{what} holds NaN or inf")
+        u, w = command.ravel(), rpm.ravel()
         V = None if voltage is None else np.repeat(np.asarray(voltage, float), 4)
         v_ref = 1.0 if V is None else float(np.median(V))
         s = _scaled(u, V, v_ref)
         keep = u > 0.02  # idle commands: the ESC's own floor, not the curve
+        if np.unique(u[keep]).size < 2:
+            raise ValueError(
+                f"fit_speeds needs commands above idle (0.02) at two levels at least; got "
+                f"{int(keep.sum())} command(s) above idle"
+            )
         A = np.stack([s[keep], s[keep] ** 2], 1)
         (c1, c2), *_ = np.linalg.lstsq(A, w[keep], rcond=None)
         res = float(np.sqrt(np.mean((A @ [c1, c2] - w[keep]) ** 2)))
@@ -259,7 +324,16 @@ def hover_samples(log: FlightLog, rpm: np.ndarray, *, min_height: float = 0.3) -
 
     Returns:
         (T,) bool, True where the vehicle hovers.
+
+    Raises:
+        ValueError: ``rpm`` not one row of four rotor speeds per sample of the log.
     """
+    rpm = as_float_array("rpm", rpm, ndim=2)
+    if rpm.shape != (log.t.size, 4):
+        raise ValueError(
+            f"rpm must have shape {(log.t.size, 4)} (the log's samples, four rotors), got "
+            f"{rpm.shape}"
+        )
     R = log.R_WB()
     tilt = np.degrees(np.arccos(np.clip(R[:, 2, 2], -1, 1)))
     turning = rpm.min(1) > 0
@@ -525,12 +599,11 @@ def label(
             rad/s (their airborne median far below the vehicle's hover speed and near it in
             rad/s); no sample left to label; a bad option.
     """
-    if source not in ("auto", "imu", "velocity"):
-        raise ValueError(f"source must be 'auto', 'imu' or 'velocity', got {source!r}")
+    _check_label_options(log, vehicle, reference, rate, source, delay, max_delay, curve)
+    if not (0 < _number("saturation", saturation) <= 1) or _number("takeoff_s", takeoff_s) < 0:
+        raise ValueError(f"saturation must be in (0, 1], got {saturation!r}; takeoff_s >= 0")
     if source == "imu" and log.specific_force is None:
         raise ValueError(f"{log.name}: source='imu' but the log has no specific force (ax..az)")
-    if not (0 < rate <= log.rate * 1.001):
-        raise ValueError(f"rate must be in (0, {log.rate:.4g}] Hz (the log's rate), got {rate}")
     src = ("imu" if log.specific_force is not None else "velocity") if source == "auto" else source
     simple = _simple(vehicle, reference)
     m, g = float(vehicle.mass), float(vehicle.gravity)
@@ -543,6 +616,7 @@ def label(
     R = log.R_WB()
 
     dt = float(np.median(np.diff(log.t)))
+    _warn_interpolated(log, src)
     keep, drop = _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation)
     F_B, F_var_B, tau_B, tau_var_B, edges = _measured_loads(log, vehicle, R, src, dt)
     drop["edges"] = int((keep & edges).sum())
@@ -570,6 +644,71 @@ def label(
         )
     loads = (F_B[rows], F_var_B[rows], tau_B[rows], tau_var_B[rows])
     return _labels(log, rows, R[rows], rpm[rows], loads, reference, simple, drop, lag, src)
+
+
+def _check_label_options(log, vehicle, reference, rate, source, delay, max_delay, curve):
+    """``label``'s arguments, each refused by name with what was expected."""
+    from gpg.surrogate import Surrogate
+
+    if not isinstance(log, FlightLog):
+        raise ValueError(f"log must be a FlightLog (read_csv, read_ulog), got {type(log).__name__}")
+    if not isinstance(vehicle, Vehicle):
+        raise ValueError(
+            f"vehicle must be a Vehicle (gpg.quadrotor.vehicle.load_vehicle({vehicle!r}) for a "
+            f"vehicle file's name), got {type(vehicle).__name__}"
+        )
+    if reference is not None and not isinstance(reference, (SimpleModel, Surrogate)):
+        raise ValueError(
+            f"reference must be None, a SimpleModel or a Surrogate, got {type(reference).__name__}"
+        )
+    if curve is not None and not isinstance(curve, MotorCurve):
+        raise ValueError(f"curve must be a MotorCurve or None, got {type(curve).__name__}")
+    if not isinstance(source, str) or source not in ("auto", "imu", "velocity"):
+        raise ValueError(f"source must be 'auto', 'imu' or 'velocity', got {source!r}")
+    if not (0 < _number("rate", rate) <= log.rate * 1.001):
+        raise ValueError(f"rate must be in (0, {log.rate:.4g}] Hz (the log's rate), got {rate!r}")
+    if not 0 <= _number("max_delay", max_delay) <= MAX_DELAY_S:
+        raise ValueError(f"max_delay must be in [0, {MAX_DELAY_S:g}] s, got {max_delay!r}")
+    if isinstance(delay, str):
+        if delay != "estimate":
+            raise ValueError(f"delay must be 'estimate' or a number of seconds, got {delay!r}")
+    elif abs(_number("delay", delay)) > MAX_DELAY_S:
+        raise ValueError(
+            f"delay is in seconds and at most {MAX_DELAY_S:g} s (a rotor-speed lag is tens of "
+            f"ms: 20 ms is 0.02), got {delay!r}"
+        )
+
+
+def _number(name: str, value) -> float:
+    """``value`` as a finite float, or a ``ValueError`` naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    if not math.isfinite(float(value)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return float(value)
+
+
+def _warn_interpolated(log: FlightLog, src: str) -> None:
+    """Warn where a signal the labels' noise is estimated from looks linearly interpolated
+    between fewer samples: its second differences vanish, and so would the noise estimate."""
+    used = {"rates": log.rates}
+    used["specific_force" if src == "imu" else "velocity"] = (
+        log.specific_force if src == "imu" else log.velocity
+    )
+    for name, y in used.items():
+        d1 = np.abs(np.diff(y, axis=0))
+        scale = d1[1:] + d1[:-1]
+        moving = scale > 0
+        flat = np.abs(np.diff(y, 2, axis=0)) <= 1e-9 * scale
+        share = float(flat[moving].mean()) if moving.any() else 0.0
+        if share > INTERPOLATED_SHARE:
+            warnings.warn(
+                f"{log.name}: {name} looks linearly interpolated between fewer samples "
+                f"({share:.0%} of its second differences vanish): the labels' noise estimate "
+                "would see no noise there; read the log at the rate of its own samples",
+                FlightLogWarning,
+                stacklevel=3,
+            )
 
 
 def _labels(log, rows, Rk, rpm, loads, reference, simple, drop, lag, src) -> Labels:

@@ -24,6 +24,7 @@ import numpy as np
 from equinox import AbstractVar
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg._checks import no_hash
 from gpg._dtype import in_model_dtype
 from gpg._precision import highest
 from gpg.gp.partition import Partition
@@ -40,6 +41,8 @@ class Predictor(eqx.Module):
     abstract methods below. Callers (the builds, checkpoints, the comparison) use nothing
     else, so a new kind of model needs no branch elsewhere.
     """
+
+    __hash__ = no_hash  # jax.jit(model.predict): say what to call instead
 
     output_scale: AbstractVar[Float[Array, " M"]]
     partition: AbstractVar[Partition | None]

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, label
+from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, hover_samples, label
 from gpg.flight.log import FlightLog, FlightLogWarning, matrix_to_quat
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.vehicle import load_vehicle
@@ -249,3 +249,59 @@ def test_attitude_noise_enters_the_force_variance(veh, M):
     # the horizontal force scatters by m g σ_θ; the estimate bounds it from above within 2x
     assert np.all(sd > 0.5 * float(veh.weight) * sig)
     assert np.all(sd < 3.0 * float(veh.weight) * sig)
+
+
+def test_label_arguments_are_named(veh, M):
+    log = _log(veh, M, T=2.0)
+    for kw, match in [
+        ({"rate": "10"}, "rate must be a number, got '10'"),
+        ({"delay": "auto"}, "delay must be 'estimate' or a number of seconds"),
+        ({"delay": 20}, r"delay is in seconds.*20 ms is 0.02"),
+        ({"max_delay": -1.0}, r"max_delay must be in \[0, 0.5\]"),
+        ({"source": None}, "source must be 'auto', 'imu' or 'velocity'"),
+        ({"curve": "hover"}, "curve must be a MotorCurve"),
+        ({"saturation": 1.5}, r"saturation must be in \(0, 1\]"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            label(log, veh, reference=M, **kw)
+    with pytest.raises(ValueError, match=r"vehicle must be a Vehicle.*load_vehicle\('sui_"):
+        label(log, "sui_endurance", reference=M)
+
+
+def test_motor_curve_refuses_what_it_cannot_use():
+    for kw, match in [
+        ({"c1": float("nan")}, "MotorCurve.c1 must be finite"),
+        ({"c1": 0.0, "c2": 0.0}, "the speed at full command"),
+        ({"c1": 5000.0, "v_ref": 0.0}, "v_ref must be a positive voltage"),
+        ({"c1": 5000.0, "time_constant": -0.1}, "time_constant must be >= 0"),
+        ({"c1": 5000.0, "command_range": (0.8, 0.2)}, r"command_range must be \(low, high\)"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            MotorCurve(**kw)
+    curve = MotorCurve(c1=5000.0)
+    u = np.full((10, 4), 0.5)
+    with pytest.raises(ValueError, match=r"voltage must have shape \(10,\)"):
+        curve.rpm(u, voltage=np.full(9, 15.0))
+    with pytest.raises(ValueError, match=r"command must have shape \(T, 4\)"):
+        curve.rpm(u[:, :3])
+    with pytest.raises(ValueError, match="commands above idle"):
+        MotorCurve.fit_speeds(np.zeros((10, 4)), np.zeros((10, 4)))
+    with pytest.raises(ValueError, match=r"command and rpm must both have shape \(T, 4\)"):
+        MotorCurve.fit_speeds(u, np.ones((9, 4)))
+
+
+def test_hover_samples_needs_four_rotors_per_sample(veh, M):
+    log = _log(veh, M, T=2.0)
+    with pytest.raises(ValueError, match=r"rpm must have shape \(400, 4\)"):
+        hover_samples(log, log.rpm[:, :3])
+
+
+def test_labels_from_an_interpolated_signal_warn(veh, M):
+    """Velocity upsampled 4x by straight lines: three in four second differences vanish, and
+    the noise estimate with them."""
+    t = np.arange(int(4 * RATE)) / RATE
+    coarse = t[::4]
+    v = np.stack([np.sin(coarse), np.cos(coarse), 0 * coarse], 1)
+    v = np.stack([np.interp(t, coarse, v[:, k]) for k in range(3)], 1)
+    with pytest.warns(FlightLogWarning, match=r"velocity looks linearly interpolated .*\(7\d%"):
+        label(_log(veh, M, T=4.0, v=v), veh, reference=M, source="velocity", delay=0.0)

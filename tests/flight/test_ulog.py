@@ -3,6 +3,7 @@ from pyulog's test data: tests/data/flight/LICENSE-pyulog.md), and its topic sel
 made-up topic tables."""
 
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 pyulog = pytest.importorskip("pyulog")
 
 from gpg.flight.log import FlightLogWarning  # noqa: E402
-from gpg.flight.ulog import _select, _window, read_ulog  # noqa: E402
+from gpg.flight.ulog import _select, _window, cut_bytes, read_ulog  # noqa: E402
 
 FIXTURE = Path(__file__).parents[1] / "data" / "flight" / "px4_sitl_hop.ulg"
 # The topics read_ulog takes from this log (it has all of them): their common window.
@@ -138,7 +139,7 @@ def test_rate_argument(log):
     assert fast.name == "hop"
     assert fast.rate == pytest.approx(25.0, rel=1e-9)
     np.testing.assert_allclose(np.diff(fast.t), 0.04, rtol=1e-9)
-    assert abs(fast.duration - log.duration) < 0.04  # the same window
+    assert abs(fast.duration - log.duration) < 1 / log.rate  # the same window
     # The same flight: the slower log's samples lie on the faster one's interpolant.
     z = np.interp(log.t, fast.t, fast.position[:, 2])
     np.testing.assert_allclose(z, log.position[:, 2], atol=0.05)
@@ -214,3 +215,131 @@ def test_missing_pyulog_says_how_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "pyulog", None)
     with pytest.raises(ImportError, match=r"pip install 'gpg\[logs\]'"):
         read_ulog(FIXTURE)
+
+
+# -- damaged and partial logs: refused, or read whole with what was done said ---------------
+
+
+@pytest.mark.parametrize("fraction", [0.25, 0.5, 0.99])
+def test_a_truncated_log_is_refused_unless_asked(tmp_path, fraction):
+    data = FIXTURE.read_bytes()
+    path = tmp_path / "cut.ulg"
+    path.write_bytes(data[: int(len(data) * fraction)])
+    with pytest.raises(ValueError, match=r"cut short: it ends \d+ byte\(s\) into a message"):
+        read_ulog(path)
+    with pytest.warns(FlightLogWarning, match=r"cut short.*the flight ends at"):
+        part = read_ulog(path, allow_damaged=True, check=False)
+    assert part.duration < 31.0 * fraction + 1.0
+
+
+def test_cut_bytes_counts_what_the_last_message_lacks(tmp_path):
+    data = FIXTURE.read_bytes()
+    assert cut_bytes(FIXTURE) == 0  # the whole log ends on a message's end
+    for k in (1, 2, 7):  # so a file k bytes shorter lacks k bytes of its last message
+        (tmp_path / "c.ulg").write_bytes(data[:-k])
+        assert cut_bytes(tmp_path / "c.ulg") == k
+    (tmp_path / "e.ulg").write_bytes(b"")
+    assert cut_bytes(tmp_path / "e.ulg") == 16  # not even the file's header
+
+
+def test_a_log_with_garbage_inside_is_refused_unless_asked(tmp_path):
+    data = FIXTURE.read_bytes()
+    mid = len(data) // 2
+    garbage = np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    path = tmp_path / "garbage.ulg"
+    path.write_bytes(data[:mid] + garbage + data[mid:])
+    with pytest.raises(ValueError, match="corrupt data.*allow_damaged=True"):
+        read_ulog(path)
+    with pytest.warns(FlightLogWarning) as caught:
+        log = read_ulog(path, allow_damaged=True)
+    said = " ".join(str(w.message) for w in caught)
+    assert "corrupt data" in said and "dropouts: vehicle_local_position" in said
+    # what pyulog skipped is a gap of the log, not interpolated samples
+    assert np.diff(log.t).max() > 5 * np.median(np.diff(log.t))
+
+
+def _edited(tmp_path, name, edit):
+    """The fixture with some topics' messages dropped (``edit(data_name, stamps_s)`` gives the
+    samples to keep), written by pyulog."""
+    ulog = pyulog.ULog(str(FIXTURE))
+    for d in ulog.data_list:
+        keep = edit(d.name, (d.data["timestamp"].astype(np.int64) - ulog.start_timestamp) * 1e-6)
+        if keep is not None:
+            for k in list(d.data):
+                d.data[k] = d.data[k][keep]
+    path = tmp_path / f"{name}.ulg"
+    ulog.write_ulog(str(path))
+    return path
+
+
+def _quiet_read(path, **kw):
+    with pytest.warns(FlightLogWarning) as caught:
+        log = read_ulog(path, **kw)
+    return log, " ".join(str(w.message) for w in caught)
+
+
+def test_a_partial_optional_topic_is_left_out_not_the_flight_cut(tmp_path, log):
+    battery = _edited(tmp_path, "b", lambda n, s: s < 5.0 if n == "battery_status" else None)
+    part, said = _quiet_read(battery)
+    assert part.voltage is None and part.duration == pytest.approx(log.duration, abs=0.2)
+    assert "battery_status covers" in said and "voltage left out" in said
+    late = _edited(tmp_path, "a", lambda n, s: s > 25.0 if n == "vehicle_acceleration" else None)
+    part, said = _quiet_read(late)
+    assert part.specific_force is None and part.duration == pytest.approx(log.duration, abs=0.2)
+    assert "specific_force left out" in said
+
+
+def test_a_dropout_is_a_gap_of_the_log_and_no_label_falls_in_it(tmp_path):
+    from gpg.flight.labels import label
+    from gpg.quadrotor.simple_model import SimpleModel
+    from gpg.quadrotor.vehicle import load_vehicle
+
+    def drop(n, s):
+        return ((s < 12.0) | (s > 16.0)) if n == "vehicle_local_position" else None
+
+    log, said = _quiet_read(_edited(tmp_path, "d", drop))
+    assert "dropouts: vehicle_local_position 1 (longest 4" in said
+    start = np.flatnonzero(np.diff(log.t) > 3.5)
+    assert start.size == 1  # one gap, no samples made up inside it
+    lo, hi = log.t[start[0]], log.t[start[0] + 1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FlightLogWarning)
+        veh = load_vehicle("sui_endurance")
+        M = SimpleModel.from_vehicle(veh, float(veh.weight) / (4 * 3000.0**2), 1e-9)
+        lab = label(log, veh, reference=M, rate=5.0, source="imu")
+    assert not np.any((lab.t > lo) & (lab.t < hi))
+    assert lab.t.size > 10  # the flight around it is labelled
+
+
+def test_a_topic_too_sparse_to_resample_is_refused(tmp_path):
+    def two(n, s):
+        return np.isin(np.arange(s.size), [0, s.size - 1]) if n == "vehicle_attitude" else None
+
+    with pytest.raises(ValueError, match="vehicle_attitude has 2 sample.*too sparse"):
+        read_ulog(_edited(tmp_path, "two", two))
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"rotor_order": (0, 1, 2, 5)}, "names motor index 5, but the log has 4 motors"),
+        ({"rotor_order": None}, "rotor_order must be 4 distinct integer"),
+        ({"rotor_order": "0123"}, "rotor_order must be 4 distinct integer"),
+        ({"rotor_order": (0.5, 1, 2, 3)}, "rotor_order must be 4 distinct integer"),
+        ({"rate": "50"}, "rate must be a positive number"),
+        ({"rate": 1000.0}, "faster than every topic read.*50 Hz"),
+        ({"pwm_range": (1000,)}, r"pwm_range must be \(low, high\)"),
+        ({"pwm_range": None}, r"pwm_range must be \(low, high\)"),
+        ({"instance": -1}, "instance must be a non-negative integer"),
+    ],
+)
+def test_bad_arguments_are_named(kw, match):
+    with pytest.raises(ValueError, match=match):
+        read_ulog(FIXTURE, **kw)
+
+
+def test_a_file_that_is_not_a_ulog_is_named(tmp_path):
+    path = tmp_path / "f.csv"
+    path.write_text("t,x\n0,1\n")
+    with pytest.raises(ValueError, match="not a PX4 ULog file.*read_csv"):
+        read_ulog(path)
