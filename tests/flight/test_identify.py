@@ -163,14 +163,17 @@ def test_needs_labels_and_a_generator_vehicle():
 def test_the_others_refitted_beside_an_unidentified_one():
     """Hover labels: the chord is identified by the thrust, the airframe's drag is not (no
     airspeed). The drag keeps the file's value and the chord is fitted again beside it: it
-    comes out at the truth (the labels' drag is the truth's, but at rest drag is nothing)."""
+    comes out at the truth (the labels' drag is the truth's, but at rest drag is nothing).
+    Three free parameters, as in the fixture: the first fit reuses its compiled program."""
     hover = _labels(_theta(TRUE), N, seed=3, speed=0.0)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always", IdentificationWarning)
-        out = identify(hover, "sui_endurance", free=("rotor.chord", "drag_area.x"),
-                       physics=PHYSICS, max_steps=20, passes=1)  # fmt: skip
+        out = identify(hover, "sui_endurance", free=tuple(TRUE), physics=PHYSICS, max_steps=20,
+                       passes=1)  # fmt: skip
     assert any("drag_area.x" in str(w.message) for w in seen)
-    assert out.unidentified == ("drag_area.x",)
+    assert out.unidentified == ("drag_area.x", "drag_area.z")
     chord = out.parameters["rotor.chord"]
     assert chord["identified"] and abs(chord["value"] - TRUE["rotor.chord"]) <= 3 * chord["se"]
     assert out.parameters["drag_area.x"]["value"] == pytest.approx(0.0251)
+    z0 = float(load_vehicle("sui_endurance").drag_area[2])
+    assert out.parameters["drag_area.z"]["value"] == pytest.approx(z0)
