@@ -155,10 +155,11 @@ def test_corrected_is_a_jax_function(corrected, flights):
     precision walk below traces it)."""
     r, e, v = (jnp.asarray(a[:5]) for a in (flights.rpm, flights.euler, flights.v_air))
 
+    @jax.jit  # compiled: op by op the derivative took seconds
     def fx(vv):
         return corrected.predict(r[0], e[0], vv).force[0]
 
-    g_rev = jax.grad(fx)(v[0])
+    g_rev = jax.jit(jax.grad(fx))(v[0])
     h = 1e-5
     fd = np.array(
         [(fx(v[0] + h * np.eye(3)[i]) - fx(v[0] - h * np.eye(3)[i])) / (2 * h) for i in range(3)]
