@@ -22,7 +22,6 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 """
 
 from gpg.flight import basis, synthetic
-from gpg.flight.consistency import Agreement, consistency
 from gpg.flight.correction import (
     Corrected,
     Online,
@@ -36,6 +35,7 @@ from gpg.flight.correction import (
     with_online,
 )
 from gpg.flight.identify import Identification, IdentificationWarning, identify
+from gpg.flight.kinematics import Agreement, consistency
 from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, hover_samples, label
 from gpg.flight.log import CsvFormat, FlightLog, FlightLogWarning, read_csv, write_csv
 from gpg.flight.tracking import (

@@ -41,7 +41,7 @@ import numpy as np
 
 from gpg._checks import as_float_array
 from gpg._io import atomic_write
-from gpg.flight.consistency import HINTS, Agreement, consistency, quat_to_matrix
+from gpg.flight.kinematics import HINTS, Agreement, consistency, quat_to_matrix
 
 __all__ = [
     "CsvFormat",
@@ -71,7 +71,7 @@ def enforce(checks: Sequence[Agreement], name: str, *, stacklevel: int = 3) -> N
     """Refuse a flight whose signals disagree, warn of one whose signals may.
 
     Args:
-        checks: :func:`~gpg.flight.consistency.consistency`'s result.
+        checks: :func:`~gpg.flight.consistency`'s result.
         name: the flight's name or file, for the messages.
         stacklevel: the warning's, as :func:`warnings.warn`'s.
 
@@ -422,9 +422,9 @@ def read_csv(
         path: the CSV file (a header row of column names, one row per sample).
         fmt: how the log differs from gpg's conventions; None: the defaults, or the
             keywords.
-        check: compare the signals with each other (:func:`~gpg.flight.consistency.
-            consistency`): refuse the log where they disagree (a unit, order or frame
-            mistake), warn where they agree only loosely. False: take the log as it is.
+        check: compare the signals with each other (:func:`~gpg.flight.consistency`):
+            refuse the log where they disagree (a unit, order or frame mistake), warn where
+            they agree only loosely. False: take the log as it is.
         **format_options: the fields of a :class:`CsvFormat`, instead of ``fmt``
             (``columns={...}, world="enu", rotor_speed="rad/s"``).
 

@@ -423,7 +423,9 @@ def fit_drift(
     Args:
         sur: a corrected model (:func:`gpg.flight.correct`): its discrepancy hyperparameters.
         labels: two or more parts, in time order within each.
-        max_labels: at most this many labels (evenly thinned in time beyond).
+        max_labels: at most this many labels: beyond, each part's first labels, the same
+            number of each (contiguous, so the drift sees the labels' own spacing; thinned
+            evenly, every other label, it would fit a filter for labels twice as far apart).
         max_steps: BFGS steps.
         fast: s, the bank's other members' bias time constants; None (the default): each of
             :data:`BANKS`, the one whose fit predicts the held-out flights best.
@@ -484,6 +486,9 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
     that model's coefficient covariance, the columns, noise, time and whether a flight starts
     there; and each output's mean held-out variance (the start of ``v``)."""
     prior = fc.base(sur)
+    if sum(len(p) for p in parts) > max_labels:
+        k = max(2, max_labels // len(parts))
+        parts = [p.take(slice(0, k)) for p in parts]
     X, Y, V, groups, t = fc._label_rows(prior, parts, max_labels, "physical")
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
     ms = None

@@ -10,7 +10,7 @@ data; an optional topic (specific force, voltage) or one of the two rotor signal
 only part of the window is left out (warned), never a reason to cut the flight; a topic too
 sparse to resample, a motor beyond the log's ``CA_ROTOR_COUNT`` and a rate faster than every
 topic are refused. The signals are then checked against each other
-(:mod:`gpg.flight.consistency`).
+(:mod:`gpg.flight.kinematics`).
 
 ==================  ==========================================================================
 position, velocity  ``vehicle_local_position``: ``x, y, z``, ``vx, vy, vz`` (NED, m, m/s)
@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpg.flight.consistency import consistency
+from gpg.flight.kinematics import consistency
 from gpg.flight.log import (
     GAP_FACTOR,
     QUAT_NORM_TOL,
@@ -129,8 +129,8 @@ def read_ulog(
         name: the flight's label; the file's stem by default.
         allow_damaged: read what can be read of a file cut short or with corrupt data (warned,
             saying what was lost) instead of refusing it.
-        check: compare the signals with each other (:func:`~gpg.flight.consistency.
-            consistency`), as :func:`~gpg.flight.log.read_csv` does.
+        check: compare the signals with each other (:func:`~gpg.flight.consistency`), as
+            :func:`~gpg.flight.log.read_csv` does.
 
     Returns:
         The flight (:class:`~gpg.flight.log.FlightLog`): time from 0 at the start of the

@@ -13,7 +13,8 @@ A log's signals are not independent. Over a window ``[a, b]`` of the flight:
   tilts it by 14°).
 
 Each check takes the left side ``D`` and the right side ``I`` per window and reports, per axis,
-the median of ``D/I`` over the windows where the axis moves (1 for a consistent log; a
+the median of ``D/I`` over the windows where the axis moves and carries at least
+:data:`DOMINANCE` of the motion (1 for a consistent log; a
 position in mm gives 1000, rates in deg/s 1/57, a specific force in g 9.8, a sign
 flipped between frames −1), and the median relative error ``‖D − I‖/‖I‖`` (the thrust axis:
 the median angle between the two directions, rad). A mistake in the quaternion's order turns
@@ -44,6 +45,9 @@ ERROR = (0.25, 0.5)
 # The thrust axis's median angle to the velocity's change, rad: a drag of a quarter of the
 # weight is 14°; a turned attitude is tens of degrees.
 ANGLE = (math.radians(30.0), math.radians(60.0))
+# An axis's ratio counts the windows where it carries this share of the motion or more: on an
+# axis that moves little beside others, the rotation's second-order terms rival its own.
+DOMINANCE = 0.5
 # The fewest windows a ratio or an error is taken over; fewer: uninformative.
 MIN_WINDOWS = 5
 GRAVITY = 9.81  # m/s², the checks' gravity (a vehicle's own differs by far less than RATIO)
@@ -53,7 +57,7 @@ GAP_FACTOR = 5.0  # a step this many times the median one splits the flight (as 
 # counts as motion; a change |D|/Δt ten times that counts too: a unit mistake the other way)
 _CHECKS = {
     "position": (1.0, 0.1),  # m/s
-    "attitude": (0.25, 0.2),  # rad/s
+    "attitude": (0.2, 0.2),  # rad/s; a short window: the rotation to first order
     "specific_force": (0.5, 0.4),  # m/s²
     "thrust_axis": (0.5, 0.5 * GRAVITY),  # m/s²: half of gravity's (a direction only)
 }
@@ -195,10 +199,13 @@ def _agree(signal: str, rate: str, D: np.ndarray, I: np.ndarray) -> Agreement:  
     key = {"velocity": "position", "rates": "attitude", "specific_force": "specific_force"}[rate]
     least = _CHECKS[key][1]
     ratio: list[float | None] = []
+    nI, nD = np.linalg.norm(I, axis=1), np.linalg.norm(D, axis=1)
     for k in range(3):
         # an axis counts where the integral moves, or the change moves far more (a unit
-        # mistake the other way round)
-        use = (np.abs(I[:, k]) >= least) | (np.abs(D[:, k]) >= 10 * least)
+        # mistake the other way round), and carries DOMINANCE of the motion
+        use = ((np.abs(I[:, k]) >= least) & (np.abs(I[:, k]) >= DOMINANCE * nI)) | (
+            (np.abs(D[:, k]) >= 10 * least) & (np.abs(D[:, k]) >= DOMINANCE * nD)
+        )
         if np.count_nonzero(use) < MIN_WINDOWS:
             ratio.append(None)
             continue
