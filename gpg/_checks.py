@@ -7,6 +7,7 @@ on concrete (non-traced) values, i.e. outside ``jit``; under ``jit`` the library
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -47,6 +48,16 @@ def require_finite(name: str, arr: np.ndarray) -> None:
         shown = ", ".join(str(int(r)) for r in rows[:10])
         more = f" (and {rows.size - 10} more)" if rows.size > 10 else ""
         raise ValueError(f"{name} holds NaN or inf in {rows.size} row(s): {shown}{more}")
+
+
+def finite_number(name: str, value, what: str | None = None) -> float:
+    """``value`` as a finite float, or a ``ValueError`` naming ``name``: a string, a bool, an
+    array or NaN given for a number (``what`` replaces the message's "a number"/"finite")."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be {what or 'a number'}, got {value!r}")
+    if not math.isfinite(float(value)):
+        raise ValueError(f"{name} must be {what or 'finite'}, got {value!r}")
+    return float(value)
 
 
 def require_positive(name: str, arr) -> None:

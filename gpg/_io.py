@@ -37,8 +37,10 @@ def atomic_write(path: str | Path, data: bytes) -> Path:
             f"{path}: the file name is {len(os.fsencode(path.name))} bytes long, more than "
             f"the {limit} its file system allows"
         )
-    target = Path(os.path.realpath(path)) if path.is_symlink() else path
-    target.parent.mkdir(parents=True, exist_ok=True)
+    target = path
+    if path.is_symlink():  # its target is replaced, in a folder that may not exist yet
+        target = Path(os.path.realpath(path))
+        target.parent.mkdir(parents=True, exist_ok=True)
     try:
         mode = os.stat(target).st_mode & 0o7777
     except FileNotFoundError:

@@ -150,54 +150,57 @@ def consistency(log: _Flight, *, gravity: float = GRAVITY) -> tuple[Agreement, .
     q = np.asarray(log.quaternion, float)
     R = quat_to_matrix(q / np.linalg.norm(q, axis=1, keepdims=True))
     v = np.asarray(log.velocity, float)
+    p = np.asarray(log.position, float)
     out = []
     # position: Δp against ∫v
-    a, b = _windows(t, _CHECKS["position"][0])
-    C = _cumulative(t, v)
-    D = (log.position[b] - log.position[a]) / (t[b] - t[a])[:, None]
-    out.append(_agree("position", "velocity", D, (C[b] - C[a]) / (t[b] - t[a])[:, None]))
+    a, b, dt = _windows(t, "position")
+    out.append(
+        _agree("position", "velocity", (p[b] - p[a]) / dt, _mean(t, v, a, b, dt), "position")
+    )
     # attitude: rotvec(R_aᵀ R_b) against ∫ω
-    a, b = _windows(t, _CHECKS["attitude"][0])
-    C = _cumulative(t, np.asarray(log.rates, float))
-    turn = _rotvec(np.einsum("nji,njk->nik", R[a], R[b]))
-    dt = (t[b] - t[a])[:, None]
-    out.append(_agree("attitude", "rates", turn / dt, (C[b] - C[a]) / dt))
+    a, b, dt = _windows(t, "attitude")
+    turn = _rotvec(np.einsum("nji,njk->nik", R[a], R[b])) / dt
+    w = _mean(t, np.asarray(log.rates, float), a, b, dt)
+    out.append(_agree("attitude", "rates", turn, w, "attitude"))
     # velocity: Δv − g Δt against ∫R f, or its direction against the thrust axis
-    a, b = _windows(t, _CHECKS["specific_force"][0])
-    dt = (t[b] - t[a])[:, None]
-    dv = (v[b] - v[a]) / dt - [0.0, 0.0, gravity]
     if log.specific_force is not None:
-        C = _cumulative(t, np.einsum("nij,nj->ni", R, np.asarray(log.specific_force, float)))
-        out.append(_agree("velocity", "specific_force", dv, (C[b] - C[a]) / dt))
+        a, b, dt = _windows(t, "specific_force")
+        f = np.einsum("nij,nj->ni", R, np.asarray(log.specific_force, float))
+        dv = (v[b] - v[a]) / dt - [0.0, 0.0, gravity]
+        out.append(
+            _agree("velocity", "specific_force", dv, _mean(t, f, a, b, dt), "specific_force")
+        )
     else:
-        C = _cumulative(t, -R[:, :, 2])
-        out.append(_direction("velocity", "thrust_axis", dv, (C[b] - C[a]) / dt))
+        a, b, dt = _windows(t, "thrust_axis")
+        dv = (v[b] - v[a]) / dt - [0.0, 0.0, gravity]
+        out.append(_direction("velocity", "thrust_axis", dv, _mean(t, -R[:, :, 2], a, b, dt)))
     return tuple(out)
 
 
-def _windows(t: np.ndarray, seconds: float) -> tuple[np.ndarray, np.ndarray]:
-    """Start and end rows of consecutive windows of about ``seconds`` that cross no gap."""
+def _windows(t: np.ndarray, check: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start and end rows of consecutive windows of about ``check``'s length that cross no
+    gap, and their durations (N, 1)."""
     steps = np.diff(t)
     med = float(np.median(steps))
-    k = max(1, min(int(round(seconds / med)), t.size // (4 * MIN_WINDOWS)))
+    k = max(1, min(int(round(_CHECKS[check][0] / med)), t.size // (4 * MIN_WINDOWS)))
     cut = np.flatnonzero(steps > GAP_FACTOR * med) + 1
     bounds = np.concatenate([[0], cut, [t.size]])
     starts = [np.arange(lo, hi - k, k) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
     a = np.concatenate(starts) if starts else np.zeros(0, int)
-    return a, a + k
+    return a, a + k, (t[a + k] - t[a])[:, None]
 
 
-def _cumulative(t: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """The trapezoidal integral of ``x`` (T, k) from ``t[0]`` to each sample."""
+def _mean(t: np.ndarray, x: np.ndarray, a: np.ndarray, b: np.ndarray, dt: np.ndarray):
+    """The mean of ``x`` (T, k) over each window ``a..b`` (trapezoidal)."""
     inc = 0.5 * (x[1:] + x[:-1]) * np.diff(t)[:, None]
-    return np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(inc, axis=0)])
+    C = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(inc, axis=0)])
+    return (C[b] - C[a]) / dt
 
 
-def _agree(signal: str, rate: str, D: np.ndarray, I: np.ndarray) -> Agreement:  # noqa: E741
+def _agree(signal: str, rate: str, D: np.ndarray, I: np.ndarray, check: str) -> Agreement:  # noqa: E741
     """The per-axis median ratios and the median relative error of ``D`` against ``I`` (both
-    per second of their windows)."""
-    key = {"velocity": "position", "rates": "attitude", "specific_force": "specific_force"}[rate]
-    least = _CHECKS[key][1]
+    per second of their windows), motion as ``check``'s least rate."""
+    least = _CHECKS[check][1]
     ratio: list[float | None] = []
     nI, nD = np.linalg.norm(I, axis=1), np.linalg.norm(D, axis=1)
     for k in range(3):

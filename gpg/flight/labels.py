@@ -42,7 +42,7 @@ import numpy as np
 from scipy import ndimage, optimize
 from scipy.interpolate import make_smoothing_spline
 
-from gpg._checks import as_float_array
+from gpg._checks import as_float_array, finite_number
 from gpg.flight.log import GAP_FACTOR, FlightLog, FlightLogWarning
 from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.simple_model import SimpleModel
@@ -94,7 +94,7 @@ class MotorCurve:
 
     def __post_init__(self):
         for key in ("c1", "c2", "v_ref", "time_constant"):
-            _number(f"MotorCurve.{key}", getattr(self, key))
+            finite_number(f"MotorCurve.{key}", getattr(self, key))
         if not self.v_ref > 0:
             raise ValueError(f"MotorCurve.v_ref must be a positive voltage, got {self.v_ref!r}")
         if self.time_constant < 0:
@@ -108,7 +108,7 @@ class MotorCurve:
         if (
             isinstance(rng, (str, bytes))
             or len(tuple(rng)) != 2
-            or not all(math.isfinite(_number("MotorCurve.command_range", v)) for v in rng)
+            or not all(math.isfinite(finite_number("MotorCurve.command_range", v)) for v in rng)
             or not rng[0] <= rng[1]
         ):
             raise ValueError(f"MotorCurve.command_range must be (low, high), got {rng!r}")
@@ -600,8 +600,7 @@ def label(
             rad/s); no sample left to label; a bad option.
     """
     _check_label_options(log, vehicle, reference, rate, source, delay, max_delay, curve)
-    if not (0 < _number("saturation", saturation) <= 1) or _number("takeoff_s", takeoff_s) < 0:
-        raise ValueError(f"saturation must be in (0, 1], got {saturation!r}; takeoff_s >= 0")
+    _check_segment_options(takeoff_s, saturation)
     if source == "imu" and log.specific_force is None:
         raise ValueError(f"{log.name}: source='imu' but the log has no specific force (ax..az)")
     src = ("imu" if log.specific_force is not None else "velocity") if source == "auto" else source
@@ -646,6 +645,15 @@ def label(
     return _labels(log, rows, R[rows], rpm[rows], loads, reference, simple, drop, lag, src)
 
 
+def _check_segment_options(takeoff_s, saturation) -> None:
+    """``label``'s ``takeoff_s`` and ``saturation``, refused by name."""
+    if (
+        not (0 < finite_number("saturation", saturation) <= 1)
+        or finite_number("takeoff_s", takeoff_s) < 0
+    ):
+        raise ValueError(f"saturation must be in (0, 1], got {saturation!r}; takeoff_s >= 0")
+
+
 def _check_label_options(log, vehicle, reference, rate, source, delay, max_delay, curve):
     """``label``'s arguments, each refused by name with what was expected."""
     from gpg.surrogate import Surrogate
@@ -665,37 +673,25 @@ def _check_label_options(log, vehicle, reference, rate, source, delay, max_delay
         raise ValueError(f"curve must be a MotorCurve or None, got {type(curve).__name__}")
     if not isinstance(source, str) or source not in ("auto", "imu", "velocity"):
         raise ValueError(f"source must be 'auto', 'imu' or 'velocity', got {source!r}")
-    if not (0 < _number("rate", rate) <= log.rate * 1.001):
+    if not (0 < finite_number("rate", rate) <= log.rate * 1.001):
         raise ValueError(f"rate must be in (0, {log.rate:.4g}] Hz (the log's rate), got {rate!r}")
-    if not 0 <= _number("max_delay", max_delay) <= MAX_DELAY_S:
+    if not 0 <= finite_number("max_delay", max_delay) <= MAX_DELAY_S:
         raise ValueError(f"max_delay must be in [0, {MAX_DELAY_S:g}] s, got {max_delay!r}")
     if isinstance(delay, str):
         if delay != "estimate":
             raise ValueError(f"delay must be 'estimate' or a number of seconds, got {delay!r}")
-    elif abs(_number("delay", delay)) > MAX_DELAY_S:
+    elif abs(finite_number("delay", delay)) > MAX_DELAY_S:
         raise ValueError(
             f"delay is in seconds and at most {MAX_DELAY_S:g} s (a rotor-speed lag is tens of "
             f"ms: 20 ms is 0.02), got {delay!r}"
         )
 
 
-def _number(name: str, value) -> float:
-    """``value`` as a finite float, or a ``ValueError`` naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    if not math.isfinite(float(value)):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return float(value)
-
-
 def _warn_interpolated(log: FlightLog, src: str) -> None:
     """Warn where a signal the labels' noise is estimated from looks linearly interpolated
     between fewer samples: its second differences vanish, and so would the noise estimate."""
-    used = {"rates": log.rates}
-    used["specific_force" if src == "imu" else "velocity"] = (
-        log.specific_force if src == "imu" else log.velocity
-    )
-    for name, y in used.items():
+    force = ("specific_force", log.specific_force) if src == "imu" else ("velocity", log.velocity)
+    for name, y in (("rates", log.rates), force):
         d1 = np.abs(np.diff(y, axis=0))
         scale = d1[1:] + d1[:-1]
         moving = scale > 0

@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpg._checks import finite_number
 from gpg.flight.kinematics import consistency
 from gpg.flight.log import (
     GAP_FACTOR,
@@ -240,10 +241,9 @@ def _warn_dropouts(dropouts, name: str) -> None:
 def _checked_rate(rate) -> float | None:
     if rate is None:
         return None
-    if isinstance(rate, bool) or not isinstance(rate, (int, float, np.integer, np.floating)):
-        raise ValueError(f"rate must be a positive number of Hz or None, got {rate!r}")
-    if not (math.isfinite(float(rate)) and rate > 0):
-        raise ValueError(f"rate must be a positive number of Hz or None, got {rate!r}")
+    want = "a positive number of Hz or None"
+    if not finite_number("rate", rate, want) > 0:
+        raise ValueError(f"rate must be {want}, got {rate!r}")
     return float(rate)
 
 
@@ -251,14 +251,13 @@ def _checked_pwm_range(pwm_range) -> tuple[float, float]:
     want = "(low, high) pulse widths in µs with low < high, e.g. (1000, 2000)"
     if isinstance(pwm_range, (str, bytes)) or not isinstance(pwm_range, (Sequence, np.ndarray)):
         raise ValueError(f"pwm_range must be {want}, got {pwm_range!r}")
-    vals = list(pwm_range)
-    ok = len(vals) == 2 and all(
-        not isinstance(v, bool) and isinstance(v, (int, float, np.integer, np.floating))
-        for v in vals
-    )
-    if not ok or not all(math.isfinite(float(v)) for v in vals) or not vals[1] > vals[0]:
+    try:
+        lo, hi = (finite_number("pwm_range", v) for v in pwm_range)
+    except ValueError:  # not two numbers: named as the pair
+        raise ValueError(f"pwm_range must be {want}, got {pwm_range!r}") from None
+    if not hi > lo:
         raise ValueError(f"pwm_range must be {want}, got {pwm_range!r}")
-    return float(vals[0]), float(vals[1])
+    return lo, hi
 
 
 def cut_bytes(path: str | Path) -> int:
@@ -313,7 +312,7 @@ def _time_base_rate(series: Mapping[str, _Series], rate: float | None, name: str
     (samples in between would be invented)."""
 
     def median_rate(s: _Series) -> float:
-        return 1e6 / float(np.median(np.diff(s[1])))
+        return 1e6 / _median_step_us(s[1])
 
     if rate is None:
         return median_rate(series["position"])
@@ -492,7 +491,7 @@ def _window(raw: Mapping[str, _Series | None], name: str) -> tuple[dict[str, _Se
             warned.add(s[0])
     required = {k: s for k, s in series.items() if k in REQUIRED}
     for s in required.values():
-        step = float(np.median(np.diff(s[1]))) * 1e-6 if s[1].size > 1 else math.inf
+        step = _median_step_us(s[1]) * 1e-6
         if step > MAX_STEP_S:
             raise ValueError(
                 f"{name}: {s[0]} has {s[1].size} sample(s), one per {step:.3g} s (median): too "
@@ -513,11 +512,15 @@ def _window(raw: Mapping[str, _Series | None], name: str) -> tuple[dict[str, _Se
     return series, start, end
 
 
+def _median_step_us(ts: np.ndarray) -> float:
+    """A topic's median step between stamps, µs (infinite for one sample)."""
+    return float(np.median(np.diff(ts))) if ts.size > 1 else math.inf
+
+
 def _gap_threshold(ts: np.ndarray, rate: float) -> float:
     """µs: a step longer than this is a dropout (:data:`GAP_FACTOR` times the longer of the
     topic's median step and the time base's)."""
-    med = float(np.median(np.diff(ts))) if ts.size > 1 else math.inf
-    return GAP_FACTOR * max(med, 1e6 / rate)
+    return GAP_FACTOR * max(_median_step_us(ts), 1e6 / rate)
 
 
 def _covering(
@@ -532,9 +535,8 @@ def _covering(
             continue
         topic, ts, v = s
         tol = _gap_threshold(ts, rate)
-        step = float(np.median(np.diff(ts))) * 1e-6 if ts.size > 1 else math.inf
         why = ""
-        if step > MAX_STEP_S or ts[0] > start + tol or ts[-1] < end - tol:
+        if _median_step_us(ts) * 1e-6 > MAX_STEP_S or ts[0] > start + tol or ts[-1] < end - tol:
             why = (
                 f"covers {(ts[0] - start) * 1e-6:.3f}..{(ts[-1] - start) * 1e-6:.3f} s of the "
                 f"window 0..{(end - start) * 1e-6:.3f} s ({ts.size} samples)"
