@@ -40,10 +40,12 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
@@ -52,9 +54,9 @@ from experiments.runs.timing import machine
 from gpg import conf
 from gpg.data.cache import ensure
 from gpg.flight import correction as fc
-from gpg.flight.identify import hover_coefficients, identify
+from gpg.flight.identify import hover_coefficients, identify, physics_loads
 from gpg.flight.labels import Labels, MotorCurve, label
-from gpg.flight.log import read_csv, write_csv
+from gpg.flight.log import FlightLogWarning, read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed_config, random_plan
 from gpg.flight.tracking import fit_drift, track
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
@@ -107,6 +109,36 @@ def _flight(h, real, ctrl, physics, sensors, name, wind: Wind, kind, seed, logs,
             name=name, wind_in_log=wind_in_log)  # fmt: skip
     path = write_csv(f.log, logs / f"{name}.csv")
     return dataclasses.replace(f, log=read_csv(path))
+
+
+def _test(name: str, f: Flight, user, simple, opts, gust) -> _Test:
+    """A test flight labelled (the gust given as its mean) with the truth at its labels."""
+    log = f.log
+    if name == "gust":  # the model is given the wind's mean only
+        log = dataclasses.replace(log, wind=np.broadcast_to(log.wind.mean(0), log.wind.shape))
+    lab = label(log, user, reference=simple, **opts)
+    i = _at_labels(f, lab)
+    # The gust is given as its mean and its RMS (what a forecast or a tunnel states).
+    sd = np.array([float(gust["amplitude"]) / np.sqrt(2), 0.0, 0.0]) if name == "gust" else None
+    return _Test(name, lab, f.force[i], f.rpm[i], f.euler[i], f.v_air[i], f.log.quaternion[i],
+                 f.log.command[i], sd)  # fmt: skip
+
+
+def _thrust_per_command(calm: Flight, identified, truth) -> dict[str, list[float]]:
+    """Each rotor's hover thrust (N) at the calm flight's 10, 50 and 90 % commands, of the
+    identified vehicle through the identified curve and of the real one through its own:
+    with commands only the flights fix the thrust per command, not ``P_F`` alone (the curve
+    and the rotor trade)."""
+    q = (0.1, 0.5, 0.9)
+    u = np.quantile(calm.log.command, q)[:, None] * np.ones((1, 4))
+    volt = np.full(len(q), np.median(calm.log.voltage))
+    out: dict[str, list[float]] = {"quantile": list(q), "command": u[:, 0].tolist()}
+    for key, (veh, physics, curve) in (("identified", identified), ("truth", truth)):
+        loads = physics_loads(veh, physics, jnp.asarray(curve.rpm(u, volt)),
+                              jnp.zeros((len(q), 3)), jnp.zeros((len(q), 3)))  # fmt: skip
+        out[key] = (-np.asarray(loads)[:, 2] / 4).tolist()
+    out["relative_error"] = (np.array(out["identified"]) / out["truth"] - 1).tolist()
+    return out
 
 
 def _at_labels(f: Flight, lab: Labels):
@@ -229,19 +261,16 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     t1 = time.perf_counter()
     calm = next(f for w, f in train if w == 0.0)
     curve = MotorCurve.fit_hover(calm.log, user, simple)
-    lab_opts = {"rate": float(h["label_rate"]), "source": "velocity", "curve": curve}
-    train_labels = [label(f.log, user, reference=simple, **lab_opts) for _, f in train]
-    tests = {}
-    for name, f in tests_raw.items():
-        log = f.log
-        if name == "gust":  # the model is given the wind's mean only
-            log = dataclasses.replace(log, wind=np.broadcast_to(log.wind.mean(0), log.wind.shape))
-        lab = label(log, user, reference=simple, **lab_opts)
-        i = _at_labels(f, lab)
-        # The gust is given as its mean and its RMS (what a forecast or a tunnel states).
-        sd = np.array([float(gust["amplitude"]) / np.sqrt(2), 0.0, 0.0]) if name == "gust" else None
-        tests[name] = _Test(name, lab, f.force[i], f.rpm[i], f.euler[i], f.v_air[i],
-                            f.log.quaternion[i], f.log.command[i], sd)  # fmt: skip
+
+    def labelled(c: MotorCurve) -> tuple[list[Labels], dict[str, _Test]]:
+        opts = {"rate": float(h["label_rate"]), "source": "velocity", "curve": c}
+        with warnings.catch_warnings():  # the curve's range is the hover's: counted, not news
+            warnings.filterwarnings("ignore", "command.*extrapolated", FlightLogWarning)
+            return [label(f.log, user, reference=simple, **opts) for _, f in train], {
+                name: _test(name, f, user, simple, opts, gust) for name, f in tests_raw.items()
+            }
+
+    train_labels, tests = labelled(curve)
     stages["label_s"] = time.perf_counter() - t1
 
     # Identification on the training flights (their winds known).
@@ -255,11 +284,17 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         max_steps=int(idc["max_steps"]),
     )
     ident.write(out / "identified_vehicle.yaml", overwrite=True)
+    # The identified vehicle's rotor speeds are those of the identified curve: every model of
+    # it is corrected and scored on the flights labelled again with that curve.
+    id_curve = ident.curve(curve)
+    id_train, id_tests = labelled(id_curve)
     stages["identify_s"] = time.perf_counter() - t1
 
     data_cfg = conf.load(h["data"], "data")
     t1 = time.perf_counter()
-    id_prior = _prior_of(ident.config, data_cfg, cfg["model"], cfg["cache_dir"], progress)
+    model_opts = {k: v for k, v in cfg["model"].items() if k != "name"}
+    id_prior = ident.prior(data_cfg, cfg["model"]["name"], model_opts or None,
+                           cache_dir=cfg["cache_dir"], progress=progress)  # fmt: skip
     stages["identified_prior_s"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     corr = {k: v for k, v in cfg["correct"].items() if k in ("max_labels", "subset_size")}
@@ -267,6 +302,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     # condition (the fastest wind predicted from the slower ones), not one flight among
     # flights of the same wind.
     by_wind = _by_wind(train, train_labels)
+    by_wind_id = _by_wind(train, id_train)
     models: dict[str, Surrogate] = {
         "prior": nominal_prior,
         "corrected_regression": fc.correct(nominal_prior, train_labels, basis="regression", **corr),
@@ -277,17 +313,18 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
             nominal_prior, by_wind, use_prior=False, basis="physical", **corr
         ),  # fmt: skip
         "identified_prior": id_prior,
-        "identified": fc.correct(id_prior, by_wind, basis="physical", **corr),
+        "identified": fc.correct(id_prior, by_wind_id, basis="physical", **corr),
     }
     stages["correct_s"] = time.perf_counter() - t1
 
     # The wind estimated on every training flight as if none had been logged.
     t1 = time.perf_counter()
     wind_rows, est_labels = [], []
-    for (w, f), lab in zip(train, train_labels, strict=True):
-        blind = dataclasses.replace(
-            lab, v_air=lab.v_air + f.log.wind[np.searchsorted(f.log.t, lab.t)]
-        )
+    for (w, f), lab, lab_id in zip(train, train_labels, id_train, strict=True):
+        wind_at = f.log.wind[np.searchsorted(f.log.t, lab.t)]
+        blind = dataclasses.replace(lab, v_air=lab.v_air + wind_at)
+        # The identification reads the first curve's speeds (it applies its own gain and
+        # power), the corrections the identified curve's: the same instants, the same wind.
         est = estimate_wind(blind, ident, knot_s=float(h["wind"]["knot_s"]),
                             drift=float(h["wind"]["drift"]))  # fmt: skip
         true_w = f.log.wind[np.searchsorted(f.log.t, lab.t)]
@@ -296,7 +333,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                           "rms_error": float(np.sqrt(np.mean(np.sum(err**2, 1)))),
                           "sd_median": float(np.median(est.sd[:, 0])),
                           "informed": est.informed.tolist()})  # fmt: skip
-        est_labels.append(with_wind(blind, est))
+        est_labels.append(with_wind(dataclasses.replace(lab_id, v_air=lab_id.v_air + wind_at), est))
     models["identified_estimated_wind"] = fc.correct(
         id_prior, _by_wind(train, est_labels), basis="physical", **corr
     )
@@ -310,13 +347,13 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     # each test flight, each label predicted before it is used.
     t1 = time.perf_counter()
     n_fit = int(cfg["track"]["max_labels"])
-    drift = fit_drift(models["identified"], by_wind, max_labels=n_fit)
+    drift = fit_drift(models["identified"], by_wind_id, max_labels=n_fit)
     stages["fit_drift_s"] = time.perf_counter() - t1
-    other = fit_drift(models["identified"], by_wind, max_labels=n_fit,
+    other = fit_drift(models["identified"], by_wind_id, max_labels=n_fit,
                       fast=tuple(float(f) for f in cfg["track"]["compare_fast"]))  # fmt: skip
     t1 = time.perf_counter()
     adaptive = prequential_rows(
-        models["identified"], tests, drift, cfg["adapt"], out, progress, other=other
+        models["identified"], id_tests, drift, cfg["adapt"], out, progress, other=other
     )
     stages["prequential_s"] = time.perf_counter() - t1
 
@@ -333,7 +370,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     for name, test in tests.items():
         row: dict[str, Any] = {"test": name, "labels": len(test.labels)}
         for m, sur in models.items():
-            row.update({f"{m}_{k}": v for k, v in _score(sur, test).items()})
+            own = id_tests[name] if m.startswith("identified") else test
+            row.update({f"{m}_{k}": v for k, v in _score(sur, own).items()})
         row.update({f"oracle_{k}": v for k, v in _score(oracle, test, truth_states=True).items()})
         v_ground = test.labels.v_air + tests_raw[name].log.wind[
             np.searchsorted(tests_raw[name].log.t, test.labels.t)]  # fmt: skip
@@ -344,18 +382,12 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         row["noise_floor"] = float(np.mean(np.sum(test.labels.force_var, 1)))
         rows.append(row)
         jax.clear_caches()
-    truth = _truth_parameters(real_cfg, base_cfg)
+    truth = _truth_parameters(real_cfg, base_cfg, h["real"])
     params = {k: {**v, "truth": truth.get(k)} for k, v in ident.parameters.items()}
     P_F_real, _ = hover_coefficients(real, BEMTConfig())
     P_F_id = float(ident.config["simple_model"]["thrust_coefficient"])
-    # With commands only the flights fix the thrust per command, not P_F alone (the curve's
-    # gain and P_F trade): each rotor's thrust at the calm flight's median hover command.
-    u = np.median(calm.log.command, 0, keepdims=True)
-    volt = np.median(calm.log.voltage, keepdims=True)
-    thrust_at_hover = {
-        "identified": float(np.mean(P_F_id * ident.curve(curve).rpm(u, volt) ** 2)),
-        "truth": float(np.mean(P_F_real * sensors.curve.rpm(u, volt) ** 2)),
-    }
+    thrust = _thrust_per_command(calm, (ident.vehicle, ident.physics, id_curve),
+                                 (real, physics, sensors.curve))  # fmt: skip
     results = {
         "config": cfg,
         "machine": machine(),
@@ -368,7 +400,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
             "converged": ident.converged,
             "residual_rms": ident.residual_rms.tolist(),
             "thrust_coefficient": {"identified": P_F_id, "truth": P_F_real},
-            "thrust_at_hover_command": thrust_at_hover,
+            "thrust_per_command": thrust,
         },
         "curve": dataclasses.asdict(curve),
         "wind": wind_rows,
@@ -472,7 +504,7 @@ def _by_wind(train, labels: list[Labels]) -> list[Labels]:
     ]
 
 
-def _truth_parameters(real_cfg, base_cfg) -> dict[str, float]:
+def _truth_parameters(real_cfg, base_cfg, h_real) -> dict[str, float]:
     """The real vehicle's values of :data:`gpg.flight.identify.PARAMETERS`."""
     out = {
         "rotor.radius": float(real_cfg["rotor"]["radius"]),
@@ -482,6 +514,7 @@ def _truth_parameters(real_cfg, base_cfg) -> dict[str, float]:
         "airfoil.alpha_zero_lift_deg": float(real_cfg["airfoil"]["alpha_zero_lift_deg"]),
         "airfoil.cd0": float(real_cfg["airfoil"]["cd0"]),
         "motor.gain": 1.0,
+        "generator.wake_gain": float(h_real["wake_gain"]),
     }  # fmt: skip
     for i, a in enumerate("xyz"):
         out[f"drag_area.{a}"] = float(real_cfg["drag_area"][i])
@@ -503,10 +536,16 @@ def _report(res) -> str:
             f"  {k}: {p['value']:.4g} ± {p['se']:.2g} (truth {p['truth']}, "
             f"file {p['nominal']:.4g}){'' if p['identified'] else ' NOT IDENTIFIED'}"
         )
-    th = ident["thrust_at_hover_command"]
-    lines.append(f"  P_F identified {ident['thrust_coefficient']['identified']:.4g}, truth "
-                 f"{ident['thrust_coefficient']['truth']:.4g}; thrust per rotor at the hover "
-                 f"command {th['identified']:.4g} N, truth {th['truth']:.4g} N")  # fmt: skip
+    th = ident["thrust_per_command"]
+    lines.append(
+        f"  P_F identified {ident['thrust_coefficient']['identified']:.4g}, truth "
+        f"{ident['thrust_coefficient']['truth']:.4g}; thrust per rotor at the calm "
+        "flight's 10/50/90 % commands "
+        + " / ".join(
+            f"{a:.3g} N against {b:.3g} ({100 * e:+.1f} %)"
+            for a, b, e in zip(th["identified"], th["truth"], th["relative_error"], strict=True)
+        )
+    )
     for w in res["wind"]:
         lines.append(f"  wind {w['flight']}: estimated {np.round(w['estimated_mean'], 2)}, "
                      f"RMS error {w['rms_error']:.3f} m/s")  # fmt: skip

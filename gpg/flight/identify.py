@@ -9,8 +9,9 @@ speeds, attitude and air velocity. The parameters are named by the vehicle file'
 (:data:`PARAMETERS`): ``rotor.radius`` and ``rotor.chord`` (the blade's size and solidity, which
 set the thrust and torque coefficients and the rotor drag), the airfoil's ``lift_slope``,
 ``alpha_zero_lift_deg`` and ``cd0``, the airframe's ``drag_area`` per body axis, and
-``motor.gain``, a factor on the rotor speeds where they come from commands through a motor
-curve.
+``motor.gain`` and ``motor.exponent``, a factor and a power on the rotor speeds where they come
+from commands through a motor curve (``gain · r_ref (rpm / r_ref)^exponent`` about the labels'
+median speed ``r_ref``: the curve's scale and its bend, :meth:`MotorCurve.scaled`).
 
 The estimate is the maximum of the labels' likelihood times a weak prior on ``θ`` around the
 vehicle file's values (a factor of :data:`PARAMETERS`' ``prior`` on scales, degrees on
@@ -90,6 +91,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
     "drag_area.y": ParameterSpec("scale", math.log(5.0), "m²"),
     "drag_area.z": ParameterSpec("scale", math.log(5.0), "m²"),
     "motor.gain": ParameterSpec("scale", math.log(1.5), "x the curve's rpm"),
+    "motor.exponent": ParameterSpec("scale", math.log(1.5), "power on the curve's rpm"),
+    "generator.wake_gain": ParameterSpec("scale", math.log(2.0), "x ingested induced velocity"),
 }
 """The parameters :func:`identify` can free, by vehicle-file key, with their priors."""
 
@@ -132,6 +135,8 @@ class Identification:
         converged: whether the last pass converged.
         motor_gain: the rotor speeds' factor (1 unless ``motor.gain`` was freed).
         physics: the blade-element-momentum settings the parameters hold for.
+        motor_exponent: the power on the rotor speeds (1 unless ``motor.exponent`` was freed).
+        rpm_ref: rpm, the labels' median rotor speed, which the power leaves unchanged.
     """
 
     vehicle: Vehicle
@@ -145,19 +150,33 @@ class Identification:
     converged: bool
     motor_gain: float = 1.0
     physics: bemt.BEMTConfig = field(default_factory=bemt.BEMTConfig)
+    motor_exponent: float = 1.0
+    rpm_ref: float = 1.0
 
     def curve(self, curve: MotorCurve) -> MotorCurve:
-        """A motor curve with the identified gain applied (``motor.gain``).
+        """A motor curve with the identified gain and exponent applied (``motor.gain``,
+        ``motor.exponent``): label the flights again with it before correcting a prior of
+        the identified vehicle, whose rotor speeds these are.
 
         Args:
             curve: the curve the labels' rotor speeds came from.
 
         Returns:
-            The curve whose speeds are ``motor_gain`` times ``curve``'s.
+            The curve whose speeds are :meth:`speeds` of ``curve``'s.
         """
-        g = self.motor_gain
-        return dataclasses.replace(curve, c1=curve.c1 * g, c2=curve.c2 * g,
-                                   residual_rpm=curve.residual_rpm * g)  # fmt: skip
+        return curve.scaled(self.motor_gain, self.motor_exponent, self.rpm_ref)
+
+    def speeds(self, rpm: Float[Array, "*N 4"]) -> Float[Array, "*N 4"]:
+        """The identified rotor speeds of the labels' ones (the curve's gain and power).
+
+        Args:
+            rpm: rotor speeds as the labels the identification saw hold them, rpm.
+
+        Returns:
+            ``motor_gain · rpm_ref (rpm / rpm_ref)^motor_exponent``, rpm.
+        """
+        return motor_speeds(jnp.asarray(rpm), jnp.log(self.motor_gain),
+                            jnp.log(self.motor_exponent), self.rpm_ref)  # fmt: skip
 
     def prior(
         self,
@@ -170,7 +189,9 @@ class Identification:
     ) -> Surrogate:
         """The simulator's prior of the identified vehicle: its data generated (cached by the
         vehicle file's hash, as every dataset: :func:`gpg.data.cache.ensure`) and the
-        surrogate fitted on them, so that the prior carries this vehicle's physics.
+        surrogate fitted on them, so that the prior carries this vehicle's physics (an
+        identified ``generator.wake_gain`` goes into the data config's ``generator``). Its
+        rotor speeds are the identified curve's (:meth:`curve`): label the flights with it.
 
         Args:
             data: a ``data`` config of the package (``"default"``, ``"smoke"``) or its mapping.
@@ -182,13 +203,30 @@ class Identification:
         Returns:
             The fitted :class:`~gpg.Surrogate` (its ``M`` is the identified vehicle's).
         """
-        from gpg import conf
         from gpg.data.cache import ensure
         from gpg.surrogate import Surrogate
 
-        data_cfg = conf.load(data, "data") if isinstance(data, str) else dict(data)
-        _, train, _, _, _ = ensure(data_cfg, self.config, cache_dir, progress=progress)
+        _, train, _, _, _ = ensure(self.data_config(data), self.config, cache_dir,
+                                   progress=progress)  # fmt: skip
         return Surrogate.fit(train, model, config, vehicle=self.vehicle)
+
+    def data_config(self, data: str | Mapping[str, Any] = "default") -> dict[str, Any]:
+        """The ``data`` config the identified vehicle's prior is generated with: ``data`` with
+        an identified ``generator.wake_gain`` in its ``generator`` mapping.
+
+        Args:
+            data: a ``data`` config of the package (``"default"``, ``"smoke"``) or its mapping.
+
+        Returns:
+            The mapping (a copy).
+        """
+        from gpg import conf
+
+        cfg = conf.load(data, "data") if isinstance(data, str) else copy.deepcopy(dict(data))
+        if "generator.wake_gain" in self.parameters:  # the physics' own identified setting
+            cfg["generator"] = {**cfg.get("generator", {}),
+                                "wake_gain": float(self.physics.wake_gain)}  # fmt: skip
+        return cfg
 
     def summary(self) -> str:
         """The parameter table as text: value ± standard error, the file's value.
@@ -227,6 +265,12 @@ class Identification:
             raise FileExistsError(f"{path} exists: pass overwrite=True to replace it")
         head = ["# Identified from flights by gpg.flight.identify (value ± standard error)."]
         head += ["# " + line for line in self.summary().splitlines()]
+        if any(n.startswith("motor.") for n in self.parameters):
+            head.append("# motor.*: the motor curve's, not this file's: label the flights with "
+                        "Identification.curve(curve)")  # fmt: skip
+        if "generator.wake_gain" in self.parameters:
+            head.append("# generator.wake_gain: the generator's, not this file's: "
+                        "data.generator.wake_gain (Identification.data_config)")  # fmt: skip
         text = "\n".join(head) + "\n" + yaml.safe_dump(self.config, sort_keys=False)
         atomic_write(path, text.encode())
         return path
@@ -237,7 +281,7 @@ def _get(cfg: dict[str, Any], name: str) -> float:
         return float(cfg["drag_area"][_DRAG_AXES[name.split(".")[1]]])
     if name == "rotor.chord":
         return 1.0
-    if name == "motor.gain":
+    if name in ("motor.gain", "motor.exponent"):
         return 1.0
     section, _, leaf = name.partition(".")
     return float(cfg[section][leaf])
@@ -249,7 +293,7 @@ def _set(cfg: dict[str, Any], name: str, value: float) -> None:
         cfg["drag_area"][_DRAG_AXES[name.split(".")[1]]] = float(value)
     elif name == "rotor.chord":
         cfg["rotor"]["chord_in"] = [round(float(c) * value, 6) for c in cfg["rotor"]["chord_in"]]
-    elif name != "motor.gain":
+    elif not name.startswith("motor."):
         section, _, leaf = name.partition(".")
         cfg[section][leaf] = float(value)
 
@@ -290,6 +334,7 @@ def physics_loads(
     rpm: Float[Array, "N 4"],
     euler: Float[Array, "N 3"],
     v_air: Float[Array, "N 3"],
+    wake_gain: Float[Array, ""] | None = None,
 ) -> Float[Array, "N 6"]:
     """The physics' world-frame force and torque at many states (what a label measures).
 
@@ -299,13 +344,14 @@ def physics_loads(
         rpm: (N, 4) rotor speeds, rpm.
         euler: (N, 3) (yaw, pitch, roll), rad.
         v_air: (N, 3) air velocity, world, m/s.
+        wake_gain: the ingested wake's gain in place of ``cfg.wake_gain`` (traceable).
 
     Returns:
         (N, 6) the force (N) and torque (N·m), world frame.
     """
 
     def one(r, e, v):
-        res = bemt.aero(vehicle, cfg, r, R_WB(e), v)
+        res = bemt.aero(vehicle, cfg, r, R_WB(e), v, wake_gain=wake_gain)
         return jnp.concatenate([res.force_W, res.torque_W])
 
     return jax.vmap(one)(rpm, euler, v_air)
@@ -314,32 +360,44 @@ def physics_loads(
 ALL = tuple(PARAMETERS)  # θ's order inside: one compiled program serves any choice of free
 
 
+def motor_speeds(
+    rpm: Float[Array, "*N 4"], log_gain, log_exponent, rpm_ref
+) -> Float[Array, "*N 4"]:
+    """``e^{log_gain} r_ref (rpm / r_ref)^{e^{log_exponent}}`` (0 stays 0; differentiable in
+    both logs at every speed)."""
+    x = jnp.maximum(rpm, 1e-9 * rpm_ref) / rpm_ref
+    return jnp.where(rpm > 0, jnp.exp(log_gain) * rpm_ref * x ** jnp.exp(log_exponent), 0.0)
+
+
 @eqx.filter_jit
 @highest
 def loads_and_jacobian(
     vehicle: Vehicle,
     cfg: bemt.BEMTConfig,
-    theta: Float[Array, " 9"],
-    directions: Float[Array, "9 F"],
+    theta: Float[Array, " P"],
+    directions: Float[Array, "P F"],
     rpm: Float[Array, "N 4"],
     euler: Float[Array, "N 3"],
     v_air: Float[Array, "N 3"],
+    rpm_ref: Float[Array, ""] | float = 4000.0,
 ) -> tuple[Float[Array, "N 6"], Float[Array, "N 6 F"]]:
     """The physics' loads with ``θ`` applied, and their derivatives along ``directions``.
 
     ``θ`` holds every parameter of :data:`PARAMETERS`, in its order (a log-factor on a
-    scale, a shift's own units); the rotor speeds are multiplied by ``e^θ`` of
-    ``motor.gain``. The derivatives are taken along the columns of ``directions`` only
-    (the free parameters' unit vectors): forward mode costs one pass per column.
+    scale, a shift's own units); the rotor speeds go through :func:`motor_speeds` with
+    ``motor.gain`` and ``motor.exponent``. The derivatives are taken along the columns of
+    ``directions`` only (the free parameters' unit vectors): forward mode costs one pass per
+    column.
 
     Args:
         vehicle: the vehicle file's vehicle (θ = 0).
         cfg: the physics' settings.
-        theta: (9,) the parameters.
-        directions: (9, F) the directions of the derivatives.
+        theta: (P,) the parameters (``P = len(PARAMETERS)``).
+        directions: (P, F) the directions of the derivatives.
         rpm: (N, 4) rotor speeds, rpm.
         euler: (N, 3) attitudes, rad.
         v_air: (N, 3) air velocities, world, m/s.
+        rpm_ref: rpm, the speed ``motor.exponent`` leaves unchanged.
 
     Returns:
         The (N, 6) world-frame force and torque and their (N, 6, F) derivatives.
@@ -348,7 +406,10 @@ def loads_and_jacobian(
     def f(phi):
         th = theta + directions @ phi
         veh = _apply(vehicle, ALL, th)
-        out = physics_loads(veh, cfg, rpm * jnp.exp(th[ALL.index("motor.gain")]), euler, v_air)
+        speeds = motor_speeds(rpm, th[ALL.index("motor.gain")], th[ALL.index("motor.exponent")],
+                              rpm_ref)  # fmt: skip
+        wake = cfg.wake_gain * jnp.exp(th[ALL.index("generator.wake_gain")])
+        out = physics_loads(veh, cfg, speeds, euler, v_air, wake)
         return out, out
 
     phi = jnp.zeros(directions.shape[1], theta.dtype)
@@ -461,7 +522,9 @@ def identify(
             stacklevel=2,
         )
     theta[fit.free[_weak_mask(names, weak)]] = 0.0
-    params, cfg, gain = _identified_file(cfg0, names, theta[fit.free], se_theta, weak, physics)
+    params, cfg, motor, physics = _identified_file(
+        cfg0, names, theta[fit.free], se_theta, weak, physics
+    )
     resid = data["y"] - fit.loads(theta)[0]
     return Identification(
         vehicle=Vehicle.from_config(cfg),
@@ -473,8 +536,10 @@ def identify(
         n_labels=int(data["y"].shape[0]),
         steps=steps,
         converged=bool(converged),
-        motor_gain=float(gain),
+        motor_gain=motor["motor.gain"],
         physics=physics,
+        motor_exponent=motor["motor.exponent"],
+        rpm_ref=float(data["rpm_ref"]),
     )
 
 
@@ -530,6 +595,8 @@ def _data(labels, names: tuple[str, ...], loads: str, max_labels: int) -> dict[s
     use[:3] = loads in ("force", "both")
     use[3:] = loads in ("torque", "both")
     out["use"] = use
+    turning = out["rpm"][out["rpm"] > 0]
+    out["rpm_ref"] = float(np.median(turning)) if turning.size else 1.0
     return out
 
 
@@ -554,7 +621,7 @@ class _Fit:
         if self._last is not None and np.array_equal(self._last[0], theta):
             return self._last[1]
         out, Jf = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta), self.E,
-                                     *self.states)  # fmt: skip
+                                     *self.states, jnp.asarray(self.data["rpm_ref"]))  # fmt: skip
         J = np.zeros((*out.shape, len(ALL)))
         J[:, :, self.columns] = np.asarray(Jf)
         self._last = (np.array(theta), (np.asarray(out), J))
@@ -604,13 +671,14 @@ class _Fit:
 
 def _identified_file(cfg0, names, theta, se_theta, weak, physics):
     """The parameters' table, the identified vehicle file (``M``'s coefficients fitted to its
-    hover) and the motor gain."""
+    hover), the motor curve's gain and exponent, and the physics' settings (the wake gain)."""
     params: dict[str, dict[str, Any]] = {}
     cfg = copy.deepcopy(cfg0)
-    gain = 1.0
+    motor = {"motor.gain": 1.0, "motor.exponent": 1.0}
+    physics0 = physics
     for i, n in enumerate(names):
         spec = PARAMETERS[n]
-        nominal = _get(cfg0, n)
+        nominal = float(physics0.wake_gain) if n == "generator.wake_gain" else _get(cfg0, n)
         th, se = (0.0, float(spec.prior)) if n in weak else (float(theta[i]), float(se_theta[i]))
         if spec.kind == "scale":
             value, se_value = nominal * math.exp(th), nominal * math.exp(th) * se
@@ -618,14 +686,16 @@ def _identified_file(cfg0, names, theta, se_theta, weak, physics):
             value, se_value = nominal + th, se
         params[n] = {"value": value, "se": se_value, "nominal": nominal, "unit": spec.unit,
                      "identified": n not in weak}  # fmt: skip
-        if n == "motor.gain":
-            gain = value
+        if n in motor:
+            motor[n] = value
+        elif n == "generator.wake_gain":
+            physics = dataclasses.replace(physics, wake_gain=value)
         else:
             _set(cfg, n, value)
     cfg["name"] = f"{cfg0.get('name', 'vehicle')}_identified"
     P_F, T_z = hover_coefficients(Vehicle.from_config(cfg), physics)
     cfg["simple_model"] = {"thrust_coefficient": P_F, "torque_coefficient": T_z}
-    return params, cfg, gain
+    return params, cfg, motor, physics
 
 
 def _weak_mask(names: tuple[str, ...], weak: Sequence[str]) -> np.ndarray:

@@ -67,9 +67,12 @@ INTERPOLATED_SHARE = 0.5
 
 @dataclass(frozen=True)
 class MotorCurve:
-    """A static curve from motor command to rotor speed: ``rpm = c1 s + c2 s²`` with
+    """A static curve from motor command to rotor speed: ``q = c1 s + c2 s²`` with
     ``s = u V / V_ref`` (command ``u`` in 0..1 scaled by the battery voltage ``V``, the
-    term that makes the same command spin faster on a full battery).
+    term that makes the same command spin faster on a full battery), lagged by the motors'
+    time constant, and ``rpm = r_ref (q / r_ref)^p`` (``p = 1``: the quadratic itself). The
+    exponent is what :func:`gpg.flight.identify` fits (``motor.exponent``) where a curve
+    from a hover saw too narrow a range of commands to get its bend right.
 
     Attributes:
         c1: rpm per unit scaled command.
@@ -82,6 +85,8 @@ class MotorCurve:
             weight) or ``"given"``.
         time_constant: s, the motors' first-order lag behind the curve's static speed
             (0: none); applied where :meth:`rpm` is given the samples' times.
+        exponent: ``p``, the power on the speed about ``rpm_ref`` (1: none).
+        rpm_ref: ``r_ref``, rpm, the speed the exponent leaves unchanged.
     """
 
     c1: float
@@ -91,10 +96,15 @@ class MotorCurve:
     residual_rpm: float = float("nan")
     source: str = "given"
     time_constant: float = 0.0
+    exponent: float = 1.0
+    rpm_ref: float = 1.0
 
     def __post_init__(self):
-        for key in ("c1", "c2", "v_ref", "time_constant"):
+        for key in ("c1", "c2", "v_ref", "time_constant", "exponent", "rpm_ref"):
             finite_number(f"MotorCurve.{key}", getattr(self, key))
+        for key in ("exponent", "rpm_ref"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"MotorCurve.{key} must be positive, got {getattr(self, key)!r}")
         if not self.v_ref > 0:
             raise ValueError(f"MotorCurve.v_ref must be a positive voltage, got {self.v_ref!r}")
         if self.time_constant < 0:
@@ -162,7 +172,37 @@ class MotorCurve:
             )
         s = _scaled(u, voltage, self.v_ref)
         static = np.maximum(self.c1 * s + self.c2 * s * s, 0.0)
-        return static if t is None else first_order_lag(t, static, self.time_constant)
+        q = static if t is None else first_order_lag(t, static, self.time_constant)
+        if self.exponent == 1.0:
+            return q
+        return self.rpm_ref * (np.maximum(q, 0.0) / self.rpm_ref) ** self.exponent
+
+    def scaled(self, gain: float = 1.0, exponent: float = 1.0, rpm_ref: float = 1.0) -> MotorCurve:
+        """The curve whose speeds are ``gain · rpm_ref (rpm / rpm_ref)^exponent`` of this
+        curve's ``rpm`` (what :func:`gpg.flight.identify` fits as ``motor.gain`` and
+        ``motor.exponent``), as a curve of the same form.
+
+        Args:
+            gain: the factor on the speeds.
+            exponent: the power on the speeds about ``rpm_ref``.
+            rpm_ref: rpm, the speed the power leaves unchanged.
+
+        Returns:
+            The curve (``source`` and ``command_range`` kept; the residual scaled by the gain).
+
+        Raises:
+            ValueError: a gain, exponent or reference speed that is not positive and finite.
+        """
+        for key, v in (("gain", gain), ("exponent", exponent), ("rpm_ref", rpm_ref)):
+            if not finite_number(key, v) > 0:
+                raise ValueError(f"{key} must be positive, got {v!r}")
+        # A curve without a power takes the new reference (any r0 is then equivalent).
+        p0, p = self.exponent, float(exponent)
+        r0 = float(rpm_ref) if p0 == 1.0 else self.rpm_ref
+        # g r (r0 (q/r0)^p0 / r)^p = r0 (k q / r0)^(p0 p) with k as below: c1, c2 take k.
+        k = (gain * (rpm_ref / r0) ** (1.0 - p)) ** (1.0 / (p0 * p))
+        return dataclasses.replace(self, c1=self.c1 * k, c2=self.c2 * k, exponent=p0 * p,
+                                   rpm_ref=r0, residual_rpm=self.residual_rpm * gain)  # fmt: skip
 
     @classmethod
     def fit_speeds(

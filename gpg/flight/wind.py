@@ -91,8 +91,9 @@ def force_model(model: Any) -> Callable:
     """The world-frame force of a model as ``f(rpm, euler, v_air) -> (3,)``, traceable.
 
     Args:
-        model: an :class:`~gpg.flight.Identification` (its vehicle's physics, the motor gain
-            applied), a :class:`~gpg.Surrogate` (its mean), or such a function itself.
+        model: an :class:`~gpg.flight.Identification` (its vehicle's physics, the motor
+            curve's gain and power applied), a :class:`~gpg.Surrogate` (its mean), or such a
+            function itself.
 
     Returns:
         The force function of one state.
@@ -104,7 +105,8 @@ def force_model(model: Any) -> Callable:
     from gpg.surrogate import Surrogate
 
     if isinstance(model, Identification):
-        return _PhysicsForce(model.vehicle, jnp.asarray(model.motor_gain), model.physics)
+        motor = jnp.asarray([model.motor_gain, model.motor_exponent, model.rpm_ref])
+        return _PhysicsForce(model.vehicle, motor, model.physics)
     if isinstance(model, Surrogate):
         return _SurrogateForce(model)
     if callable(model) and not isinstance(model, str | bytes):
@@ -120,14 +122,15 @@ class _PhysicsForce(eqx.Module):
     """The identified vehicle's physics as a force function (a pytree: compiled once)."""
 
     vehicle: Any
-    gain: Any
+    motor: Any  # (gain, exponent, rpm_ref) of the identified curve
     cfg: Any
 
     def __call__(self, rpm, euler, v_air):
-        from gpg.flight.identify import physics_loads
+        from gpg.flight.identify import motor_speeds, physics_loads
 
-        out = physics_loads(self.vehicle, self.cfg, (rpm * self.gain)[None], euler[None],
-                            v_air[None])  # fmt: skip
+        g, p, r = self.motor[0], self.motor[1], self.motor[2]
+        speeds = motor_speeds(rpm, jnp.log(g), jnp.log(p), r)
+        out = physics_loads(self.vehicle, self.cfg, speeds[None], euler[None], v_air[None])
         return out[0, :3]
 
 

@@ -388,6 +388,7 @@ def aero(
     R_WB: Float[ArrayLike, "3 3"],
     v_air_W: Float[ArrayLike, " 3"],
     omega_B: Float[ArrayLike, " 3"] | None = None,
+    wake_gain: Float[ArrayLike, ""] | None = None,
 ) -> AeroResult:
     """Total aerodynamic wrench about the centre of mass (no gravity), and per-rotor loads.
 
@@ -403,6 +404,9 @@ def aero(
         R_WB: body-to-world rotation.
         v_air_W: airspeed vector ``v_vehicle − v_wind`` in the world frame (m/s).
         omega_B: body angular rate (rad/s); adds ``ω × p`` to each hub's velocity. None: zero.
+        wake_gain: the ingested wake's gain as a (traceable) value in place of
+            ``cfg.wake_gain``, for its derivative (:func:`gpg.flight.identify`). None: the
+            config's.
 
     Returns:
         The wrench in body and world axes, the four rotors' loads (leading axis 4) and the
@@ -420,7 +424,8 @@ def aero(
     rot = loads(omega, vehicle.spin, v_rel)
     if cfg.interference:
         W = wake_overlap(vehicle, -v_air_B, rot.induced_velocity)
-        extra = cfg.wake_gain * (rot.induced_velocity @ W)  # inflow ingested by each rotor j
+        gain = cfg.wake_gain if wake_gain is None else wake_gain
+        extra = gain * (rot.induced_velocity @ W)  # inflow ingested by each rotor j
         rot = jax.vmap(lambda o, d, v, x: rotor_loads(vehicle, cfg, o, d, v, x))(
             omega, vehicle.spin, v_rel, extra
         )

@@ -18,7 +18,7 @@ from gpg.flight.identify import (
     hover_coefficients,
     loads_and_jacobian,
 )
-from gpg.flight.labels import Labels
+from gpg.flight.labels import Labels, MotorCurve
 from gpg.flight.synthetic import perturbed
 from gpg.quadrotor import bemt
 from gpg.quadrotor.vehicle import load_vehicle, vehicle_config
@@ -43,7 +43,10 @@ def _labels(theta, n, seed, speed=1.0):
     )
     v = speed * np.column_stack([rng.uniform(0, 10, n), rng.normal(0, 2, n), rng.normal(0, 1, n)])
     states = (jnp.asarray(a) for a in (rpm, euler, v))
-    y, _ = loads_and_jacobian(BASE, PHYSICS, jnp.asarray(theta), jnp.eye(9)[:, :3], *states)
+    # The reference speed identify takes: the labels' median (all N labels are used).
+    ref = jnp.asarray(np.median(rpm))
+    y, _ = loads_and_jacobian(BASE, PHYSICS, jnp.asarray(theta), jnp.eye(len(ALL))[:, :3], *states,
+                              ref)  # fmt: skip
     y = np.asarray(y)
     f = y[:, :3] + SIGMA_F * rng.normal(size=(n, 3))
     t = y[:, 3:] + SIGMA_T * rng.normal(size=(n, 3))
@@ -53,10 +56,13 @@ def _labels(theta, n, seed, speed=1.0):
 
 
 def _theta(values):
-    """θ of the vehicle file's values ``values`` (log-factors on sui_endurance's)."""
+    """θ of the vehicle file's values ``values`` (log-factors on sui_endurance's; the wake
+    gain's on the physics' own)."""
     th = np.zeros(len(ALL))
     for name, v in values.items():
-        th[ALL.index(name)] = math.log(v / _get(vehicle_config("sui_endurance"), name))
+        v0 = PHYSICS.wake_gain if name == "generator.wake_gain" else None
+        v0 = _get(vehicle_config("sui_endurance"), name) if v0 is None else v0
+        th[ALL.index(name)] = math.log(v / v0)
     return th
 
 
@@ -177,3 +183,31 @@ def test_the_others_refitted_beside_an_unidentified_one():
     assert out.parameters["drag_area.x"]["value"] == pytest.approx(0.0251)
     z0 = float(load_vehicle("sui_endurance").drag_area[2])
     assert out.parameters["drag_area.z"]["value"] == pytest.approx(z0)
+
+
+def test_motor_curve_bend_and_wake_gain_recovered(identified):
+    """Speeds from a curve whose bend is wrong (the labels' speeds are ``rpm_ref (r /
+    rpm_ref)^(1/0.9)`` of the truth's ``r``) and a wake gain of 1.3: ``motor.exponent`` and
+    ``generator.wake_gain`` come out within 3 standard errors of 0.9 and 1.3. The identified
+    curve's speeds are :meth:`Identification.speeds` of the first curve's in closed form, and
+    the prior's data config carries the wake gain. Three free parameters, as in the fixture:
+    the same compiled program."""
+    truth = {"rotor.chord": 1.1, "motor.exponent": 0.9, "generator.wake_gain": 1.3}
+    lab = _labels(_theta(truth), N, seed=4)
+    out = identify(lab, "sui_endurance", free=tuple(truth), physics=PHYSICS, max_steps=30,
+                   passes=2)  # fmt: skip
+    assert out.converged and not out.unidentified
+    for name, value in truth.items():
+        p = out.parameters[name]
+        assert abs(p["value"] - value) <= 3 * p["se"], (name, p)
+    assert out.motor_exponent == out.parameters["motor.exponent"]["value"]
+    assert out.physics.wake_gain == out.parameters["generator.wake_gain"]["value"]
+    assert out.rpm_ref == pytest.approx(np.median(lab.rpm), rel=1e-12)
+    curve = MotorCurve(4500.0, 2600.0, 16.0, time_constant=0.05)
+    u = np.random.default_rng(5).uniform(0.3, 0.9, (40, 4))
+    volt, t = np.full(40, 15.8), np.arange(40) * 0.02
+    np.testing.assert_allclose(out.curve(curve).rpm(u, volt, t),
+                               out.speeds(curve.rpm(u, volt, t)), rtol=1e-12)  # fmt: skip
+    data = out.data_config({"name": "x", "generator": {"n_radial": 6}})
+    assert data["generator"] == {"n_radial": 6, "wake_gain": out.physics.wake_gain}
+    assert "generator" not in identified.data_config({"name": "x"})  # not freed: as given

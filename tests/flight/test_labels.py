@@ -305,3 +305,25 @@ def test_labels_from_an_interpolated_signal_warn(veh, M):
     v = np.stack([np.interp(t, coarse, v[:, k]) for k in range(3)], 1)
     with pytest.warns(FlightLogWarning, match=r"velocity looks linearly interpolated .*\(7\d%"):
         label(_log(veh, M, T=4.0, v=v), veh, reference=M, source="velocity", delay=0.0)
+
+
+def test_motor_curve_scaled_in_closed_form():
+    """``scaled(g, p, r)`` gives the speeds ``g r (rpm / r)^p`` of the curve's (lag included),
+    composes (a scaled curve scaled again), and refuses a power or gain that is not positive."""
+    curve = MotorCurve(4500.0, 2600.0, 16.0, (0.2, 0.9), 30.0, "hover", 0.05)
+    u = np.random.default_rng(0).uniform(0.25, 0.85, (50, 4))
+    volt, t = np.full(50, 16.3), np.arange(50) * 0.02
+    r = curve.rpm(u, volt, t)
+    one = curve.scaled(1.1, 0.9, 3500.0)
+    np.testing.assert_allclose(one.rpm(u, volt, t), 1.1 * 3500 * (r / 3500) ** 0.9, rtol=1e-12)
+    two = one.scaled(0.95, 1.2, 4000.0)
+    want = 0.95 * 4000 * ((1.1 * 3500 * (r / 3500) ** 0.9) / 4000) ** 1.2
+    np.testing.assert_allclose(two.rpm(u, volt, t), want, rtol=1e-12)
+    assert (two.command_range, two.source, two.time_constant) == ((0.2, 0.9), "hover", 0.05)
+    assert two.residual_rpm == pytest.approx(30.0 * 1.1 * 0.95)
+    with pytest.raises(ValueError, match="exponent must be positive"):
+        curve.scaled(1.0, 0.0, 4000.0)
+    with pytest.raises(ValueError, match="gain must be positive"):
+        curve.scaled(-1.0, 1.0, 4000.0)
+    with pytest.raises(ValueError, match="MotorCurve.rpm_ref must be positive"):
+        MotorCurve(4500.0, rpm_ref=0.0)
