@@ -14,6 +14,12 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   :func:`gpg.flight.adapt`) and with its physical basis's coefficients tracked instead
   (:func:`gpg.flight.track`); median and spread of ``updates`` calls each, and the online
   state's bytes before and after them.
+* ``parallel``: :func:`gpg.flight.label_logs` of a directory of ``logs`` CSV logs of
+  ``seconds`` s each (``distinct`` flights of the nominal vehicle flown by
+  :func:`gpg.flight.synthetic.fly` through the default sensors, 200 Hz with rotor speeds and an
+  IMU, each written ``logs / distinct`` times: labelling a copy is the same work), in this
+  process (``workers=1``) and on ``workers`` spawned processes, alternated ``repeats`` times;
+  the speed-up is the ratio of the medians, the labels compared bit for bit.
 """
 
 from __future__ import annotations
@@ -31,7 +37,68 @@ from experiments.runs.timing import stats
 
 def bench_flight(cfg: dict[str, Any]) -> dict[str, Any]:
     """Both measurements of the module docstring."""
-    return {"log": _log(cfg["log"]), "update": _update(cfg["update"])}
+    out = {"log": _log(cfg["log"]), "update": _update(cfg["update"])}
+    if cfg.get("parallel"):
+        out["parallel"] = _parallel(cfg["parallel"])
+    return out
+
+
+def _parallel(cfg: dict[str, Any]) -> dict[str, Any]:
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from gpg.flight import label_logs, write_csv
+    from gpg.flight.identify import hover_coefficients
+    from gpg.flight.synthetic import fly, random_plan
+    from gpg.quadrotor.control import GeometricController
+    from gpg.quadrotor.dynamics import Wind
+    from gpg.quadrotor.simple_model import SimpleModel
+    from gpg.quadrotor.vehicle import load_vehicle
+
+    veh = load_vehicle(cfg["vehicle"])
+    M = SimpleModel.from_vehicle(veh, *hover_coefficients(veh))  # M of the vehicle's hover
+    ctrl = GeometricController.create(veh, M)
+    n, distinct, dur = int(cfg["logs"]), int(cfg["distinct"]), float(cfg["seconds"])
+    with tempfile.TemporaryDirectory(prefix="gpg_bench_logs_") as tmp:
+        root = Path(tmp)
+        for k in range(distinct):
+            rng = np.random.default_rng(k)
+            plan = random_plan(rng, dur, box=10.0, step=(3.0, 8.0), leg_time=(3.0, 5.0))
+            f = fly(veh, ctrl, plan, Wind.constant(np.array([2.0, -1.0, 0.0])), dur, seed=k,
+                    name=f"flight{k}")  # fmt: skip
+            write_csv(f.log, root / f"log{k:03d}.csv")
+        for i in range(distinct, n):
+            shutil.copy(root / f"log{i % distinct:03d}.csv", root / f"log{i:03d}.csv")
+        opts = {"reference": M, "rate": 10.0, "source": "imu"}
+        warnings.simplefilter("ignore")  # the copies' warnings, a hundred times over
+        # Warm-up: this process compiles label's pieces once (each spawned worker does too,
+        # and that is timed: it is what a user's call pays).
+        label_logs([root / "log000.csv"], veh, progress=False, workers=1, **opts)
+        times: dict[int, list[float]] = {1: [], int(cfg["workers"]): []}
+        results = {}
+        for _ in range(int(cfg["repeats"])):
+            for w in times:
+                t0 = time.perf_counter()
+                results[w] = label_logs(root, veh, workers=w, progress=False, **opts)
+                times[w].append(time.perf_counter() - t0)
+    one, many = results[1], results[int(cfg["workers"])]
+    same = list(one.labels) == list(many.labels) and all(
+        np.array_equal(getattr(one.labels[k], f), getattr(many.labels[k], f))
+        for k in one.labels for f in ("t", "rpm", "force", "torque", "force_var", "torque_var")
+    )  # fmt: skip
+    st = {w: stats(np.asarray(v)) for w, v in times.items()}
+    return {
+        "logs": n,
+        "distinct": distinct,
+        "seconds_each": dur,
+        "labels": int(sum(len(lb) for lb in one.labels.values())),
+        "failed": len(one.failed),
+        "workers": int(cfg["workers"]),
+        "wall_s": {str(w): v for w, v in st.items()},
+        "speedup": st[1]["median_s"] / st[int(cfg["workers"])]["median_s"],
+        "same_labels": bool(same),
+    }
 
 
 def _log(cfg: dict[str, Any]) -> dict[str, Any]:
@@ -167,6 +234,15 @@ def flight_table(res: dict[str, Any]) -> str:
                      "median": u["update_s"]["median_s"] * 1e3,
                      "note": f"state {u['online_bytes']['before']} -> "
                              f"{u['online_bytes']['after']} bytes"})  # fmt: skip
+    if "parallel" in res:
+        pa = res["parallel"]
+        for w, st in pa["wall_s"].items():
+            rows.append({"what": f"label_logs, {pa['logs']} CSV logs of {pa['seconds_each']:g} s, "
+                                 f"workers={w}",
+                         "median": st["median_s"] * 1e3,
+                         "note": (f"{pa['speedup']:.2f}x on {pa['workers']}; labels "
+                                  f"{'equal' if pa['same_labels'] else 'DIFFER'} bit for bit"
+                                  if w != "1" else "in this process")})  # fmt: skip
     return table(rows, [("what", "flight", ""), ("median", "ms (median)", ".3f"), ("note", "", "")])
 
 

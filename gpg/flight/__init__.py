@@ -6,8 +6,9 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
   checks its signals against each other (each an :class:`Agreement`; the readers refuse a log
   whose signals disagree).
 * :func:`label` turns measured motion into force and torque labels with their noise
-  (:class:`Labels`); :class:`MotorCurve` and :func:`calibrate_simple` turn commands into rotor
-  speeds and fit ``M`` to a hover.
+  (:class:`Labels`), :func:`label_logs` a directory of logs across processes or on a Dask
+  cluster (:class:`LabelledLogs`); :class:`MotorCurve` and :func:`calibrate_simple` turn
+  commands into rotor speeds and fit ``M`` to a hover.
 * :func:`correct` corrects a fitted :class:`~gpg.Surrogate` by labels (a :class:`Corrected`
   model: the prior's mean, scaled, plus values-only discrepancy GPs); :func:`track` follows
   its physical basis's coefficients online (a Kalman filter, its drift fitted by
@@ -22,6 +23,7 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 """
 
 from gpg.flight import basis, synthetic
+from gpg.flight.batch import LabelledLogs, label_logs
 from gpg.flight.correction import (
     Corrected,
     Online,
@@ -67,6 +69,7 @@ __all__ = [
     "FlightLog",
     "FlightLogWarning",
     "Labels",
+    "LabelledLogs",
     "MotorCurve",
     "Online",
     "Prequential",
@@ -79,6 +82,7 @@ __all__ = [
     "fit_drift",
     "hover_samples",
     "label",
+    "label_logs",
     "online_state",
     "online_step",
     "prequential",

@@ -696,10 +696,20 @@ def _check_segment_options(takeoff_s, saturation) -> None:
 
 def _check_label_options(log, vehicle, reference, rate, source, delay, max_delay, curve):
     """``label``'s arguments, each refused by name with what was expected."""
-    from gpg.surrogate import Surrogate
-
     if not isinstance(log, FlightLog):
         raise ValueError(f"log must be a FlightLog (read_csv, read_ulog), got {type(log).__name__}")
+    check_label_arguments(vehicle, reference, rate, source, delay, max_delay, curve,
+                          max_rate=log.rate)  # fmt: skip
+
+
+def check_label_arguments(
+    vehicle, reference, rate, source, delay, max_delay, curve, *, max_rate: float = math.inf
+) -> None:
+    """:func:`label`'s arguments but the log, each refused by name with what was expected
+    (``rate`` at most ``max_rate``, the log's rate where there is one): what
+    :func:`gpg.flight.batch.label_logs` checks once before any log is read."""
+    from gpg.surrogate import Surrogate
+
     if not isinstance(vehicle, Vehicle):
         raise ValueError(
             f"vehicle must be a Vehicle (gpg.quadrotor.vehicle.load_vehicle({vehicle!r}) for a "
@@ -713,8 +723,9 @@ def _check_label_options(log, vehicle, reference, rate, source, delay, max_delay
         raise ValueError(f"curve must be a MotorCurve or None, got {type(curve).__name__}")
     if not isinstance(source, str) or source not in ("auto", "imu", "velocity"):
         raise ValueError(f"source must be 'auto', 'imu' or 'velocity', got {source!r}")
-    if not (0 < finite_number("rate", rate) <= log.rate * 1.001):
-        raise ValueError(f"rate must be in (0, {log.rate:.4g}] Hz (the log's rate), got {rate!r}")
+    if not (0 < finite_number("rate", rate) <= max_rate * 1.001):
+        bound = "" if math.isinf(max_rate) else f" (the log's rate, {max_rate:.4g} Hz, at most)"
+        raise ValueError(f"rate must be positive{bound}, got {rate!r}")
     if not 0 <= finite_number("max_delay", max_delay) <= MAX_DELAY_S:
         raise ValueError(f"max_delay must be in [0, {MAX_DELAY_S:g}] s, got {max_delay!r}")
     if isinstance(delay, str):
