@@ -555,7 +555,7 @@ def _fit_and_flag(veh0, physics, names, data, passes: int, max_steps: int):
     info = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
     weak = _weak_parameters(info, fit.sd_all[fit.free], names)
     if weak and len(weak) < len(names):
-        fit = _Fit(veh0, physics, tuple(n for n in names if n not in weak), data)
+        fit = _Fit(veh0, physics, tuple(n for n in names if n not in weak), data, columns=names)
         theta, model_var, n, converged = fit.run(passes, max_steps)
         steps += n
         kept = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
@@ -604,12 +604,14 @@ class _Fit:
     """The likelihood of :func:`identify`: the physics at the labels, whitened residuals, the
     Levenberg-Marquardt passes alternated with the model-error variances' estimate."""
 
-    def __init__(self, veh0: Vehicle, physics: bemt.BEMTConfig, names, data):
+    def __init__(self, veh0: Vehicle, physics: bemt.BEMTConfig, names, data, columns=None):
         self.veh0, self.physics, self.data = veh0, physics, data
         self.free = np.array([ALL.index(n) for n in names])
         self.sd_all = np.array([PARAMETERS[n].prior for n in ALL])
-        self.E = jnp.asarray(np.eye(len(ALL))[:, self.free])
-        self.columns = self.free.copy()  # the parameters E differentiates along
+        # The parameters E differentiates along: the free ones, or (a refit beside fixed ones)
+        # the first fit's, so that the refit runs the program the first fit compiled.
+        self.columns = np.array([ALL.index(n) for n in (names if columns is None else columns)])
+        self.E = jnp.asarray(np.eye(len(ALL))[:, self.columns])
         self.states = tuple(jnp.asarray(data[k]) for k in ("rpm", "euler", "v_air"))
         self._last: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None
 
