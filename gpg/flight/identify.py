@@ -719,6 +719,7 @@ def _weak_parameters(info: np.ndarray, sd: np.ndarray, names: tuple[str, ...]) -
     return [names[i] for i in sorted(weak)]
 
 
+@eqx.filter_jit  # one compiled program: op by op, the sweep took seconds every call
 @highest
 def _hover(vehicle: Vehicle, cfg: bemt.BEMTConfig, rpm: Float[Array, " S"]):
     def one(r):
