@@ -21,6 +21,7 @@ JAX arrays after it is set). As everywhere with ``spawn``, a script that calls
 
 from __future__ import annotations
 
+import inspect
 import os
 import warnings
 from collections import deque
@@ -37,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from gpg.flight.labels import Labels, check_label_arguments
+from gpg.flight.labels import Labels, check_label_arguments, label
 from gpg.flight.log import CsvFormat, FlightLog
 from gpg.quadrotor.vehicle import Vehicle
 
@@ -46,9 +47,10 @@ __all__ = ["LOG_SUFFIXES", "LabelledLogs", "label_logs"]
 LOG_SUFFIXES = (".csv", ".ulg")
 """The files :func:`label_logs` reads, by suffix (case-insensitive)."""
 
-_LABEL_KEYS = frozenset(
-    ("reference", "rate", "source", "delay", "max_delay", "curve", "takeoff_s", "saturation")
-)
+# label's keywords and their defaults, read off its signature (one place says them).
+_LABEL_DEFAULTS = {
+    k: p.default for k, p in inspect.signature(label).parameters.items() if p.kind == p.KEYWORD_ONLY
+}
 
 
 @dataclass(frozen=True)
@@ -143,8 +145,6 @@ def _label_one(path: str, vehicle: Vehicle, csv_format, ulog_options, label_opti
     None, warnings)``. Never raises for a log's own fault: the caller reports it by name.
     ``vehicle`` and ``label_options`` come with their arrays as :class:`_Host`: made JAX
     arrays again after the caller's precision is set."""
-    from gpg.flight.labels import label
-
     jax.config.update("jax_enable_x64", x64)
     vehicle, label_options = _from_host((vehicle, label_options))
     with warnings.catch_warnings(record=True) as seen:
@@ -197,9 +197,11 @@ def label_logs(
             integer, or a ``client`` without ``map``.
     """
     paths = _log_paths(logs)
-    unknown = sorted(set(label_options) - _LABEL_KEYS)
+    unknown = sorted(set(label_options) - _LABEL_DEFAULTS.keys())
     if unknown:
-        raise ValueError(f"unknown label option(s) {unknown}; label takes {sorted(_LABEL_KEYS)}")
+        raise ValueError(
+            f"unknown label option(s) {unknown}; label takes {sorted(_LABEL_DEFAULTS)}"
+        )
     _check_options(vehicle, label_options)
     if csv_format is not None and not isinstance(csv_format, CsvFormat):
         raise ValueError(f"csv_format must be a CsvFormat, got {type(csv_format).__name__}")
@@ -228,8 +230,7 @@ def label_logs(
 def _check_options(vehicle: Vehicle, label_options: Mapping[str, Any]) -> None:
     """The label options checked once, here, before any worker starts (a mistake in them is
     every log's, not one log's)."""
-    o = {"reference": None, "rate": 10.0, "source": "auto", "delay": "estimate",
-         "max_delay": 0.1, "curve": None, **label_options}  # fmt: skip
+    o = {**_LABEL_DEFAULTS, **label_options}
     check_label_arguments(vehicle, o["reference"], o["rate"], o["source"], o["delay"],
                           o["max_delay"], o["curve"])  # fmt: skip
 

@@ -276,7 +276,10 @@ class Identification:
         return path
 
 
-def _get(cfg: dict[str, Any], name: str) -> float:
+def _get(cfg: dict[str, Any], name: str, physics: bemt.BEMTConfig) -> float:
+    """A parameter's value in the vehicle file ``cfg`` (or, for the generator's, ``physics``)."""
+    if name == "generator.wake_gain":
+        return float(physics.wake_gain)
     if name.startswith("drag_area."):
         return float(cfg["drag_area"][_DRAG_AXES[name.split(".")[1]]])
     if name == "rotor.chord":
@@ -680,7 +683,7 @@ def _identified_file(cfg0, names, theta, se_theta, weak, physics):
     physics0 = physics
     for i, n in enumerate(names):
         spec = PARAMETERS[n]
-        nominal = float(physics0.wake_gain) if n == "generator.wake_gain" else _get(cfg0, n)
+        nominal = _get(cfg0, n, physics0)
         th, se = (0.0, float(spec.prior)) if n in weak else (float(theta[i]), float(se_theta[i]))
         if spec.kind == "scale":
             value, se_value = nominal * math.exp(th), nominal * math.exp(th) * se

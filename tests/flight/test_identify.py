@@ -60,9 +60,7 @@ def _theta(values):
     gain's on the physics' own)."""
     th = np.zeros(len(ALL))
     for name, v in values.items():
-        v0 = PHYSICS.wake_gain if name == "generator.wake_gain" else None
-        v0 = _get(vehicle_config("sui_endurance"), name) if v0 is None else v0
-        th[ALL.index(name)] = math.log(v / v0)
+        th[ALL.index(name)] = math.log(v / _get(vehicle_config("sui_endurance"), name, PHYSICS))
     return th
 
 
