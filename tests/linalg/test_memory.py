@@ -1,6 +1,7 @@
 """Releasable square buffers, memory budgets and peak-RSS sampling."""
 
 import gc
+import mmap
 import time
 
 import numpy as np
@@ -40,14 +41,17 @@ def test_require_and_peak():
         # memory at the same moment and hide the 50 MB: on a clean clone it did; a new try
         with memory.PeakRSS(interval=0.005) as p:
             before = memory.rss_bytes()
-            x = np.ones(50_000_000 // 8)  # 50 MB touched
+            # fresh pages from the kernel: in a long-lived worker np.ones can reuse a freed,
+            # still resident heap chunk and leave the RSS unchanged (CI saw it: 5.9 GB both)
+            x = mmap.mmap(-1, 50_000_000)
+            np.frombuffer(x, dtype=np.uint8)[:: mmap.PAGESIZE] = 1  # every page touched
             held = memory.rss_bytes()
             # held until the sampler has seen it (a loaded machine can delay its thread by
             # more than any fixed sleep), for at most 5 s
             deadline = time.monotonic() + 5.0
             while p.peak < held and time.monotonic() < deadline:
                 time.sleep(0.005)
-            del x
+            x.close()
         if held - before > 30_000_000 and p.peak >= held:  # shown, and seen by the sampler
             break
     assert held - before > 30_000_000
