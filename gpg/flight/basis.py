@@ -32,7 +32,7 @@ from gpg._precision import highest
 from gpg.data.preprocess import Normalizer
 from gpg.quadrotor.frames import R_WB
 
-__all__ = ["PRIORS", "TERMS", "Explicit", "PhysicalBasis", "posterior"]
+__all__ = ["PRIORS", "TERMS", "Explicit", "PhysicalBasis", "posterior", "posterior_gram"]
 
 AIR_DENSITY = 1.225  # kg/m³: a drag column's coefficient is the drag area at sea level
 RPM_REF = 4000.0  # rpm: the rotor terms' coefficients are per rotor at this speed
@@ -106,7 +106,10 @@ class Explicit(eqx.Module):
     Attributes:
         physics: the physical columns.
         beta: (6, T) the physical columns' posterior mean coefficients (physical units).
-        G: (6, N, P) ``K_j⁻¹ H_j`` over all P columns (prior, ``M``, physics).
+        G: (6, N, P) ``K_j⁻¹ H_j`` over all P columns (prior, ``M``, physics); for an
+            inducing-point discrepancy (:class:`gpg.gp.inducing.InducingGP`) ``N`` is its
+            ``m`` inducing inputs and ``G = K_mm⁻¹ K_mn K̃⁻¹ H`` (its kernel row is taken
+            against them).
         cov_chol: (6, P, P) a Cholesky factor ``C`` of ``A_j⁻¹``, the coefficients'
             posterior covariance.
         with_prior: the prior's mean is the first column.
@@ -171,9 +174,27 @@ def posterior(
     Returns:
         ``β̄`` (P,) and ``C`` (P, P), lower, with ``C Cᵀ = A⁻¹``.
     """
-    A = np.diag(1.0 / sd**2) + H.T @ Kinv_H
+    return posterior_gram(H.T @ Kinv_H, H.T @ Kinv_y, b, sd)
+
+
+def posterior_gram(
+    HtKH: np.ndarray, HtKy: np.ndarray, b: np.ndarray, sd: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`posterior` from ``Hᵀ K⁻¹ H`` and ``Hᵀ K⁻¹ y`` (what an inducing-point
+    discrepancy gives without forming ``K⁻¹ H``, :func:`gpg.gp.inducing.project`).
+
+    Args:
+        HtKH: (P, P) ``Hᵀ K⁻¹ H``.
+        HtKy: (P,) ``Hᵀ K⁻¹ y``.
+        b: (P,) the prior mean.
+        sd: (P,) the prior standard deviations.
+
+    Returns:
+        ``β̄`` (P,) and ``C`` (P, P), lower, with ``C Cᵀ = A⁻¹``.
+    """
+    A = np.diag(1.0 / sd**2) + HtKH
     A = 0.5 * (A + A.T)
-    rhs = H.T @ Kinv_y + b / sd**2
+    rhs = HtKy + b / sd**2
     L = np.linalg.cholesky(A)
     beta = np.linalg.solve(L.T, np.linalg.solve(L, rhs))
     Linv = np.linalg.solve(L, np.eye(A.shape[0]))

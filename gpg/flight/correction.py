@@ -39,12 +39,13 @@ from jaxtyping import Array, ArrayLike, Float
 from gpg._dtype import float64
 from gpg._precision import highest
 from gpg.data.preprocess import Normalizer
-from gpg.flight.basis import PRIORS, TERMS, Explicit, PhysicalBasis, posterior
+from gpg.flight.basis import PRIORS, TERMS, Explicit, PhysicalBasis, posterior, posterior_gram
 from gpg.flight.labels import Labels
 from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
 from gpg.gp.fit import FitOptions, fit_hyperparameters
 from gpg.gp.hyper import Hyper
+from gpg.gp.inducing import InducingGP, inducing_inputs, project
 from gpg.gp.predictor import Predictor, plain
 from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
@@ -222,7 +223,9 @@ class Corrected(Predictor):
     Attributes:
         prior: the simulator-trained predictor.
         scale: (M,) ``ρ``, ones for the outputs not corrected.
-        delta: the discrepancy GPs, one per load output (values only, one output each).
+        delta: the discrepancy GPs, one per load output (values only, one output each):
+            exact (:class:`~gpg.gp.exact.ExactGP`) up to ``exact_labels`` labels, through
+            inducing inputs (:class:`~gpg.gp.inducing.InducingGP`) on every label beyond.
         online: the online term, or None.
         kappa: (6,) ``κ``, the coefficients of ``M``'s own loads, or None.
         basis: ``m`` (:class:`SimpleBasis`) where ``kappa`` is given.
@@ -234,7 +237,7 @@ class Corrected(Predictor):
 
     prior: Predictor
     scale: Float[Array, " M"]
-    delta: tuple[ExactGP, ...]
+    delta: tuple[ExactGP | InducingGP, ...]
     online: Online | None = None
     kappa: Float[Array, " 6"] | None = None
     basis: SimpleBasis | None = None
@@ -313,7 +316,10 @@ class Corrected(Predictor):
             "scale": plain(self.scale),
             "kappa": None if self.kappa is None else plain(self.kappa),
             "discrepancy": [d.describe()["hyperparameters"] for d in self.delta],
-            "n_labels": int(self.delta[0].X.shape[0]) if self.delta else 0,
+            "n_labels": _cases(self.delta[0]) if self.delta else 0,
+            "inducing": int(self.delta[0].X.shape[0])
+            if self.delta and isinstance(self.delta[0], InducingGP)
+            else None,
             "online": None
             if self.online is None
             else {"inducing": int(self.online.Z.shape[0]), "tau": plain(self.online.tau)},
@@ -592,7 +598,9 @@ def correct(
     scale: bool = True,
     use_prior: bool = True,
     simple_term: bool = True,
-    max_labels: int = 1500,
+    max_labels: int | None = None,
+    exact_labels: int = 1500,
+    inducing: int = 512,
     subset_size: int = 400,
     max_steps: int = 200,
     seed: int = 0,
@@ -618,8 +626,14 @@ def correct(
             (:class:`SimpleBasis`; jointly with ``ρ``): a thrust or drag-torque coefficient
             that differs on the real vehicle is one number, where ``δ`` would have to learn
             it state by state. Needs a prior with ``M``.
-        max_labels: at most this many labels enter ``δ`` (evenly thinned in time beyond: the
-            exact GP costs ``N³``).
+        max_labels: at most this many labels enter ``δ`` (evenly thinned in time beyond);
+            None: every label.
+        exact_labels: up to this many labels, each ``δ`` is the exact GP (``N³``); beyond,
+            an inducing-point GP on every label (:class:`~gpg.gp.inducing.InducingGP`,
+            ``O(N m²)`` time, ``O(m²)`` memory besides the labels), and a calibration
+            (``calibrate``) on this many labels evenly spread.
+        inducing: ``m``, the inducing inputs beyond ``exact_labels`` (k-means centres of the
+            labels' inputs, :func:`~gpg.gp.inducing.inducing_inputs`).
         subset_size: labels per likelihood evaluation of the hyperparameter fit.
         max_steps: BFGS steps of each discrepancy's hyperparameter fit
             (:func:`gpg.gp.fit.fit_hyperparameters`).
@@ -636,12 +650,19 @@ def correct(
         checkpoints take it.
 
     Raises:
-        ValueError: no labels, fewer than 8, labels with NaN (naming the array), or an
-            unknown ``basis``.
+        ValueError: no labels, fewer than 8, labels with NaN (naming the array), an
+            unknown ``basis``, or sizes under 1.
     """
+    for name, v in (("exact_labels", exact_labels), ("inducing", inducing)):
+        if not int(v) >= 1:
+            raise ValueError(f"{name} must be >= 1, got {v}")
     parts = [labels] if isinstance(labels, Labels) else list(labels)
     prior = base(prior)
     X, Y, V, groups, _ = _label_rows(prior, parts, max_labels, basis)
+    # Beyond exact_labels: inducing inputs shared by the six discrepancies; the held-out
+    # calibration (dense per flight) on exact_labels rows spread evenly.
+    Z = None if X.shape[0] <= exact_labels else inducing_inputs(X, int(inducing), seed=seed)
+    cal = _thin(X.shape[0], int(exact_labels))
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
     simple = None
     if simple_term and prior.simple is not None:
@@ -653,12 +674,14 @@ def correct(
     if basis == "regression":
         rho6, kappa = _regression(Y, V, mu, m, fit_rho=use_prior and scale, use_prior=use_prior)
         R = Y - rho6 * mu - (0.0 if m is None else kappa * m)
-        deltas = tuple(_fit_delta(X, R[:, j], V[:, j], *fit[:2], seed + j) for j in range(N_LOADS))
+        deltas = tuple(_fit_delta(X, R[:, j], V[:, j], *fit[:2], seed + j, Z)
+                       for j in range(N_LOADS))  # fmt: skip
     else:
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
         rho6, kappa, deltas, explicit = _fit_explicit(
-            X, Y, V, mu, m, _physics(prior), fixed_rho, *fit, groups=groups if calibrate else None
-        )
+            X, Y, V, mu, m, _physics(prior), fixed_rho, *fit,
+            groups=groups if calibrate else None, Z=Z, cal=cal,
+        )  # fmt: skip
     rho[:N_LOADS] = rho6
     model = Corrected(
         prior=prior.model,
@@ -675,6 +698,7 @@ def correct(
         "use_prior": bool(use_prior),
         "simple_term": simple is not None,
         "n_labels": int(X.shape[0]),
+        "inducing": None if Z is None else int(Z.shape[0]),
         "flights": [p.name for p in parts],
     }
     return dataclasses.replace(
@@ -758,19 +782,36 @@ def _label_rows(prior: Surrogate, parts: list[Labels], max_labels: int, basis: s
     for name, a in (("X", X), ("Y", Y), ("noise", V)):
         if not np.isfinite(a).all():
             raise ValueError(f"labels give non-finite GP {name} rows: check the labels' arrays")
-    if X.shape[0] > max_labels:
-        keep = np.unique(np.linspace(0, X.shape[0] - 1, max_labels).round().astype(int))
+    if max_labels is not None:
+        keep = _thin(X.shape[0], int(max_labels))
         X, Y, V, groups, t = X[keep], Y[keep], V[keep], groups[keep], t[keep]
     return X, Y, V, groups, t
 
 
+def _thin(n: int, most: int) -> np.ndarray:
+    """At most ``most`` of ``n`` rows, evenly spread in order (all of them where ``n`` is not
+    over ``most``)."""
+    if n <= most:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, most).round().astype(int))
+
+
+def _cases(d: ExactGP | InducingGP) -> int:
+    """The labels a discrepancy was fitted on."""
+    return d.n_cases if isinstance(d, InducingGP) else int(d.X.shape[0])
+
+
+# Long by design: one loop over the load outputs whose exact and inducing-point branches share
+# the prior, the calibration and the assembly of the result.
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
-                  seed, *, groups=None):  # fmt: skip
+                  seed, *, groups=None, Z=None, cal=None):  # fmt: skip
     """The physical basis with integrated coefficients (:mod:`gpg.flight.basis`), per load
     output: ``β`` first by weighted least squares under its prior with the labels' noise, the
     discrepancy's hyperparameters on what is left, then ``β``'s posterior given that GP and
     the discrepancy conditioned on ``y − Hβ̄``. A fixed ``ρ`` (1, or 0 without the prior)
-    moves the prior's mean into the targets instead of a column."""
+    moves the prior's mean into the targets instead of a column. With inducing inputs ``Z``
+    the discrepancy is an inducing-point GP on every row, and the calibration reads the rows
+    ``cal``."""
     phys = np.asarray(jax.vmap(physics)(jnp.asarray(X)))  # (N, 6, T)
     n_out = N_LOADS
     rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
@@ -785,12 +826,27 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         w = 1.0 / (V[:, j] + 1e-3)
         beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
         r0 = y - H @ beta0
-        gp0 = _fit_delta(X, r0, V[:, j], subset_size, max_steps, seed + j)
-        both = ExactGP.fit(X, np.column_stack([H, y]), hyper=gp0.hyper, row_noise=V[:, j])
-        alpha = np.asarray(both.alpha)
-        beta, chol = posterior(H, alpha[:, :-1], alpha[:, -1], b, sd)
-        gp = ExactGP.fit(X, (y - H @ beta)[:, None], hyper=gp0.hyper, row_noise=V[:, j])
-        c = 1.0 if groups is None else _held_out_scale(X, H, y, V[:, j], gp0.hyper, b, sd, groups)
+        hyper = _delta_hyper(X, r0, V[:, j], subset_size, max_steps, seed + j)
+        if Z is None:
+            both = ExactGP.fit(X, np.column_stack([H, y]), hyper=hyper, row_noise=V[:, j])
+            alpha = np.asarray(both.alpha)
+            beta, chol = posterior(H, alpha[:, :-1], alpha[:, -1], b, sd)
+            gp = ExactGP.fit(X, (y - H @ beta)[:, None], hyper=hyper, row_noise=V[:, j])
+            G = alpha[:, :-1]
+        else:
+            p = project(X, np.column_stack([H, y]), Z, hyper=hyper, row_noise=V[:, j])
+            P, pw = H.shape[1], np.asarray(p.weights)
+            beta, chol = posterior_gram(np.asarray(p.gram)[:P, :P], np.asarray(p.gram)[:P, P],
+                                        b, sd)  # fmt: skip
+            # δ on y − Hβ̄: its weights are linear in the targets
+            gp = InducingGP(X=p.Z, weights=jnp.asarray((pw[:, P] - pw[:, :P] @ beta)[:, None]),
+                            whiten=p.whiten, post=p.post, hyper=hyper,
+                            output_scale=jnp.ones(1), n_cases=int(X.shape[0]))  # fmt: skip
+            G = pw[:, :P]
+        c = 1.0
+        if groups is not None:
+            k = np.arange(X.shape[0]) if cal is None else cal
+            c = _held_out_scale(X[k], H[k], y[k], V[k, j], hyper, b, sd, groups[k])
         deltas.append(gp.with_output_scale(jnp.full(1, c)))
         chol = chol * np.sqrt(c)
         k = 0
@@ -799,7 +855,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         if m is not None:
             kappa[j], k = beta[k], k + 1
         betas.append(beta[k:])
-        Gs.append(alpha[:, :-1])
+        Gs.append(G)
         chols.append(chol)
     explicit = Explicit(
         physics=physics,
@@ -851,7 +907,21 @@ def _regression(Y, V, mu, m, *, fit_rho: bool, use_prior: bool):
     return rho, kappa
 
 
-def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int) -> ExactGP:
+def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int, Z=None):
+    """One discrepancy: its hyperparameters (:func:`_delta_hyper`), then the exact GP, or the
+    inducing-point GP through ``Z`` on every row."""
+    hyper = _delta_hyper(X, r, noise, subset_size, max_steps, seed)
+    if Z is None:
+        gp = ExactGP.fit(X, r[:, None], hyper=hyper, row_noise=noise)
+    else:
+        gp = InducingGP.fit(X, r, Z, hyper=hyper, row_noise=noise)
+    # The fitted σ is each discrepancy's own amplitude: no second, closed-form one.
+    return gp.with_output_scale(jnp.ones(1))
+
+
+def _delta_hyper(X, r, noise, subset_size: int, max_steps: int, seed: int) -> Hyper:
+    """A discrepancy's hyperparameters by marginal likelihood on ``subset_size`` rows drawn
+    at random (:func:`gpg.gp.fit.fit_hyperparameters`), lengthscales kept in range."""
     var = float(max(np.var(r), 1e-6))
     init = Hyper(variance=var, lengthscale=np.full(X.shape[1], 0.7), noise=1e-2 * var)
     opts = FitOptions(subset_size=subset_size, seed=seed, max_steps=max_steps, on_failure="ignore")
@@ -862,10 +932,7 @@ def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int) -> Exac
     ls = np.nan_to_num(np.asarray(h.lengthscale), nan=LENGTHSCALE_MAX, posinf=LENGTHSCALE_MAX)
     ls = np.clip(ls, LENGTHSCALE_MIN, LENGTHSCALE_MAX)
     ok = all(np.isfinite(float(v)) and float(v) > 0 for v in (h.variance, h.noise))
-    hyper = Hyper(variance=h.variance, lengthscale=ls, noise=h.noise) if ok else init
-    gp = ExactGP.fit(X, r[:, None], hyper=hyper, row_noise=noise)
-    # The fitted σ is each discrepancy's own amplitude: no second, closed-form one.
-    return gp.with_output_scale(jnp.ones(1))
+    return Hyper(variance=h.variance, lengthscale=ls, noise=h.noise) if ok else init
 
 
 @float64

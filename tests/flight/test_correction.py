@@ -496,3 +496,35 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights):
     np.testing.assert_allclose(
         np.asarray(m.explicit.cov_chol[0]), np.asarray(raw.model.explicit.cov_chol[0]) * np.sqrt(c),
         rtol=1e-6, atol=1e-12)  # fmt: skip
+
+
+def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, flights, tmp_path):
+    """Beyond ``exact_labels`` each discrepancy is an inducing-point GP on every label. With
+    every label inducing it is the exact correction (the physical basis's ``G``, ``β̄`` and
+    band included); with fewer (the regression basis here), a model that checkpoints like any
+    other and says what it holds."""
+    from gpg.gp.inducing import InducingGP
+
+    every = fc.correct(synthetic_surrogate, flights, basis="physical",
+                       exact_labels=N_LABELS // 2, inducing=N_LABELS, **FIT)  # fmt: skip
+    assert all(isinstance(d, InducingGP) for d in every.model.delta)
+    assert every.config["flight_correction"]["inducing"] == N_LABELS
+    rpm, euler, v_air = _states(np.random.default_rng(5), 20)
+    pe = corrected.predict_batch(rpm, euler, v_air)
+    pi = every.predict_batch(rpm, euler, v_air)
+    # The inducing Gram's jitter (1e-8 σ) is the only difference; the labels' Gram has a
+    # condition number near 1e3 (noise 0.05² against loads of a few N): 1e-4 relative is ample.
+    for a, b in ((pi.force, pe.force), (pi.torque, pe.torque)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4 * float(np.abs(b).max()))
+    v = pe.variance[:, :6]
+    np.testing.assert_allclose(pi.variance[:, :6], v, rtol=1e-4, atol=1e-6 * float(v.max()))
+    few = fc.correct(synthetic_surrogate, flights, exact_labels=N_LABELS // 2, inducing=12, **FIT)
+    assert few.model.describe()["flight_correction"]["inducing"] == 12
+    assert few.model.describe()["flight_correction"]["n_labels"] == N_LABELS
+    back = checkpoint.load(checkpoint.save(tmp_path / "few", few))
+    pf, pb = few.predict_batch(rpm, euler, v_air), back.predict_batch(rpm, euler, v_air)
+    np.testing.assert_array_equal(pf.force, pb.force)
+    np.testing.assert_array_equal(pf.variance, pb.variance)
+    assert np.all(np.isfinite(pf.variance)) and np.all(pf.variance[:, :6] > 0)
+    with pytest.raises(ValueError, match="inducing must be >= 1"):
+        fc.correct(synthetic_surrogate, flights, inducing=0)

@@ -1,0 +1,342 @@
+"""A values-only GP on many cases through ``m`` inducing inputs (the projected-process, or DTC,
+approximation: Seeger, Williams and Lawrence 2003; Quiñonero-Candela and Rasmussen 2005).
+
+With inducing inputs ``Z`` (m, D), ``K_mm = k(Z, Z) = L Lᵀ``, the cases' cross-covariance
+``K_mn`` and each case's noise ``Λ = diag(ν² + row noise)``, the covariance of the targets is
+taken as ``K̃ = K_nm K_mm⁻¹ K_mn + Λ``. With ``A = L⁻¹ K_mn Λ^{-1/2}`` (m, N) and
+``B = I + A Aᵀ = L_B L_Bᵀ``:
+
+* mean ``μ(x) = k_m(x)ᵀ w``, ``w = L⁻ᵀ B⁻¹ A Λ^{-1/2} y`` (m weights per output);
+* latent variance ``σ − ‖L⁻¹ k_m‖² + ‖L_B⁻¹ L⁻¹ k_m‖²``;
+* ``Vᵀ K̃⁻¹ V = uᵀu − (A u)ᵀ B⁻¹ (A u)``, ``u = Λ^{-1/2} V``, for any columns ``V`` (what
+  the flight correction's integrated basis needs, :mod:`gpg.flight.correction`).
+
+The fit costs ``O(N m²)`` time and ``O(m² + m c)`` memory (the cases are read ``chunk`` at a
+time), one jitted program on the host or an accelerator. With ``Z`` every case the model is the
+exact GP (Woodbury: ``K⁻¹ − K⁻¹ (K⁻¹ + Λ⁻¹)⁻¹ K⁻¹ = (K + Λ)⁻¹``), the test of the module.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from gpg._dtype import float64
+from gpg._precision import highest
+from gpg.gp.hyper import Hyper
+from gpg.gp.kernels import rbf_matrix
+from gpg.gp.predictor import Predictor, plain
+
+__all__ = ["InducingGP", "Projection", "inducing_inputs", "project"]
+
+# Relative jitter on K_mm's diagonal: k-means centres can lie close enough together for K_mm to
+# be singular in floating point; 1e-8 σ moves the model by about that much relative.
+JITTER = 1e-8
+
+
+class Projection(eqx.Module):
+    """The projected-process quantities of :func:`project`, for targets ``V`` (N, K).
+
+    Attributes:
+        Z: (m, D) inducing inputs.
+        weights: (m, K) ``L⁻ᵀ B⁻¹ A Λ^{-1/2} V``: the mean's weights of each column of ``V``.
+        gram: (K, K) ``Vᵀ K̃⁻¹ V``.
+        whiten: (m, m) ``L⁻¹``.
+        post: (m, m) ``L_B⁻¹ L⁻¹``.
+        logdet: ``log det K̃`` (the marginal likelihood's term).
+    """
+
+    Z: Float[Array, "m D"]
+    weights: Float[Array, "m K"]
+    gram: Float[Array, "K K"]
+    whiten: Float[Array, "m m"]
+    post: Float[Array, "m m"]
+    logdet: Float[Array, ""]
+
+
+class InducingGP(Predictor):
+    """A values-only GP through inducing inputs (module docstring), ``M`` outputs sharing
+    one kernel; a :class:`~gpg.gp.predictor.Predictor` like :class:`gpg.gp.exact.ExactGP`.
+
+    Attributes:
+        X: (m, D) the inducing inputs ``Z`` (named as the exact GP's rows: a kernel row is
+            taken against them).
+        weights: (m, M) ``w``.
+        whiten: (m, m) ``L⁻¹``, lower triangular (empty in :meth:`mean_view`).
+        post: (m, m) ``L_B⁻¹ L⁻¹``, lower triangular (empty in :meth:`mean_view`).
+        hyper: σ, the lengthscales and ``ν²``.
+        output_scale: (M,) per-output variance scale.
+        n_cases: the cases it was fitted on.
+    """
+
+    X: Float[Array, "m D"]
+    weights: Float[Array, "m M"]
+    whiten: Float[Array, "r m"]
+    post: Float[Array, "r m"]
+    hyper: Hyper
+    output_scale: Float[Array, " M"]
+    n_cases: int = eqx.field(static=True)
+
+    @classmethod
+    @float64
+    def fit(
+        cls,
+        X: Float[ArrayLike, "N D"],
+        Y: Float[ArrayLike, "N M"],
+        Z: Float[ArrayLike, "m D"],
+        *,
+        hyper: Hyper,
+        row_noise: Float[ArrayLike, " N"] | None = None,
+        chunk: int = 4096,
+    ) -> InducingGP:
+        """Condition the GP on values ``Y`` at ``X`` through the inducing inputs ``Z``.
+
+        Args:
+            X: (N, D) inputs (normalised).
+            Y: (N, M) values, or (N,) for one output.
+            Z: (m, D) inducing inputs (:func:`inducing_inputs`).
+            hyper: the kernel's σ and lengthscales and ``ν²`` (fitted elsewhere).
+            row_noise: (N,) each case's own noise variance, added to ``ν²``.
+            chunk: cases read at a time (memory ``O(m · chunk)``).
+
+        Returns:
+            The fitted GP (output scales ones).
+
+        Raises:
+            ValueError: shapes that do not match, non-finite values, or non-positive noise.
+        """
+        Yn = np.asarray(Y, float)
+        Yn = Yn[:, None] if Yn.ndim == 1 else Yn
+        p = project(X, Yn, Z, hyper=hyper, row_noise=row_noise, chunk=chunk)
+        return cls(
+            X=p.Z,
+            weights=p.weights,
+            whiten=p.whiten,
+            post=p.post,
+            hyper=hyper,
+            output_scale=jnp.ones(Yn.shape[1]),
+            n_cases=int(Yn.shape[0]),
+        )
+
+    @property
+    def partition(self) -> None:
+        return None
+
+    @property
+    def noise(self) -> Float[Array, ""]:
+        return self.hyper.noise
+
+    @property
+    def n_inputs(self) -> int:
+        return self.X.shape[1]
+
+    @property
+    def n_outputs(self) -> int:
+        return self.weights.shape[1]
+
+    def with_output_scale(self, scale: Float[ArrayLike, " M"]) -> InducingGP:
+        """This GP with ``output_scale`` replaced (the other arrays shared).
+
+        Args:
+            scale: (M,) the per-output variance scale.
+
+        Returns:
+            The GP with the new scale.
+        """
+        return eqx.tree_at(lambda m: m.output_scale, self, jnp.asarray(scale))
+
+    def with_weights(self, weights: Float[ArrayLike, "m M"]) -> InducingGP:
+        """This GP with the mean's weights replaced: the same kernel and inducing inputs on
+        other targets (the weights are linear in the targets, :attr:`Projection.weights`).
+
+        Args:
+            weights: (m, M) the new ``w``.
+
+        Returns:
+            The GP with the new weights.
+        """
+        w = jnp.asarray(weights)
+        if w.shape != self.weights.shape:
+            raise ValueError(f"weights must have shape {self.weights.shape}, got {w.shape}")
+        return eqx.tree_at(lambda m: m.weights, self, w)
+
+    def describe(self) -> dict[str, Any]:
+        """The hyperparameters and sizes as plain values, for a checkpoint's metadata.
+
+        Returns:
+            ``{"hyperparameters": {...}, "inducing": m, "cases": N}``.
+        """
+        h = self.hyper
+        return {
+            "hyperparameters": {
+                "variance": plain(h.variance),
+                "lengthscale": plain(h.lengthscale),
+                "noise": plain(h.noise),
+            },
+            "inducing": int(self.X.shape[0]),
+            "cases": self.n_cases,
+        }
+
+    def _row(self, x: Float[Array, " D"]) -> Float[Array, " m"]:
+        ls = jnp.broadcast_to(self.hyper.lengthscale, x.shape)
+        return rbf_matrix(x[None] / ls, self.X / ls, self.hyper.variance)[0]
+
+    @highest
+    def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+        """The mean ``k_m(x)ᵀ w`` at one normalised query.
+
+        Args:
+            x: (D,) the query.
+
+        Returns:
+            (M,) the mean.
+        """
+        return self._row(x) @ self.weights
+
+    @highest
+    def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, ""]]:
+        """The mean and latent variance ``σ − ‖L⁻¹k‖² + ‖L_B⁻¹L⁻¹k‖²`` at one query.
+
+        Args:
+            x: (D,) the normalised query.
+
+        Returns:
+            The (M,) mean and the latent variance (), not clipped.
+        """
+        k = self._row(x)
+        a, b = self.whiten @ k, self.post @ k
+        return k @ self.weights, self.hyper.variance - a @ a + b @ b
+
+    def mean_view(self) -> InducingGP:
+        """This GP without its variance's factors (the mean reads ``X`` and ``weights``).
+
+        Returns:
+            The lighter GP (its variance is not to be used).
+        """
+        empty = jnp.zeros((0, self.X.shape[0]), self.weights.dtype)
+        return eqx.tree_at(lambda m: (m.whiten, m.post), self, (empty, empty))
+
+
+@float64
+def project(
+    X: Float[ArrayLike, "N D"],
+    V: Float[ArrayLike, "N K"],
+    Z: Float[ArrayLike, "m D"],
+    *,
+    hyper: Hyper,
+    row_noise: Float[ArrayLike, " N"] | None = None,
+    chunk: int = 4096,
+) -> Projection:
+    """The projected-process quantities of targets ``V`` (module docstring): the mean's weights
+    of each column, ``Vᵀ K̃⁻¹ V``, the variance's two factors and ``log det K̃``.
+
+    Args:
+        X: (N, D) inputs (normalised).
+        V: (N, K) targets (columns: outputs, or basis columns beside them).
+        Z: (m, D) inducing inputs.
+        hyper: σ, lengthscales and ``ν²``.
+        row_noise: (N,) each case's own noise variance, added to ``ν²``.
+        chunk: cases read at a time.
+
+    Returns:
+        The :class:`Projection`.
+
+    Raises:
+        ValueError: shapes that do not match (naming the input), non-finite values, or a noise
+            that is not positive for every case.
+    """
+    X, V, Z = (np.asarray(a, float) for a in (X, V, Z))
+    if X.ndim != 2:
+        raise ValueError(f"X must be (N, D), got shape {X.shape}")
+    n, d = X.shape
+    if V.ndim != 2 or V.shape[0] != n:
+        raise ValueError(f"V must be ({n}, K) like X's rows, got shape {V.shape}")
+    if Z.ndim != 2 or Z.shape[1] != d or Z.shape[0] < 1:
+        raise ValueError(f"Z must be (m, {d}) with m >= 1, got shape {Z.shape}")
+    noise = np.full(n, float(hyper.noise))
+    if row_noise is not None:
+        rn = np.asarray(row_noise, float)
+        if rn.shape != (n,):
+            raise ValueError(f"row_noise must be ({n},), got shape {rn.shape}")
+        noise = noise + rn
+    for name, a in (("X", X), ("V", V), ("Z", Z), ("row_noise", noise)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} holds NaN or inf")
+    if not np.all(noise > 0):
+        raise ValueError("every case needs a positive noise variance (nu^2 plus its row noise)")
+    if not int(chunk) >= 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    c = min(int(chunk), n)
+    pad = (-n) % c
+    # Padded cases get weight 0: they add nothing to B, A u or uᵀu.
+    Xp = np.concatenate([X, np.zeros((pad, d))]).reshape(-1, c, d)
+    Vp = np.concatenate([V, np.zeros((pad, V.shape[1]))]).reshape(-1, c, V.shape[1])
+    sw = np.concatenate([1.0 / np.sqrt(noise), np.zeros(pad)]).reshape(-1, c)
+    ls = np.broadcast_to(np.asarray(hyper.lengthscale, float), (d,))
+    return _project(jnp.asarray(Xp), jnp.asarray(Vp), jnp.asarray(sw), jnp.asarray(Z),
+                    jnp.asarray(hyper.variance, float), jnp.asarray(ls))  # fmt: skip
+
+
+@jax.jit
+@highest
+def _project(Xp, Vp, sw, Z, var, ls) -> Projection:
+    m = Z.shape[0]
+    Kmm = rbf_matrix(Z / ls, Z / ls, var) + JITTER * var * jnp.eye(m, dtype=Z.dtype)
+    L = jnp.linalg.cholesky(Kmm)
+
+    def add(carry, part):
+        B, T, G = carry
+        x, v, s = part
+        A = jsl.solve_triangular(L, rbf_matrix(Z / ls, x / ls, var), lower=True) * s[None]
+        u = v * s[:, None]
+        return (B + A @ A.T, T + A @ u, G + u.T @ u), None
+
+    k = Vp.shape[2]
+    zero = (jnp.zeros((m, m), Z.dtype), jnp.zeros((m, k), Z.dtype), jnp.zeros((k, k), Z.dtype))
+    (AAt, T, G), _ = jax.lax.scan(add, zero, (Xp, Vp, sw))
+    LB = jnp.linalg.cholesky(jnp.eye(m, dtype=Z.dtype) + AAt)
+    S = jsl.solve_triangular(LB, T, lower=True)
+    whiten = jsl.solve_triangular(L, jnp.eye(m, dtype=Z.dtype), lower=True)
+    post = jsl.solve_triangular(LB, whiten, lower=True)
+    weights = jsl.solve_triangular(L.T, jsl.solve_triangular(LB.T, S, lower=False), lower=False)
+    # log det K̃ = log det B + Σ log λ_i (matrix determinant lemma); λ_i = 1/sw² on real cases
+    real = sw > 0
+    log_lam = jnp.sum(jnp.where(real, -2.0 * jnp.log(jnp.where(real, sw, 1.0)), 0.0))
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diag(LB))) + log_lam
+    return Projection(Z, weights, G - S.T @ S, whiten, post, logdet)
+
+
+def inducing_inputs(X: Float[ArrayLike, "N D"], m: int, *, seed: int = 0) -> np.ndarray:
+    """``m`` inducing inputs among the cases ``X``: k-means centres (k-means++ start), or the
+    distinct cases themselves where there are at most ``m``.
+
+    Args:
+        X: (N, D) the cases' inputs.
+        m: the most inducing inputs.
+        seed: k-means' seed.
+
+    Returns:
+        (m', D) the inducing inputs, ``m' <= m``.
+
+    Raises:
+        ValueError: ``X`` not (N, D) with N >= 1, or ``m`` under 1.
+    """
+    from scipy.cluster.vq import kmeans2
+
+    pts = np.asarray(X, float)
+    if pts.ndim != 2 or pts.shape[0] < 1:
+        raise ValueError(f"X must be (N, D) with N >= 1, got shape {pts.shape}")
+    if int(m) < 1:
+        raise ValueError(f"m must be >= 1, got {m}")
+    distinct = np.unique(pts, axis=0)
+    if distinct.shape[0] <= m:
+        return distinct
+    Z, lab = kmeans2(pts, int(m), seed=seed, minit="++")
+    # an empty cluster keeps a centre no case is near: drop it
+    return Z[np.isin(np.arange(Z.shape[0]), lab)]
