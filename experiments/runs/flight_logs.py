@@ -46,6 +46,7 @@ from gpg.flight.labels import Labels, label
 from gpg.flight.log import read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
 from gpg.flight.tracking import default_drift, fit_drift, prequential, track
+from gpg.linalg import memory
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController
 from gpg.quadrotor.dynamics import Wind
@@ -129,8 +130,10 @@ class _Bench:
 
     def correct(self, labels, **kw):
         c = self.cfg["correct"]
-        return fc.correct(self.prior, labels, max_labels=int(c["max_labels"]),
-                          subset_size=int(c["subset_size"]), **kw)  # fmt: skip
+        opts = {"max_labels": None if c["max_labels"] is None else int(c["max_labels"]),
+                "exact_labels": int(c["exact_labels"]), "inducing": int(c["inducing"]),
+                "subset_size": int(c["subset_size"])}  # fmt: skip
+        return fc.correct(self.prior, labels, **{**opts, **kw})
 
     @property
     def progress(self) -> bool:
@@ -230,11 +233,21 @@ def _curve(bench: _Bench, train_labels, tests, seconds, base_s):
         lab = _first(train_labels, s)
         row: dict[str, Any] = {"seconds": s, "labels": len(lab)}
         scale = bool(bench.cfg["correct"]["scale"])
+        with memory.PeakRSS() as mem:
+            t0 = time.perf_counter()
+            main = bench.correct(lab, scale=scale)
+            row["corrected_fit_s"] = time.perf_counter() - t0
+        row["corrected_peak_mib"] = mem.peak_delta / 2**20
+        row["corrected_inducing"] = main.config["flight_correction"]["inducing"]
         models = {
-            "corrected": bench.correct(lab, scale=scale),
+            "corrected": main,
             "values_only": bench.correct(lab, use_prior=False, simple_term=False),
             "values_only_m": bench.correct(lab, use_prior=False),
         }
+        thinned = bench.cfg["correct"].get("compare_thinned")
+        if thinned and len(lab) > int(thinned):
+            # today's model beside it: the labels thinned evenly to an exact GP's size
+            models["corrected_thinned"] = bench.correct(lab, scale=scale, max_labels=int(thinned))
         if unscaled and s == base_s:
             models["corrected_unscaled"] = bench.correct(lab, scale=False)
             # the physical basis where the flights went (the hard scenario: where they did not)
@@ -406,11 +419,14 @@ def _report(curve, default, adapt, targets) -> str:
     for name, head in (
         ("sim_only", "sim only"),
         ("corrected", "corrected"),
+        ("corrected_thinned", "thinned"),
         ("values_only", "values only"),
         ("values_only_m", "values only + κM"),
     ):
         cols.append((f"{name}_force_rmse", f"{head} F (N)", ".3f"))
     cols += [
+        ("corrected_fit_s", "fit s", ".1f"),
+        ("corrected_peak_mib", "peak MiB", ".0f"),
         ("corrected_torque_rmse", "corrected τ (N·m)", ".4f"),
         ("sim_only_torque_rmse", "sim only τ (N·m)", ".4f"),
         ("corrected_coverage95", "coverage 95 %", ".3f"),
@@ -448,16 +464,19 @@ def _figures(where: Path, curve, corrected, prior, test) -> None:
     import matplotlib.pyplot as plt
 
     where.mkdir(parents=True, exist_ok=True)
-    s = [r["seconds"] for r in curve]
     fig, ax = plt.subplots(figsize=(6, 4))
     lines = (
         ("sim_only", "simulator only", "k--"),
         ("values_only", "values-only GP (flights only)", "C1o-"),
         ("values_only_m", "values-only GP with κ M (flights only)", "C2s:"),
         ("corrected", "simulator prior + flight correction", "C0o-"),
+        ("corrected_thinned", "the same, labels thinned to an exact GP's size", "C3^:"),
     )
     for name, label_, style in lines:
-        ax.plot(s, [r[f"{name}_force_rmse"] for r in curve], style, label=label_)
+        pts = [(r["seconds"], r[f"{name}_force_rmse"]) for r in curve
+               if f"{name}_force_rmse" in r]  # fmt: skip
+        if pts:
+            ax.plot(*zip(*pts, strict=True), style, label=label_)
     ax.set_xscale("log")
     ax.set_xlabel("seconds of flight data")
     ax.set_ylabel("residual-force RMSE on held-out flights (N)")

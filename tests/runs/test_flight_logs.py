@@ -25,6 +25,9 @@ SMOKE = [
     "adapt.check_s=5",
     "adapt.stream_s=20",
     "progress=false",
+    "correct.exact_labels=150",  # the curve's last point (200 labels) through inducing inputs
+    "correct.inducing=40",
+    "correct.compare_thinned=150",
 ]
 
 
@@ -51,6 +54,9 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     saved = json.loads((tmp_path / "results.json").read_text())
     assert finite_numbers(saved) and saved["config"]["default_seconds"] == 10
     assert [r["seconds"] for r in saved["curve"]] == [5.0, 10.0, 20.0]
+    last = saved["curve"][-1]
+    assert last["corrected_inducing"] == 40 and last["corrected_thinned_force_rmse"] > 0
+    assert saved["curve"][0]["corrected_inducing"] is None  # 50 labels: exact
     d = saved["default"]
     for key in ("sim_only", "corrected", "values_only", "values_only_m", "corrected_unscaled"):
         assert d[f"{key}_force_rmse"] > 0
