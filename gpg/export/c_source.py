@@ -324,6 +324,7 @@ def _source(name: str, dtype: str, s: Layout, record: dict[str, Any]) -> str:
         "HAS_VAR": s.has_variance,
         "HAS_GLOBAL_MEAN": s.global_mean is not None,
         "HAS_ALLOCATION": s.allocation is not None,
+        "HAS_CORR": s.correction is not None,
     }
     defs = [f"#define {k} {int(v)}" for k, v in flags.items()]
     defs += [f"#define BOX_LO {name}_box_lo"]
@@ -349,7 +350,65 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
     consts = "\n".join(defs + _constants(name, dtype, s))
     m = s.n_outputs
     sums = _coef_sums(m, m * len(s.grad_dims)) if s.global_mean is not None else ""
-    return head + consts + "\n" + fragment("frames.c") + sums + fragment("body.c") + public
+    corr = ""
+    if s.correction is not None:
+        corr = "\n".join(_correction_constants(s)) + "\n" + fragment("correction.c")
+    return head + consts + "\n" + fragment("frames.c") + sums + corr + fragment("body.c") + public
+
+
+def _correction_constants(s: Layout) -> list[str]:
+    """The arrays of a model corrected by flights (:class:`gpg.export.layout.Correction`), in
+    double whatever the dtype (``gpg/export/c/correction.c`` reads them); the variance's
+    triangles packed row by row."""
+    c = s.correction
+    out: list[str] = []
+
+    def dbl(key, a):
+        a = np.asarray(a, float)
+        out.append(f"static const double {key}[{max(a.size, 1)}] = {_literal(a, np.float64)};")
+
+    n = [d.points.shape[0] for d in c.deltas]
+    off = np.cumsum([0] + n[:-1])
+    n_terms = 0 if c.beta is None else c.beta.shape[1]
+    n_int = 0 if c.G is None else c.G[0].shape[1]
+    out += [
+        f"#define HAS_KAPPA {int(c.kappa is not None)}",
+        f"#define N_TERMS {n_terms}",
+        f"#define N_INTEGRATED {n_int}",
+        f"#define CORR_WITH_PRIOR {int(c.with_prior)}",
+        f"#define CORR_WITH_SIMPLE {int(c.with_simple)}",
+        f"#define DELTA_MAX {max(n)}",
+        f"#define CORR_RPM_REF {c.rpm_ref!r}",
+        f"#define CORR_AIR_DENSITY {c.air_density!r}",
+        f"static const int DELTA_N[6] = {_ints(n)};",
+        f"static const long DELTA_PT_OFF[6] = {_ints(off)};",
+    ]
+    dbl("CORR_SCALE", c.scale)
+    if c.kappa is not None:  # a term of M implies M: the prior's allocation
+        dbl("CORR_KAPPA", c.kappa)
+        dbl("CORR_ALLOCATION", s.allocation)
+    if c.beta is not None:
+        dbl("CORR_BETA", c.beta)
+        dbl("CORR_HUBS", c.hubs)
+    dbl("DELTA_PTS", np.concatenate([d.points for d in c.deltas]))
+    dbl("DELTA_W", np.concatenate([d.weights for d in c.deltas]))
+    dbl("DELTA_LS", np.concatenate([d.lengthscale for d in c.deltas]))
+    dbl("DELTA_SIGMA", [d.sigma for d in c.deltas])
+    dbl("DELTA_NU", [d.noise for d in c.deltas])
+    dbl("DELTA_OS", [d.output_scale for d in c.deltas])
+    if s.has_variance:
+        tri = [(m * (m + 1)) // 2 for m in n]
+        out.append(f"static const long DELTA_TRI_OFF[6] = {_ints(np.cumsum([0] + tri[:-1]))};")
+        out.append(f"#define DELTA_HAS_POST {int(c.deltas[0].post is not None)}")
+        for key in ("whiten", "post"):
+            parts = [getattr(d, key) for d in c.deltas]
+            # an unused DELTA_POST is still read (behind DELTA_HAS_POST = 0): kept, as zeros
+            packed = [F[np.tril_indices(F.shape[0])] for F in parts if F is not None]
+            dbl(f"DELTA_{key.upper()}", np.concatenate(packed) if packed else np.zeros(0))
+        if c.G is not None:
+            dbl("CORR_G", np.concatenate([g.ravel() for g in c.G]))
+            dbl("CORR_C", c.cov_chol)
+    return out
 
 
 def fragment(name: str) -> str:

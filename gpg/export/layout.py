@@ -19,6 +19,7 @@ block value rows then one block per gradient dimension), so every writer loops o
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 from typing import Any
@@ -34,7 +35,7 @@ from gpg.gp.partition import Partition
 from gpg.names import AERO
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
-__all__ = ["Layout", "spec"]
+__all__ = ["Correction", "Discrepancy", "Layout", "spec"]
 
 # A C source holds each constant as text (about 3.5 bytes per stored byte): past this many
 # bytes of constants an export is refused unless asked for (the exact GP-G variance at
@@ -105,6 +106,87 @@ class Bins:
 
 
 @dataclass(frozen=True)
+class Discrepancy:
+    """One load output's discrepancy GP of a model corrected by flights, values only:
+    mean ``k(x̂, Z)ᵀ w`` and latent variance ``σ − ‖W k‖² + ‖P k‖²`` (``P`` absent for an
+    exact GP, whose ``W`` is ``L⁻¹``; an inducing-point GP's ``W = L⁻¹`` of ``K_mm`` and
+    ``P = L_B⁻¹ L⁻¹``, :mod:`gpg.gp.inducing`), its predictive variance
+    ``c (max(latent, 0) + ν²)``.
+
+    Attributes:
+        points: (m, D) ``Z`` (an exact GP's training inputs), normalised.
+        weights: (m,) ``w``.
+        lengthscale: (D,).
+        sigma: σ.
+        noise: ``ν²``.
+        output_scale: ``c``.
+        whiten: (m, m) ``W``, lower triangular, or None (mean only).
+        post: (m, m) ``P``, lower triangular, or None.
+    """
+
+    points: np.ndarray
+    weights: np.ndarray
+    lengthscale: np.ndarray
+    sigma: float
+    noise: float
+    output_scale: float
+    whiten: np.ndarray | None
+    post: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class Correction:
+    """What a model corrected by flights adds to its prior's closed form
+    (:class:`gpg.flight.correction.Corrected`), in the GP's normalised units: per load output
+    ``j``, the mean ``ρ_j μ_j + κ_j m_j(x) + Σ_t β_jt h_jt(x) + δ_j(x̂)`` and the predictive
+    variance ``ρ_j² c_j max(v, 0) + var δ_j + ‖Cⱼᵀ(h̄_j − G_jᵀ k_j)‖²`` (``v`` the prior's
+    latent variance, ``h̄`` the integrated columns: the prior's mean, ``m``, then ``h``);
+    the levels ``ρ = 1`` and ``c_j max(v, 0)``.
+
+    Attributes:
+        scale: (M,) ``ρ``.
+        kappa: (6,) ``κ``, or None (no ``M`` term).
+        beta: (6, T) the physical columns' coefficients, or None (no physical basis).
+        hubs: (4, 3) rotor hubs, body FRD (m), for the rotor columns' moments.
+        air_density: kg/m³ of the drag columns.
+        rpm_ref: rpm the rotor columns are per.
+        deltas: the six discrepancies.
+        with_prior: the integrated columns start with the prior's mean.
+        with_simple: then ``M``'s loads.
+        G: six (m, P) ``K⁻¹ H`` (the integrated basis's variance), or None.
+        cov_chol: (6, P, P) ``C``, or None.
+    """
+
+    scale: np.ndarray
+    kappa: np.ndarray | None
+    beta: np.ndarray | None
+    hubs: np.ndarray
+    air_density: float
+    rpm_ref: float
+    deltas: list[Discrepancy]
+    with_prior: bool
+    with_simple: bool
+    G: list[np.ndarray] | None
+    cov_chol: np.ndarray | None
+
+    @property
+    def has_variance(self) -> bool:
+        return all(d.whiten is not None for d in self.deltas)
+
+    def nbytes(self, variance: bool) -> int:
+        """Bytes of its arrays in double (the writers keep them so), the triangles' halves."""
+        n = sum(d.points.size + d.weights.size + d.lengthscale.size + 3 for d in self.deltas)
+        n += self.scale.size + 12 + (0 if self.beta is None else self.beta.size + 6)
+        if variance and self.has_variance:
+            for d in self.deltas:
+                m = d.points.shape[0]
+                n += (m * (m + 1) // 2) * (1 if d.post is None else 2)
+            if self.G is not None:
+                n += sum(g.size for g in self.G) + self.cov_chol.size
+        return 8 * n
+
+
+@dataclass(frozen=True)
 class Layout:
     """Everything an export writes, as float64 NumPy (the factor also in its stored dtype).
     Called ``Spec`` before gpg 0.3 (that name still reads, with a warning, for one release)."""
@@ -128,6 +210,7 @@ class Layout:
     output_scale: np.ndarray  # (M,)
     global_mean: dict[str, np.ndarray] | None  # xs, coef (GlobalMean's arrays)
     bins: Bins | None
+    correction: Correction | None = None  # a model corrected by flights: what it adds
     record: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -141,7 +224,8 @@ class Layout:
 
     @property
     def has_variance(self) -> bool:
-        return self.bins is not None and self.bins.factor is not None
+        prior = self.bins is not None and self.bins.factor is not None
+        return prior and (self.correction is None or self.correction.has_variance)
 
     def constant_bytes(self, itemsize: int, variance: bool) -> int:
         """Bytes of the GP's arrays at ``itemsize``, what a writer checks against ``max_bytes``.
@@ -172,6 +256,8 @@ class Layout:
                 n += sum(_triangle_size(f) for f in b.factor) * fsize
             elif b.coef is not None:
                 n += pts * itemsize
+        if self.correction is not None:
+            n += self.correction.nbytes(variance)
         return n
 
 
@@ -236,12 +322,12 @@ def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None)
         bins = _binned(m, coef=True, variance=variance)
         grad_dims, ls, sigma = m.grad_dims, m.lengthscale, m.variance
     elif type(m).__name__ == "Corrected":  # gpg.flight: imported only where used
-        raise ValueError(
-            f"model {sur.model_name!r} is corrected by flights (gpg.flight): its mean adds "
-            "values-only discrepancy GPs and a scale to the prior's closed form, which the "
-            "export layouts do not carry yet; export the prior (gpg.flight.base(sur)) or "
-            "predict through JAX"
-        )
+        prior = spec(dataclasses.replace(sur, model=m.prior), variance=variance,
+                     max_bytes=max_bytes)  # fmt: skip
+        out = dataclasses.replace(prior, model=sur.model_name,
+                                  correction=_correction(sur, m, variance))  # fmt: skip
+        _require_finite(out)
+        return _with_record(out)
     else:
         raise ValueError(
             f"model {sur.model_name!r} ({type(m).__name__}) has no exportable closed form"
@@ -274,6 +360,55 @@ def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None)
 
 def _f64(a) -> np.ndarray:
     return np.array(a, dtype=np.float64)
+
+
+def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
+    """The arrays a model corrected by flights adds to its prior's (:class:`Correction`)."""
+    from gpg.flight.basis import AIR_DENSITY, RPM_REF
+    from gpg.gp.inducing import InducingGP
+
+    if m.online is not None or m.tracker is not None:
+        raise ValueError(
+            f"model {sur.model_name!r} adapts online (gpg.flight.adapt or track): export the "
+            "model it was corrected to before adapting (its state changes label by label; "
+            "the C update of the online term is gpg.export.to_c's job only for a fixed model)"
+        )
+    if len(m.delta) != 6:
+        raise ValueError(f"a corrected model exports with six discrepancies, got {len(m.delta)}")
+    d_in = int(m.prior.n_inputs)
+    deltas = []
+    for d in m.delta:
+        h = d.hyper
+        ls = np.broadcast_to(_f64(h.lengthscale), (d_in,)).copy()
+        if isinstance(d, InducingGP):
+            w, W, P = _f64(d.weights)[:, 0], _f64(d.whiten), _f64(d.post)
+        else:
+            if d.order is not None or d.observed is not None or d.bases is not None:
+                raise ValueError("a discrepancy GP grown by condition does not export: refit it")
+            w, W, P = _f64(d.alpha)[:, 0], _f64(d.chol_inv.to_dense()), None
+        if not variance or W.shape[0] == 0:
+            W = P = None
+        deltas.append(Discrepancy(points=_f64(d.X), weights=w, lengthscale=ls,
+                                  sigma=float(h.variance), noise=float(h.noise),
+                                  output_scale=float(np.asarray(d.output_scale)[0]),
+                                  whiten=W, post=P))  # fmt: skip
+    e = m.explicit
+    hubs = np.zeros((4, 3)) if sur.simple is None else _f64(sur.simple.positions)
+    if e is not None:
+        hubs = _f64(e.physics.positions)
+    return Correction(
+        scale=_f64(m.scale),
+        kappa=None if m.kappa is None else _f64(m.kappa),
+        beta=None if e is None else _f64(e.beta),
+        hubs=hubs,
+        air_density=AIR_DENSITY,
+        rpm_ref=RPM_REF,
+        deltas=deltas,
+        with_prior=bool(e is not None and e.with_prior),
+        with_simple=bool(e is not None and e.with_simple),
+        G=None if e is None or not variance else [g for g in _f64(e.G)],
+        cov_chol=None if e is None or not variance else _f64(e.cov_chol),
+    )
 
 
 def _global(mean: GlobalMean) -> dict[str, np.ndarray]:
@@ -392,6 +527,25 @@ def _arrays(s: Layout):
         yield "allocation", s.allocation
     if s.global_mean is not None:
         yield from s.global_mean.items()
+    if s.correction is not None:
+        c = s.correction
+        yield "corr_scale", c.scale
+        for key in ("kappa", "beta", "cov_chol"):
+            if getattr(c, key) is not None:
+                yield f"corr_{key}", getattr(c, key)
+        yield "corr_hubs", c.hubs
+        for j, d in enumerate(c.deltas):
+            yield f"delta{j}_points", d.points
+            yield f"delta{j}_weights", d.weights
+            yield (
+                f"delta{j}_hyper",
+                np.concatenate([d.lengthscale, [d.sigma, d.noise, d.output_scale]]),
+            )
+            for key in ("whiten", "post"):
+                if getattr(d, key) is not None:
+                    yield f"delta{j}_{key}", getattr(d, key)
+            if c.G is not None:
+                yield f"delta{j}_G", c.G[j]
     if s.bins is not None:
         b = s.bins
         for i, p in enumerate(b.points):

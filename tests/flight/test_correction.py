@@ -192,8 +192,54 @@ def test_corrected_checkpoint_and_export(corrected, flights, tmp_path):
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
     assert "flight_correction" in checkpoint.read_metadata(path)
-    with pytest.raises(ValueError, match="corrected by flights"):
-        to_c(corrected, tmp_path / "c_src")
+    adapted = fc.adapt(corrected, inducing=4)
+    with pytest.raises(ValueError, match="adapts online"):
+        to_c(adapted, tmp_path / "c_src")
+    assert not (tmp_path / "c_src").exists()
+
+
+def _export_states(flights, n=40):
+    """The labels' states, half moved a little (inside), a quarter twice as fast with rotors
+    2.5 times faster (outside the box: where the physical basis extrapolates)."""
+    rng = np.random.default_rng(7)
+    i = rng.integers(0, len(flights), n)
+    rpm, euler, v = (np.array(a)[i] for a in (flights.rpm, flights.euler, flights.v_air))
+    rpm[: n // 2] *= rng.uniform(0.97, 1.03, (n // 2, 4))
+    v[-n // 4 :] *= 2.0
+    rpm[-n // 4 :] *= 2.5
+    return rpm, euler, v
+
+
+def _c_equals_predict(sur, flights, tmp_path, dtype):
+    """The corrected model's C against ``predict``: force and torque to 1e-10 of their scale
+    in double, 1e-5 in float (the prior's arrays in float; the correction's stay double); the
+    variance to the prior's ``variance_rtol`` plus 1e-9 relative (the correction's double
+    sums); ``in_domain`` equal, met both ways."""
+    from tests.export.test_c_source import compiled
+    from tests.helpers import variance_rtol
+
+    out, call = compiled(sur, tmp_path, dtype)
+    assert out["variance"] and out["record"]["model"].endswith("+flight")
+    rpm, euler, v = _export_states(flights)
+    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    rtol = 1e-10 if dtype == "double" else 1e-5
+    vtol = variance_rtol(fc.base(sur), rpm, euler, v, None if dtype == "double" else 2.0**-24)
+    inside = []
+    for i in range(len(rpm)):
+        ok, f, t, lv, var = call(rpm[i], euler[i], v[i])
+        for got, want in ((f, ref.force[i]), (t, ref.torque[i]), (lv, ref.levels[i])):
+            assert np.abs(got - want).max() <= rtol * max(1.0, np.abs(want).max()), (i, got, want)
+        want = np.asarray(ref.variance[i])
+        assert np.all(np.abs(var - want) <= (vtol[i] + 1e-9) * want), (i, var, want)
+        assert ok == bool(ref.in_domain[i])
+        inside.append(ok)
+    assert 0 < sum(inside) < len(inside)
+
+
+def test_corrected_model_in_c_equals_predict(corrected, flights, tmp_path):
+    """Prior, ρ, κ M, the physical basis with its integrated band and exact discrepancies, in
+    double C (the inducing-point discrepancies in float: test_every_label_...)."""
+    _c_equals_predict(corrected, flights, tmp_path, "double")
 
 
 @pytest.mark.slow
@@ -526,5 +572,6 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     np.testing.assert_array_equal(pf.force, pb.force)
     np.testing.assert_array_equal(pf.variance, pb.variance)
     assert np.all(np.isfinite(pf.variance)) and np.all(pf.variance[:, :6] > 0)
+    _c_equals_predict(few, flights, tmp_path / "c", "float")  # ρ, κ M and inducing δ in C
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)

@@ -206,6 +206,9 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
 #if HAS_BINS
   real k[MAX_ROWS];
 #endif
+#if HAS_CORR
+  double pvn[N_OUT];
+#endif
   for (i = 0; i < 3; i++) { force[i] = 0.0; torque[i] = 0.0; }
   for (i = 0; i < N_LEVELS; i++) levels[i] = 0.0;
   if (variance) for (i = 0; i < N_OUT; i++) variance[i] = 0.0;
@@ -259,6 +262,9 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   }
 #endif
   (void)b; (void)nr; (void)latent;
+#if HAS_CORR
+  corrected(x, xn, yn, latent, variance ? pvn : 0);
+#endif
   for (j = 0; j < N_OUT; j++) y[j] = yn[j] * Y_STD[j] + Y_MEAN[j];
   for (i = 0; i < 3; i++)
     for (j = 0; j < 3; j++) { force[i] += rwh[i][j] * y[j]; torque[i] += rwh[i][j] * y[3 + j]; }
@@ -278,9 +284,13 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   if (variance) {
     /* c_m (latent + nu^2) std_m^2 per output in H, then diag(R diag(d) R^T) for the vectors */
     double pv[N_OUT];
+#if HAS_CORR
+    for (j = 0; j < N_OUT; j++) pv[j] = pvn[j] * Y_STD[j] * Y_STD[j];
+#else
     for (j = 0; j < N_OUT; j++)
       pv[j] = OUTPUT_SCALE[j] * ((latent > 0.0 ? latent : 0.0) + SIGMA_NOISE[1]) * Y_STD[j] *
               Y_STD[j];
+#endif
     for (i = 0; i < 3; i++) {
       variance[i] = 0.0; variance[3 + i] = 0.0;
       for (j = 0; j < 3; j++) {
