@@ -80,6 +80,9 @@ def to_casadi(
     in_domain = ca.logic_and(inside, steady)
     xn = (x - ca.DM(s.x_lo)) / ca.DM(s.half) - 1
     yn, latent = _ca_gp(ca, s, xn)
+    pvn = None
+    if s.correction is not None:
+        yn, pvn = _ca_correction(ca, s, x, xn, yn, latent)
     y = yn * ca.DM(s.y_std) + ca.DM(s.y_mean)
     R_out = ca.mtimes(_ca_rot(ca, euler[0], euler[1], euler[2]).T, rwh) if frame == "body" else rwh
     force, torque = ca.mtimes(R_out, y[0:3]), ca.mtimes(R_out, y[3:6])
@@ -94,7 +97,7 @@ def to_casadi(
     outs, names = [force, torque, y[6:]], ["force", "torque", "levels"]
     if latent is not None:
         w = ca.DM(s.output_scale * s.y_std**2)
-        pv = w * (ca.fmax(latent, 0) + s.noise)
+        pv = w * (ca.fmax(latent, 0) + s.noise) if pvn is None else pvn * ca.DM(s.y_std**2)
         R2 = R_out**2
         outs.append(ca.vertcat(ca.mtimes(R2, pv[0:3]), ca.mtimes(R2, pv[3:6]), pv[6:]))
         names.append("variance")
@@ -120,6 +123,91 @@ def _ca_gp(ca, s: Layout, xn):
         for F, k in zip(bins.factor, rows, strict=True)
     ]
     return mean, s.sigma - _ca_select(ca, b, quads)
+
+
+def _ca_correction(ca, s: Layout, x, xn, yn, latent):
+    """A model corrected by flights (:class:`gpg.export.layout.Correction`): its normalised mean
+    and, with ``latent``, its normalised predictive variance per output (else None)."""
+    c = s.correction
+    prior = yn
+    mean = ca.DM(c.scale) * prior
+    ms = h = None
+    if c.kappa is not None:
+        ms = _ca_simple(ca, s, x)
+        mean = mean + ca.vertcat(ca.DM(c.kappa) * ms, ca.DM.zeros(s.n_outputs - 6))
+    if c.beta is not None:
+        h = _ca_physical(ca, s, x)  # (6, T)
+        mean = mean + ca.vertcat(ca.sum2(ca.DM(c.beta) * h), ca.DM.zeros(s.n_outputs - 6))
+    var = None
+    if latent is not None:
+        var = ca.fmax(latent, 0) * ca.DM(s.output_scale * c.scale**2)
+    loads, extra = [], []
+    for j, d in enumerate(c.deltas):
+        m = d.points.shape[0]
+        diff = (ca.repmat(xn.T, m, 1) - ca.DM(d.points)) / ca.repmat(ca.DM(d.lengthscale).T, m, 1)
+        k = d.sigma * ca.exp(-0.5 * ca.sum2(diff**2))
+        loads.append(ca.dot(k, ca.DM(d.weights)))
+        if var is None:
+            continue
+        v = d.sigma - ca.sumsqr(ca.mtimes(ca.DM(d.whiten), k))
+        if d.post is not None:
+            v = v + ca.sumsqr(ca.mtimes(ca.DM(d.post), k))
+        e = d.output_scale * (ca.fmax(v, 0) + d.noise)
+        if c.G is not None:
+            cols = ([prior[j]] if c.with_prior else []) + ([ms[j]] if c.with_simple else [])
+            hb = ca.vertcat(*cols, h[j, :].T)
+            r = hb - ca.mtimes(ca.DM(c.G[j]).T, k)
+            e = e + ca.sumsqr(ca.mtimes(ca.DM(c.cov_chol[j]).T, r))
+        extra.append(e)
+    mean = mean + ca.vertcat(*loads, ca.DM.zeros(s.n_outputs - 6))
+    if var is not None:
+        var = var + ca.vertcat(*extra, ca.DM.zeros(s.n_outputs - 6))
+    return mean, var
+
+
+def _ca_simple(ca, s: Layout, x):
+    """``M``'s loads in the GP's frame, normalised (:class:`gpg.flight.correction.SimpleBasis`)."""
+    u = ca.mtimes(ca.DM(s.allocation), x[0:4] ** 2)
+    f, t = ca.vertcat(0, 0, -u[0]), u[1:4]
+    if s.frame != "body":
+        R = _ca_rot(ca, x[4], x[5], x[6])
+        f, t = ca.mtimes(R, f), ca.mtimes(R, t)
+    return ca.vertcat(f, t) / ca.DM(s.y_std[:6])
+
+
+def _ca_physical(ca, s: Layout, x):
+    """The physical columns (6, T) in the GP's frame, normalised
+    (:class:`gpg.flight.basis.PhysicalBasis`)."""
+    c = s.correction
+    if s.frame == "body":
+        R, vb = ca.DM.eye(3), x[4:7]
+    else:
+        R = _ca_rot(ca, x[4], x[5], x[6])
+        vb = R[0, :].T * x[7]
+    speed = ca.sqrt(ca.sumsqr(vb) + 1e-12)
+    w = x[0:4] / c.rpm_ref
+    zero = ca.MX.zeros(3, 1)
+    cols = []
+    for a in range(3):
+        e = ca.DM.zeros(3, 1)
+        e[a] = 1.0
+        cols.append(ca.vertcat(-0.5 * c.air_density * speed * vb[a] * e, zero))
+    e2 = vb[0] ** 2 + vb[1] ** 2
+    for term in range(3):
+        f_tot, t_tot = zero, zero
+        for i in range(4):
+            if term == 0:
+                f = ca.vertcat(-w[i] * vb[0], -w[i] * vb[1], 0)
+            elif term == 1:
+                f = ca.vertcat(0, 0, w[i] * vb[2])
+            else:
+                f = ca.vertcat(0, 0, -e2)
+            f_tot = f_tot + f
+            t_tot = t_tot + ca.cross(ca.DM(c.hubs[i]), f)
+        cols.append(ca.vertcat(f_tot, t_tot))
+    out = ca.horzcat(*cols)  # (6, T), body frame
+    out = ca.vertcat(ca.mtimes(R, out[0:3, :]), ca.mtimes(R, out[3:6, :]))
+    return out / ca.repmat(ca.DM(s.y_std[:6]), 1, len(cols))
 
 
 def _ca_select(ca, b, branches):

@@ -438,6 +438,117 @@ def _gp(g: _Graph, s: Layout, xn, single: bool = False):
     return mean, g.op("Cast", g.sub(g.const(s.sigma, "k", np.float64), select(quads)), to=FLOAT)
 
 
+# Long by design: the correction's terms in the order of gpg.export.c/correction.c, in one
+# place (each a few nodes; split, the columns would travel between helpers as lists).
+def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
+    """A model corrected by flights (:class:`gpg.export.layout.Correction`), in float64: its
+    normalised mean (N, M) and, with ``latent``, its normalised predictive variance (N, M)."""
+    c = s.correction
+    f64 = np.float64
+    m_out = s.n_outputs
+
+    def k64(v):
+        return g.const(v, "k", f64)
+
+    def pad(cols):  # six (N, 1) load columns, then zeros for the levels: (N, M)
+        zero = g.mul(g.col(yn, 0), k64(0.0))
+        return g.cat(list(cols) + [zero] * (m_out - 6))
+
+    xc = [g.col(x64, i) for i in range(s.dim)]
+    prior = [g.col(yn, j) for j in range(6)]
+    mean = g.mul(yn, g.const(c.scale, "rho", f64))
+    R = None if s.frame == "body" else _rot(g, xc[4], xc[5], xc[6])
+
+    def rotate(vec):
+        if R is None:
+            return vec
+        return [g.add(g.add(g.mul(R[i][0], vec[0]), g.mul(R[i][1], vec[1])), g.mul(R[i][2], vec[2]))
+                for i in range(3)]  # fmt: skip
+
+    ms = h = None
+    if c.kappa is not None:
+        u = g.op("MatMul", g.sq(g.cat(xc[:4])), g.const(s.allocation.T, "alloc", f64))
+        zero = g.mul(xc[0], k64(0.0))
+        f = rotate([zero, zero, g.op("Neg", g.col(u, 0))])
+        t = rotate([g.col(u, j) for j in (1, 2, 3)])
+        ms = [g.div(a, k64(s.y_std[i])) for i, a in enumerate(f + t)]
+        mean = g.add(mean, pad(g.mul(ms[j], k64(c.kappa[j])) for j in range(6)))
+    if c.beta is not None:
+        if R is None:
+            vb = xc[4:7]
+        else:
+            vb = [g.mul(R[0][i], xc[7]) for i in range(3)]
+        e2 = g.add(g.sq(vb[0]), g.sq(vb[1]))
+        speed = g.op("Sqrt", g.add(g.add(e2, g.sq(vb[2])), k64(1e-12)))
+        zero = g.mul(xc[0], k64(0.0))
+        w = [g.div(xc[i], k64(c.rpm_ref)) for i in range(4)]
+        cols = []
+        for a in range(3):
+            f = [zero] * 3
+            f[a] = g.mul(k64(-0.5 * c.air_density), g.mul(speed, vb[a]))
+            cols.append(f + [zero] * 3)
+        for term in range(3):
+            ft, tt = [zero] * 3, [zero] * 3
+            for i in range(4):
+                if term == 0:
+                    f = [g.op("Neg", g.mul(w[i], vb[0])), g.op("Neg", g.mul(w[i], vb[1])), zero]
+                elif term == 1:
+                    f = [zero, zero, g.mul(w[i], vb[2])]
+                else:
+                    f = [zero, zero, g.op("Neg", e2)]
+                p = c.hubs[i]
+                cr = [g.sub(g.mul(k64(p[1]), f[2]), g.mul(k64(p[2]), f[1])),
+                      g.sub(g.mul(k64(p[2]), f[0]), g.mul(k64(p[0]), f[2])),
+                      g.sub(g.mul(k64(p[0]), f[1]), g.mul(k64(p[1]), f[0]))]  # fmt: skip
+                ft = [g.add(ft[a], f[a]) for a in range(3)]
+                tt = [g.add(tt[a], cr[a]) for a in range(3)]
+            cols.append(ft + tt)
+        # h[j][t]: column t's output j, rotated to the GP's frame, normalised
+        h = [[None] * len(cols) for _ in range(6)]
+        for t, col in enumerate(cols):
+            rot = rotate(col[:3]) + rotate(col[3:])
+            for j in range(6):
+                h[j][t] = g.div(rot[j], k64(s.y_std[j]))
+        terms = []
+        for j in range(6):
+            acc = None
+            for t in range(len(cols)):
+                term = g.mul(h[j][t], k64(c.beta[j, t]))
+                acc = term if acc is None else g.add(acc, term)
+            terms.append(acc)
+        mean = g.add(mean, pad(terms))
+    var = None
+    if latent is not None:
+        lat = g.op("Max", g.op("Cast", latent, to=DOUBLE), k64(0.0))
+        var = g.mul(lat, g.const(s.output_scale * c.scale**2, "w", f64))
+    loads, extra = [], []
+    for j, d in enumerate(c.deltas):
+        x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
+        diff = g.div(g.sub(x3, g.const(d.points, "pts", f64)), g.const(d.lengthscale, "ls", f64))
+        r2 = g.op("ReduceSum", g.sq(diff), g.const([2], "ax", np.int64), keepdims=0)
+        k = g.mul(k64(d.sigma), g.op("Exp", g.mul(k64(-0.5), r2)))  # (N, m)
+        loads.append(g.op("MatMul", k, g.const(d.weights[:, None], "w", f64)))
+        if var is None:
+            continue
+
+        def sq_norm(a):  # (N, q) -> (N, 1)
+            return g.op("ReduceSum", g.sq(a), g.const([1], "ax", np.int64), keepdims=1)
+
+        v = g.sub(k64(d.sigma), sq_norm(g.op("MatMul", k, g.const(d.whiten.T, "W", f64))))
+        if d.post is not None:
+            v = g.add(v, sq_norm(g.op("MatMul", k, g.const(d.post.T, "P", f64))))
+        e = g.mul(k64(d.output_scale), g.add(g.op("Max", v, k64(0.0)), k64(d.noise)))
+        if c.G is not None:
+            hb = ([prior[j]] if c.with_prior else []) + ([ms[j]] if c.with_simple else [])
+            r = g.sub(g.cat(hb + h[j]), g.op("MatMul", k, g.const(c.G[j], "G", f64)))
+            e = g.add(e, sq_norm(g.op("MatMul", r, g.const(c.cov_chol[j], "C", f64))))
+        extra.append(e)
+    mean = g.add(mean, pad(loads))
+    if var is not None:
+        var = g.add(var, pad(extra))
+    return mean, var
+
+
 # Long by design: the graph from inputs to outputs in the order of Surrogate.predict's
 # pipeline (clean inputs, frame, domain, GP, rotation, M, variance, outputs).
 def _build(onnx, s: Layout, batch: bool = True):
@@ -488,6 +599,9 @@ def _build(onnx, s: Layout, batch: bool = True):
     lo, half = g.const(s.x_lo, "x_lo", np.float64), g.const(s.half, "half", np.float64)
     xn = g.sub(g.div(g.sub(x64, lo), half), g.const(1.0, "k", np.float64))
     yn, latent = _gp(g, s, xn, single=not batch)
+    pvn = None
+    if s.correction is not None:
+        yn, pvn = _correction(g, s, x64, xn, yn, latent)
     y64 = g.add(
         g.mul(yn, g.const(s.y_std, "y_std", np.float64)), g.const(s.y_mean, "y_mean", np.float64)
     )
@@ -513,6 +627,8 @@ def _build(onnx, s: Layout, batch: bool = True):
     if latent is not None:
         w = g.const(s.output_scale * s.y_std**2, "w")
         pv = g.mul(w, g.add(g.op("Max", latent, g.num(0.0)), g.num(s.noise)))  # (N, M)
+        if pvn is not None:
+            pv = g.op("Cast", g.mul(pvn, g.const(s.y_std**2, "w", np.float64)), to=FLOAT)
         pc = [g.col(pv, j) for j in range(s.n_outputs)]
         R2 = [[g.sq(rwh[i][j]) for j in range(3)] for i in range(3)]
         lv = g.op("Slice", pv, *(g.const([v_], "sl", np.int64) for v_ in (6, s.n_outputs, 1)))

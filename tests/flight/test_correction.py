@@ -236,6 +236,48 @@ def _c_equals_predict(sur, flights, tmp_path, dtype):
     assert 0 < sum(inside) < len(inside)
 
 
+def test_corrected_model_in_casadi_and_onnx(corrected, flights, tmp_path):
+    """The same model as a CasADi function (values to 1e-10 of their scale, the variance to
+    ``variance_rtol`` plus 1e-9, ``in_domain`` equal; CasADi's Jacobian of the force against
+    ``jax.jacrev`` of ``predict`` to 1e-8 of its largest entry) and as ONNX (the batched graph
+    against ``predict`` within the bounds of the ONNX tests, :func:`assert_equals_predict`)."""
+    _casadi_and_onnx(corrected, flights, tmp_path, n=16, jacobians=3)
+
+
+def _casadi_and_onnx(corrected, flights, tmp_path, n: int, jacobians: int):
+    ca = pytest.importorskip("casadi")
+    ort = pytest.importorskip("onnxruntime")
+    from gpg.export import to_casadi, to_onnx
+    from tests.export.test_onnx_model import assert_equals_predict
+    from tests.helpers import variance_rtol
+
+    rpm, euler, v = _export_states(flights, n)
+    ref = jax.jit(jax.vmap(corrected.predict))(rpm, euler, v)
+    vtol = variance_rtol(fc.base(corrected), rpm, euler, v)
+    f = to_casadi(corrected)
+    syms = [ca.MX.sym(n, k) for n, k in (("rpm", 4), ("euler", 3), ("v", 3))]
+    jf = ca.Function("j", syms, [ca.jacobian(f(*syms)[0], ca.vertcat(*syms))])
+    jac = jax.jit(jax.jacrev(lambda *a: corrected.predict(*a).force, argnums=(0, 1, 2)))
+    for i in range(len(rpm)):
+        res = [np.asarray(a).ravel() for a in f(rpm[i], euler[i], v[i])]
+        want = np.concatenate([ref.force[i], ref.torque[i], ref.levels[i]])
+        got = np.concatenate(res[:3])
+        assert np.abs(got - want).max() <= 1e-10 * max(1.0, np.abs(want).max())
+        w = np.asarray(ref.variance[i])
+        assert np.all(np.abs(res[3] - w) <= (vtol[i] + 1e-9) * w), (i, res[3], w)
+        assert float(res[4][0]) == float(ref.in_domain[i])
+        if i < jacobians:
+            Jj = np.concatenate([np.asarray(a) for a in jac(rpm[i], euler[i], v[i])], axis=1)
+            Jc = np.asarray(jf(rpm[i], euler[i], v[i]))
+            assert np.abs(Jc - Jj).max() <= 1e-8 * np.abs(Jj).max()
+    out = to_onnx(corrected, tmp_path / "c.onnx")
+    sess = ort.InferenceSession(str(out["onnx"]), providers=["CPUExecutionProvider"])
+    feeds = {"rpm": rpm, "euler": euler, "v_air": v}
+    res = sess.run(None, {k: np.asarray(a, np.float32) for k, a in feeds.items()})
+    got = dict(zip([o.name for o in sess.get_outputs()], res, strict=True))
+    assert_equals_predict(corrected, got, rpm, euler, v, prior=fc.base(corrected))
+
+
 def test_corrected_model_in_c_equals_predict(corrected, flights, tmp_path):
     """Prior, ρ, κ M, the physical basis with its integrated band and exact discrepancies, in
     double C (the inducing-point discrepancies in float: test_every_label_...)."""
@@ -573,5 +615,6 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     np.testing.assert_array_equal(pf.variance, pb.variance)
     assert np.all(np.isfinite(pf.variance)) and np.all(pf.variance[:, :6] > 0)
     _c_equals_predict(few, flights, tmp_path / "c", "float")  # ρ, κ M and inducing δ in C
+    _casadi_and_onnx(few, flights, tmp_path, n=6, jacobians=0)
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)
