@@ -107,7 +107,7 @@ def to_c(
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     source = _source(name, dtype, s, record)
-    header = _header(name, s, record)
+    header = _header(name, s, record, dtype)
     c_path, h_path = directory / f"{name}.c", directory / f"{name}.h"
     atomic_write(h_path, header.encode())
     atomic_write(c_path, source.encode())
@@ -158,7 +158,45 @@ def _domain_doc(s: Layout) -> str:
     )
 
 
-def _header(name: str, s: Layout, record: dict[str, Any]) -> str:
+def _online_header(name: str, s: Layout, c_type: str) -> str:
+    """The adapted model's state and calls, for a model with an online term."""
+    o = None if s.correction is None else s.correction.online
+    if o is None:
+        return ""
+    m = o.Z.shape[0]
+    return f"""
+/* The online term of the adapted model (gpg.flight.adapt): the state is the caller's (fixed
+ * size, {m} inducing inputs per load output; nothing is allocated), one state per vehicle.
+ * {name}_mean and {name}_predict above are the model without it (offline). */
+#define {name.upper()}_N_INDUCING {m}
+typedef struct {{
+  {c_type} mean[6][{m}];       /* the whitened weights' mean, per load output */
+  {c_type} cov[6][{m}][{m}];   /* and their covariance */
+  double t;                 /* s, the time of the last update */
+}} {name}_online;
+
+/* the state when the model was exported */
+void {name}_online_init({name}_online *st);
+
+/* one label at time t (s): the state relaxed since st->t (forgetting time constant
+ * {o.tau:.6g} s), then conditioned on the label's residual against the offline model, as
+ * gpg.flight.update. Returns 1, or 0 (the state untouched) for a label with a non-finite
+ * value or a negative variance. force, torque: the measured aerodynamic loads (N, N*m, world);
+ * force_var, torque_var their noise variances. */
+int {name}_online_update({name}_online *st, double t, const double rpm[4],
+                         const double euler[3], const double v_air[3], const double force[3],
+                         const double torque[3], const double force_var[3],
+                         const double torque_var[3]);
+
+/* as {name}_predict{"" if s.has_variance else " (variance: not written; may be 0)"}, with the
+ * online term's mean and variance added (the state as it is: not relaxed to a later time) */
+int {name}_online_predict(const {name}_online *st, const double rpm[4], const double euler[3],
+                          const double v_air[3], double force[3], double torque[3],
+                          double *levels, double *variance);
+"""
+
+
+def _header(name: str, s: Layout, record: dict[str, Any], dtype: str) -> str:
     guard = name.upper() + "_H"
     n_levels = len(s.level_names)
     meta = json.dumps(record, indent=1, sort_keys=True).replace("*/", "* /")
@@ -204,7 +242,7 @@ extern const double {name}_box_hi[{s.dim}];
 
 int {name}_mean(const double rpm[4], const double euler[3], const double v_air[3],
                 double force[3], double torque[3], double *levels);
-{predict}
+{predict}{_online_header(name, s, DTYPES[dtype][1])}
 #endif
 """
 
@@ -325,8 +363,10 @@ def _source(name: str, dtype: str, s: Layout, record: dict[str, Any]) -> str:
         "HAS_GLOBAL_MEAN": s.global_mean is not None,
         "HAS_ALLOCATION": s.allocation is not None,
         "HAS_CORR": s.correction is not None,
+        "HAS_ONLINE": _online(s) is not None,
     }
     defs = [f"#define {k} {int(v)}" for k, v in flags.items()]
+    defs.append(f"#define ONLINE_T {name}_online")
     defs += [f"#define BOX_LO {name}_box_lo"]
     defs.append(f"#define BOX_HI {name}_box_hi")
     head = (
@@ -337,23 +377,108 @@ def _source(name: str, dtype: str, s: Layout, record: dict[str, Any]) -> str:
     public = f"""
 int {name}_mean(const double rpm[4], const double euler[3], const double v_air[3],
                 double force[3], double torque[3], double *levels) {{
-  return evaluate(rpm, euler, v_air, force, torque, levels, 0);
+  return evaluate(rpm, euler, v_air, force, torque, levels, 0 ONLINE_PASS(0));
 }}
 """
     if s.has_variance:
         public += f"""
 int {name}_predict(const double rpm[4], const double euler[3], const double v_air[3],
                    double force[3], double torque[3], double *levels, double *variance) {{
-  return evaluate(rpm, euler, v_air, force, torque, levels, variance);
+  return evaluate(rpm, euler, v_air, force, torque, levels, variance ONLINE_PASS(0));
 }}
 """
+    if _online(s) is not None:
+        public += _online_public(name, s)
     consts = "\n".join(defs + _constants(name, dtype, s))
     m = s.n_outputs
     sums = _coef_sums(m, m * len(s.grad_dims)) if s.global_mean is not None else ""
     corr = ""
     if s.correction is not None:
         corr = "\n".join(_correction_constants(s)) + "\n" + fragment("correction.c")
+    if _online(s) is not None:
+        corr += fragment("online.c")
     return head + consts + "\n" + fragment("frames.c") + sums + corr + fragment("body.c") + public
+
+
+def _online(s: Layout):
+    return None if s.correction is None else s.correction.online
+
+
+def _online_public(name: str, s: Layout) -> str:
+    """The online term's three calls (``<name>.h`` documents them)."""
+    var = "variance" if s.has_variance else "0"
+    return f"""
+void {name}_online_init({name}_online *st) {{
+  int j, p, q;
+  for (j = 0; j < 6; j++)
+    for (p = 0; p < N_IND; p++) {{
+      st->mean[j][p] = (real)ONLINE_MEAN0[j * N_IND + p];
+      for (q = 0; q < N_IND; q++)
+        st->cov[j][p][q] = (real)ONLINE_COV0[((long)j * N_IND + p) * N_IND + q];
+    }}
+  st->t = {_online(s).t!r};
+}}
+
+int {name}_online_update({name}_online *st, double t, const double rpm[4],
+                         const double euler[3], const double v_air[3], const double force[3],
+                         const double torque[3], const double force_var[3],
+                         const double torque_var[3]) {{
+  double x[D_IN], xn[D_IN], rwh[3][3], yn[N_OUT], f[3], tq[3], y[6], r[6];
+  int i, k;
+  if (!isfinite(t)) return 0;
+  for (i = 0; i < 4; i++) if (!isfinite(rpm[i])) return 0;
+  for (i = 0; i < 3; i++)
+    if (!isfinite(euler[i]) || !isfinite(v_air[i]) || !isfinite(force[i]) ||
+        !isfinite(torque[i]) || !(force_var[i] >= 0.0) || !(torque_var[i] >= 0.0) ||
+        !isfinite(force_var[i]) || !isfinite(torque_var[i]))
+      return 0;
+  gp_input(rpm, euler, v_air, x, rwh);
+  for (i = 0; i < D_IN; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
+#if HAS_GLOBAL_MEAN
+  global_mean(xn, yn);
+#else
+  {{
+    real kr[MAX_ROWS];
+    binned_mean(xn, lookup(xn), kr, yn);
+  }}
+#endif
+  corrected(x, xn, yn, 0.0, 0);
+  for (i = 0; i < 3; i++) {{ f[i] = force[i]; tq[i] = torque[i]; }}
+#if HAS_ALLOCATION
+  {{ /* the label's residual against M, world frame */
+    double u[4] = {{0.0, 0.0, 0.0, 0.0}}, rwb[3][3];
+    for (i = 0; i < 4; i++)
+      for (k = 0; k < 4; k++) u[i] += ALLOCATION[i * 4 + k] * rpm[k] * rpm[k];
+    rot_wb(euler[0], euler[1], euler[2], rwb);
+    for (i = 0; i < 3; i++) {{
+      f[i] -= rwb[i][2] * -u[0];
+      for (k = 0; k < 3; k++) tq[i] -= rwb[i][k] * u[1 + k];
+    }}
+  }}
+#endif
+  for (i = 0; i < 3; i++) {{
+    y[i] = 0.0; y[3 + i] = 0.0; r[i] = 0.0; r[3 + i] = 0.0;
+    for (k = 0; k < 3; k++) {{
+      y[i] += rwh[k][i] * f[k]; y[3 + i] += rwh[k][i] * tq[k];
+      r[i] += rwh[k][i] * rwh[k][i] * force_var[k];
+      r[3 + i] += rwh[k][i] * rwh[k][i] * torque_var[k];
+    }}
+  }}
+  for (i = 0; i < 6; i++) {{
+    y[i] = (y[i] - Y_MEAN[i]) / Y_STD[i] - yn[i];
+    r[i] /= Y_STD[i] * Y_STD[i];
+  }}
+  online_kalman(st, t, xn, y, r);
+  return 1;
+}}
+
+int {name}_online_predict(const {name}_online *st, const double rpm[4], const double euler[3],
+                          const double v_air[3], double force[3], double torque[3],
+                          double *levels, double *variance) {{
+  (void)variance;
+  return evaluate(rpm, euler, v_air, force, torque, levels, {var} ONLINE_PASS(st));
+}}
+"""
 
 
 def _correction_constants(s: Layout) -> list[str]:
@@ -377,12 +502,20 @@ def _correction_constants(s: Layout) -> list[str]:
         f"#define N_INTEGRATED {n_int}",
         f"#define CORR_WITH_PRIOR {int(c.with_prior)}",
         f"#define CORR_WITH_SIMPLE {int(c.with_simple)}",
-        f"#define DELTA_MAX {max(n)}",
+        f"#define N_DELTA {len(n)}",
         f"#define CORR_RPM_REF {c.rpm_ref!r}",
         f"#define CORR_AIR_DENSITY {c.air_density!r}",
-        f"static const int DELTA_N[6] = {_ints(n)};",
-        f"static const long DELTA_PT_OFF[6] = {_ints(off)};",
     ]
+    if c.online is not None:
+        o = c.online
+        out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_TAU {o.tau!r}"]
+        dbl("ONLINE_Z", o.Z)
+        dbl("ONLINE_WHITEN", o.whiten)
+        dbl("ONLINE_VAR", o.variance)
+        dbl("ONLINE_LS", o.lengthscale)
+        dbl("ONLINE_NU", o.noise)
+        dbl("ONLINE_MEAN0", o.mean)
+        dbl("ONLINE_COV0", o.cov)
     dbl("CORR_SCALE", c.scale)
     if c.kappa is not None:  # a term of M implies M: the prior's allocation
         dbl("CORR_KAPPA", c.kappa)
@@ -390,6 +523,13 @@ def _correction_constants(s: Layout) -> list[str]:
     if c.beta is not None:
         dbl("CORR_BETA", c.beta)
         dbl("CORR_HUBS", c.hubs)
+    if not n:
+        return out
+    out += [
+        f"#define DELTA_MAX {max(n)}",
+        f"static const int DELTA_N[6] = {_ints(n)};",
+        f"static const long DELTA_PT_OFF[6] = {_ints(off)};",
+    ]
     dbl("DELTA_PTS", np.concatenate([d.points for d in c.deltas]))
     dbl("DELTA_W", np.concatenate([d.weights for d in c.deltas]))
     dbl("DELTA_LS", np.concatenate([d.lengthscale for d in c.deltas]))

@@ -141,12 +141,12 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
     var = None
     if latent is not None:
         var = ca.fmax(latent, 0) * ca.DM(s.output_scale * c.scale**2)
-    loads, extra = [], []
+    loads, extra = [ca.MX(0)] * 6, [ca.MX(0)] * 6
     for j, d in enumerate(c.deltas):
         m = d.points.shape[0]
         diff = (ca.repmat(xn.T, m, 1) - ca.DM(d.points)) / ca.repmat(ca.DM(d.lengthscale).T, m, 1)
         k = d.sigma * ca.exp(-0.5 * ca.sum2(diff**2))
-        loads.append(ca.dot(k, ca.DM(d.weights)))
+        loads[j] = ca.dot(k, ca.DM(d.weights))
         if var is None:
             continue
         v = d.sigma - ca.sumsqr(ca.mtimes(ca.DM(d.whiten), k))
@@ -158,7 +158,15 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             hb = ca.vertcat(*cols, h[j, :].T)
             r = hb - ca.mtimes(ca.DM(c.G[j]).T, k)
             e = e + ca.sumsqr(ca.mtimes(ca.DM(c.cov_chol[j]).T, r))
-        extra.append(e)
+        extra[j] = e
+    if c.online is not None:  # η at the exported state (gpg.export.layout.OnlineTerm)
+        o = c.online
+        m = o.Z.shape[0]
+        for j in range(6):
+            diff = (ca.repmat(xn.T, m, 1) - ca.DM(o.Z)) / ca.repmat(ca.DM(o.lengthscale[j]).T, m, 1)
+            psi = ca.mtimes(ca.DM(o.whiten[j]), o.variance[j] * ca.exp(-0.5 * ca.sum2(diff**2)))
+            loads[j] = loads[j] + ca.dot(psi, ca.DM(o.mean[j]))
+            extra[j] = extra[j] + ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
     mean = mean + ca.vertcat(*loads, ca.DM.zeros(s.n_outputs - 6))
     if var is not None:
         var = var + ca.vertcat(*extra, ca.DM.zeros(s.n_outputs - 6))

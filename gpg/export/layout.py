@@ -35,7 +35,7 @@ from gpg.gp.partition import Partition
 from gpg.names import AERO
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
-__all__ = ["Correction", "Discrepancy", "Layout", "spec"]
+__all__ = ["Correction", "Discrepancy", "Layout", "OnlineTerm", "spec"]
 
 # A C source holds each constant as text (about 3.5 bytes per stored byte): past this many
 # bytes of constants an export is refused unless asked for (the exact GP-G variance at
@@ -135,6 +135,36 @@ class Discrepancy:
 
 
 @dataclass(frozen=True)
+class OnlineTerm:
+    """The online term ``η`` of an adapted model (:class:`gpg.flight.correction.Online`) with
+    its state when exported: per load output ``j``, ``ψ_j = W_j k_j(x̂, Z)``, mean ``ψ_jᵀ μ_j``,
+    variance ``ψ_jᵀ Σ_j ψ_j``; relaxed between labels (``a = e^{−Δt/τ}``) and updated by a
+    rank-one Kalman step per label (:func:`gpg.flight.update`).
+
+    Attributes:
+        Z: (m, D) inducing inputs, normalised.
+        whiten: (6, m, m) ``W_j = L_j⁻¹``.
+        variance: (6,) σ of each output's kernel.
+        lengthscale: (6, D).
+        noise: (6,) the term's value noise ``ν²``.
+        tau: s, the forgetting time constant.
+        mean: (6, m) ``μ`` when exported.
+        cov: (6, m, m) ``Σ`` when exported.
+        t: s, the state's time when exported.
+    """
+
+    Z: np.ndarray
+    whiten: np.ndarray
+    variance: np.ndarray
+    lengthscale: np.ndarray
+    noise: np.ndarray
+    tau: float
+    mean: np.ndarray
+    cov: np.ndarray
+    t: float
+
+
+@dataclass(frozen=True)
 class Correction:
     """What a model corrected by flights adds to its prior's closed form
     (:class:`gpg.flight.correction.Corrected`), in the GP's normalised units: per load output
@@ -155,6 +185,7 @@ class Correction:
         with_simple: then ``M``'s loads.
         G: six (m, P) ``K⁻¹ H`` (the integrated basis's variance), or None.
         cov_chol: (6, P, P) ``C``, or None.
+        online: the online term of an adapted model, or None.
     """
 
     scale: np.ndarray
@@ -168,6 +199,7 @@ class Correction:
     with_simple: bool
     G: list[np.ndarray] | None
     cov_chol: np.ndarray | None
+    online: OnlineTerm | None = None
 
     @property
     def has_variance(self) -> bool:
@@ -183,6 +215,9 @@ class Correction:
                 n += (m * (m + 1) // 2) * (1 if d.post is None else 2)
             if self.G is not None:
                 n += sum(g.size for g in self.G) + self.cov_chol.size
+        if self.online is not None:
+            o = self.online
+            n += o.Z.size + o.whiten.size + o.lengthscale.size + o.mean.size + o.cov.size + 20
         return 8 * n
 
 
@@ -367,13 +402,13 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
     from gpg.flight.basis import AIR_DENSITY, RPM_REF
     from gpg.gp.inducing import InducingGP
 
-    if m.online is not None or m.tracker is not None:
+    if m.tracker is not None:
         raise ValueError(
-            f"model {sur.model_name!r} adapts online (gpg.flight.adapt or track): export the "
-            "model it was corrected to before adapting (its state changes label by label; "
-            "the C update of the online term is gpg.export.to_c's job only for a fixed model)"
+            f"model {sur.model_name!r} tracks its basis's coefficients online (gpg.flight.track):"
+            " that filter is not exported; export the model before track, or adapt it with "
+            "gpg.flight.adapt (its inducing-point term exports with its update)"
         )
-    if len(m.delta) != 6:
+    if len(m.delta) not in (0, 6):
         raise ValueError(f"a corrected model exports with six discrepancies, got {len(m.delta)}")
     d_in = int(m.prior.n_inputs)
     deltas = []
@@ -408,6 +443,21 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
         with_simple=bool(e is not None and e.with_simple),
         G=None if e is None or not variance else [g for g in _f64(e.G)],
         cov_chol=None if e is None or not variance else _f64(e.cov_chol),
+        online=None if m.online is None else _online(m.online, d_in),
+    )
+
+
+def _online(o: Any, d_in: int) -> OnlineTerm:
+    return OnlineTerm(
+        Z=_f64(o.Z),
+        whiten=_f64(o.whiten),
+        variance=_f64(o.variance),
+        lengthscale=np.broadcast_to(_f64(o.lengthscale), (6, d_in)).copy(),
+        noise=_f64(o.noise),
+        tau=float(np.asarray(o.tau)),
+        mean=_f64(o.mean),
+        cov=_f64(o.cov),
+        t=float(np.asarray(o.t)),
     )
 
 
@@ -534,6 +584,11 @@ def _arrays(s: Layout):
             if getattr(c, key) is not None:
                 yield f"corr_{key}", getattr(c, key)
         yield "corr_hubs", c.hubs
+        if c.online is not None:
+            o = c.online
+            for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
+                yield f"online_{key}", getattr(o, key)
+            yield "online_tau_t", np.array([o.tau, o.t])
         for j, d in enumerate(c.deltas):
             yield f"delta{j}_points", d.points
             yield f"delta{j}_weights", d.weights

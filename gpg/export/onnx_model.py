@@ -543,8 +543,25 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
             r = g.sub(g.cat(hb + h[j]), g.op("MatMul", k, g.const(c.G[j], "G", f64)))
             e = g.add(e, sq_norm(g.op("MatMul", r, g.const(c.cov_chol[j], "C", f64))))
         extra.append(e)
-    mean = g.add(mean, pad(loads))
-    if var is not None:
+    if c.online is not None:  # η at the exported state (gpg.export.layout.OnlineTerm)
+        o = c.online
+        x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
+        etas, evs = [], []
+        for j in range(6):
+            diff = g.div(g.sub(x3, g.const(o.Z, "pts", f64)), g.const(o.lengthscale[j], "ls", f64))
+            r2 = g.op("ReduceSum", g.sq(diff), g.const([2], "ax", np.int64), keepdims=0)
+            k = g.mul(k64(o.variance[j]), g.op("Exp", g.mul(k64(-0.5), r2)))
+            psi = g.op("MatMul", k, g.const(o.whiten[j].T, "W", f64))  # (N, m)
+            etas.append(g.op("MatMul", psi, g.const(o.mean[j][:, None], "mu", f64)))
+            q = g.mul(psi, g.op("MatMul", psi, g.const(o.cov[j], "S", f64)))
+            q = g.op("ReduceSum", q, g.const([1], "ax", np.int64), keepdims=1)
+            evs.append(g.op("Max", q, k64(0.0)))
+        loads = [eta if not loads else g.add(loads[j], eta) for j, eta in enumerate(etas)]
+        if var is not None:
+            extra = [ev if not extra else g.add(extra[j], ev) for j, ev in enumerate(evs)]
+    if loads:
+        mean = g.add(mean, pad(loads))
+    if var is not None and extra:
         var = g.add(var, pad(extra))
     return mean, var
 

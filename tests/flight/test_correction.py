@@ -618,3 +618,144 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     _casadi_and_onnx(few, flights, tmp_path, n=6, jacobians=0)
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)
+
+
+def test_online_update_in_c_equals_jax(corrected, flights, tmp_path):
+    """The adapted model's C (``gpg.export.to_c``): its state after a 10-minute stream at
+    10 Hz (the labels replayed, time moving on) equals ``lax.scan`` of :func:`fc.update` to
+    1e-9 (double: both run the same float64 Kalman steps, whose rounding the forgetting keeps
+    from growing), and its ``online_predict`` then equals ``predict`` of the updated model;
+    the example loop ``examples/c_adapt/adapt.c`` reads the labels from CSV and prints, for
+    each, the prediction made before the update; a label with NaN is refused, the state kept."""
+    import ctypes
+    import subprocess
+    from pathlib import Path
+
+    from gpg.export import to_c
+
+    m_ind = 48
+    adapted = fc.adapt(corrected, inducing=m_ind, tau=5.0)
+    n = 6000
+    idx = np.arange(n) % len(flights)
+    cols = [np.asarray(c, float)[idx] for c in flights.columns()]
+    cols[0] = np.arange(n) * 0.1
+    final, _ = jax.jit(lambda s, xs: jax.lax.scan(lambda c, r: (fc.update(c, *r), None), s, xs))(
+        adapted, tuple(jnp.asarray(c) for c in cols)
+    )
+    to_c(adapted, tmp_path, name="model")
+    so = tmp_path / "model.so"
+    res = subprocess.run(
+        [
+            "cc",
+            "-O2",
+            "-std=c99",
+            "-Wall",
+            "-Wextra",
+            "-Werror",
+            "-shared",
+            "-fPIC",
+            "-o",
+            str(so),
+            str(tmp_path / "model.c"),
+            "-lm",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    lib = ctypes.CDLL(str(so))
+
+    class State(ctypes.Structure):
+        _fields_ = [
+            ("mean", ctypes.c_double * (6 * m_ind)),
+            ("cov", ctypes.c_double * (6 * m_ind * m_ind)),
+            ("t", ctypes.c_double),
+        ]
+
+    D = ctypes.POINTER(ctypes.c_double)
+
+    def _label_args(r):  # one CSV row (t, rpm, euler, v_air, force, torque, variances)
+        return [
+            np.ascontiguousarray(r[i:j]).ctypes.data_as(D)
+            for i, j in ((1, 5), (5, 8), (8, 11), (11, 14), (14, 17), (17, 20), (20, 23))
+        ]
+
+    st = State()
+    lib.model_online_init(ctypes.byref(st))
+    rows = np.column_stack([c.reshape(n, -1) for c in cols])
+    for r in rows:
+        a = _label_args(r)
+        assert lib.model_online_update(ctypes.byref(st), ctypes.c_double(r[0]), *a) == 1
+    o = final.model.online
+    np.testing.assert_allclose(
+        np.ctypeslib.as_array(st.mean).reshape(6, m_ind),
+        o.mean,
+        rtol=0,
+        atol=1e-9 * max(1.0, float(np.abs(o.mean).max())),
+    )
+    np.testing.assert_allclose(
+        np.ctypeslib.as_array(st.cov).reshape(6, m_ind, m_ind), o.cov, rtol=0, atol=1e-9
+    )
+    assert st.t == float(o.t)
+    bad = rows[0].copy()
+    bad[12] = np.nan
+    a = _label_args(bad)
+    before = np.ctypeslib.as_array(st.mean).copy()
+    assert lib.model_online_update(ctypes.byref(st), ctypes.c_double(1e4), *a) == 0
+    assert np.array_equal(np.ctypeslib.as_array(st.mean), before) and st.t == float(o.t)
+    rpm, euler, v = _export_states(flights, 8)
+    ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
+    for i in range(len(rpm)):
+        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
+        ok = lib.model_online_predict(
+            ctypes.byref(st),
+            *[
+                np.ascontiguousarray(x).ctypes.data_as(D)
+                for x in (rpm[i], euler[i], v[i], f, t, lv, var)
+            ],
+        )
+        assert ok == bool(ref.in_domain[i])
+        want = np.concatenate([ref.force[i], ref.torque[i]])
+        assert np.abs(np.concatenate([f, t]) - want).max() <= 1e-9 * max(1, np.abs(want).max())
+        np.testing.assert_allclose(var[:6], ref.variance[i, :6], rtol=1e-7)
+    # the example loop on the first minute, each prediction made before its update
+    csv = tmp_path / "labels.csv"
+    np.savetxt(csv, rows[:600], delimiter=",", header="t,rpm,euler,v_air,force,torque,vars")
+    example = Path(__file__).parents[2] / "examples" / "c_adapt" / "adapt.c"
+    exe = tmp_path / "adapt"
+    res = subprocess.run(
+        [
+            "cc",
+            "-O2",
+            "-std=c99",
+            "-Wall",
+            "-Werror",
+            "-I",
+            str(tmp_path),
+            "-o",
+            str(exe),
+            str(example),
+            str(tmp_path / "model.c"),
+            "-lm",
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = subprocess.run([str(exe), str(csv)], check=True, capture_output=True, text=True).stdout
+    got = np.loadtxt(out.splitlines()[1:], delimiter=",")
+    assert got.shape == (600, 15) and np.all(got[:, -1] == 1)
+    for k in (0, 1, 599):  # the example's prediction k: the state after k updates
+        lib.model_online_init(ctypes.byref(st))
+        for r in rows[:k]:
+            a = _label_args(r)
+            lib.model_online_update(ctypes.byref(st), ctypes.c_double(r[0]), *a)
+        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
+        lib.model_online_predict(
+            ctypes.byref(st),
+            *[
+                np.ascontiguousarray(x).ctypes.data_as(D)
+                for x in (rows[k, 1:5], rows[k, 5:8], rows[k, 8:11], f, t, lv, var)
+            ],
+        )
+        np.testing.assert_allclose(got[k, 1:7], np.concatenate([f, t]), rtol=1e-15, atol=1e-15)

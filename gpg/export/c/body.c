@@ -199,8 +199,51 @@ HOT static void global_mean(const double xn[D_IN], double yn[N_OUT]) {
 }
 #endif
 
+/* the GP's input x (physical units) and R_WH of a world-frame state */
+static void gp_input(const double rpm[4], const double euler[3], const double v_air[3],
+                     double x[D_IN], double rwh[3][3]) {
+  int i;
+  for (i = 0; i < 4; i++) x[i] = rpm[i];
+#if BODY_FRAME
+  /* the GP's frame is the body's: x = (rpm, R_WB^T v_air) */
+  rot_wb(euler[0], euler[1], euler[2], rwh);
+  for (i = 0; i < 3; i++)
+    x[4 + i] = rwh[0][i] * v_air[0] + rwh[1][i] * v_air[1] + rwh[2][i] * v_air[2];
+#else
+  {
+    double eh[3];
+    to_airflow(euler, v_air, eh, rwh);
+    for (i = 0; i < 3; i++) x[4 + i] = eh[i];
+    x[7] = norm3(v_air);
+  }
+#endif
+}
+
+#if HAS_ONLINE
+#define ONLINE_ARG , const ONLINE_T *st
+#define ONLINE_PASS(S) , S
+#else
+#define ONLINE_ARG
+#define ONLINE_PASS(S)
+#endif
+
+#if !HAS_GLOBAL_MEAN
+/* the binned mean: bin b's coefficients times its kernel row k (filled here; its length) */
+static int binned_mean(const double xn[D_IN], int b, real *k, double yn[N_OUT]) {
+  int i, j, nr = kernel_row(xn, b, k);
+  for (j = 0; j < N_OUT; j++) {
+    const real *c = BCOEF + BCOEF_OFF[b] + (long)j * nr;
+    double s = 0.0;
+    for (i = 0; i < nr; i++) s += (double)c[i] * (double)k[i];
+    yn[j] = s;
+  }
+  return nr;
+}
+#endif
+
 static int evaluate(const double rpm[4], const double euler[3], const double v_air[3],
-                    double force[3], double torque[3], double *levels, double *variance) {
+                    double force[3], double torque[3], double *levels,
+                    double *variance ONLINE_ARG) {
   double rwh[3][3], x[D_IN], xn[D_IN], yn[N_OUT], y[N_OUT], span, tol, latent = 0.0;
   int i, j, b = 0, nr = 0, in_domain = 1;
 #if HAS_BINS
@@ -214,22 +257,12 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   if (variance) for (i = 0; i < N_OUT; i++) variance[i] = 0.0;
   for (i = 0; i < 4; i++) if (!isfinite(rpm[i])) return 0;
   for (i = 0; i < 3; i++) if (!isfinite(euler[i]) || !isfinite(v_air[i])) return 0;
-  for (i = 0; i < 4; i++) x[i] = rpm[i];
+  gp_input(rpm, euler, v_air, x, rwh);
 #if BODY_FRAME
-  /* the GP's frame is the body's: x = (rpm, R_WB^T v_air), in domain inside the ball */
-  rot_wb(euler[0], euler[1], euler[2], rwh);
-  for (i = 0; i < 3; i++)
-    x[4 + i] = rwh[0][i] * v_air[0] + rwh[1][i] * v_air[1] + rwh[2][i] * v_air[2];
+  /* in domain inside the ball */
   if (x[4] * x[4] + x[5] * x[5] + x[6] * x[6] >
       (BALL_RADIUS * (1.0 + 1e-9)) * (BALL_RADIUS * (1.0 + 1e-9)))
     in_domain = 0;
-#else
-  {
-    double eh[3];
-    to_airflow(euler, v_air, eh, rwh);
-    for (i = 0; i < 3; i++) x[4 + i] = eh[i];
-    x[7] = norm3(v_air);
-  }
 #endif
   for (i = 0; i < N_BOX; i++) {
     span = BOX_HI[i] - BOX_LO[i];
@@ -247,13 +280,7 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
 #if HAS_GLOBAL_MEAN
   global_mean(xn, yn);
 #else
-  nr = kernel_row(xn, b, k);
-  for (j = 0; j < N_OUT; j++) {
-    const real *c = BCOEF + BCOEF_OFF[b] + (long)j * nr;
-    double s = 0.0;
-    for (i = 0; i < nr; i++) s += (double)c[i] * (double)k[i];
-    yn[j] = s;
-  }
+  nr = binned_mean(xn, b, k, yn);
 #endif
 #if HAS_VAR
   if (variance) {
@@ -264,6 +291,9 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   (void)b; (void)nr; (void)latent;
 #if HAS_CORR
   corrected(x, xn, yn, latent, variance ? pvn : 0);
+#endif
+#if HAS_ONLINE
+  if (st) online_eta(st, xn, yn, variance ? pvn : 0);
 #endif
   for (j = 0; j < N_OUT; j++) y[j] = yn[j] * Y_STD[j] + Y_MEAN[j];
   for (i = 0; i < 3; i++)

@@ -73,6 +73,7 @@ static void physical_columns(const double x[D_IN], double h[6][N_TERMS]) {
 }
 #endif
 
+#if N_DELTA
 /* delta_j's kernel row k[m_j] at xn; returns its mean k . w */
 static double delta_row(int j, const double xn[D_IN], double *k) {
   const double *Z = DELTA_PTS + DELTA_PT_OFF[j] * D_IN, *ls = DELTA_LS + j * D_IN;
@@ -86,8 +87,9 @@ static double delta_row(int j, const double xn[D_IN], double *k) {
   }
   return s;
 }
+#endif
 
-#if HAS_VAR
+#if HAS_VAR && N_DELTA
 /* |T k|^2 of a packed lower triangle T (row i: its i + 1 first entries) */
 static double tri_sq(const double *T, const double *k, int m) {
   double q = 0.0, a;
@@ -105,7 +107,9 @@ static double tri_sq(const double *T, const double *k, int m) {
 static void corrected(const double x[D_IN], const double xn[D_IN], double yn[N_OUT],
                       double latent, double *pv) {
   double prior[N_OUT], ms[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0}, h[6][N_TERMS > 0 ? N_TERMS : 1];
+#if N_DELTA
   double k[DELTA_MAX];
+#endif
   int j, t;
   for (j = 0; j < N_OUT; j++) { prior[j] = yn[j]; yn[j] = CORR_SCALE[j] * prior[j]; }
 #if HAS_KAPPA
@@ -120,6 +124,7 @@ static void corrected(const double x[D_IN], const double xn[D_IN], double yn[N_O
   if (pv)
     for (j = 0; j < N_OUT; j++)
       pv[j] = (latent > 0.0 ? latent : 0.0) * OUTPUT_SCALE[j] * CORR_SCALE[j] * CORR_SCALE[j];
+#if N_DELTA
   for (j = 0; j < 6; j++) {
     yn[j] += delta_row(j, xn, k);
 #if HAS_VAR
@@ -150,5 +155,6 @@ static void corrected(const double x[D_IN], const double xn[D_IN], double yn[N_O
     }
 #endif
   }
+#endif
   (void)ms; (void)h; (void)t; (void)latent;
 }
