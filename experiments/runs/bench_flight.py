@@ -20,6 +20,18 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   IMU, each written ``logs / distinct`` times: labelling a copy is the same work), in this
   process (``workers=1``) and on ``workers`` spawned processes, alternated ``repeats`` times;
   the speed-up is the ratio of the medians, the labels compared bit for bit.
+* ``c``: a corrected and adapted model in C (:func:`gpg.export.to_c`), per query or label on
+  one core, timed by the export suite's C driver (median and percentiles of ``c_calls``): the
+  corrected model's mean and mean + variance (the ``gpgs_hybrid`` prior of ``n_points``, the
+  physical basis, discrepancies through ``inducing`` inducing inputs fitted on ``labels``
+  synthetic labels: the cost depends on the sizes only) and the online term's update and
+  prediction (``online`` inducing inputs), in double and in float.
+* ``every_label``: :func:`gpg.flight.correct` (the physical basis, discrepancies through
+  ``inducing`` inducing inputs) on ``hours`` of labels at 10 Hz (36 000 an hour; synthetic
+  labels of a vehicle 10 % stronger than the prior, drawn in its box: the cost depends on the
+  sizes), each timed once after a warm-up on ``warmup`` labels that compiles the programs, on
+  JAX's default device; the process's peak resident memory above its start and, on an
+  accelerator, its peak device memory.
 """
 
 from __future__ import annotations
@@ -40,6 +52,111 @@ def bench_flight(cfg: dict[str, Any]) -> dict[str, Any]:
     out = {"log": _log(cfg["log"]), "update": _update(cfg["update"])}
     if cfg.get("parallel"):
         out["parallel"] = _parallel(cfg["parallel"])
+    if cfg.get("c"):
+        out["c"] = _c(cfg["c"])
+    if cfg.get("every_label"):
+        out["every_label"] = _every_label(cfg["every_label"])
+    return out
+
+
+def _every_label(cfg: dict[str, Any]) -> dict[str, Any]:
+    from experiments.runs.bench_export import smooth_dataset
+    from gpg import flight
+    from gpg.linalg import memory
+    from gpg.surrogate import Surrogate
+
+    prior = Surrogate.fit(smooth_dataset(int(cfg["n_points"]), 0), "gpgs_hybrid",
+                          {"hyper": {"fit": False, "lengthscale": 0.8}})  # fmt: skip
+    opts = {"basis": "physical", "inducing": int(cfg["inducing"]), "subset_size": 400}
+    flight.correct(prior, _synthetic_labels(prior, int(cfg["warmup"]), 1), exact_labels=1, **opts)
+    dev = jax.devices()[0]
+    rows = []
+    for hours in cfg["hours"]:
+        labels = _synthetic_labels(prior, int(round(36000 * float(hours))), 2)
+        with memory.PeakRSS() as mem:
+            t0 = time.perf_counter()
+            sur = flight.correct(prior, labels, **opts)
+            jax.block_until_ready(jax.tree.leaves(sur.model))
+            seconds = time.perf_counter() - t0
+        stats_ = dev.memory_stats() or {}
+        rows.append({"hours": float(hours), "labels": len(labels), "seconds": seconds,
+                     "peak_rss_mib": mem.peak_delta / 2**20,
+                     "device_peak_mib": stats_.get("peak_bytes_in_use", 0) / 2**20,
+                     "inducing": sur.config["flight_correction"]["inducing"]})  # fmt: skip
+    return {"device": str(dev), "n_points": int(cfg["n_points"]), "runs": rows}
+
+
+def _synthetic_labels(prior, n: int, seed: int):
+    """``n`` labels of a vehicle 10 % stronger than ``prior`` with noise, in its box."""
+    from gpg import flight
+
+    rng = np.random.default_rng(seed)
+    rpm = rng.uniform(3000, 4000, (n, 4))
+    euler = np.column_stack([rng.uniform(-0.3, 0.3, n), rng.uniform(-0.3, 0.1, n),
+                             rng.uniform(-0.2, 0.2, n)])  # fmt: skip
+    speed = rng.uniform(3, 12, n)
+    v_air = np.column_stack([speed * np.cos(euler[:, 0]), speed * np.sin(euler[:, 0]), 0 * speed])
+    p = prior.predict_batch(rpm, euler, v_air, mean_only=True)
+    return flight.Labels(
+        t=np.arange(n) / 10.0, rpm=rpm, euler=euler, v_air=v_air,
+        force=np.asarray(p.force) * 1.1 + 0.05 * rng.normal(size=(n, 3)),
+        torque=np.asarray(p.torque) + 0.005 * rng.normal(size=(n, 3)),
+        force_var=np.full((n, 3), 0.05**2), torque_var=np.full((n, 3), 0.005**2),
+        model_force=np.zeros((n, 3)), model_torque=np.zeros((n, 3)),
+    )  # fmt: skip
+
+
+# The online update's driver: a state of the caller's and one label (held) per call.
+ONLINE_HEADER = """#include "quad.h"
+static quad_online ST;
+static double FM[3] = {0.5, -0.3, -20.0}, TM[3] = {0.01, -0.02, 0.005};
+static double FV[3] = {0.01, 0.01, 0.01}, TV[3] = {1e-4, 1e-4, 1e-4};
+"""
+ONLINE_CALLS = (
+    ("online_update", "(i == 0 ? (quad_online_init(&ST), 0) : 0) + "
+     "quad_online_update(&ST, i * 0.1, rpm, e, v, FM, TM, FV, TV)"),
+    ("online_predict", "(i == 0 ? (quad_online_init(&ST), 0) : 0) + "
+     "quad_online_predict(&ST, rpm, e, v, f, tq, lv, var)"),
+)  # fmt: skip
+
+
+def _c(cfg: dict[str, Any]) -> dict[str, Any]:
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from experiments.runs.bench_export import smooth_dataset
+    from experiments.runs.export import c_driver, compile_and_time
+    from gpg import flight
+    from gpg.export import to_c
+    from gpg.surrogate import Surrogate
+
+    cc = shutil.which(cfg["cc"])
+    if cc is None:
+        raise ValueError(f"flight.c.cc: no C compiler {cfg['cc']!r} on PATH")
+    prior = Surrogate.fit(smooth_dataset(int(cfg["n_points"]), 0), "gpgs_hybrid",
+                          {"hyper": {"fit": False, "lengthscale": 0.8}})  # fmt: skip
+    labels = _synthetic_labels(prior, int(cfg["labels"]), 0)
+    corrected = flight.correct(prior, labels, basis="physical", exact_labels=1500,
+                               inducing=int(cfg["inducing"]), subset_size=400)  # fmt: skip
+    adapted = flight.adapt(corrected, inducing=int(cfg["online"]), t0=0.0)
+    calls = (("mean", "quad_mean(rpm, e, v, f, tq, lv)"),
+             ("predict", "quad_predict(rpm, e, v, f, tq, lv, var)"))  # fmt: skip
+    out: dict[str, Any] = {"cc": cc, "flags": cfg["flags"], "n_points": int(cfg["n_points"]),
+                           "labels": int(cfg["labels"]), "inducing": int(cfg["inducing"]),
+                           "online": int(cfg["online"])}  # fmt: skip
+    with tempfile.TemporaryDirectory(prefix="gpg_bench_c_") as tmp:
+        for dtype in ("double", "float"):
+            where = Path(tmp) / dtype
+            info = to_c(adapted, where, name="quad", dtype=dtype)
+            (where / "online_bench.h").write_text(ONLINE_HEADER)
+            row = {"constant_bytes": info["constant_bytes"]}
+            for key, call in calls + ONLINE_CALLS:
+                header = "online_bench.h" if key.startswith("online") else "quad.h"
+                (where / "driver.c").write_text(c_driver(header, call))
+                sources = [where / "driver.c", info["c"]]
+                row[key] = compile_and_time(cc, cfg["flags"], where, sources, int(cfg["c_calls"]))
+            out[dtype] = row
     return out
 
 
@@ -243,6 +360,25 @@ def flight_table(res: dict[str, Any]) -> str:
                          "note": (f"{pa['speedup']:.2f}x on {pa['workers']}; labels "
                                   f"{'equal' if pa['same_labels'] else 'DIFFER'} bit for bit"
                                   if w != "1" else "in this process")})  # fmt: skip
+    for r in res.get("every_label", {}).get("runs", []):
+        rows.append({"what": f"correct on {r['hours']:g} h of labels ({r['labels']}), "
+                             f"{r['inducing']} inducing, {res['every_label']['device']}",
+                     "median": r["seconds"] * 1e3,
+                     "note": f"peak RSS +{r['peak_rss_mib']:.0f} MiB, device "
+                             f"{r['device_peak_mib']:.0f} MiB; one run"})  # fmt: skip
+    if "c" in res:
+        c = res["c"]
+        for dtype in ("double", "float"):
+            for key in ("mean", "predict", "online_update", "online_predict"):
+                t = c[dtype][key]
+                what = f"C {dtype}: corrected model's {key}, {c['inducing']} inducing"
+                rows.append(
+                    {
+                        "what": f"{what} ({c['online']} online)",
+                        "median": t["median_us"] * 1e-3,
+                        "note": f"p05 {t['p05_us']:.1f} us, p95 {t['p95_us']:.1f} us",
+                    }
+                )
     return table(rows, [("what", "flight", ""), ("median", "ms (median)", ".3f"), ("note", "", "")])
 
 

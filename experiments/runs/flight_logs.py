@@ -244,6 +244,12 @@ def _curve(bench: _Bench, train_labels, tests, seconds, base_s):
             "values_only": bench.correct(lab, use_prior=False, simple_term=False),
             "values_only_m": bench.correct(lab, use_prior=False),
         }
+        exact_at = bench.cfg["correct"].get("compare_exact_at")
+        if exact_at is not None and s == float(exact_at):
+            # the exact GP on every label, where it still fits: the inducing inputs' price
+            t0 = time.perf_counter()
+            models["corrected_exact"] = bench.correct(lab, scale=scale, exact_labels=len(lab))
+            row["corrected_exact_fit_s"] = time.perf_counter() - t0
         thinned = bench.cfg["correct"].get("compare_thinned")
         if thinned and len(lab) > int(thinned):
             # today's model beside it: the labels thinned evenly to an exact GP's size
@@ -420,6 +426,7 @@ def _report(curve, default, adapt, targets) -> str:
         ("sim_only", "sim only"),
         ("corrected", "corrected"),
         ("corrected_thinned", "thinned"),
+        ("corrected_exact", "exact, every label"),
         ("values_only", "values only"),
         ("values_only_m", "values only + κM"),
     ):

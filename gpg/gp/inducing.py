@@ -312,14 +312,19 @@ def _project(Xp, Vp, sw, Z, var, ls) -> Projection:
     return Projection(Z, weights, G - S.T @ S, whiten, post, logdet)
 
 
-def inducing_inputs(X: Float[ArrayLike, "N D"], m: int, *, seed: int = 0) -> np.ndarray:
-    """``m`` inducing inputs among the cases ``X``: k-means centres (k-means++ start), or the
-    distinct cases themselves where there are at most ``m``.
+def inducing_inputs(
+    X: Float[ArrayLike, "N D"], m: int, *, seed: int = 0, sample: int = 64
+) -> np.ndarray:
+    """``m`` inducing inputs among the cases ``X``: k-means centres (k-means++ start) of at
+    most ``sample · m`` cases drawn at random (k-means on every case of ten hours of flight
+    would cost more than the fit it serves), or the distinct cases themselves where there are
+    at most ``m``.
 
     Args:
         X: (N, D) the cases' inputs.
         m: the most inducing inputs.
-        seed: k-means' seed.
+        seed: k-means' seed and the draw's.
+        sample: cases per inducing input that k-means reads, at most.
 
     Returns:
         (m', D) the inducing inputs, ``m' <= m``.
@@ -337,6 +342,9 @@ def inducing_inputs(X: Float[ArrayLike, "N D"], m: int, *, seed: int = 0) -> np.
     distinct = np.unique(pts, axis=0)
     if distinct.shape[0] <= m:
         return distinct
+    if pts.shape[0] > sample * m:
+        rng = np.random.default_rng(seed)
+        pts = pts[np.sort(rng.choice(pts.shape[0], sample * int(m), replace=False))]
     Z, lab = kmeans2(pts, int(m), seed=seed, minit="++")
     # an empty cluster keeps a centre no case is near: drop it
     return Z[np.isin(np.arange(Z.shape[0]), lab)]

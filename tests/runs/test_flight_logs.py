@@ -28,6 +28,7 @@ SMOKE = [
     "correct.exact_labels=150",  # the curve's last point (200 labels) through inducing inputs
     "correct.inducing=40",
     "correct.compare_thinned=150",
+    "correct.compare_exact_at=20",
 ]
 
 
@@ -56,6 +57,7 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     assert [r["seconds"] for r in saved["curve"]] == [5.0, 10.0, 20.0]
     last = saved["curve"][-1]
     assert last["corrected_inducing"] == 40 and last["corrected_thinned_force_rmse"] > 0
+    assert last["corrected_exact_force_rmse"] > 0 and last["corrected_exact_fit_s"] > 0
     assert saved["curve"][0]["corrected_inducing"] is None  # 50 labels: exact
     d = saved["default"]
     for key in ("sim_only", "corrected", "values_only", "values_only_m", "corrected_unscaled"):
