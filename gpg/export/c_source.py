@@ -397,7 +397,9 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
         corr = "\n".join(_correction_constants(s)) + "\n" + fragment("correction.c")
     if _online(s) is not None:
         corr += fragment("online.c")
-    return head + consts + "\n" + fragment("frames.c") + sums + corr + fragment("body.c") + public
+    # the correction's code reads the body's helpers (the vector clones' switch among them)
+    body = fragment("body.c").replace("/*@CORRECTION@*/", corr)
+    return head + consts + "\n" + fragment("frames.c") + sums + body + public
 
 
 def _online(s: Layout):

@@ -199,6 +199,8 @@ HOT static void global_mean(const double xn[D_IN], double yn[N_OUT]) {
 }
 #endif
 
+/*@CORRECTION@*/
+
 /* the GP's input x (physical units) and R_WH of a world-frame state */
 static void gp_input(const double rpm[4], const double euler[3], const double v_air[3],
                      double x[D_IN], double rwh[3][3]) {
