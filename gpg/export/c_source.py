@@ -512,7 +512,7 @@ def _correction_constants(s: Layout) -> list[str]:
         o = c.online
         out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_TAU {o.tau!r}"]
         dbl("ONLINE_Z", o.Z)
-        dbl("ONLINE_WHITEN", o.whiten)
+        dbl("ONLINE_WHITEN_T", np.swapaxes(o.whiten, 1, 2))  # columns contiguous
         dbl("ONLINE_VAR", o.variance)
         dbl("ONLINE_LS", o.lengthscale)
         dbl("ONLINE_NU", o.noise)

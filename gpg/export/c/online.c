@@ -4,29 +4,31 @@
  * variance psi_j^T S_j psi_j. Its state (ONLINE_T: mu, S in `real`, the time in double) is
  * the caller's; nothing is allocated. The sums run in double whatever `real` is. */
 
-/* psi[6][N_IND] at xn */
-static void online_features(const double xn[D_IN], double psi[6][N_IND]) {
+/* psi[6][N_IND] at xn: column by column of W_j (ONLINE_WHITEN_T holds W_j^T, its columns
+ * contiguous), so that the inner loop is an axpy the compiler vectorises; each psi_p sums in
+ * the row's own order */
+HOT static void online_features(const double xn[D_IN], double psi[6][N_IND]) {
   double k[N_IND], r2, t;
   int j, p, i, c;
   for (j = 0; j < 6; j++) {
     const double *ls = ONLINE_LS + j * D_IN;
-    const double *W = ONLINE_WHITEN + (long)j * N_IND * N_IND;
+    const double *WT = ONLINE_WHITEN_T + (long)j * N_IND * N_IND;
     for (p = 0; p < N_IND; p++) {
       r2 = 0.0;
       for (i = 0; i < D_IN; i++) { t = (xn[i] - ONLINE_Z[p * D_IN + i]) / ls[i]; r2 += t * t; }
       k[p] = ONLINE_VAR[j] * exp(-0.5 * r2);
+      psi[j][p] = 0.0;
     }
-    for (p = 0; p < N_IND; p++) {
-      t = 0.0;
-      for (c = 0; c < N_IND; c++) t += W[p * N_IND + c] * k[c];
-      psi[j][p] = t;
+    for (c = 0; c < N_IND; c++) {
+      const double *col = WT + (long)c * N_IND, kc = k[c];
+      for (p = c; p < N_IND; p++) psi[j][p] += kc * col[p];
     }
   }
 }
 
 /* yn += eta's mean; pv (when not null) += max(eta's variance, 0), normalised */
 static void online_eta(const ONLINE_T *st, const double xn[D_IN], double yn[N_OUT], double *pv) {
-  double psi[6][N_IND], m, v, sp;
+  double psi[6][N_IND], sp[N_IND], m, v;
   int j, p, q;
   online_features(xn, psi);
   for (j = 0; j < 6; j++) {
@@ -34,21 +36,22 @@ static void online_eta(const ONLINE_T *st, const double xn[D_IN], double yn[N_OU
     for (p = 0; p < N_IND; p++) m += psi[j][p] * (double)st->mean[j][p];
     yn[j] += m;
     if (!pv) continue;
+    for (p = 0; p < N_IND; p++) sp[p] = 0.0;
+    for (q = 0; q < N_IND; q++) /* S psi by rows of the symmetric S */
+      for (p = 0; p < N_IND; p++) sp[p] += (double)st->cov[j][q][p] * psi[j][q];
     v = 0.0;
-    for (p = 0; p < N_IND; p++) {
-      sp = 0.0;
-      for (q = 0; q < N_IND; q++) sp += (double)st->cov[j][p][q] * psi[j][q];
-      v += psi[j][p] * sp;
-    }
+    for (p = 0; p < N_IND; p++) v += psi[j][p] * sp[p];
     pv[j] += v > 0.0 ? v : 0.0;
   }
 }
 
 /* relaxed to time t (never backwards), then one rank-one Kalman step per output with the
- * residual y (normalised, GP frame) of noise variance r */
-static void online_kalman(ONLINE_T *st, double t, const double xn[D_IN], const double y[6],
-                          const double r[6]) {
-  double psi[6][N_IND], sp[N_IND], dt = t - st->t, a, a2, s, e, gain;
+ * residual y (normalised, GP frame) of noise variance r. S stays exactly symmetric: the step
+ * subtracts (sp_p sp_q) / s, the same number on both sides (the library symmetrises after
+ * the step instead: the two agree to rounding). */
+HOT static void online_kalman(ONLINE_T *st, double t, const double xn[D_IN], const double y[6],
+                              const double r[6]) {
+  double psi[6][N_IND], sp[N_IND], dt = t - st->t, a, a2, s, e, inv;
   int j, p, q;
   if (dt < 0.0) dt = 0.0;
   a = exp(-dt / ONLINE_TAU);
@@ -56,30 +59,30 @@ static void online_kalman(ONLINE_T *st, double t, const double xn[D_IN], const d
   online_features(xn, psi);
   for (j = 0; j < 6; j++) {
     for (p = 0; p < N_IND; p++) {
+      real *row = st->cov[j][p];
       st->mean[j][p] = (real)(a * (double)st->mean[j][p]);
-      for (q = 0; q < N_IND; q++)
-        st->cov[j][p][q] = (real)(a2 * (double)st->cov[j][p][q] + (p == q ? 1.0 - a2 : 0.0));
+      for (q = 0; q < N_IND; q++) row[q] = (real)(a2 * (double)row[q]);
+      row[p] = (real)((double)row[p] + (1.0 - a2));
+    }
+    for (p = 0; p < N_IND; p++) sp[p] = 0.0;
+    for (q = 0; q < N_IND; q++) {
+      const real *row = st->cov[j][q];
+      const double w = psi[j][q];
+      for (p = 0; p < N_IND; p++) sp[p] += (double)row[p] * w;
     }
     s = r[j] + ONLINE_NU[j];
     e = y[j];
     for (p = 0; p < N_IND; p++) {
-      sp[p] = 0.0;
-      for (q = 0; q < N_IND; q++) sp[p] += (double)st->cov[j][p][q] * psi[j][q];
       s += psi[j][p] * sp[p];
       e -= psi[j][p] * (double)st->mean[j][p];
     }
+    inv = 1.0 / s;
     for (p = 0; p < N_IND; p++) {
-      gain = sp[p] / s;
-      st->mean[j][p] = (real)((double)st->mean[j][p] + gain * e);
-      for (q = 0; q < N_IND; q++) st->cov[j][p][q] = (real)((double)st->cov[j][p][q] - gain * sp[q]);
+      real *row = st->cov[j][p];
+      const double g = sp[p] * inv;
+      st->mean[j][p] = (real)((double)st->mean[j][p] + g * e);
+      for (q = 0; q < N_IND; q++) row[q] = (real)((double)row[q] - (sp[p] * sp[q]) * inv);
     }
-    /* symmetric under rounding, as the library keeps it */
-    for (p = 0; p < N_IND; p++)
-      for (q = 0; q < p; q++) {
-        double m = 0.5 * ((double)st->cov[j][p][q] + (double)st->cov[j][q][p]);
-        st->cov[j][p][q] = (real)m;
-        st->cov[j][q][p] = (real)m;
-      }
   }
   st->t += dt;
 }
