@@ -12,6 +12,10 @@ factor is the dense ``(N(1+G))²`` triangle (over ``max_bytes`` at data=default,
 docs/measurements.md), so it passes only under ``max_bytes`` (small models); a surrogate with
 ``M_noise`` is refused (its acoustic model, :mod:`gpg.quadrotor.simple_noise`, is not
 exported), as is an exact model grown by ``condition`` when its variance is asked for.
+A model corrected by flights (:func:`gpg.flight.correct`) exports with its correction over its
+prior's closed form (:class:`gpg.export.layout.Correction`), an adapted one
+(:func:`gpg.flight.adapt`) with its online term as well (in C with its update, on a state the
+caller holds); a model whose coefficients are tracked (:func:`gpg.flight.track`) is refused.
 """
 
 from gpg._deprecated import deprecated

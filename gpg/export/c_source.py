@@ -62,6 +62,10 @@ def to_c(
       double *variance)``, ``variance[6 + K]`` the predictive variance of force, torque (world
       frame) and levels as :meth:`Surrogate.predict` gives it.
 
+    For a model adapted while flying (:func:`gpg.flight.adapt`) the header also declares its
+    online state ``<name>_online`` and ``<name>_online_init``, ``_online_update`` (one label)
+    and ``_online_predict``; ``<name>_mean`` and ``_predict`` are the model without the term.
+
     Units rpm, rad (yaw, pitch, roll: ``R_WB = Rz Ry Rx``), m/s, N, N·m, dB; world frame x
     forward, y right, z down; the same call for a surrogate of either frame. The header
     declares ``<name>_box_lo[D]`` and ``_box_hi[D]``, the GP's input box (``D`` =
@@ -406,6 +410,7 @@ def _online(s: Layout):
     return None if s.correction is None else s.correction.online
 
 
+# Long by design: the three calls as one C template, read as C.
 def _online_public(name: str, s: Layout) -> str:
     """The online term's three calls (``<name>.h`` documents them)."""
     var = "variance" if s.has_variance else "0"
@@ -483,6 +488,7 @@ int {name}_online_predict(const {name}_online *st, const double rpm[4], const do
 """
 
 
+# Long by design: one declaration per array the correction's C reads, in the order it reads them.
 def _correction_constants(s: Layout) -> list[str]:
     """The arrays of a model corrected by flights (:class:`gpg.export.layout.Correction`), in
     double whatever the dtype (``gpg/export/c/correction.c`` reads them); the variance's

@@ -206,7 +206,14 @@ class Correction:
         return all(d.whiten is not None for d in self.deltas)
 
     def nbytes(self, variance: bool) -> int:
-        """Bytes of its arrays in double (the writers keep them so), the triangles' halves."""
+        """Bytes of its arrays in double (the writers keep them so), the triangles' halves.
+
+        Args:
+            variance: whether the variance's arrays count.
+
+        Returns:
+            The bytes.
+        """
         n = sum(d.points.size + d.weights.size + d.lengthscale.size + 3 for d in self.deltas)
         n += self.scale.size + 12 + (0 if self.beta is None else self.beta.size + 6)
         if variance and self.has_variance:
@@ -399,7 +406,6 @@ def _f64(a) -> np.ndarray:
 
 def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
     """The arrays a model corrected by flights adds to its prior's (:class:`Correction`)."""
-    from gpg.flight.basis import AIR_DENSITY, RPM_REF
     from gpg.gp.inducing import InducingGP
 
     if m.tracker is not None:
@@ -436,8 +442,9 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
         kappa=None if m.kappa is None else _f64(m.kappa),
         beta=None if e is None else _f64(e.beta),
         hubs=hubs,
-        air_density=AIR_DENSITY,
-        rpm_ref=RPM_REF,
+        # the physics' constants, or any number where the model has no physical basis
+        air_density=1.0 if e is None else float(e.physics.air_density),
+        rpm_ref=1.0 if e is None else float(e.physics.rpm_ref),
         deltas=deltas,
         with_prior=bool(e is not None and e.with_prior),
         with_simple=bool(e is not None and e.with_simple),

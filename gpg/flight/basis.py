@@ -68,6 +68,16 @@ class PhysicalBasis(eqx.Module):
     positions: Float[Array, "4 3"]
     frame: str = eqx.field(static=True, default="airflow")
 
+    @property
+    def air_density(self) -> float:
+        """kg/m³ of the drag columns (:data:`AIR_DENSITY`; for the exports)."""
+        return AIR_DENSITY
+
+    @property
+    def rpm_ref(self) -> float:
+        """rpm the rotor columns are per (:data:`RPM_REF`; for the exports)."""
+        return RPM_REF
+
     @highest
     def __call__(self, xn: Float[Array, " D"]) -> Float[Array, "6 T"]:
         x = self.normalizer.x_inv(xn)

@@ -589,6 +589,7 @@ def training_rows(sur: Surrogate, labels: Labels) -> tuple[np.ndarray, np.ndarra
     return np.asarray(x), np.asarray(y), np.asarray(v)
 
 
+# Long by design: the arguments checked, the labels' rows, then the two bases' fits side by side.
 @float64
 def correct(
     prior: Surrogate,

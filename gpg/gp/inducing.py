@@ -160,6 +160,9 @@ class InducingGP(Predictor):
 
         Returns:
             The GP with the new weights.
+
+        Raises:
+            ValueError: weights of another shape than the GP's.
         """
         w = jnp.asarray(weights)
         if w.shape != self.weights.shape:
@@ -172,16 +175,9 @@ class InducingGP(Predictor):
         Returns:
             ``{"hyperparameters": {...}, "inducing": m, "cases": N}``.
         """
-        h = self.hyper
-        return {
-            "hyperparameters": {
-                "variance": plain(h.variance),
-                "lengthscale": plain(h.lengthscale),
-                "noise": plain(h.noise),
-            },
-            "inducing": int(self.X.shape[0]),
-            "cases": self.n_cases,
-        }
+        names = ("variance", "lengthscale", "noise")
+        hyper = {k: plain(getattr(self.hyper, k)) for k in names}
+        return {"hyperparameters": hyper, "inducing": int(self.X.shape[0]), "cases": self.n_cases}
 
     def _row(self, x: Float[Array, " D"]) -> Float[Array, " m"]:
         ls = jnp.broadcast_to(self.hyper.lengthscale, x.shape)
