@@ -7,7 +7,8 @@ likelihood), fit (hyperparameters by marginal likelihood), exact (GP-G), update 
 Cholesky update), mean (the folded exact mean), predictor (the one predict interface), partition
 (bins and near sets), binned (the partitioned predictor and its per-bin format), local (near-set
 GPs, the far set dropped), schur (the paper's correction and its diagnostics), hybrid
-(GP-G-S-Hybrid), pic (GP-G-PIC).
+(GP-G-S-Hybrid), pic (GP-G-PIC), inducing (values-only GPs on many cases through inducing
+inputs: the flight correction's discrepancies).
 """
 
 from gpg.gp import (
@@ -20,6 +21,7 @@ from gpg.gp import (
     gram,
     hybrid,
     hyper,
+    inducing,
     kernels,
     layout,
     likelihood,
@@ -45,6 +47,7 @@ from gpg.gp.fit import (
 )
 from gpg.gp.gram import assemble_gram, log_marginal_likelihood, stack_targets
 from gpg.gp.hyper import Hyper, gradient_noise
+from gpg.gp.inducing import InducingGP
 
 __all__ = [
     "ExactGP",
@@ -53,6 +56,7 @@ __all__ = [
     "FitWarning",
     "Hyper",
     "HyperFitResult",
+    "InducingGP",
     "Stochastic",
     "assemble_gram",
     "assembly",
@@ -66,6 +70,7 @@ __all__ = [
     "gram",
     "hybrid",
     "hyper",
+    "inducing",
     "kernels",
     "layout",
     "likelihood",
