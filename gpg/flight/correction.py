@@ -7,7 +7,8 @@ O'Hagan 2000, in the surrogate's normalised units):
 
 with ``μ_sim`` the surrogate's GP mean, ``ρ`` a fitted scale per output (or ones) and ``δ`` a
 GP on the discrepancy, one per force and torque component, fitted on values only (flights
-measure no gradients: :class:`gpg.gp.exact.ExactGP` with values-only cases) with its own
+measure no gradients: :class:`gpg.gp.exact.ExactGP` with values-only cases, or beyond
+``exact_labels`` labels :class:`gpg.gp.inducing.InducingGP` on every label) with its own
 hyperparameters and each label's noise on its diagonal (``row_noise``). The prediction's
 variance adds the parts: ``ρ² var_sim + var_δ``. The levels (dB) are not measured in flight and
 stay the prior's.
