@@ -192,9 +192,10 @@ def test_corrected_checkpoint_and_export(corrected, flights, tmp_path):
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
     assert "flight_correction" in checkpoint.read_metadata(path)
-    adapted = fc.adapt(corrected, inducing=4)
-    with pytest.raises(ValueError, match="adapts online"):
-        to_c(adapted, tmp_path / "c_src")
+    from gpg.flight.tracking import track
+
+    with pytest.raises(ValueError, match="tracks its basis's coefficients"):
+        to_c(track(corrected), tmp_path / "c_src")
     assert not (tmp_path / "c_src").exists()
 
 
@@ -241,10 +242,10 @@ def test_corrected_model_in_casadi_and_onnx(corrected, flights, tmp_path):
     ``variance_rtol`` plus 1e-9, ``in_domain`` equal; CasADi's Jacobian of the force against
     ``jax.jacrev`` of ``predict`` to 1e-8 of its largest entry) and as ONNX (the batched graph
     against ``predict`` within the bounds of the ONNX tests, :func:`assert_equals_predict`)."""
-    _casadi_and_onnx(corrected, flights, tmp_path, n=16, jacobians=3)
+    _casadi_and_onnx(corrected, flights, tmp_path, n=8, jacobians=2)
 
 
-def _casadi_and_onnx(corrected, flights, tmp_path, n: int, jacobians: int):
+def _casadi_and_onnx(corrected, flights, tmp_path, n: int, jacobians: int, onnx: bool = True):
     ca = pytest.importorskip("casadi")
     ort = pytest.importorskip("onnxruntime")
     from gpg.export import to_casadi, to_onnx
@@ -270,6 +271,8 @@ def _casadi_and_onnx(corrected, flights, tmp_path, n: int, jacobians: int):
             Jj = np.concatenate([np.asarray(a) for a in jac(rpm[i], euler[i], v[i])], axis=1)
             Jc = np.asarray(jf(rpm[i], euler[i], v[i]))
             assert np.abs(Jc - Jj).max() <= 1e-8 * np.abs(Jj).max()
+    if not onnx:
+        return
     out = to_onnx(corrected, tmp_path / "c.onnx")
     sess = ort.InferenceSession(str(out["onnx"]), providers=["CPUExecutionProvider"])
     feeds = {"rpm": rpm, "euler": euler, "v_air": v}
@@ -606,7 +609,9 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4 * float(np.abs(b).max()))
     v = pe.variance[:, :6]
     np.testing.assert_allclose(pi.variance[:, :6], v, rtol=1e-4, atol=1e-6 * float(v.max()))
-    few = fc.correct(synthetic_surrogate, flights, exact_labels=N_LABELS // 2, inducing=12, **FIT)
+    # the hyperparameters' fit cut short: this model checks the plumbing, not the fit
+    few = fc.correct(synthetic_surrogate, flights, exact_labels=N_LABELS // 2, inducing=12,
+                     subset_size=N_LABELS, max_steps=3)  # fmt: skip
     assert few.model.describe()["flight_correction"]["inducing"] == 12
     assert few.model.describe()["flight_correction"]["n_labels"] == N_LABELS
     back = checkpoint.load(checkpoint.save(tmp_path / "few", few))
@@ -615,7 +620,7 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     np.testing.assert_array_equal(pf.variance, pb.variance)
     assert np.all(np.isfinite(pf.variance)) and np.all(pf.variance[:, :6] > 0)
     _c_equals_predict(few, flights, tmp_path / "c", "float")  # ρ, κ M and inducing δ in C
-    _casadi_and_onnx(few, flights, tmp_path, n=6, jacobians=0)
+    _casadi_and_onnx(few, flights, tmp_path, n=4, jacobians=0, onnx=False)
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)
 
