@@ -211,61 +211,52 @@ def _export_states(flights, n=40):
     return rpm, euler, v
 
 
-def _c_equals_predict(sur, flights, tmp_path, dtype):
-    """The corrected model's C against ``predict``: force and torque to 1e-10 of their scale
-    in double, 1e-5 in float (the prior's arrays in float; the correction's stay double); the
-    variance to the prior's ``variance_rtol`` plus 1e-9 relative (the correction's double
-    sums); ``in_domain`` equal, met both ways."""
+def _exports_equal_predict(sur, flights, tmp_path, dtype, *, n=40, n_casadi=8, jacobians=0,
+                           onnx=True):  # fmt: skip
+    """The corrected model's exports against ``predict``, at ``n`` states rounded to float32
+    (what ONNX reads: every export then sees the same states, and one prediction serves all).
+
+    * C in ``dtype``: force and torque to 1e-10 of their scale in double, 1e-5 in float (the
+      prior's arrays in float; the correction's stay double); the variance to the prior's
+      ``variance_rtol`` plus 1e-9 relative (the correction's double sums, positive terms:
+      the prior's relative bound holds for the sum); ``in_domain`` equal, met both ways.
+    * CasADi at the first ``n_casadi`` states: values to 1e-10, the variance as C's double,
+      ``in_domain`` equal; its Jacobian of the force against ``jax.jacrev`` of ``predict`` to
+      1e-8 of its largest entry at the first ``jacobians`` states.
+    * ONNX (float32 inside the frame): force and torque to 1e-5 of their scale; the variance
+      to ``variance_rtol`` at float32's unit roundoff plus 16 u (the last products)."""
+    from gpg.export import to_casadi, to_onnx
     from tests.export.test_c_source import compiled
     from tests.helpers import variance_rtol
 
+    u32 = 2.0**-24
+    rpm, euler, v = (np.asarray(a, np.float32).astype(float) for a in _export_states(flights, n))
+    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    want_var = np.asarray(ref.variance)
+    vtol = variance_rtol(fc.base(sur), rpm, euler, v, None if dtype == "double" else u32)
     out, call = compiled(sur, tmp_path, dtype)
     assert out["variance"] and out["record"]["model"].endswith("+flight")
-    rpm, euler, v = _export_states(flights)
-    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
     rtol = 1e-10 if dtype == "double" else 1e-5
-    vtol = variance_rtol(fc.base(sur), rpm, euler, v, None if dtype == "double" else 2.0**-24)
     inside = []
-    for i in range(len(rpm)):
+    for i in range(n):
         ok, f, t, lv, var = call(rpm[i], euler[i], v[i])
         for got, want in ((f, ref.force[i]), (t, ref.torque[i]), (lv, ref.levels[i])):
             assert np.abs(got - want).max() <= rtol * max(1.0, np.abs(want).max()), (i, got, want)
-        want = np.asarray(ref.variance[i])
-        assert np.all(np.abs(var - want) <= (vtol[i] + 1e-9) * want), (i, var, want)
+        assert np.all(np.abs(var - want_var[i]) <= (vtol[i] + 1e-9) * want_var[i]), (i, var)
         assert ok == bool(ref.in_domain[i])
         inside.append(ok)
     assert 0 < sum(inside) < len(inside)
-
-
-def test_corrected_model_in_casadi_and_onnx(corrected, flights, tmp_path):
-    """The same model as a CasADi function (values to 1e-10 of their scale, the variance to
-    ``variance_rtol`` plus 1e-9, ``in_domain`` equal; CasADi's Jacobian of the force against
-    ``jax.jacrev`` of ``predict`` to 1e-8 of its largest entry) and as ONNX (the batched graph
-    against ``predict`` within the bounds of the ONNX tests, :func:`assert_equals_predict`)."""
-    _casadi_and_onnx(corrected, flights, tmp_path, n=8, jacobians=2)
-
-
-def _casadi_and_onnx(corrected, flights, tmp_path, n: int, jacobians: int, onnx: bool = True):
     ca = pytest.importorskip("casadi")
-    ort = pytest.importorskip("onnxruntime")
-    from gpg.export import to_casadi, to_onnx
-    from tests.export.test_onnx_model import assert_equals_predict
-    from tests.helpers import variance_rtol
-
-    rpm, euler, v = _export_states(flights, n)
-    ref = jax.jit(jax.vmap(corrected.predict))(rpm, euler, v)
-    vtol = variance_rtol(fc.base(corrected), rpm, euler, v)
-    f = to_casadi(corrected)
-    syms = [ca.MX.sym(n, k) for n, k in (("rpm", 4), ("euler", 3), ("v", 3))]
+    f = to_casadi(sur)
+    syms = [ca.MX.sym(k, d) for k, d in (("rpm", 4), ("euler", 3), ("v", 3))]
     jf = ca.Function("j", syms, [ca.jacobian(f(*syms)[0], ca.vertcat(*syms))])
-    jac = jax.jit(jax.jacrev(lambda *a: corrected.predict(*a).force, argnums=(0, 1, 2)))
-    for i in range(len(rpm)):
+    jac = jax.jit(jax.jacrev(lambda *a: sur.predict(*a).force, argnums=(0, 1, 2)))
+    vtol64 = vtol if dtype == "double" else variance_rtol(fc.base(sur), rpm, euler, v)
+    for i in range(n_casadi):
         res = [np.asarray(a).ravel() for a in f(rpm[i], euler[i], v[i])]
         want = np.concatenate([ref.force[i], ref.torque[i], ref.levels[i]])
-        got = np.concatenate(res[:3])
-        assert np.abs(got - want).max() <= 1e-10 * max(1.0, np.abs(want).max())
-        w = np.asarray(ref.variance[i])
-        assert np.all(np.abs(res[3] - w) <= (vtol[i] + 1e-9) * w), (i, res[3], w)
+        assert np.abs(np.concatenate(res[:3]) - want).max() <= 1e-10 * max(1, np.abs(want).max())
+        assert np.all(np.abs(res[3] - want_var[i]) <= (vtol64[i] + 1e-9) * want_var[i])
         assert float(res[4][0]) == float(ref.in_domain[i])
         if i < jacobians:
             Jj = np.concatenate([np.asarray(a) for a in jac(rpm[i], euler[i], v[i])], axis=1)
@@ -273,18 +264,27 @@ def _casadi_and_onnx(corrected, flights, tmp_path, n: int, jacobians: int, onnx:
             assert np.abs(Jc - Jj).max() <= 1e-8 * np.abs(Jj).max()
     if not onnx:
         return
-    out = to_onnx(corrected, tmp_path / "c.onnx")
-    sess = ort.InferenceSession(str(out["onnx"]), providers=["CPUExecutionProvider"])
+    ort = pytest.importorskip("onnxruntime")
+    path = to_onnx(sur, tmp_path / "c.onnx")["onnx"]
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     feeds = {"rpm": rpm, "euler": euler, "v_air": v}
     res = sess.run(None, {k: np.asarray(a, np.float32) for k, a in feeds.items()})
     got = dict(zip([o.name for o in sess.get_outputs()], res, strict=True))
-    assert_equals_predict(corrected, got, rpm, euler, v, prior=fc.base(corrected))
+    for key in ("force", "torque"):
+        want = np.asarray(getattr(ref, key))
+        scale = np.maximum(1.0, np.abs(want).max(axis=1))
+        assert np.all(np.abs(got[key] - want).max(axis=1) <= 1e-5 * scale), key
+    v32 = vtol if dtype != "double" else variance_rtol(fc.base(sur), rpm, euler, v, u32)
+    tol = (v32[:, None] + 16 * u32) * want_var
+    assert np.all(np.abs(got["variance"] - want_var) <= tol)
+    assert np.array_equal(got["in_domain"], np.asarray(ref.in_domain))
 
 
-def test_corrected_model_in_c_equals_predict(corrected, flights, tmp_path):
+def test_corrected_model_outside_python(corrected, flights, tmp_path):
     """Prior, ρ, κ M, the physical basis with its integrated band and exact discrepancies, in
-    double C (the inducing-point discrepancies in float: test_every_label_...)."""
-    _c_equals_predict(corrected, flights, tmp_path, "double")
+    double C, CasADi and ONNX (the inducing-point discrepancies in float C and CasADi:
+    test_every_label_...)."""
+    _exports_equal_predict(corrected, flights, tmp_path, "double", jacobians=2)
 
 
 @pytest.mark.slow
@@ -619,8 +619,8 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     np.testing.assert_array_equal(pf.force, pb.force)
     np.testing.assert_array_equal(pf.variance, pb.variance)
     assert np.all(np.isfinite(pf.variance)) and np.all(pf.variance[:, :6] > 0)
-    _c_equals_predict(few, flights, tmp_path / "c", "float")  # ρ, κ M and inducing δ in C
-    _casadi_and_onnx(few, flights, tmp_path, n=4, jacobians=0, onnx=False)
+    # ρ, κ M and inducing-point δ in float C and in CasADi
+    _exports_equal_predict(few, flights, tmp_path / "c", "float", n_casadi=4, onnx=False)
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)
 
