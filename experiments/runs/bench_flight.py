@@ -64,13 +64,10 @@ def bench_flight(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def _every_label(cfg: dict[str, Any]) -> dict[str, Any]:
-    from experiments.runs.bench_export import smooth_dataset
     from gpg import flight
     from gpg.linalg import memory
-    from gpg.surrogate import Surrogate
 
-    prior = Surrogate.fit(smooth_dataset(int(cfg["n_points"]), 0), "gpgs_hybrid",
-                          {"hyper": {"fit": False, "lengthscale": 0.8}})  # fmt: skip
+    prior = _prior(int(cfg["n_points"]))
     opts = {"basis": "physical", "inducing": int(cfg["inducing"]), "subset_size": 400}
     flight.correct(prior, _synthetic_labels(prior, int(cfg["warmup"]), 1), exact_labels=1, **opts)
     dev = jax.devices()[0]
@@ -88,6 +85,16 @@ def _every_label(cfg: dict[str, Any]) -> dict[str, Any]:
                      "device_peak_mib": stats_.get("peak_bytes_in_use", 0) / 2**20,
                      "inducing": sur.config["flight_correction"]["inducing"]})  # fmt: skip
     return {"device": str(dev), "n_points": int(cfg["n_points"]), "runs": rows}
+
+
+def _prior(n_points: int):
+    """A ``gpgs_hybrid`` of ``n_points`` synthetic cases with fixed hyperparameters: the sizes
+    of a user's model (data=default's at 1000), in seconds, no dataset needed."""
+    from experiments.runs.bench_export import smooth_dataset
+    from gpg.surrogate import Surrogate
+
+    return Surrogate.fit(smooth_dataset(n_points, 0), "gpgs_hybrid",
+                         {"hyper": {"fit": False, "lengthscale": 0.8}})  # fmt: skip
 
 
 def _synthetic_labels(prior, n: int, seed: int):
@@ -129,17 +136,14 @@ def _c(cfg: dict[str, Any]) -> dict[str, Any]:
     import tempfile
     from pathlib import Path
 
-    from experiments.runs.bench_export import smooth_dataset
     from experiments.runs.export import c_driver, compile_and_time
     from gpg import flight
     from gpg.export import to_c
-    from gpg.surrogate import Surrogate
 
     cc = shutil.which(cfg["cc"])
     if cc is None:
         raise ValueError(f"flight.c.cc: no C compiler {cfg['cc']!r} on PATH")
-    prior = Surrogate.fit(smooth_dataset(int(cfg["n_points"]), 0), "gpgs_hybrid",
-                          {"hyper": {"fit": False, "lengthscale": 0.8}})  # fmt: skip
+    prior = _prior(int(cfg["n_points"]))
     labels = _synthetic_labels(prior, int(cfg["labels"]), 0)
     corrected = flight.correct(prior, labels, basis="physical", exact_labels=1500,
                                inducing=int(cfg["inducing"]), subset_size=400)  # fmt: skip
@@ -270,30 +274,11 @@ def _log(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def _update(cfg: dict[str, Any]) -> dict[str, Any]:
-    from experiments.runs.bench_export import smooth_dataset
     from gpg import flight
-    from gpg.surrogate import Surrogate
 
-    prior = Surrogate.fit(
-        smooth_dataset(int(cfg["n_points"]), 0),
-        "gpgs_hybrid",
-        {"hyper": {"fit": False, "lengthscale": 0.8}},
-    )
-    rng = np.random.default_rng(0)
+    prior = _prior(int(cfg["n_points"]))
     n = int(cfg["labels"])
-    rpm = rng.uniform(3000, 4000, (n, 4))
-    euler = np.column_stack([rng.uniform(-0.3, 0.3, n), rng.uniform(-0.3, 0.1, n),
-                             rng.uniform(-0.2, 0.2, n)])  # fmt: skip
-    speed = rng.uniform(3, 12, n)
-    v_air = np.column_stack([speed * np.cos(euler[:, 0]), speed * np.sin(euler[:, 0]), 0 * speed])
-    p = prior.predict_batch(rpm, euler, v_air, mean_only=True)
-    labels = flight.Labels(
-        t=np.arange(n) / 10.0, rpm=rpm, euler=euler, v_air=v_air,
-        force=np.asarray(p.force) * 1.1 + 0.05 * rng.normal(size=(n, 3)),
-        torque=np.asarray(p.torque) + 0.005 * rng.normal(size=(n, 3)),
-        force_var=np.full((n, 3), 0.05**2), torque_var=np.full((n, 3), 0.005**2),
-        model_force=np.zeros((n, 3)), model_torque=np.zeros((n, 3)),
-    )  # fmt: skip
+    labels = _synthetic_labels(prior, n, 0)
     corrected = flight.correct(prior, labels, subset_size=min(n, 400))
     terms = {
         "inducing": flight.adapt(corrected, inducing=int(cfg["inducing"]), t0=0.0),

@@ -80,16 +80,14 @@ def test_single_state_graph_equals_the_batched_one(tmp_path, kind):
     assert seen == set(range(s.bins.n_bins)) and s.bins.n_bins > 1
 
 
-def assert_equals_predict(sur, got, rpm, euler, v, prior=None):
+def assert_equals_predict(sur, got, rpm, euler, v):
     """ONNX Runtime's outputs ``got`` at the states against ``Surrogate.predict``.
     Mean to 1e-5 of each output's scale. Variance: the states enter in float32, so besides
     the bound of ``variance_rtol`` at float32's unit roundoff the variance moves by its
     gradient times the inputs' rounding (16 u of each input, the frame's few operations
     included), and the last products are float32 (16 u). ``in_domain`` equal except within
     1e-3 of the frame-rate threshold (a float32 central difference) or 1e-5 of a box face
-    (or of the body frame's ball). ``prior``: for a model corrected by flights, the
-    surrogate whose variance factor bounds the rounding (the correction's terms are float64
-    and positive: the prior's relative bound holds for their sum)."""
+    (or of the body frame's ball)."""
     ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
     for key in ("force", "torque", "levels"):
         assert np.all(rel_err(got[key], getattr(ref, key)) <= 1e-5), key
@@ -101,8 +99,7 @@ def assert_equals_predict(sur, got, rpm, euler, v, prior=None):
         np.einsum("qcj,qj->qc", np.abs(np.asarray(J)), s) for J, s in zip(grad, step, strict=True)
     )
     # + the weights, the rotation and the output itself in float32: 16 u of the variance
-    vtol = variance_rtol(sur if prior is None else prior, rpm, euler, v, U32)
-    tol = (vtol[:, None] + 16 * U32) * want_var + moved
+    tol = (variance_rtol(sur, rpm, euler, v, U32)[:, None] + 16 * U32) * want_var + moved
     bad = np.argwhere(np.abs(got["variance"] - want_var) > tol)
     assert bad.size == 0, [
         (q, c, got["variance"][q, c], want_var[q, c], tol[q, c]) for q, c in bad[:5]
