@@ -108,8 +108,11 @@ int main(int argc, char **argv) {
 )
 
 
-def compile_and_time(cc: str, flags, where: Path, sources, calls: int) -> dict[str, Any]:
-    """Build ``driver`` from ``sources`` in ``where``, run it for ``calls`` queries."""
+def compile_and_time(cc: str, flags, where: Path, sources, calls: int,
+                     runs: int = 1) -> dict[str, Any]:  # fmt: skip
+    """Build ``driver`` from ``sources`` in ``where``, run it ``runs`` times for ``calls``
+    queries each. With several runs the figures are those of the run whose median is the
+    median of the runs' (``median_us``: the median of ``runs_median_us``)."""
     import time
 
     t0 = time.perf_counter()
@@ -120,10 +123,19 @@ def compile_and_time(cc: str, flags, where: Path, sources, calls: int) -> dict[s
     if built.returncode != 0:
         raise RuntimeError(f"{cc} failed: {built.stderr[-2000:]}")
     compile_s = time.perf_counter() - t0
-    res = subprocess.run(
-        [str(where / "driver"), str(calls)], check=True, capture_output=True, text=True
-    )
-    return {**json.loads(res.stdout), "compile_s": compile_s}
+    each = [
+        json.loads(
+            subprocess.run(
+                [str(where / "driver"), str(calls)], check=True, capture_output=True, text=True
+            ).stdout
+        )
+        for _ in range(max(1, int(runs)))
+    ]
+    mid = sorted(each, key=lambda r: r["median_us"])[len(each) // 2]
+    out = {**mid, "compile_s": compile_s}
+    if len(each) > 1:
+        out["runs_median_us"] = [r["median_us"] for r in each]
+    return out
 
 
 def c_driver(header: str, call: str) -> str:

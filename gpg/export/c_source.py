@@ -99,8 +99,12 @@ def to_c(
     s = spec(sur, variance=variance, max_bytes=max_bytes)
     itemsize = np.dtype(DTYPES[dtype][0]).itemsize
     n_const = s.constant_bytes(itemsize, variance=s.has_variance)
-    if s.global_mean is not None:  # the folded mean's value block in double (_split_coef)
-        n_const += s.global_mean["xs"].shape[0] * s.n_outputs * (8 - itemsize)
+    if s.global_mean is not None:  # the folded mean's value block in double (_split_coef),
+        # and both blocks' rows padded to whole vectors (_coef_sums)
+        n, m = s.global_mean["xs"].shape[0], s.n_outputs
+        g = s.global_mean["coef"].shape[1] - m
+        n_const += n * (_padded(m, 4) * 8 - m * itemsize)
+        n_const += n * (_padded(g, 4) - g) * itemsize
     if n_const > max_bytes:
         raise ValueError(
             f"the export of {s.model!r} holds {n_const / 2**20:.1f} MiB of constants, over "
@@ -305,8 +309,9 @@ def _constants(name: str, dtype: str, s: Layout) -> list[str]:
         # relative, which the mean's cancelling sum amplifies (see docs/measurements.md)
         dbl("XS_T", gm["xs"].T)
         value, grad = _split_coef(gm, s.grad_dims, m, np_type)
-        dbl("COEF0", value)
-        rl("COEFG", grad)
+        # rows padded to whole vectors of four (_coef_sums loads them as vectors)
+        dbl("COEF0", _pad_columns(value, _padded(value.shape[1], 4)))
+        rl("COEFG", _pad_columns(grad, _padded(grad.shape[1], 4)))
     b = s.bins
     if b is None:
         return out
@@ -395,7 +400,9 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
         public += _online_public(name, s)
     consts = "\n".join(defs + _constants(name, dtype, s))
     m = s.n_outputs
-    sums = _coef_sums(m, m * len(s.grad_dims)) if s.global_mean is not None else ""
+    sums = ""
+    if s.global_mean is not None:
+        sums = _coef_sums(m, m * len(s.grad_dims))
     corr = ""
     if s.correction is not None:
         corr = "\n".join(_correction_constants(s)) + "\n" + fragment("correction.c")
@@ -584,26 +591,100 @@ def _split_coef(
     return value, grad
 
 
-def _coef_sums(m: int, n_grad: int, block: int = 24) -> str:
+def _coef_sums(m: int, n_grad: int, most: int = 8) -> str:
     """``acc[j] = sum_p k[p] C[p, j]`` for the global mean (``C`` = ``COEF0`` for its ``m``
-    value columns, then ``COEFG`` for its ``n_grad`` gradient ones), ``block`` sums at a time
-    in named locals: held in registers across the loop over the points instead of loaded and
-    stored each time (faster at -O2, see docs/measurements.md; each sum keeps its order)."""
+    value columns in double, then ``COEFG`` for its ``n_grad`` gradient ones in ``real``), each
+    row padded to whole vectors of four (:func:`_padded`), in two versions picked at run time.
+
+    * AVX2 with FMA (GCC on x86-64 Linux, as the variance's clones): one pass over the points
+      per group of at most ``most`` sums of four doubles held in registers; a point's
+      coefficients are a few vector loads (float ones widened to double as they are loaded)
+      and fused multiply-adds against its broadcast kernel value.
+    * Anywhere else (and with -DGPG_NO_VECTOR): :func:`_coef_sums_scalar`'s named sums, which
+      compilers vectorise for the vectors the target has (32-byte vector types split in two
+      on SSE2 were slower).
+
+    The sums are double in both dtypes: the folded mean cancels (its terms' absolute sum is
+    hundreds of times the mean at data=default), and float sums and products, tried, put the
+    float export's mean 1.6e-5 from ``predict``."""
+    w0, wg = _padded(m, 4), _padded(n_grad, 4)
+    v0 = [("COEF0", w0, q) for q in range(w0 // 4)]
+    vg = [("COEFG", wg, q) for q in range(wg // 4)]
+    passes = [vs[i : i + most] for vs in (v0, vg) for i in range(0, len(vs), most)]
+    L = [
+        _coef_sums_scalar(m, n_grad, w0, wg).rstrip("\n"),
+        "#if defined(GPG_CLONES) && !defined(GPG_NO_VECTOR)",
+        "/* the same sums for AVX2 with FMA: sums of four doubles held in registers, one pass",
+        " * over the points per group of them (gpg/export/c_source.py: _coef_sums) */",
+        "#pragma GCC push_options",
+        '#pragma GCC target("arch=x86-64-v3")',
+        "typedef double cs_vd __attribute__((vector_size(32)));",
+        "/* four of real widened to double: one vcvtps2pd from memory in float",
+        " * (__builtin_convertvector went through the stack in halves, slower) */",
+        "#define CS_LOAD(V, P) \\",
+        "  do { const real *q_ = (P); (V) = (cs_vd){q_[0], q_[1], q_[2], q_[3]}; } while (0)",
+        "FUSED static void coef_sums_avx2(const double *k, double *acc) {",
+        f"  double s[{w0 + wg}];",
+        "  cs_vd t;",
+        "  int p, j;",
+    ]
+    for vs in passes:
+        array, width = vs[0][0], vs[0][1]
+        names = [f"a{q}" for _, _, q in vs]
+        L.append("  {")
+        L.append("    cs_vd " + ", ".join(f"{n} = {{0}}" for n in names) + ";")
+        L.append("    for (p = 0; p < N_MEAN; p++) {")
+        L.append("      const double kp = k[p];")
+        if array == "COEF0":
+            L.append(f"      const double *c = COEF0 + (long)p * {width};")
+            load = "memcpy(&t, c + {o}, sizeof t);"
+        else:
+            L.append(f"      const real *c = COEFG + (long)p * {width};")
+            load = "CS_LOAD(t, c + {o});"
+        for n, (_, _, q) in zip(names, vs, strict=True):
+            L.append(f"      {load.format(o=4 * q)} {n} += kp * t;")
+        L.append("    }")
+        base = 0 if array == "COEF0" else w0
+        for n, (_, _, q) in zip(names, vs, strict=True):
+            L.append(f"    memcpy(s + {base + 4 * q}, &{n}, sizeof t);")
+        L.append("  }")
+    L += [
+        f"  for (j = 0; j < {m}; j++) acc[j] = s[j];",
+        f"  for (j = 0; j < {n_grad}; j++) acc[{m} + j] = s[{w0} + j];",
+        "}",
+        "#pragma GCC pop_options",
+        "static void coef_sums(const double *k, double *acc) {",
+        '  if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))',
+        "    coef_sums_avx2(k, acc);",
+        "  else",
+        "    coef_sums_any(k, acc);",
+        "}",
+        "#else",
+        "#define coef_sums coef_sums_any",
+        "#endif",
+    ]
+    return "\n".join(L) + "\n"
+
+
+def _coef_sums_scalar(m: int, n_grad: int, w0: int, wg: int, block: int = 24) -> str:
+    """``coef_sums_any``: :func:`_coef_sums`'s sums in scalar C, ``block`` at a time in named
+    locals held in registers across the loop over the points (each sum keeps its order), the
+    rows ``w0`` and ``wg`` wide."""
     parts = [
         "/* acc[j] = sum_p k[p] C[p, j], the sums in blocks held in registers */",
-        "HOT static void coef_sums(const double *k, double *acc) {",
+        "HOT static void coef_sums_any(const double *k, double *acc) {",
         "  int p;",
     ]
-    groups = [("COEF0", m, 0, j0) for j0 in range(0, m, block)]
-    groups += [("COEFG", n_grad, m, j0) for j0 in range(0, n_grad, block)]
-    for array, width, acc0, j0 in groups:
+    groups = [("COEF0", m, w0, 0, j0) for j0 in range(0, m, block)]
+    groups += [("COEFG", n_grad, wg, m, j0) for j0 in range(0, n_grad, block)]
+    for array, width, stride, acc0, j0 in groups:
         b = min(block, width - j0)
         names = [f"a{q}" for q in range(b)]
         parts.append("  {")
         parts.append(f"    double {', '.join(n + ' = 0.0' for n in names)};")
         parts.append("    for (p = 0; p < N_MEAN; p++) {")
         parts.append(f"      const {'double' if array == 'COEF0' else 'real'} *c = "
-                     f"{array} + (long)p * {width} + {j0};")  # fmt: skip
+                     f"{array} + (long)p * {stride} + {j0};")  # fmt: skip
         parts.append("      const double kp = k[p];")
         for i in range(0, b, 4):
             parts.append(
@@ -618,3 +699,13 @@ def _coef_sums(m: int, n_grad: int, block: int = 24) -> str:
         parts.append("  }")
     parts.append("}")
     return "\n".join(parts) + "\n"
+
+
+def _pad_columns(a: np.ndarray, width: int) -> np.ndarray:
+    """``a`` (N, C) with zero columns up to ``width``."""
+    return np.pad(a, ((0, 0), (0, width - a.shape[1])))
+
+
+def _padded(n: int, lanes: int) -> int:
+    """``n`` rounded up to whole vectors of ``lanes``."""
+    return -(-n // lanes) * lanes

@@ -104,13 +104,15 @@ def test_bench_devices_suite(smoke_cache, tmp_path):
 @pytest.mark.slow  # compiles the export and its timing driver twice
 def test_bench_export_suite(tmp_path):
     overrides = ["suites=[export]", "export.n_points=[60]", "export.c_calls=200",
-                 "export.jax_calls=20"]  # fmt: skip
+                 "export.jax_calls=20", "export.runs=3"]  # fmt: skip
     bench.run(compose_plain("bench", overrides), tmp_path)
     row = json.loads((tmp_path / "bench.json").read_text())["export"]["sizes"]["60"]
     for dtype, size in (("double", 8), ("float", 4)):
         # the mean's positions (double) and coefficients, then the variance's bins
         assert row[dtype]["constant_bytes"] > 60 * 8 * 8 + 60 * 72 * size
         assert 0 < row[dtype]["median_us"] <= row[dtype]["p95_us"]
+        runs = row[dtype]["runs_median_us"]  # the mean's three runs, its figures the middle's
+        assert len(runs) == 3 and row[dtype]["median_us"] == sorted(runs)[1]
         assert 0 < row[dtype]["predict"]["median_us"] <= row[dtype]["predict"]["p95_us"]
         assert row[dtype]["in_domain"] == 200 == row[dtype]["predict"]["in_domain"]
     assert row["realtime_over_c_double"] > 0

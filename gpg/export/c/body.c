@@ -172,21 +172,21 @@ static inline double vexp(double x) {
   return p;
 }
 
-/* the folded exact mean of gpg.gp.mean (normalised units): sum_p k(x, x_p) c_p, in three
- * passes over the points (squared distances, kernel values, the coefficients' sums) that each
- * vectorise or keep their sums in registers. (The unfolded sum of gpg.export.layout's alpha
- * was tried: no more accurate in float here, where the coefficients' own rounding dominates,
- * and half again slower.) */
-HOT static void global_mean(const double xn[D_IN], double yn[N_OUT]) {
-  double k[N_MEAN], acc[N_OUT * (1 + N_GRAD)], xl;
+/* the folded exact mean of gpg.gp.mean (normalised units): sum_p k(x, x_p) c_p, in two
+ * passes over the points: the kernel values (the squared distance over the D_IN inputs and
+ * its exp, one loop over the points that GCC vectorises across them, the distances never
+ * stored), then the coefficients' sums held in registers (coef_sums). (The unfolded sum of
+ * gpg.export.layout's alpha was tried: no more accurate in float here, where the
+ * coefficients' own rounding dominates, and half again slower.) */
+HOT FUSED static void global_mean(const double xn[D_IN], double yn[N_OUT]) {
+  double k[N_MEAN], acc[N_OUT * (1 + N_GRAD)], xl[D_IN];
   int i, j, p;
-  for (p = 0; p < N_MEAN; p++) k[p] = 0.0;
-  for (i = 0; i < D_IN; i++) {
-    const double *col = XS_T + (long)i * N_MEAN;
-    xl = xn[i] * INV_LS_M[i];
-    for (p = 0; p < N_MEAN; p++) { double t = xl - col[p]; k[p] += t * t; }
+  for (i = 0; i < D_IN; i++) xl[i] = xn[i] * INV_LS_M[i];
+  for (p = 0; p < N_MEAN; p++) {
+    double r2 = 0.0, t;
+    for (i = 0; i < D_IN; i++) { t = xl[i] - XS_T[(long)i * N_MEAN + p]; r2 += t * t; }
+    k[p] = vexp(-0.5 * r2);
   }
-  for (p = 0; p < N_MEAN; p++) k[p] = vexp(-0.5 * k[p]);
   coef_sums(k, acc);
   for (j = 0; j < N_OUT; j++) {
     double mu = acc[j];

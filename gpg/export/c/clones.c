@@ -6,3 +6,11 @@
 #define HOT
 #endif
 
+
+/* the mean's multiply-adds fused where the CPU has them (GCC leaves them apart under -std=c99):
+ * one rounding instead of two, and half the instructions, in the AVX2 clone */
+#if defined(__GNUC__) && !defined(__clang__)
+#define FUSED __attribute__((optimize("fp-contract=fast")))
+#else
+#define FUSED
+#endif
