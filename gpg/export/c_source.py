@@ -105,6 +105,9 @@ def to_c(
         g = s.global_mean["coef"].shape[1] - m
         n_const += n * (_padded(m, 4) * 8 - m * itemsize)
         n_const += n * (_padded(g, 4) - g) * itemsize
+    if s.correction is not None and s.has_variance:  # one triangle per δ (variance_factor)
+        n_const -= 8 * sum((d.post.shape[0] * (d.post.shape[0] + 1)) // 2
+                           for d in s.correction.deltas if d.post is not None)  # fmt: skip
     if n_const > max_bytes:
         raise ValueError(
             f"the export of {s.model!r} holds {n_const / 2**20:.1f} MiB of constants, over "
@@ -554,12 +557,9 @@ def _correction_constants(s: Layout) -> list[str]:
     if s.has_variance:
         tri = [(m * (m + 1)) // 2 for m in n]
         out.append(f"static const long DELTA_TRI_OFF[6] = {_ints(np.cumsum([0] + tri[:-1]))};")
-        out.append(f"#define DELTA_HAS_POST {int(c.deltas[0].post is not None)}")
-        for key in ("whiten", "post"):
-            parts = [getattr(d, key) for d in c.deltas]
-            # an unused DELTA_POST is still read (behind DELTA_HAS_POST = 0): kept, as zeros
-            packed = [F[np.tril_indices(F.shape[0])] for F in parts if F is not None]
-            dbl(f"DELTA_{key.upper()}", np.concatenate(packed) if packed else np.zeros(0))
+        # the latent variance's one triangle per discrepancy (Discrepancy.variance_factor)
+        packed = [T[np.tril_indices(T.shape[0])] for T in (d.variance_factor() for d in c.deltas)]
+        dbl("DELTA_TRI", np.concatenate(packed))
         if c.G is not None:
             dbl("CORR_G", np.concatenate([g.ravel() for g in c.G]))
             dbl("CORR_C", c.cov_chol)

@@ -73,3 +73,32 @@ def test_old_name_spec_reads_with_a_warning():
         assert layout.Spec is layout.Layout
     with pytest.raises(AttributeError):
         gpg.export.Nothing  # noqa: B018
+
+
+def test_an_inducing_discrepancys_two_triangles_are_one():
+    """``Discrepancy.variance_factor`` against the DTC latent variance in NumPy:
+    ``‖T k‖² = ‖W k‖² − ‖P k‖²`` with ``W = L⁻¹`` of ``K_mm`` and ``P = L_B⁻¹ W``,
+    ``B = I + A Aᵀ``, ``A = W K_mn / ν``, and ``T`` lower triangular. The tolerance is a
+    rounding of the largest terms the two forms pass through, ``‖W‖₂² ‖k‖²`` (64 unit
+    roundoffs of it); an exact GP's factor is its ``W``."""
+    rng = np.random.default_rng(0)
+    Z, X = rng.uniform(-1, 1, (30, 3)), rng.uniform(-1, 1, (300, 3))
+
+    def k(a, b):
+        return np.exp(-0.5 * np.sum((a[:, None] - b[None]) ** 2, -1) / 0.5**2)
+
+    W = np.linalg.inv(np.linalg.cholesky(k(Z, Z) + 1e-8 * np.eye(30)))
+    A = W @ k(Z, X) / 0.1
+    P = np.linalg.inv(np.linalg.cholesky(np.eye(30) + A @ A.T)) @ W
+    d = layout.Discrepancy(points=Z, weights=np.zeros(30), lengthscale=np.full(3, 0.5),
+                           sigma=1.0, noise=1e-4, output_scale=1.0, whiten=W, post=P)  # fmt: skip
+    T = d.variance_factor()
+    np.testing.assert_array_equal(T, np.tril(T))
+    kq = k(rng.uniform(-1.2, 1.2, (50, 3)), Z)
+    want = np.sum((kq @ W.T) ** 2, 1) - np.sum((kq @ P.T) ** 2, 1)
+    got = np.sum((kq @ T.T) ** 2, 1)
+    bound = 64 * np.finfo(float).eps * np.linalg.norm(W, 2) ** 2 * np.sum(kq**2, 1)
+    assert np.all(np.abs(got - want) <= bound)
+    assert want.max() > 1e3 * bound.max()  # the data tell the variance apart from rounding
+    exact = layout.Discrepancy(**{**d.__dict__, "post": None})
+    assert exact.variance_factor() is W

@@ -3,8 +3,10 @@
  * per load output j, in the GP's frame and normalised units, the mean
  *   rho_j mu_j + kappa_j m_j(x) + sum_t beta_jt h_jt(x) + delta_j(xn)
  * and the predictive variance
- *   rho_j^2 c_j max(v, 0) + c_dj (max(sigma_j - |W_j k|^2 + |P_j k|^2, 0) + nu_j^2)
+ *   rho_j^2 c_j max(v, 0) + c_dj (max(sigma_j - |T_j k|^2, 0) + nu_j^2)
  *   + |C_j^T (hbar_j - G_j^T k)|^2,
+ * |T_j k|^2 = |W_j k|^2 - |P_j k|^2 (gpg.export.layout.Discrepancy.variance_factor: one
+ * triangle where an inducing-point discrepancy has two),
  * with m_j M's loads, h_j the physical columns (gpg.flight.basis.PhysicalBasis) and hbar_j the
  * integrated columns (the prior's mean, m_j, then h_j). Everything here is double: these
  * arrays are small beside the prior's, and the physics cancels in float. */
@@ -176,8 +178,7 @@ static void corrected(const double x[D_IN], const double xn[D_IN], double yn[N_O
     yn[j] += delta_row(j, xn, k);
 #if HAS_VAR
     if (pv) {
-      double v = DELTA_SIGMA[j] - tri_sq(DELTA_WHITEN + DELTA_TRI_OFF[j], k, DELTA_N[j]);
-      if (DELTA_HAS_POST) v += tri_sq(DELTA_POST + DELTA_TRI_OFF[j], k, DELTA_N[j]);
+      double v = DELTA_SIGMA[j] - tri_sq(DELTA_TRI + DELTA_TRI_OFF[j], k, DELTA_N[j]);
       pv[j] += DELTA_OS[j] * ((v > 0.0 ? v : 0.0) + DELTA_NU[j]);
 #if N_INTEGRATED
       {
