@@ -610,9 +610,9 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4 * float(np.abs(b).max()))
     v = pe.variance[:, :6]
     np.testing.assert_allclose(pi.variance[:, :6], v, rtol=1e-4, atol=1e-6 * float(v.max()))
-    # the hyperparameters' fit cut short: this model checks the plumbing, not the fit
+    # the fit's settings of the fixtures: their compiled programs serve this one too
     few = fc.correct(synthetic_surrogate, flights, exact_labels=N_LABELS // 2, inducing=12,
-                     subset_size=N_LABELS, max_steps=3)  # fmt: skip
+                     **FIT)  # fmt: skip
     assert few.model.describe()["flight_correction"]["inducing"] == 12
     assert few.model.describe()["flight_correction"]["n_labels"] == N_LABELS
     back = checkpoint.load(checkpoint.save(tmp_path / "few", few))
