@@ -170,12 +170,62 @@ def _domain_doc(s: Layout) -> str:
 
 
 def _online_header(name: str, s: Layout, c_type: str) -> str:
-    """The adapted model's state and calls, for a model with an online term."""
-    o = None if s.correction is None else s.correction.online
-    if o is None:
+    """The adapted or tracked model's state and calls, for a model with an online term."""
+    if _online(s) is None:
         return ""
+    state, relax = _online_state(name, s, c_type)
+    band = ("the loads' band is the filter's, as gpg's predict of a tracked model"
+            if s.correction.tracked is not None else "added")  # fmt: skip
+    return (
+        state
+        + f"""
+/* the state when the model was exported */
+void {name}_online_init({name}_online *st);
+
+/* one label at time t (s): the state relaxed since st->t ({relax}), then conditioned on the
+ * label's residual against the offline model, as gpg.flight.update. Returns 1, or 0 (the
+ * state untouched) for a label with a non-finite value or a negative variance. force,
+ * torque: the measured aerodynamic loads (N, N*m, world); force_var, torque_var their noise
+ * variances. */
+int {name}_online_update({name}_online *st, double t, const double rpm[4],
+                         const double euler[3], const double v_air[3], const double force[3],
+                         const double torque[3], const double force_var[3],
+                         const double torque_var[3]);
+
+/* as {name}_predict{"" if s.has_variance else " (variance: not written; may be 0)"}, with the
+ * online term's mean added and its variance ({band}; the state as it is: not relaxed to a
+ * later time) */
+int {name}_online_predict(const {name}_online *st, const double rpm[4], const double euler[3],
+                          const double v_air[3], double force[3], double torque[3],
+                          double *levels, double *variance);
+"""
+    )
+
+
+def _online_state(name: str, s: Layout, c_type: str) -> tuple[str, str]:
+    """The online state's struct (C) and how it relaxes (words), for :func:`_online_header`."""
+    o = _online(s)
+    if s.correction.tracked is not None:
+        k, p = o.mean.shape[0], o.mean.shape[2]
+        state = f"""
+/* The tracked coefficients of the model (gpg.flight.track): a bank of {k} Kalman filters on the
+ * drift of the physical basis's {p} columns per load output (the prior's mean,
+ * {"M's loads, " if o.with_simple else ""}the physical terms, a bias). The state is the
+ * caller's (fixed size; nothing is allocated), one state per vehicle. {name}_mean and
+ * {name}_predict above are the model without it (offline). */
+#define {name.upper()}_N_MEMBERS {k}
+#define {name.upper()}_N_COLUMNS {p}
+typedef struct {{
+  {c_type} mean[{k}][6][{p}];       /* each member's drift mean, per load output */
+  {c_type} cov[{k}][6][{p}][{p}];   /* and its covariance */
+  double log_weight[{k}];       /* the members' log weights */
+  double t;                   /* s, the time of the last update */
+}} {name}_online;
+"""
+        taus = ", ".join(f"{b:.6g}" for b in o.bias_tau)
+        return state, f"time constants {o.tau:.6g} s and, for the bias, {taus} s"
     m = o.Z.shape[0]
-    return f"""
+    state = f"""
 /* The online term of the adapted model (gpg.flight.adapt): the state is the caller's (fixed
  * size, {m} inducing inputs per load output; nothing is allocated), one state per vehicle.
  * {name}_mean and {name}_predict above are the model without it (offline). */
@@ -185,26 +235,8 @@ typedef struct {{
   {c_type} cov[6][{m}][{m}];   /* and their covariance */
   double t;                 /* s, the time of the last update */
 }} {name}_online;
-
-/* the state when the model was exported */
-void {name}_online_init({name}_online *st);
-
-/* one label at time t (s): the state relaxed since st->t (forgetting time constant
- * {o.tau:.6g} s), then conditioned on the label's residual against the offline model, as
- * gpg.flight.update. Returns 1, or 0 (the state untouched) for a label with a non-finite
- * value or a negative variance. force, torque: the measured aerodynamic loads (N, N*m, world);
- * force_var, torque_var their noise variances. */
-int {name}_online_update({name}_online *st, double t, const double rpm[4],
-                         const double euler[3], const double v_air[3], const double force[3],
-                         const double torque[3], const double force_var[3],
-                         const double torque_var[3]);
-
-/* as {name}_predict{"" if s.has_variance else " (variance: not written; may be 0)"}, with the
- * online term's mean and variance added (the state as it is: not relaxed to a later time) */
-int {name}_online_predict(const {name}_online *st, const double rpm[4], const double euler[3],
-                          const double v_air[3], double force[3], double torque[3],
-                          double *levels, double *variance);
 """
+    return state, f"forgetting time constant {o.tau:.6g} s"
 
 
 def _header(name: str, s: Layout, record: dict[str, Any], dtype: str) -> str:
@@ -376,6 +408,7 @@ def _source(name: str, dtype: str, s: Layout, record: dict[str, Any]) -> str:
         "HAS_ALLOCATION": s.allocation is not None,
         "HAS_CORR": s.correction is not None,
         "HAS_ONLINE": _online(s) is not None,
+        "HAS_TRACKER": s.correction is not None and s.correction.tracked is not None,
     }
     defs = [f"#define {k} {int(v)}" for k, v in flags.items()]
     defs.append(f"#define ONLINE_T {name}_online")
@@ -410,14 +443,17 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
     if s.correction is not None:
         corr = "\n".join(_correction_constants(s)) + "\n" + fragment("correction.c")
     if _online(s) is not None:
-        corr += fragment("online.c")
+        corr += fragment("tracker.c" if s.correction.tracked is not None else "online.c")
     # the correction's code reads the body's helpers (the vector clones' switch among them)
     body = fragment("body.c").replace("/*@CORRECTION@*/", corr)
     return head + consts + "\n" + fragment("frames.c") + sums + body + public
 
 
 def _online(s: Layout):
-    return None if s.correction is None else s.correction.online
+    """The online state's term: an adapted model's ``η`` or a tracked model's filter."""
+    if s.correction is None:
+        return None
+    return s.correction.online if s.correction.online is not None else s.correction.tracked
 
 
 # Long by design: the three calls as one C template, read as C.
@@ -427,12 +463,25 @@ def _online_public(name: str, s: Layout) -> str:
     return f"""
 void {name}_online_init({name}_online *st) {{
   int j, p, q;
+#if HAS_TRACKER
+  int k;
+  for (k = 0; k < TRACK_K; k++) {{
+    st->log_weight[k] = TRACK_LW0[k];
+    for (j = 0; j < 6; j++)
+      for (p = 0; p < TRACK_P; p++) {{
+        st->mean[k][j][p] = (real)TRACK_MEAN0[((long)k * 6 + j) * TRACK_P + p];
+        for (q = 0; q < TRACK_P; q++)
+          st->cov[k][j][p][q] = (real)TRACK_COV0[(((long)k * 6 + j) * TRACK_P + p) * TRACK_P + q];
+      }}
+  }}
+#else
   for (j = 0; j < 6; j++)
     for (p = 0; p < N_IND; p++) {{
       st->mean[j][p] = (real)ONLINE_MEAN0[j * N_IND + p];
       for (q = 0; q < N_IND; q++)
         st->cov[j][p][q] = (real)ONLINE_COV0[((long)j * N_IND + p) * N_IND + q];
     }}
+#endif
   st->t = {_online(s).t!r};
 }}
 
@@ -458,6 +507,11 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
     real kr[MAX_ROWS];
     binned_mean(xn, lookup(xn), kr, yn);
   }}
+#endif
+#if HAS_TRACKER
+  double prior[N_OUT], h[6][TRACK_P];
+  for (i = 0; i < N_OUT; i++) prior[i] = yn[i];
+  track_columns(x, prior, h);
 #endif
   corrected(x, xn, yn, 0.0, 0);
   for (i = 0; i < 3; i++) {{ f[i] = force[i]; tq[i] = torque[i]; }}
@@ -485,7 +539,11 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
     y[i] = (y[i] - Y_MEAN[i]) / Y_STD[i] - yn[i];
     r[i] /= Y_STD[i] * Y_STD[i];
   }}
+#if HAS_TRACKER
+  tracker_kalman(st, t, h, y, r);
+#else
   online_kalman(st, t, xn, y, r);
+#endif
   return 1;
 }}
 
@@ -534,6 +592,19 @@ def _correction_constants(s: Layout) -> list[str]:
         dbl("ONLINE_NU", o.noise)
         dbl("ONLINE_MEAN0", o.mean)
         dbl("ONLINE_COV0", o.cov)
+    if c.tracked is not None:
+        r = c.tracked
+        k, p = r.mean.shape[0], r.mean.shape[2]
+        out += [f"#define TRACK_K {k}", f"#define TRACK_P {p}",
+                f"#define TRACK_SIMPLE {int(r.with_simple)}", f"#define TRACK_TAU {r.tau!r}",
+                f"#define TRACK_SHARE {r.share!r}"]  # fmt: skip
+        dbl("TRACK_BIAS_TAU", r.bias_tau)
+        dbl("TRACK_NOISE", r.noise)
+        dbl("TRACK_BIAS", r.bias)
+        dbl("TRACK_STAT", r.stationary)
+        dbl("TRACK_MEAN0", r.mean)
+        dbl("TRACK_COV0", r.cov)
+        dbl("TRACK_LW0", r.log_weight)
     dbl("CORR_SCALE", c.scale)
     if c.kappa is not None:  # a term of M implies M: the prior's allocation
         dbl("CORR_KAPPA", c.kappa)
@@ -548,7 +619,9 @@ def _correction_constants(s: Layout) -> list[str]:
         f"static const int DELTA_N[6] = {_ints(n)};",
         f"static const long DELTA_PT_OFF[6] = {_ints(off)};",
     ]
-    dbl("DELTA_PTS", np.concatenate([d.points for d in c.deltas]))
+    # each discrepancy's points over its lengthscales, input by input (delta_row's loops over
+    # them vectorise)
+    dbl("DELTA_ZL_T", np.concatenate([(d.points / d.lengthscale).T.ravel() for d in c.deltas]))
     dbl("DELTA_W", np.concatenate([d.weights for d in c.deltas]))
     dbl("DELTA_LS", np.concatenate([d.lengthscale for d in c.deltas]))
     dbl("DELTA_SIGMA", [d.sigma for d in c.deltas])

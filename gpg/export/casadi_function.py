@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gpg.export.layout import Layout, spec
+from gpg.export.layout import Layout, refuse_tracked, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -46,14 +46,16 @@ def to_casadi(
         ``in_domain`` (1.0 or 0.0).
 
     Raises:
-        ValueError: for a ``frame`` other than world or body, or a model
-            :func:`gpg.export.layout.spec` refuses.
+        ValueError: for a ``frame`` other than world or body, a model
+            :func:`gpg.export.layout.spec` refuses, or a tracked model
+            (:func:`gpg.flight.track`: its filter exports to C only).
     """
     import casadi as ca
 
     if frame not in ("world", "body"):
         raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
     s = spec(sur, variance=variance)
+    refuse_tracked(s, "to_casadi")
     rpm, euler, v = ca.MX.sym("rpm", 4), ca.MX.sym("euler", 3), ca.MX.sym("v_air", 3)
     if s.frame == "body":  # the GP's frame is the body's: no frame of its own, no turn rate
         rwh = _ca_rot(ca, euler[0], euler[1], euler[2])

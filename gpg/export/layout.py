@@ -35,7 +35,7 @@ from gpg.gp.partition import Partition
 from gpg.names import AERO
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
-__all__ = ["Correction", "Discrepancy", "Layout", "OnlineTerm", "spec"]
+__all__ = ["Correction", "Discrepancy", "Layout", "OnlineTerm", "TrackedTerm", "spec"]
 
 # A C source holds each constant as text (about 3.5 bytes per stored byte): past this many
 # bytes of constants an export is refused unless asked for (the exact GP-G variance at
@@ -191,6 +191,45 @@ class OnlineTerm:
 
 
 @dataclass(frozen=True)
+class TrackedTerm:
+    """The tracked coefficients of a model prepared by :func:`gpg.flight.track`
+    (:class:`gpg.flight.tracking.Tracker`) with their state when exported: a bank of ``K``
+    Kalman filters on the drift ``w`` of the columns ``h = (μ_prior, m (where tracked), the
+    physical terms, a bias)`` per load output. Between labels each member relaxes,
+    ``w ← a ⊙ w``, ``Σ ← (a aᵀ) ⊙ (Σ − Σ_∞) + Σ_∞`` (``a = e^{−Δt/τ}``, the bias's
+    ``e^{−Δt/τ_b,k}``); each label is a rank-one update per output and member, and the
+    members are reweighed by their predictive densities with a fixed share. The prediction
+    adds the mixture's ``hᵀ w̄`` to the offline mean; the loads' variance is the mixture's
+    ``hᵀ Σ h`` (with the members' spread) plus ``v``.
+
+    Attributes:
+        stationary: (6, P, P) ``Σ_∞``.
+        tau: s, ``τ``.
+        bias_tau: (K,) s, each member's ``τ_b``.
+        noise: (6,) ``v`` (normalised units).
+        share: the fixed share per label.
+        bias: (6,) the bias column (normalised units).
+        with_simple: ``M``'s loads are a column (after the prior's mean).
+        mean: (K, 6, P) the members' means when exported.
+        cov: (K, 6, P, P) their covariances.
+        log_weight: (K,) their log weights.
+        t: s, the state's time when exported.
+    """
+
+    stationary: np.ndarray
+    tau: float
+    bias_tau: np.ndarray
+    noise: np.ndarray
+    share: float
+    bias: np.ndarray
+    with_simple: bool
+    mean: np.ndarray
+    cov: np.ndarray
+    log_weight: np.ndarray
+    t: float
+
+
+@dataclass(frozen=True)
 class Correction:
     """What a model corrected by flights adds to its prior's closed form
     (:class:`gpg.flight.correction.Corrected`), in the GP's normalised units: per load output
@@ -212,6 +251,7 @@ class Correction:
         G: six (m, P) ``K⁻¹ H`` (the integrated basis's variance), or None.
         cov_chol: (6, P, P) ``C``, or None.
         online: the online term of an adapted model, or None.
+        tracked: the tracked coefficients of a tracked model, or None.
     """
 
     scale: np.ndarray
@@ -226,6 +266,7 @@ class Correction:
     G: list[np.ndarray] | None
     cov_chol: np.ndarray | None
     online: OnlineTerm | None = None
+    tracked: TrackedTerm | None = None
 
     @property
     def has_variance(self) -> bool:
@@ -251,6 +292,9 @@ class Correction:
         if self.online is not None:
             o = self.online
             n += o.Z.size + o.whiten.size + o.lengthscale.size + o.mean.size + o.cov.size + 20
+        if self.tracked is not None:
+            r = self.tracked
+            n += r.stationary.size + r.mean.size + r.cov.size + 3 * r.bias_tau.size + 16
         return 8 * n
 
 
@@ -344,6 +388,15 @@ def row_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, last
 
 
+def refuse_tracked(s: Layout, who: str) -> None:
+    """A writer other than C refuses a tracked model (its filter exports to C only)."""
+    if s.correction is not None and s.correction.tracked is not None:
+        raise ValueError(
+            f"{who}: model {s.model!r} tracks its basis's coefficients (gpg.flight.track), "
+            "whose filter exports to C only (gpg.export.to_c); export it before track"
+        )
+
+
 def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None) -> Layout:
     """The export layout of ``sur``, or ``ValueError`` saying why it cannot be exported.
 
@@ -434,11 +487,11 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
     """The arrays a model corrected by flights adds to its prior's (:class:`Correction`)."""
     from gpg.gp.inducing import InducingGP
 
-    if m.tracker is not None:
+    if m.tracker is not None and m.explicit is None:
         raise ValueError(
-            f"model {sur.model_name!r} tracks its basis's coefficients online (gpg.flight.track):"
-            " that filter is not exported; export the model before track, or adapt it with "
-            "gpg.flight.adapt (its inducing-point term exports with its update)"
+            f"model {sur.model_name!r} tracks the coefficients of a correction without the "
+            "physical basis (gpg.flight.track): only a tracked correct(..., basis='physical') "
+            "exports"
         )
     if len(m.delta) not in (0, 6):
         raise ValueError(f"a corrected model exports with six discrepancies, got {len(m.delta)}")
@@ -477,6 +530,23 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
         G=None if e is None or not variance else [g for g in _f64(e.G)],
         cov_chol=None if e is None or not variance else _f64(e.cov_chol),
         online=None if m.online is None else _online(m.online, d_in),
+        tracked=None if m.tracker is None else _tracked(m.tracker),
+    )
+
+
+def _tracked(r: Any) -> TrackedTerm:
+    return TrackedTerm(
+        stationary=_f64(r.stationary),
+        tau=float(np.asarray(r.tau)),
+        bias_tau=_f64(r.bias_tau),
+        noise=_f64(r.noise),
+        share=float(np.asarray(r.share)),
+        bias=_f64(r.bias_column())[:, 0],
+        with_simple=bool(r.with_simple),
+        mean=_f64(r.mean),
+        cov=_f64(r.cov),
+        log_weight=_f64(r.log_weight),
+        t=float(np.asarray(r.t)),
     )
 
 

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.export.layout import MAX_BYTES, Layout, spec
+from gpg.export.layout import MAX_BYTES, Layout, refuse_tracked, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -64,12 +64,14 @@ def to_onnx(
         arrays' SHA-256, units; also in the model's ``metadata_props``).
 
     Raises:
-        ValueError: nothing written, for a model :func:`gpg.export.layout.spec` refuses or
+        ValueError: nothing written, for a model :func:`gpg.export.layout.spec` refuses, a
+            tracked model (:func:`gpg.flight.track`: its filter exports to C only) or
             constants over ``max_bytes``.
     """
     import onnx
 
     s = spec(sur, variance=variance, max_bytes=max_bytes)
+    refuse_tracked(s, "to_onnx")
     n_const = s.constant_bytes(8, variance=s.has_variance)  # float64 but the float32 factors
     if n_const > max_bytes:
         raise ValueError(

@@ -306,3 +306,79 @@ def test_track_checks_and_composes(synthetic_surrogate, corrected, flights):
     fwd = jax.jit(jax.jacfwd(lambda a: s.predict(lab.rpm[0], lab.euler[0], a).force))(v[0])
     np.testing.assert_allclose(np.asarray(fwd)[0], np.asarray(g), rtol=1e-8, atol=1e-10)
     assert dataclasses.is_dataclass(d)
+
+
+def test_tracked_update_in_c_equals_jax(corrected, flights, tmp_path):
+    """A tracked model's C (``gpg.export.to_c``, a bank of two filters): its state after a
+    10-minute stream at 10 Hz (the labels replayed, time moving on) equals ``lax.scan`` of
+    :func:`fc.update` to 1e-9 (double: the same float64 relax-then-Kalman steps, the C's
+    covariance exactly symmetric where the library symmetrises after each step), and
+    ``online_predict`` then equals ``predict`` of the updated model: force and torque to 1e-9
+    of their scale, the filter's band on the loads to 1e-7 relative. A label with NaN is
+    refused, the state kept; CasADi and ONNX refuse the tracked model by name."""
+    import ctypes
+
+    from gpg.export import to_casadi, to_onnx
+    from tests.export.test_c_source import compiled
+    from tests.flight.test_correction import _export_states
+
+    drift = dataclasses.replace(tk.default_drift(corrected), tau=30.0, bias_tau=5.0, fast=(0.5,))
+    tracked = tk.track(corrected, drift)
+    lab = Labels.concatenate(flights)
+    n = 6000
+    cols = [np.asarray(c, float)[np.arange(n) % len(lab)] for c in lab.columns()]
+    cols[0] = np.arange(n) * 0.1
+    final, _ = jax.jit(lambda s, xs: jax.lax.scan(lambda c, r: (fc.update(c, *r), None), s, xs))(
+        tracked, tuple(jnp.asarray(c) for c in cols)
+    )
+    compiled(tracked, tmp_path, "double")
+    lib = ctypes.CDLL(str(tmp_path / "quad.so"))
+    r = final.model.tracker
+    k, p = r.mean.shape[0], r.mean.shape[2]
+    start = tracked.model.tracker  # the stream moved every part of the state
+    assert np.abs(r.mean).min() < np.abs(r.mean).max() and np.abs(r.mean).max() > 1e-3
+    assert np.abs(r.log_weight - start.log_weight).max() > 1e-3
+
+    class State(ctypes.Structure):
+        _fields_ = [
+            ("mean", ctypes.c_double * (k * 6 * p)),
+            ("cov", ctypes.c_double * (k * 6 * p * p)),
+            ("log_weight", ctypes.c_double * k),
+            ("t", ctypes.c_double),
+        ]
+
+    D = ctypes.POINTER(ctypes.c_double)
+    rows = np.column_stack([c.reshape(n, -1) for c in cols])
+
+    def update(st, row, t):  # one row: t, rpm, euler, v_air, force, torque, their variances
+        cuts = ((1, 5), (5, 8), (8, 11), (11, 14), (14, 17), (17, 20), (20, 23))
+        a = [np.ascontiguousarray(row[i:j]).ctypes.data_as(D) for i, j in cuts]
+        return lib.quad_online_update(ctypes.byref(st), ctypes.c_double(t), *a)
+
+    st = State()
+    lib.quad_online_init(ctypes.byref(st))
+    assert all(update(st, row, row[0]) == 1 for row in rows)
+    got = np.ctypeslib.as_array(st.mean).reshape(k, 6, p)
+    np.testing.assert_allclose(got, r.mean, rtol=0, atol=1e-9 * max(1.0, np.abs(r.mean).max()))
+    got = np.ctypeslib.as_array(st.cov).reshape(k, 6, p, p)
+    np.testing.assert_allclose(got, r.cov, rtol=0, atol=1e-9 * max(1.0, np.abs(r.cov).max()))
+    np.testing.assert_allclose(np.ctypeslib.as_array(st.log_weight), r.log_weight, atol=1e-9)
+    assert st.t == float(r.t)
+    bad = rows[0].copy()
+    bad[12] = np.nan
+    before = np.ctypeslib.as_array(st.mean).copy()
+    assert update(st, bad, 1e4) == 0
+    assert np.array_equal(np.ctypeslib.as_array(st.mean), before) and st.t == float(r.t)
+    rpm, euler, v = _export_states(lab, 8)
+    ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
+    for i in range(len(rpm)):
+        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
+        args = [np.ascontiguousarray(x) for x in (rpm[i], euler[i], v[i], f, t, lv, var)]
+        ok = lib.quad_online_predict(ctypes.byref(st), *[x.ctypes.data_as(D) for x in args])
+        assert ok == bool(ref.in_domain[i])
+        want = np.concatenate([ref.force[i], ref.torque[i]])
+        assert np.abs(np.concatenate([f, t]) - want).max() <= 1e-9 * max(1, np.abs(want).max())
+        np.testing.assert_allclose(var[:6], ref.variance[i, :6], rtol=1e-7)
+    for writer in (lambda: to_casadi(tracked), lambda: to_onnx(tracked, tmp_path / "m.onnx")):
+        with pytest.raises(ValueError, match="exports to C only"):
+            writer()

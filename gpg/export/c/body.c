@@ -129,7 +129,7 @@ static double latent_variance(const real *k, int b, int nr) {
 }
 #endif
 
-#if HAS_GLOBAL_MEAN
+#if HAS_GLOBAL_MEAN || HAS_CORR
 /* exp(x) for x <= 0 without a branch or a call, so that the loop over the training points
  * vectorises: x = n ln2 + r with |r| <= ln2/2 (n rounded to nearest by adding 1.5 * 2^52),
  * exp(r) by its Taylor polynomial of degree 13 (truncation below 1e-17 relative), 2^n written
@@ -171,7 +171,9 @@ static inline double vexp(double x) {
   memcpy(&p, &bits, sizeof p);
   return p;
 }
+#endif
 
+#if HAS_GLOBAL_MEAN
 /* the folded exact mean of gpg.gp.mean (normalised units): sum_p k(x, x_p) c_p, in two
  * passes over the points: the kernel values (the squared distance over the D_IN inputs and
  * its exp, one loop over the points that GCC vectorises across them, the distances never
@@ -291,10 +293,16 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   }
 #endif
   (void)b; (void)nr; (void)latent;
+#if HAS_TRACKER
+  double prior[N_OUT]; /* the tracked columns read the prior's mean */
+  for (j = 0; j < N_OUT; j++) prior[j] = yn[j];
+#endif
 #if HAS_CORR
   corrected(x, xn, yn, latent, variance ? pvn : 0);
 #endif
-#if HAS_ONLINE
+#if HAS_TRACKER
+  if (st) tracker_eta(st, x, prior, yn, variance ? pvn : 0);
+#elif HAS_ONLINE
   if (st) online_eta(st, xn, yn, variance ? pvn : 0);
 #endif
   for (j = 0; j < N_OUT; j++) y[j] = yn[j] * Y_STD[j] + Y_MEAN[j];

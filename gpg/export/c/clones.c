@@ -7,10 +7,12 @@
 #endif
 
 
-/* the mean's multiply-adds fused where the CPU has them (GCC leaves them apart under -std=c99):
- * one rounding instead of two, and half the instructions, in the AVX2 clone */
+/* the hot loops' multiply-adds fused where the CPU has them (GCC leaves them apart under
+ * -std=c99): one rounding instead of two, and half the instructions, in the AVX2 clone; and
+ * vectorised where a loop's count or its pointers' overlap is known only at run time (the
+ * cost model of -O2 leaves those loops scalar) */
 #if defined(__GNUC__) && !defined(__clang__)
-#define FUSED __attribute__((optimize("fp-contract=fast")))
+#define FUSED __attribute__((optimize("fp-contract=fast", "vect-cost-model=dynamic")))
 #else
 #define FUSED
 #endif
