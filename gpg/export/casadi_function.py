@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gpg.export.layout import Layout, refuse_tracked, spec
+from gpg.export.layout import Layout, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -46,16 +46,14 @@ def to_casadi(
         ``in_domain`` (1.0 or 0.0).
 
     Raises:
-        ValueError: for a ``frame`` other than world or body, a model
-            :func:`gpg.export.layout.spec` refuses, or a tracked model
-            (:func:`gpg.flight.track`: its filter exports to C only).
+        ValueError: for a ``frame`` other than world or body, or a model
+            :func:`gpg.export.layout.spec` refuses.
     """
     import casadi as ca
 
     if frame not in ("world", "body"):
         raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
     s = spec(sur, variance=variance)
-    refuse_tracked(s, "to_casadi")
     rpm, euler, v = ca.MX.sym("rpm", 4), ca.MX.sym("euler", 3), ca.MX.sym("v_air", 3)
     if s.frame == "body":  # the GP's frame is the body's: no frame of its own, no turn rate
         rwh = _ca_rot(ca, euler[0], euler[1], euler[2])
@@ -169,8 +167,22 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             psi = ca.mtimes(ca.DM(o.whiten[j]), o.variance[j] * ca.exp(-0.5 * ca.sum2(diff**2)))
             loads[j] = loads[j] + ca.dot(psi, ca.DM(o.mean[j]))
             extra[j] = extra[j] + ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
+    if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
+        r, w = c.tracked, np.exp(c.tracked.log_weight)
+        for j in range(6):
+            cols = [prior[j]] + ([ms[j]] if r.with_simple else []) + [h[j, :].T, r.bias[j]]
+            hj = ca.vertcat(*cols)
+            mk = [ca.dot(hj, ca.DM(r.mean[k, j])) for k in range(len(w))]
+            vk = [ca.dot(hj, ca.mtimes(ca.DM(r.cov[k, j]), hj)) for k in range(len(w))]
+            mix = sum(w[k] * mk[k] for k in range(len(w)))
+            loads[j] = loads[j] + mix
+            second = sum(w[k] * (vk[k] + mk[k] ** 2) for k in range(len(w)))
+            # the loads' band is the filter's own (Corrected.predictive_variance)
+            extra[j] = ca.fmax(second - mix**2, 0) + r.noise[j]
     mean = mean + ca.vertcat(*loads, ca.DM.zeros(s.n_outputs - 6))
-    if var is not None:
+    if var is not None and c.tracked is not None:
+        var = ca.vertcat(*extra, var[6:])
+    elif var is not None:
         var = var + ca.vertcat(*extra, ca.DM.zeros(s.n_outputs - 6))
     return mean, var
 

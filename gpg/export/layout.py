@@ -388,15 +388,6 @@ def row_spans(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, last
 
 
-def refuse_tracked(s: Layout, who: str) -> None:
-    """A writer other than C refuses a tracked model (its filter exports to C only)."""
-    if s.correction is not None and s.correction.tracked is not None:
-        raise ValueError(
-            f"{who}: model {s.model!r} tracks its basis's coefficients (gpg.flight.track), "
-            "whose filter exports to C only (gpg.export.to_c); export it before track"
-        )
-
-
 def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None) -> Layout:
     """The export layout of ``sur``, or ``ValueError`` saying why it cannot be exported.
 

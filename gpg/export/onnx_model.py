@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.export.layout import MAX_BYTES, Layout, refuse_tracked, spec
+from gpg.export.layout import MAX_BYTES, Layout, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -64,14 +64,12 @@ def to_onnx(
         arrays' SHA-256, units; also in the model's ``metadata_props``).
 
     Raises:
-        ValueError: nothing written, for a model :func:`gpg.export.layout.spec` refuses, a
-            tracked model (:func:`gpg.flight.track`: its filter exports to C only) or
+        ValueError: nothing written, for a model :func:`gpg.export.layout.spec` refuses or
             constants over ``max_bytes``.
     """
     import onnx
 
     s = spec(sur, variance=variance, max_bytes=max_bytes)
-    refuse_tracked(s, "to_onnx")
     n_const = s.constant_bytes(8, variance=s.has_variance)  # float64 but the float32 factors
     if n_const > max_bytes:
         raise ValueError(
@@ -561,11 +559,39 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
         loads = [eta if not loads else g.add(loads[j], eta) for j, eta in enumerate(etas)]
         if var is not None:
             extra = [ev if not extra else g.add(extra[j], ev) for j, ev in enumerate(evs)]
+    if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
+        loads, extra = _onnx_tracked(g, c, prior, ms, h, loads, extra, k64)
     if loads:
         mean = g.add(mean, pad(loads))
-    if var is not None and extra:
+    if var is not None and c.tracked is not None:  # the loads' band is the filter's own
+        var = g.cat(extra + [g.col(var, i) for i in range(6, m_out)])
+    elif var is not None and extra:
         var = g.add(var, pad(extra))
     return mean, var
+
+
+def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, extra, k64):
+    """The tracked drift at its exported state: each load's mean with the members' mixture of
+    ``hᵀ w̄`` added, and its band ``hᵀ Σ h`` with the members' spread plus ``v`` (six (N, 1)
+    columns each, ``Corrected.predictive_variance`` with a tracker)."""
+    f64 = np.float64
+    r, w = c.tracked, np.exp(c.tracked.log_weight)
+    one = g.mul(prior[0], k64(0.0))
+    new_loads, band = [], []
+    for j in range(6):
+        cols = [prior[j]] + ([ms[j]] if r.with_simple else []) + list(h[j])
+        hj = g.cat(cols + [g.add(one, k64(r.bias[j]))])  # (N, P)
+        mix = second = None
+        for k in range(len(w)):
+            mk = g.op("MatMul", hj, g.const(r.mean[k, j][:, None], "mu", f64))
+            q = g.mul(hj, g.op("MatMul", hj, g.const(r.cov[k, j], "S", f64)))
+            vk = g.op("ReduceSum", q, g.const([1], "ax", np.int64), keepdims=1)
+            a, b = g.mul(mk, k64(w[k])), g.mul(g.add(vk, g.sq(mk)), k64(w[k]))
+            mix, second = (a, b) if mix is None else (g.add(mix, a), g.add(second, b))
+        new_loads.append(mix if not loads else g.add(loads[j], mix))
+        spread = g.op("Max", g.sub(second, g.sq(mix)), k64(0.0))
+        band.append(g.add(spread, k64(r.noise[j])))
+    return new_loads, band
 
 
 # Long by design: the graph from inputs to outputs in the order of Surrogate.predict's
