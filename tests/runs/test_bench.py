@@ -120,6 +120,29 @@ def test_bench_export_suite(tmp_path):
     assert row["casadi"]["python_call"]["median_s"] > 0
 
 
+@pytest.mark.slow  # a whole bench suite at a smoke size: corrections, C compiled and timed
+def test_bench_flight_suite(tmp_path):
+    """``suites=[flight]`` at a smoke size (the parallel logs left out: spawned processes):
+    every part writes finite figures, and the C part times the adapted and the tracked
+    model's calls in both dtypes."""
+    overrides = ["suites=[flight]", "flight.log.repeats=1", "flight.update.n_points=40",
+                 "flight.update.labels=60", "flight.update.inducing=6", "flight.update.updates=20",
+                 "flight.parallel=null", "flight.c.n_points=40", "flight.c.labels=60",
+                 "flight.c.inducing=12", "flight.c.online=6", "flight.c.c_calls=50",
+                 "flight.every_label.n_points=40", "flight.every_label.hours=[0.01]",
+                 "flight.every_label.inducing=12", "flight.every_label.warmup=60"]  # fmt: skip
+    bench.run(compose_plain("bench", overrides), tmp_path)
+    res = json.loads((tmp_path / "bench.json").read_text())["flight"]
+    assert finite_numbers(res) and set(res) == {"log", "update", "c", "every_label"}
+    calls = ("mean", "predict", "online_update", "online_predict", "tracked_update",
+             "tracked_predict")  # fmt: skip
+    for dtype in ("double", "float"):
+        for key in calls:
+            t = res["c"][dtype][key]
+            assert t["n"] == 50 and 0 < t["median_us"] <= t["p95_us"], (dtype, key)
+    assert res["every_label"]["runs"][0]["labels"] == 360
+
+
 @pytest.mark.slow  # a whole bench suite, like the others (its parts: tests/gp/test_binned.py,
 # tests/linalg/test_device.py, tests/test_precision.py)
 def test_bench_gpu_suite_on_the_cpu(smoke_cache, synthetic_surrogate, tmp_path):
