@@ -679,7 +679,7 @@ def _coef_sums(m: int, n_grad: int, most: int = 8) -> str:
 
     The sums are double in both dtypes: the folded mean cancels (its terms' absolute sum is
     hundreds of times the mean at data=default), and float sums and products, tried, put the
-    float export's mean 1.6e-5 from ``predict``."""
+    float export's mean beyond its 1e-5 from ``predict``."""
     w0, wg = _padded(m, 4), _padded(n_grad, 4)
     v0 = [("COEF0", w0, q) for q in range(w0 // 4)]
     vg = [("COEFG", wg, q) for q in range(wg // 4)]

@@ -560,7 +560,7 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
         if var is not None:
             extra = [ev if not extra else g.add(extra[j], ev) for j, ev in enumerate(evs)]
     if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
-        loads, extra = _onnx_tracked(g, c, prior, ms, h, loads, extra, k64)
+        loads, extra = _onnx_tracked(g, c, prior, ms, h, loads, k64)
     if loads:
         mean = g.add(mean, pad(loads))
     if var is not None and c.tracked is not None:  # the loads' band is the filter's own
@@ -570,7 +570,7 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
     return mean, var
 
 
-def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, extra, k64):
+def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, k64):
     """The tracked drift at its exported state: each load's mean with the members' mixture of
     ``hᵀ w̄`` added, and its band ``hᵀ Σ h`` with the members' spread plus ``v`` (six (N, 1)
     columns each, ``Corrected.predictive_variance`` with a tracker)."""

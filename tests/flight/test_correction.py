@@ -213,6 +213,15 @@ def _export_states(flights, n=40):
     return rpm, euler, v
 
 
+def onnx_outputs(path, rpm, euler, v) -> dict:
+    """The ONNX file's outputs by name, run by ONNX Runtime on the states in float32."""
+    ort = pytest.importorskip("onnxruntime")
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    feeds = {"rpm": rpm, "euler": euler, "v_air": v}
+    res = sess.run(None, {k: np.asarray(a, np.float32) for k, a in feeds.items()})
+    return dict(zip([o.name for o in sess.get_outputs()], res, strict=True))
+
+
 def _exports_equal_predict(sur, flights, tmp_path, dtype, *, n=40, n_casadi=8, jacobians=0,
                            onnx=True):  # fmt: skip
     """The corrected model's exports against ``predict``, at ``n`` states rounded to float32
@@ -267,12 +276,7 @@ def _exports_equal_predict(sur, flights, tmp_path, dtype, *, n=40, n_casadi=8, j
             assert np.abs(Jc - Jj).max() <= 1e-8 * np.abs(Jj).max()
     if not onnx:
         return
-    ort = pytest.importorskip("onnxruntime")
-    path = to_onnx(sur, tmp_path / "c.onnx")["onnx"]
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    feeds = {"rpm": rpm, "euler": euler, "v_air": v}
-    res = sess.run(None, {k: np.asarray(a, np.float32) for k, a in feeds.items()})
-    got = dict(zip([o.name for o in sess.get_outputs()], res, strict=True))
+    got = onnx_outputs(to_onnx(sur, tmp_path / "c.onnx")["onnx"], rpm, euler, v)
     for key in ("force", "torque"):
         want = np.asarray(getattr(ref, key))
         scale = np.maximum(1.0, np.abs(want).max(axis=1))

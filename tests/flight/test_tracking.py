@@ -322,7 +322,7 @@ def test_tracked_update_in_c_equals_jax(corrected, flights, tmp_path):
 
     from gpg.export import to_casadi, to_onnx
     from tests.export.test_c_source import compiled
-    from tests.flight.test_correction import _export_states
+    from tests.flight.test_correction import _export_states, onnx_outputs
 
     drift = dataclasses.replace(tk.default_drift(corrected), tau=30.0, bias_tau=5.0, fast=(0.5,))
     tracked = tk.track(corrected, drift)
@@ -388,12 +388,7 @@ def test_tracked_update_in_c_equals_jax(corrected, flights, tmp_path):
         want = np.concatenate([ref.force[i], ref.torque[i]])
         assert np.abs(np.concatenate(res[:2]) - want).max() <= 1e-10 * max(1, np.abs(want).max())
         np.testing.assert_allclose(res[3][:6], ref.variance[i, :6], rtol=1e-9)
-    ort = pytest.importorskip("onnxruntime")
-    path = to_onnx(final, tmp_path / "m.onnx")["onnx"]
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    feeds = {"rpm": rpm, "euler": euler, "v_air": v}
-    res = sess.run(None, {k: np.asarray(a, np.float32) for k, a in feeds.items()})
-    got = dict(zip([o.name for o in sess.get_outputs()], res, strict=True))
+    got = onnx_outputs(to_onnx(final, tmp_path / "m.onnx")["onnx"], rpm, euler, v)
     scale = np.abs(np.concatenate([ref.force, ref.torque], 1)).max()
     for key in ("force", "torque"):
         np.testing.assert_allclose(got[key], getattr(ref, key), atol=1e-5 * max(1.0, scale))

@@ -29,9 +29,10 @@ static void track_columns(const double x[D_IN], const double prior[N_OUT], doubl
  * predictive_variance with a tracker) */
 static void tracker_eta(const ONLINE_T *st, const double x[D_IN], const double prior[N_OUT],
                         double yn[N_OUT], double *pv) {
-  double h[6][TRACK_P], m, v, sh, w, mean, second;
+  double h[6][TRACK_P], w[TRACK_K], m, v, sh, mean, second;
   int j, k, p, q;
   track_columns(x, prior, h);
+  for (k = 0; k < TRACK_K; k++) w[k] = exp(st->log_weight[k]);
   for (j = 0; j < 6; j++) {
     mean = 0.0;
     second = 0.0;
@@ -44,9 +45,8 @@ static void tracker_eta(const ONLINE_T *st, const double x[D_IN], const double p
         for (q = 0; q < TRACK_P; q++) sh += (double)st->cov[k][j][p][q] * h[j][q];
         v += h[j][p] * sh;
       }
-      w = exp(st->log_weight[k]);
-      mean += w * m;
-      second += w * (v + m * m);
+      mean += w[k] * m;
+      second += w[k] * (v + m * m);
     }
     yn[j] += mean;
     if (pv) {
@@ -64,11 +64,12 @@ static void tracker_eta(const ONLINE_T *st, const double x[D_IN], const double p
  * the two agree to rounding). */
 HOT static void tracker_kalman(ONLINE_T *st, double t, const double h[6][TRACK_P],
                                const double y[6], const double r[6]) {
-  double dt = t - st->t, a[TRACK_P], sp[TRACK_P], joint[TRACK_K], s, e, inv, top, total;
+  double dt = t - st->t, a[TRACK_P], sp[TRACK_P], joint[TRACK_K], s, e, inv, top, total, ab;
   int j, k, p, q;
   if (dt < 0.0) dt = 0.0;
+  ab = exp(-dt / TRACK_TAU);
+  for (p = 0; p < TRACK_P - 1; p++) a[p] = ab;
   for (k = 0; k < TRACK_K; k++) {
-    for (p = 0; p < TRACK_P - 1; p++) a[p] = exp(-dt / TRACK_TAU);
     a[TRACK_P - 1] = exp(-dt / TRACK_BIAS_TAU[k]);
     joint[k] = st->log_weight[k];
     for (j = 0; j < 6; j++) {
