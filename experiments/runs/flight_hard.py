@@ -26,7 +26,10 @@ vector, N², and the 95 % coverage per component):
 * ``ridge``: a linear fit on (ground velocity, quaternion, commands), no wind;
 * ``identified_prior``: the simulator prior of the identified vehicle
   (:func:`gpg.flight.identify`, :meth:`gpg.flight.Identification.prior`), alone;
-* ``identified``: that prior corrected with the physical basis (the route of the guide);
+* ``identified``: that prior corrected with the physical basis, its physics taken as it is
+  (``scale=False``: ``ρ = 1``; the route of the guide);
+* ``identified_rho``: the same with ``ρ`` fitted (``scale=True``), as for another vehicle's
+  prior;
 * ``identified_estimated_wind``: the same, corrected with labels whose wind was estimated
   (:func:`gpg.flight.estimate_wind`) instead of given;
 * ``oracle``: the true vehicle's own simulator prior, uncorrected, at the true states.
@@ -165,6 +168,17 @@ def _score(sur: Surrogate, test: _Test, *, truth_states: bool = False) -> dict[s
         "mse": _mse(p.force, test.force),
         "coverage95": float(np.mean(np.abs(e) <= 1.959964 * sd)),
     }
+
+
+def _coefficients(sur: Surrogate) -> dict[str, list[float]]:
+    """A physical-basis correction's scale ``ρ`` per load output, its held-out calibration
+    factor per output (on the discrepancy's variance and the coefficients'), ``κ`` and the
+    physical coefficients ``β`` (outputs by :data:`gpg.flight.basis.TERMS`)."""
+    m = sur.model
+    return {"rho": np.asarray(m.scale)[:6].tolist(),
+            "calibration": [float(d.output_scale[0]) for d in m.delta],
+            "kappa": np.asarray(m.kappa).tolist(),
+            "beta": np.asarray(m.explicit.beta).tolist()}  # fmt: skip
 
 
 def _ridge_features(v, q, u):
@@ -314,7 +328,10 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
             nominal_prior, by_wind, use_prior=False, basis="physical", **corr
         ),  # fmt: skip
         "identified_prior": id_prior,
-        "identified": fc.correct(id_prior, by_wind_id, basis="physical", **corr),
+        # The identified vehicle's physics taken as it is (ρ = 1, the guide's route); beside
+        # it ρ fitted, as for another vehicle's prior.
+        "identified": fc.correct(id_prior, by_wind_id, basis="physical", scale=False, **corr),
+        "identified_rho": fc.correct(id_prior, by_wind_id, basis="physical", **corr),
     }
     stages["correct_s"] = time.perf_counter() - t1
 
@@ -336,7 +353,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                           "informed": est.informed.tolist()})  # fmt: skip
         est_labels.append(with_wind(dataclasses.replace(lab_id, v_air=lab_id.v_air + wind_at), est))
     models["identified_estimated_wind"] = fc.correct(
-        id_prior, _by_wind(train, est_labels), basis="physical", **corr
+        id_prior, _by_wind(train, est_labels), basis="physical", scale=False, **corr
     )
     stages["wind_s"] = time.perf_counter() - t1
 
@@ -406,6 +423,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         "curve": dataclasses.asdict(curve),
         "wind": wind_rows,
         "labels": {"train": int(sum(len(lb) for lb in train_labels))},
+        "coefficients": {m: _coefficients(models[m]) for m in ("identified", "identified_rho")},
         "stages_s": stages,
         "seconds_total": time.perf_counter() - t0,
     }
@@ -525,10 +543,11 @@ def _truth_parameters(real_cfg, base_cfg, h_real) -> dict[str, float]:
 def _report(res) -> str:
     cols = [("test", "test", "s")]
     for m in ("prior", "corrected_regression", "values_only", "flights_physical",
-              "identified_prior", "identified", "identified_estimated_wind", "oracle"):  # fmt: skip
+              "identified_prior", "identified", "identified_rho", "identified_estimated_wind",
+              "oracle"):  # fmt: skip
         cols.append((f"{m}_mse", f"{m} MSE", ".3g"))
     cols += [("ridge_mse", "ridge MSE", ".3g"), ("noise_floor", "noise", ".3g")]
-    for m in ("corrected_regression", "identified", "identified_estimated_wind"):
+    for m in ("corrected_regression", "identified", "identified_rho", "identified_estimated_wind"):
         cols.append((f"{m}_coverage95", f"{m} cov95", ".3f"))  # fmt: skip
     lines = ["hard scenario, force MSE (N²) against the truth:", table(res["tests"], cols)]
     ident = res["identification"]

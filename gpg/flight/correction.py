@@ -621,7 +621,10 @@ def correct(
             functions whose coefficients are integrated out under a Gaussian prior, so that
             their uncertainty widens the band where no flight went (for an identified
             vehicle's prior, and winds or speeds the flights did not reach).
-        scale: fit ``ρ`` per load output; False keeps ``ρ = 1``.
+        scale: fit ``ρ`` per load output; False keeps ``ρ = 1``: for an identified
+            vehicle's prior with ``basis="physical"``, whose physics is taken as it is (a
+            fitted ``ρ`` trades with the drag columns where the flights went and
+            extrapolates wrong beyond).
         use_prior: False sets ``ρ = 0`` for the loads: a values-only GP on the flights
             alone (residuals against ``M``), the baseline that has no simulator knowledge.
         simple_term: also fit ``κ``, the coefficient of ``M``'s own loads
@@ -636,14 +639,17 @@ def correct(
             (``calibrate``) on this many labels evenly spread.
         inducing: ``m``, the inducing inputs beyond ``exact_labels`` (k-means centres of the
             labels' inputs, :func:`~gpg.gp.inducing.inducing_inputs`).
-        subset_size: labels per likelihood evaluation of the hyperparameter fit.
+        subset_size: labels per likelihood evaluation of the hyperparameter fit, drawn at
+            random (more fit the lengthscales over many flights better, and cost more;
+            the guide measures both ways).
         max_steps: BFGS steps of each discrepancy's hyperparameter fit
             (:func:`gpg.gp.fit.fit_hyperparameters`).
         seed: the subsets' seed.
         calibrate: with ``basis="physical"`` and labels of two flights or more, scale each
-            component's discrepancy and coefficient variance so that every flight, held out
-            and predicted from the others, is covered as the band says (the mean of its
-            squared standardised errors; only widened, never narrowed): a band honest for a
+            component's discrepancy and coefficient variance by the ``c`` under which every
+            flight, held out and predicted from the others, is covered as the band says (the
+            mean of ``e² / (c v + n)`` is 1 over their labels, ``v`` the latent variance and
+            ``n`` the labels' noise; only widened, never narrowed): a band honest for a
             flight in conditions the others did not have, not only within them.
 
     Returns:
@@ -719,12 +725,29 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
 
 
 def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
-    """The mean squared standardised error of each flight predicted from the others
-    (:func:`_held_out`), at least 1: the factor that makes the band cover a flight the model did
-    not see."""
-    z2 = [(y[te] - mean) ** 2 / (var + noise[te])
-          for te, mean, var, _ in _held_out(X, H, y, noise, hyper, b, sd, groups)]  # fmt: skip
-    return max(1.0, float(np.mean(np.concatenate(z2)))) if z2 else 1.0
+    """The factor ``c`` on the latent variance that makes each flight, predicted from the
+    others (:func:`_held_out`), covered as the band says: the mean of ``e² / (c v + n)`` over
+    the held-out labels is 1 (``e`` the error, ``v`` the latent variance, ``n`` the label's
+    noise), at least 1. ``c`` scales ``v`` only, so it is solved for with ``n`` beside it:
+    the mean of ``e² / (v + n)`` taken as ``c`` leaves a band too narrow by about ``n / v``
+    where the labels' noise outweighs the latent variance."""
+    from scipy.optimize import brentq
+
+    parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
+    if not parts:
+        return 1.0
+    e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, _, _ in parts])
+    v = np.concatenate([var for _, _, var, _ in parts])
+    n = np.concatenate([noise[te] for te, _, _, _ in parts])
+
+    def excess(c: float) -> float:
+        return float(np.mean(e2 / (c * v + n))) - 1.0
+
+    if excess(1.0) <= 0.0:
+        return 1.0
+    # v >= ν > 0: at c = mean(e²) / min(v) every term is at most e² / mean(e²), so the root
+    # is bracketed, and excess falls monotonically in c.
+    return float(brentq(excess, 1.0, float(np.mean(e2) / np.min(v)), rtol=1e-12))
 
 
 def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None):

@@ -515,6 +515,39 @@ def test_physical_basis_integrated_out(corrected, flights):
     assert np.all(total[5:] > total[:5])
 
 
+def test_physical_basis_with_the_prior_taken_as_it_is(synthetic_surrogate, flights):
+    """``scale=False`` with the physical basis (an identified vehicle's prior): ``ρ = 1``, no
+    prior column, the prior's mean moved into the targets; the coefficients and the mean of
+    one component against the explicit-basis GP in NumPy."""
+    from gpg.flight.basis import PRIORS, TERMS
+
+    sur = fc.correct(synthetic_surrogate, flights, basis="physical", scale=False, **FIT)
+    m, e = sur.model, sur.model.explicit
+    np.testing.assert_array_equal(np.asarray(m.scale), 1.0)
+    assert e.columns == ("simple", *TERMS) and not e.with_prior
+    X, Y, V = fc.training_rows(sur, flights)
+    j = 0
+    d = m.delta[j]
+    ls, s2, nu = np.asarray(d.hyper.lengthscale), float(d.hyper.variance), float(d.hyper.noise)
+    s2, nu = s2 * float(d.output_scale[0]), nu * float(d.output_scale[0])
+    Xj = jnp.asarray(X)
+    H = np.column_stack([np.asarray(jax.vmap(m.basis)(Xj))[:, j],
+                         np.asarray(jax.vmap(e.physics)(Xj))[:, j]])  # fmt: skip
+    y = Y[:, j] - np.asarray(m.prior.predict_mean(X))[:, j]
+    sd = np.array([PRIORS[c] for c in e.columns])
+    Ki = np.linalg.inv(_rbf(X, X, s2, ls) + np.diag(V[:, j] + nu))
+    beta = np.linalg.solve(np.diag(1 / sd**2) + H.T @ Ki @ H, H.T @ Ki @ y)  # prior mean 0
+    np.testing.assert_allclose(np.concatenate([[m.kappa[j]], np.asarray(e.beta[j])]), beta,
+                               rtol=1e-6, atol=1e-8)  # fmt: skip
+    Xq = X[:4] + 0.01
+    Hq = np.column_stack([np.asarray(jax.vmap(m.basis)(jnp.asarray(Xq)))[:, j],
+                          np.asarray(jax.vmap(e.physics)(jnp.asarray(Xq)))[:, j]])  # fmt: skip
+    expect = np.asarray(m.prior.predict_mean(Xq))[:, j] + Hq @ beta
+    expect += _rbf(Xq, X, s2, ls) @ Ki @ (y - H @ beta)
+    np.testing.assert_allclose(np.asarray(m.predict_unclipped(Xq)[0])[:, j], expect, rtol=1e-6,
+                               atol=1e-7)  # fmt: skip
+
+
 def test_physical_columns_in_closed_form(corrected):
     """The basis's drag, rotor-drag, inflow and edgewise columns at one input, written out in
     NumPy from the airflow frame's angles and speed (``v_B = R_HBᵀ (V, 0, 0)``)."""
@@ -553,46 +586,58 @@ def test_correct_refuses_an_unknown_basis(synthetic_surrogate, flights):
 
 
 def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights):
-    """Labels of two flights: each component's discrepancy and coefficient variance scaled by
-    the mean squared standardised error of each flight predicted from the other (at least 1),
-    written out here in NumPy for the first force component; calibrate=False keeps 1."""
+    """Labels of two flights, the second pushed by a steady force the first did not have:
+    each component's discrepancy and coefficient variance scaled by the ``c`` (at least 1)
+    under which each flight, predicted from the other, has a mean squared standardised error
+    of 1, the labels' noise unscaled beside ``c`` times the latent variance; written out here
+    in NumPy for the most widened component; calibrate=False keeps 1."""
     from gpg.flight.basis import PRIORS
 
     half = len(flights) // 2
     a = dataclasses.replace(flights.take(slice(0, half)), name="a")
-    b_ = dataclasses.replace(flights.take(slice(half, None)), name="b")
+    b_ = flights.take(slice(half, None))
+    b_ = dataclasses.replace(b_, name="b", force=b_.force + np.array([0.4, -0.3, 0.2]))
     cal = fc.correct(synthetic_surrogate, [a, b_], basis="physical", **FIT)
     raw = fc.correct(synthetic_surrogate, [a, b_], basis="physical", calibrate=False, **FIT)
     m = cal.model
+    j = int(np.argmax([float(d.output_scale[0]) for d in m.delta]))
     X, Y, V = fc.training_rows(cal, Labels.concatenate([a, b_]))
+    Y, V = Y[:, j], V[:, j]
     groups = np.repeat([0, 1], [half, len(flights) - half])
-    d = m.delta[0]
+    d = m.delta[j]
     h = d.hyper
     ls, s2, nu = np.asarray(h.lengthscale), float(h.variance), float(h.noise)
-    mu = np.asarray(m.prior.predict_mean(X))[:, 0]
+    mu = np.asarray(m.prior.predict_mean(X))[:, j]
     Xj = jnp.asarray(X)
-    simple, phys = jax.vmap(m.basis)(Xj)[:, 0], jax.vmap(m.explicit.physics)(Xj)[:, 0]
+    simple, phys = jax.vmap(m.basis)(Xj)[:, j], jax.vmap(m.explicit.physics)(Xj)[:, j]
     H = np.column_stack([mu, np.asarray(simple), np.asarray(phys)])
     sd = np.array([PRIORS[c] for c in m.explicit.columns])
     b = np.zeros(sd.size)
     b[0] = 1.0
-    z2 = []
+    e2v = []
     for g in (0, 1):
         tr, te = groups != g, groups == g
-        Ki = np.linalg.inv(_rbf(X[tr], X[tr], s2, ls) + np.diag(V[tr, 0] + nu))
+        Ki = np.linalg.inv(_rbf(X[tr], X[tr], s2, ls) + np.diag(V[tr] + nu))
         A = np.diag(1 / sd**2) + H[tr].T @ Ki @ H[tr]
-        beta = np.linalg.solve(A, H[tr].T @ Ki @ Y[tr, 0] + b / sd**2)
+        beta = np.linalg.solve(A, H[tr].T @ Ki @ Y[tr] + b / sd**2)
         kq = _rbf(X[te], X[tr], s2, ls)
-        mean = H[te] @ beta + kq @ Ki @ (Y[tr, 0] - H[tr] @ beta)
+        mean = H[te] @ beta + kq @ Ki @ (Y[tr] - H[tr] @ beta)
         R = H[te] - kq @ Ki @ H[tr]
         var = s2 - np.einsum("qn,nm,qm->q", kq, Ki, kq) + nu
         var += np.einsum("qp,pr,qr->q", R, np.linalg.inv(A), R)
-        z2.append((Y[te, 0] - mean) ** 2 / (var + V[te, 0]))
-    c = max(1.0, float(np.mean(np.concatenate(z2))))
+        e2v.append(np.column_stack([(Y[te] - mean) ** 2, var, V[te]]))
+    e2, v, n = np.concatenate(e2v).T
+    # c on the latent variance alone: mean(e² / (c v + n)) = 1, by bisection on log c
+    lo, hi = 0.0, 40.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.mean(e2 / (np.exp(mid) * v + n)) > 1 else (lo, mid)
+    c = max(1.0, float(np.exp(lo)))
+    assert c > 1.0  # each flight misses the other's push
     np.testing.assert_allclose(float(d.output_scale[0]), c, rtol=1e-6)
-    assert float(raw.model.delta[0].output_scale[0]) == 1.0
+    assert float(raw.model.delta[j].output_scale[0]) == 1.0
     np.testing.assert_allclose(
-        np.asarray(m.explicit.cov_chol[0]), np.asarray(raw.model.explicit.cov_chol[0]) * np.sqrt(c),
+        np.asarray(m.explicit.cov_chol[j]), np.asarray(raw.model.explicit.cov_chol[j]) * np.sqrt(c),
         rtol=1e-6, atol=1e-12)  # fmt: skip
 
 

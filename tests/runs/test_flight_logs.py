@@ -106,8 +106,11 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
         "gust",
     ]
     for key in ("prior", "corrected_regression", "values_only", "identified_prior", "identified",
-                "identified_estimated_wind", "oracle"):  # fmt: skip
+                "identified_rho", "identified_estimated_wind", "oracle"):  # fmt: skip
         assert res["tests"][0][f"{key}_mse"] > 0
+    co = saved["coefficients"]
+    assert co["identified"]["rho"] == [1.0] * 6 and co["identified_rho"]["rho"] != [1.0] * 6
+    assert all(c >= 1.0 for m in co.values() for c in m["calibration"])  # only widened
     load_vehicle(tmp_path / "identified_vehicle.yaml").require_generator()
     assert len(res["wind"]) == 4 and all(np.isfinite(w["rms_error"]) for w in res["wind"])
     assert set(res["identification"]["parameters"]) == set(cfg["hard"]["identify"]["free"])
