@@ -640,8 +640,8 @@ def correct(
         inducing: ``m``, the inducing inputs beyond ``exact_labels`` (k-means centres of the
             labels' inputs, :func:`~gpg.gp.inducing.inducing_inputs`).
         subset_size: labels per likelihood evaluation of the hyperparameter fit, drawn at
-            random (more fit the lengthscales over many flights better, and cost more;
-            the guide measures both ways).
+            random (which labels, and how many, move the fit: the guide measures 400
+            against 1000).
         max_steps: BFGS steps of each discrepancy's hyperparameter fit
             (:func:`gpg.gp.fit.fit_hyperparameters`).
         seed: the subsets' seed.
