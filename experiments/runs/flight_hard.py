@@ -52,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from experiments.runs.flight_logs import basis_prior
 from experiments.runs.output import report, table
 from experiments.runs.timing import machine
 from gpg import conf
@@ -178,7 +179,8 @@ def _coefficients(sur: Surrogate) -> dict[str, list[float]]:
     return {"rho": np.asarray(m.scale)[:6].tolist(),
             "calibration": [float(d.output_scale[0]) for d in m.delta],
             "kappa": np.asarray(m.kappa).tolist(),
-            "beta": np.asarray(m.explicit.beta).tolist()}  # fmt: skip
+            "beta": np.asarray(m.explicit.beta).tolist(),
+            "basis_prior": sur.config["flight_correction"]["basis_prior"]}  # fmt: skip
 
 
 def _ridge_features(v, q, u):
@@ -311,8 +313,12 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                            cache_dir=cfg["cache_dir"], progress=progress)  # fmt: skip
     stages["identified_prior_s"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    corr = {k: v for k, v in cfg["correct"].items()
-            if k in ("max_labels", "exact_labels", "inducing", "subset_size")}  # fmt: skip
+    corr = {
+        k: v
+        for k, v in cfg["correct"].items()
+        if k in ("max_labels", "exact_labels", "inducing", "subset_size", "hyperparameters")
+    }
+    corr["basis_prior"] = basis_prior(cfg["correct"]["basis_prior"])
     # One part per wind: the physical basis's band is calibrated by holding out a whole
     # condition (the fastest wind predicted from the slower ones), not one flight among
     # flights of the same wind.
@@ -423,7 +429,10 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         "curve": dataclasses.asdict(curve),
         "wind": wind_rows,
         "labels": {"train": int(sum(len(lb) for lb in train_labels))},
-        "coefficients": {m: _coefficients(models[m]) for m in ("identified", "identified_rho")},
+        "coefficients": {
+            m: _coefficients(models[m])
+            for m in ("identified", "identified_rho", "identified_estimated_wind")
+        },
         "stages_s": stages,
         "seconds_total": time.perf_counter() - t0,
     }
@@ -566,6 +575,9 @@ def _report(res) -> str:
             for a, b, e in zip(th["identified"], th["truth"], th["relative_error"], strict=True)
         )
     )
+    for name, c in res["coefficients"].items():
+        lines.append(f"  {name}: the physical terms' prior times "
+                     f"{c['basis_prior']['factors']} per output (basis_prior)")  # fmt: skip
     for w in res["wind"]:
         lines.append(f"  wind {w['flight']}: estimated {np.round(w['estimated_mean'], 2)}, "
                      f"RMS error {w['rms_error']:.3f} m/s")  # fmt: skip

@@ -132,12 +132,18 @@ class _Bench:
         c = self.cfg["correct"]
         opts = {"max_labels": None if c["max_labels"] is None else int(c["max_labels"]),
                 "exact_labels": int(c["exact_labels"]), "inducing": int(c["inducing"]),
-                "subset_size": int(c["subset_size"])}  # fmt: skip
+                "subset_size": int(c["subset_size"]), "hyperparameters": c["hyperparameters"],
+                "basis_prior": basis_prior(c["basis_prior"])}  # fmt: skip
         return fc.correct(self.prior, labels, **{**opts, **kw})
 
     @property
     def progress(self) -> bool:
         return bool(self.cfg.get("progress", True))
+
+
+def basis_prior(value) -> float | str:
+    """``correct.basis_prior`` as :func:`gpg.flight.correct` takes it."""
+    return value if value in ("auto", "held_out") else float(value)
 
 
 @float64

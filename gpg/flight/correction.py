@@ -46,7 +46,7 @@ from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
 from gpg.gp.fit import FitOptions, fit_hyperparameters
 from gpg.gp.hyper import Hyper
-from gpg.gp.inducing import InducingGP, inducing_inputs, project
+from gpg.gp.inducing import InducingGP, fit_collapsed, inducing_inputs, project
 from gpg.gp.predictor import Predictor, plain
 from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
@@ -68,6 +68,10 @@ __all__ = [
 N_LOADS = 6  # force and torque: what a flight measures
 # The discrepancy GPs' lengthscales on normalised inputs (span 2) are kept in this range.
 LENGTHSCALE_MIN, LENGTHSCALE_MAX = 1e-2, 1e2
+# Factors on the physical terms' prior standard deviations (PRIORS) that correct(...,
+# basis_prior="held_out") chooses among per load output: from the terms nearly held at zero
+# (the prior's physics as it is) to three times the stated prior.
+BASIS_PRIOR_GRID = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 
 
 class Online(eqx.Module):
@@ -607,6 +611,8 @@ def correct(
     max_steps: int = 200,
     seed: int = 0,
     calibrate: bool = True,
+    basis_prior: float | str = "auto",
+    hyperparameters: str = "subset",
 ) -> Surrogate:
     """The surrogate ``prior`` corrected by flight ``labels`` (module docstring).
 
@@ -651,6 +657,22 @@ def correct(
             mean of ``e² / (c v + n)`` is 1 over their labels, ``v`` the latent variance and
             ``n`` the labels' noise; only widened, never narrowed): a band honest for a
             flight in conditions the others did not have, not only within them.
+        basis_prior: with ``basis="physical"``, the prior of the physical terms'
+            coefficients: a factor on :data:`~gpg.flight.basis.PRIORS`'s standard deviations;
+            ``"auto"``: ``"held_out"`` where the prior's physics is taken as it is
+            (``scale=False``), else 1 (with ``ρ`` fitted, or no prior, the terms are the only
+            physics past the flights, and holding them near zero measured worse); or
+            ``"held_out"``: per load output, the factor of :data:`BASIS_PRIOR_GRID` under
+            which the flight predicted worst when each is held out and predicted from the
+            others is predicted best (its mean log predictive density, with ``calibrate``'s
+            factor); with labels of one flight, 1. A term that fits the flights' conditions
+            but predicts a held-out one badly (a quadratic in the airspeed fitted on three
+            winds) is held near zero, and the prior's physics carries the model past the
+            flights.
+        hyperparameters: ``"subset"``: each discrepancy's on ``subset_size`` labels drawn at
+            random; ``"all"``: that fit refined on every label by the collapsed bound
+            (:func:`gpg.gp.inducing.fit_collapsed`) through ``inducing`` k-means inputs
+            (``O(N m²)`` a step).
 
     Returns:
         A :class:`~gpg.Surrogate` whose model is :class:`Corrected`: ``predict`` gives the
@@ -659,11 +681,23 @@ def correct(
 
     Raises:
         ValueError: no labels, fewer than 8, labels with NaN (naming the array), an
-            unknown ``basis``, or sizes under 1.
+            unknown ``basis`` or ``hyperparameters``, a ``basis_prior`` that is not a
+            positive number, ``"auto"`` or ``"held_out"``, or sizes under 1.
     """
     for name, v in (("exact_labels", exact_labels), ("inducing", inducing)):
         if not int(v) >= 1:
             raise ValueError(f"{name} must be >= 1, got {v}")
+    if hyperparameters not in ("subset", "all"):
+        raise ValueError(f"hyperparameters must be 'subset' or 'all', got {hyperparameters!r}")
+    if basis_prior == "auto":
+        basis_prior = "held_out" if (use_prior and not scale) else 1.0
+    if basis_prior != "held_out" and not (
+        isinstance(basis_prior, int | float) and not isinstance(basis_prior, bool)
+        and np.isfinite(basis_prior) and basis_prior > 0
+    ):  # fmt: skip
+        raise ValueError(
+            f"basis_prior must be 'auto', 'held_out' or a number > 0, got {basis_prior!r}"
+        )
     parts = [labels] if isinstance(labels, Labels) else list(labels)
     prior = base(prior)
     X, Y, V, groups, _ = _label_rows(prior, parts, max_labels, basis)
@@ -671,6 +705,9 @@ def correct(
     # calibration (dense per flight) on exact_labels rows spread evenly.
     Z = None if X.shape[0] <= exact_labels else inducing_inputs(X, int(inducing), seed=seed)
     cal = _thin(X.shape[0], int(exact_labels))
+    Zh = None
+    if hyperparameters == "all":
+        Zh = Z if Z is not None else inducing_inputs(X, int(inducing), seed=seed)
     mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
     simple = None
     if simple_term and prior.simple is not None:
@@ -682,13 +719,14 @@ def correct(
     if basis == "regression":
         rho6, kappa = _regression(Y, V, mu, m, fit_rho=use_prior and scale, use_prior=use_prior)
         R = Y - rho6 * mu - (0.0 if m is None else kappa * m)
-        deltas = tuple(_fit_delta(X, R[:, j], V[:, j], *fit[:2], seed + j, Z)
+        deltas = tuple(_fit_delta(X, R[:, j], V[:, j], *fit[:2], seed + j, Z, Zh)
                        for j in range(N_LOADS))  # fmt: skip
+        choice = None
     else:
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
-        rho6, kappa, deltas, explicit = _fit_explicit(
+        rho6, kappa, deltas, explicit, choice = _fit_explicit(
             X, Y, V, mu, m, _physics(prior), fixed_rho, *fit,
-            groups=groups if calibrate else None, Z=Z, cal=cal,
+            groups=groups if calibrate else None, Z=Z, cal=cal, Zh=Zh, basis_prior=basis_prior,
         )  # fmt: skip
     rho[:N_LOADS] = rho6
     model = Corrected(
@@ -708,6 +746,11 @@ def correct(
         "n_labels": int(X.shape[0]),
         "inducing": None if Z is None else int(Z.shape[0]),
         "flights": [p.name for p in parts],
+        "hyperparameters": hyperparameters,
+        # basis_prior's candidates, the factor chosen per load output and, where flights
+        # were held out, each candidate's score: the worst-predicted flight's mean negative
+        # log predictive density (nats per label)
+        "basis_prior": choice,
     }
     return dataclasses.replace(
         prior,
@@ -724,18 +767,20 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
     return PhysicalBasis(prior.normalizer, hubs, prior.frame)
 
 
-def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
+def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> tuple[float, float]:
     """The factor ``c`` on the latent variance that makes each flight, predicted from the
     others (:func:`_held_out`), covered as the band says: the mean of ``e² / (c v + n)`` over
     the held-out labels is 1 (``e`` the error, ``v`` the latent variance, ``n`` the label's
-    noise), at least 1. ``c`` scales ``v`` only, so it is solved for with ``n`` beside it:
-    the mean of ``e² / (v + n)`` taken as ``c`` leaves a band too narrow by about ``n / v``
-    where the labels' noise outweighs the latent variance."""
+    noise), at least 1; and, under ``c``, the largest over the flights of a held-out flight's
+    mean negative log predictive density (nats per label: what the basis's prior is chosen
+    by). ``c`` scales ``v`` only, so it is solved for with ``n`` beside it: the mean of
+    ``e² / (v + n)`` taken as ``c`` leaves a band too narrow by about ``n / v`` where the
+    labels' noise outweighs the latent variance."""
     from scipy.optimize import brentq
 
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
     if not parts:
-        return 1.0
+        return 1.0, 0.0
     e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, _, _ in parts])
     v = np.concatenate([var for _, _, var, _ in parts])
     n = np.concatenate([noise[te] for te, _, _, _ in parts])
@@ -743,11 +788,27 @@ def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> float:
     def excess(c: float) -> float:
         return float(np.mean(e2 / (c * v + n))) - 1.0
 
-    if excess(1.0) <= 0.0:
-        return 1.0
-    # v >= ν > 0: at c = mean(e²) / min(v) every term is at most e² / mean(e²), so the root
-    # is bracketed, and excess falls monotonically in c.
-    return float(brentq(excess, 1.0, float(np.mean(e2) / np.min(v)), rtol=1e-12))
+    c = 1.0
+    if excess(1.0) > 0.0:
+        # v >= ν > 0: at c = mean(e²) / min(v) every term is at most e² / mean(e²), so the
+        # root is bracketed, and excess falls monotonically in c.
+        c = float(brentq(excess, 1.0, float(np.mean(e2) / np.min(v)), rtol=1e-12))
+    # The worst-predicted flight's score: a prior that predicts the flights within the others'
+    # conditions well and the one beyond them badly is the one not to extrapolate with.
+    worst = -np.inf
+    for te, mean, var, _ in parts:
+        s2 = c * var + noise[te]
+        e2g = (y[te] - mean) ** 2
+        worst = max(worst, float(np.mean(0.5 * np.log(2.0 * np.pi * s2) + 0.5 * e2g / s2)))
+    return c, worst
+
+
+def _prior_grid(basis_prior, held: bool) -> tuple[float, ...]:
+    """The factors on :data:`PRIORS`'s physical terms to try: :data:`BASIS_PRIOR_GRID` where
+    ``basis_prior`` is ``"held_out"`` and flights can be held out, else the one factor."""
+    if basis_prior == "held_out":
+        return BASIS_PRIOR_GRID if held else (1.0,)
+    return (float(basis_prior),)
 
 
 def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None):
@@ -829,29 +890,48 @@ def _cases(d: ExactGP | InducingGP) -> int:
 # Long by design: one loop over the load outputs whose exact and inducing-point branches share
 # the prior, the calibration and the assembly of the result.
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
-                  seed, *, groups=None, Z=None, cal=None):  # fmt: skip
+                  seed, *, groups=None, Z=None, cal=None, Zh=None,
+                  basis_prior="held_out"):  # fmt: skip
     """The physical basis with integrated coefficients (:mod:`gpg.flight.basis`), per load
     output: ``β`` first by weighted least squares under its prior with the labels' noise, the
     discrepancy's hyperparameters on what is left, then ``β``'s posterior given that GP and
     the discrepancy conditioned on ``y − Hβ̄``. A fixed ``ρ`` (1, or 0 without the prior)
     moves the prior's mean into the targets instead of a column. With inducing inputs ``Z``
     the discrepancy is an inducing-point GP on every row, and the calibration reads the rows
-    ``cal``."""
+    ``cal``; ``Zh``: the hyperparameters refined on every row through it. With ``groups``
+    (two or more), the physical terms' prior is the one of ``basis_prior``'s candidates
+    under which the worst-predicted group held out is predicted best; returned last: the
+    candidates, the factor chosen per output and the candidates' held-out scores."""
     phys = np.asarray(jax.vmap(physics)(jnp.asarray(X)))  # (N, 6, T)
     n_out = N_LOADS
     rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
     kappa = np.zeros(n_out)
     betas, Gs, chols, deltas = [], [], [], []
-    b, sd = _coefficient_prior(fixed_rho is None, m is not None)
+    b, sd0 = _coefficient_prior(fixed_rho is None, m is not None)
+    terms = np.arange(sd0.size) >= sd0.size - len(TERMS)
+    held = groups is not None and np.unique(groups).size >= 2
+    grid = _prior_grid(basis_prior, held)
+    kc = np.arange(X.shape[0]) if cal is None else cal
+    factors, scores = np.ones(n_out), np.zeros((n_out, len(grid)))
     for j in range(n_out):
         H = _basis_columns(mu if fixed_rho is None else None, m, phys, j)
         y = Y[:, j] - (0.0 if fixed_rho is None else float(fixed_rho)) * mu[:, j]
         # β first under its prior with the labels' own noise (plus the same 1e-3 floor as
-        # the regression), so that the GP's hyperparameters see what the basis leaves.
+        # the regression), so that the GP's hyperparameters see what the basis leaves; each
+        # candidate prior of the physical terms scored on the flights held out in turn.
         w = 1.0 / (V[:, j] + 1e-3)
-        beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
-        r0 = y - H @ beta0
-        hyper = _delta_hyper(X, r0, V[:, j], subset_size, max_steps, seed + j)
+        best = None
+        for i, f in enumerate(grid):
+            sd = np.where(terms, f * sd0, sd0)
+            beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
+            hyper = _delta_hyper(X, y - H @ beta0, V[:, j], subset_size, max_steps, seed + j, Zh)
+            c, nlpd = (1.0, 0.0)
+            if held:
+                c, nlpd = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b, sd, groups[kc])
+            scores[j, i] = nlpd
+            if best is None or nlpd < best[0]:
+                best = (nlpd, f, sd, hyper, c)
+        _, factors[j], sd, hyper, c = best
         if Z is None:
             both = ExactGP.fit(X, np.column_stack([H, y]), hyper=hyper, row_noise=V[:, j])
             alpha = np.asarray(both.alpha)
@@ -868,10 +948,6 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
                             whiten=p.whiten, post=p.post, hyper=hyper,
                             output_scale=jnp.ones(1), n_cases=int(X.shape[0]))  # fmt: skip
             G = pw[:, :P]
-        c = 1.0
-        if groups is not None:
-            k = np.arange(X.shape[0]) if cal is None else cal
-            c = _held_out_scale(X[k], H[k], y[k], V[k, j], hyper, b, sd, groups[k])
         deltas.append(gp.with_output_scale(jnp.full(1, c)))
         chol = chol * np.sqrt(c)
         k = 0
@@ -890,7 +966,10 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         with_prior=fixed_rho is None,
         with_simple=m is not None,
     )
-    return rho, kappa, tuple(deltas), explicit
+    choice = {"grid": list(grid), "factors": factors.tolist()}
+    if held:
+        choice["held_out_nlpd"] = scores.tolist()
+    return rho, kappa, tuple(deltas), explicit, choice
 
 
 def _coefficient_prior(with_prior: bool, with_simple: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -900,6 +979,17 @@ def _coefficient_prior(with_prior: bool, with_simple: bool) -> tuple[np.ndarray,
     names = (["prior"] if with_prior else []) + (["simple"] if with_simple else []) + list(TERMS)
     sd = np.array([PRIORS[n] for n in names])
     return np.array([1.0 if n == "prior" else 0.0 for n in names]), sd
+
+
+def _chosen_prior(sur: Surrogate, with_prior: bool, with_simple: bool) -> np.ndarray:
+    """(6, P) the coefficients' prior standard deviations per load output as ``sur`` was
+    corrected with them: :func:`_coefficient_prior`'s, the physical terms' times the factor
+    ``basis_prior`` chose (1 for a model corrected before there was a choice)."""
+    _, sd = _coefficient_prior(with_prior, with_simple)
+    choice = sur.config.get("flight_correction", {}).get("basis_prior") or {}
+    factors = np.asarray(choice.get("factors", np.ones(N_LOADS)), float)
+    terms = np.arange(sd.size) >= sd.size - len(TERMS)
+    return np.where(terms[None, :], factors[:, None] * sd[None, :], sd[None, :])
 
 
 def _basis_columns(mu, m, phys, j: int) -> np.ndarray:
@@ -932,10 +1022,11 @@ def _regression(Y, V, mu, m, *, fit_rho: bool, use_prior: bool):
     return rho, kappa
 
 
-def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int, Z=None):
-    """One discrepancy: its hyperparameters (:func:`_delta_hyper`), then the exact GP, or the
-    inducing-point GP through ``Z`` on every row."""
-    hyper = _delta_hyper(X, r, noise, subset_size, max_steps, seed)
+def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int, Z=None, Zh=None):
+    """One discrepancy: its hyperparameters (:func:`_delta_hyper`, refined through ``Zh`` on
+    every row where given), then the exact GP, or the inducing-point GP through ``Z`` on
+    every row."""
+    hyper = _delta_hyper(X, r, noise, subset_size, max_steps, seed, Zh)
     if Z is None:
         gp = ExactGP.fit(X, r[:, None], hyper=hyper, row_noise=noise)
     else:
@@ -944,20 +1035,30 @@ def _fit_delta(X, r, noise, subset_size: int, max_steps: int, seed: int, Z=None)
     return gp.with_output_scale(jnp.ones(1))
 
 
-def _delta_hyper(X, r, noise, subset_size: int, max_steps: int, seed: int) -> Hyper:
+def _delta_hyper(X, r, noise, subset_size: int, max_steps: int, seed: int, Z=None) -> Hyper:
     """A discrepancy's hyperparameters by marginal likelihood on ``subset_size`` rows drawn
-    at random (:func:`gpg.gp.fit.fit_hyperparameters`), lengthscales kept in range."""
+    at random (:func:`gpg.gp.fit.fit_hyperparameters`), then, with inducing inputs ``Z``
+    (``hyperparameters="all"``), refined on every row by the collapsed bound
+    (:func:`gpg.gp.inducing.fit_collapsed`); lengthscales kept in range."""
     var = float(max(np.var(r), 1e-6))
     init = Hyper(variance=var, lengthscale=np.full(X.shape[1], 0.7), noise=1e-2 * var)
     opts = FitOptions(subset_size=subset_size, seed=seed, max_steps=max_steps, on_failure="ignore")
     fit = fit_hyperparameters(X, r[:, None], init=init, options=opts, row_noise=noise)
-    h = fit.hyper
+    h = _in_range(fit.hyper, init)
+    if Z is not None and X.shape[0] > subset_size:
+        h = _in_range(fit_collapsed(X, r, Z, init=h, row_noise=noise, max_steps=max_steps)[0], h)
+    return h
+
+
+def _in_range(h: Hyper, fallback: Hyper) -> Hyper:
+    """``h`` with its lengthscales clipped to range, or ``fallback`` where σ or ``ν²`` is not
+    a positive number."""
     # An input the discrepancy does not vary along drives its lengthscale toward infinity: at
     # LENGTHSCALE_MAX (normalised inputs span 2) the kernel is already flat along it.
     ls = np.nan_to_num(np.asarray(h.lengthscale), nan=LENGTHSCALE_MAX, posinf=LENGTHSCALE_MAX)
     ls = np.clip(ls, LENGTHSCALE_MIN, LENGTHSCALE_MAX)
     ok = all(np.isfinite(float(v)) and float(v) > 0 for v in (h.variance, h.noise))
-    return Hyper(variance=h.variance, lengthscale=ls, noise=h.noise) if ok else init
+    return Hyper(variance=h.variance, lengthscale=ls, noise=h.noise) if ok else fallback
 
 
 @float64

@@ -497,6 +497,7 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
         ms = np.asarray(jax.vmap(simple)(jnp.asarray(X)))
     phys = np.asarray(jax.vmap(fc._physics(prior))(jnp.asarray(X)))
     b, sd = fc._coefficient_prior(True, ms is not None)
+    sd_j = fc._chosen_prior(sur, True, ms is not None)  # the prior each output was fitted with
     resid = np.full(Y.shape, np.nan)
     H = np.stack([fc._basis_columns(mu, ms, phys, j) for j in range(N_LOADS)], 1)  # (N, 6, P)
     bias = np.asarray(BIAS_SCALE) / np.asarray(prior.normalizer.y_std[:N_LOADS])
@@ -509,7 +510,7 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
     refit = [g for g, lab in enumerate(parts) if lab.name in seen]
     unseen = ~np.isin(groups, refit)
     for j, d in enumerate(sur.model.delta):
-        outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd, groups, refit)
+        outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd_j[j], groups, refit)
         for te, mean, _, cov in outs:
             resid[te, j] = Y[te, j] - mean
             c0[te, j, :p, :p] = cov

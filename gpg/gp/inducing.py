@@ -12,7 +12,10 @@ taken as ``K̃ = K_nm K_mm⁻¹ K_mn + Λ``. With ``A = L⁻¹ K_mn Λ^{-1/2}`` 
   the flight correction's integrated basis needs, :mod:`gpg.flight.correction`).
 
 The fit costs ``O(N m²)`` time and ``O(m² + m c)`` memory (the cases are read ``chunk`` at a
-time), one jitted program on the host or an accelerator. With ``Z`` every case the model is the
+time), one jitted program on the host or an accelerator. The hyperparameters can be fitted on
+every case the same way: :func:`collapsed_bound` is Titsias's (2009) lower bound on the log
+marginal likelihood, ``log N(y | 0, K̃) − ½ Σ_i (σ − q_ii)/λ_i``, and :func:`fit_collapsed`
+maximises it. With ``Z`` every case the model is the
 exact GP (Woodbury: ``K⁻¹ − K⁻¹ (K⁻¹ + Λ⁻¹)⁻¹ K⁻¹ = (K + Λ)⁻¹``), the test of the module.
 """
 
@@ -25,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
+import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from gpg._dtype import float64
@@ -33,7 +37,14 @@ from gpg.gp.hyper import Hyper
 from gpg.gp.kernels import rbf_matrix
 from gpg.gp.predictor import Predictor, plain
 
-__all__ = ["InducingGP", "Projection", "inducing_inputs", "project"]
+__all__ = [
+    "InducingGP",
+    "Projection",
+    "collapsed_bound",
+    "fit_collapsed",
+    "inducing_inputs",
+    "project",
+]
 
 # Relative jitter on K_mm's diagonal: k-means centres can lie close enough together for K_mm to
 # be singular in floating point; 1e-8 σ moves the model by about that much relative.
@@ -247,6 +258,20 @@ def project(
         ValueError: shapes that do not match (naming the input), non-finite values, or a noise
             that is not positive for every case.
     """
+    Xp, Vp, rn, real, Z = _chunked(X, V, Z, row_noise, chunk)
+    noise = float(hyper.noise) + rn
+    if not np.all(noise[real] > 0):
+        raise ValueError("every case needs a positive noise variance (nu^2 plus its row noise)")
+    # Padded cases get weight 0: they add nothing to B, A u or uᵀu.
+    sw = np.where(real, 1.0 / np.sqrt(np.where(real, noise, 1.0)), 0.0)
+    ls = np.broadcast_to(np.asarray(hyper.lengthscale, float), (Z.shape[1],))
+    return _project(jnp.asarray(Xp), jnp.asarray(Vp), jnp.asarray(sw), jnp.asarray(Z),
+                    jnp.asarray(hyper.variance, float), jnp.asarray(ls))  # fmt: skip
+
+
+def _chunked(X, V, Z, row_noise, chunk: int):
+    """The cases checked (each input named in its error) and cut into chunks of ``chunk``,
+    the last one padded: ``(X, V, row noise, real)`` with a leading chunk axis, and ``Z``."""
     X, V, Z = (np.asarray(a, float) for a in (X, V, Z))
     if X.ndim != 2:
         raise ValueError(f"X must be (N, D), got shape {X.shape}")
@@ -255,28 +280,23 @@ def project(
         raise ValueError(f"V must be ({n}, K) like X's rows, got shape {V.shape}")
     if Z.ndim != 2 or Z.shape[1] != d or Z.shape[0] < 1:
         raise ValueError(f"Z must be (m, {d}) with m >= 1, got shape {Z.shape}")
-    noise = np.full(n, float(hyper.noise))
+    rn = np.zeros(n)
     if row_noise is not None:
         rn = np.asarray(row_noise, float)
         if rn.shape != (n,):
             raise ValueError(f"row_noise must be ({n},), got shape {rn.shape}")
-        noise = noise + rn
-    for name, a in (("X", X), ("V", V), ("Z", Z), ("row_noise", noise)):
+    for name, a in (("X", X), ("V", V), ("Z", Z), ("row_noise", rn)):
         if not np.all(np.isfinite(a)):
             raise ValueError(f"{name} holds NaN or inf")
-    if not np.all(noise > 0):
-        raise ValueError("every case needs a positive noise variance (nu^2 plus its row noise)")
     if not int(chunk) >= 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     c = min(int(chunk), n)
     pad = (-n) % c
-    # Padded cases get weight 0: they add nothing to B, A u or uᵀu.
     Xp = np.concatenate([X, np.zeros((pad, d))]).reshape(-1, c, d)
     Vp = np.concatenate([V, np.zeros((pad, V.shape[1]))]).reshape(-1, c, V.shape[1])
-    sw = np.concatenate([1.0 / np.sqrt(noise), np.zeros(pad)]).reshape(-1, c)
-    ls = np.broadcast_to(np.asarray(hyper.lengthscale, float), (d,))
-    return _project(jnp.asarray(Xp), jnp.asarray(Vp), jnp.asarray(sw), jnp.asarray(Z),
-                    jnp.asarray(hyper.variance, float), jnp.asarray(ls))  # fmt: skip
+    rn = np.concatenate([rn, np.zeros(pad)]).reshape(-1, c)
+    real = np.concatenate([np.ones(n, bool), np.zeros(pad, bool)]).reshape(-1, c)
+    return Xp, Vp, rn, real, Z
 
 
 @jax.jit
@@ -306,6 +326,143 @@ def _project(Xp, Vp, sw, Z, var, ls) -> Projection:
     log_lam = jnp.sum(jnp.where(real, -2.0 * jnp.log(jnp.where(real, sw, 1.0)), 0.0))
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diag(LB))) + log_lam
     return Projection(Z, weights, G - S.T @ S, whiten, post, logdet)
+
+
+def collapsed_bound(
+    X: Float[ArrayLike, "N D"],
+    y: Float[ArrayLike, " N"],
+    Z: Float[ArrayLike, "m D"],
+    *,
+    hyper: Hyper,
+    row_noise: Float[ArrayLike, " N"] | None = None,
+    chunk: int = 4096,
+) -> float:
+    """Titsias's (2009) collapsed lower bound on the log marginal likelihood of values ``y``,
+    through the inducing inputs ``Z``: ``log N(y | 0, K̃) − ½ Σ_i (σ − q_ii) / λ_i``, with
+    ``K̃ = Q + Λ`` the projected-process covariance (module docstring) and ``q_ii`` the
+    diagonal of ``Q = K_nm K_mm⁻¹ K_mn``. The trace term is what makes it a bound: it
+    penalises hyperparameters under which the inducing inputs do not explain the cases, so
+    maximising it on every case does not trade the model away for a looser fit. With ``Z``
+    every case it is the exact log marginal likelihood.
+
+    Args:
+        X: (N, D) inputs (normalised).
+        y: (N,) values.
+        Z: (m, D) inducing inputs.
+        hyper: σ, lengthscales and ``ν²``.
+        row_noise: (N,) each case's own noise variance, added to ``ν²``.
+        chunk: cases read at a time.
+
+    Returns:
+        The bound (nats).
+
+    Raises:
+        ValueError: shapes that do not match (naming the input), non-finite values, or a noise
+            that is not positive for every case.
+    """
+    Xp, yp, rn, real, Zc = _chunked(X, np.asarray(y, float).reshape(-1, 1), Z, row_noise, chunk)
+    if not np.all((float(hyper.noise) + rn)[real] > 0):
+        raise ValueError("every case needs a positive noise variance (nu^2 plus its row noise)")
+    ls = np.broadcast_to(np.asarray(hyper.lengthscale, float), (Zc.shape[1],))
+    args = (jnp.asarray(Xp), jnp.asarray(yp[..., 0]), jnp.asarray(rn), jnp.asarray(real),
+            jnp.asarray(Zc))  # fmt: skip
+    return float(_bound(*args, jnp.asarray(hyper.variance, float), jnp.asarray(ls),
+                        jnp.asarray(hyper.noise, float)))  # fmt: skip
+
+
+@jax.jit
+@highest
+def _bound(Xp, yp, rn, real, Z, var, ls, nu2):
+    m = Z.shape[0]
+    L = jnp.linalg.cholesky(
+        rbf_matrix(Z / ls, Z / ls, var) + JITTER * var * jnp.eye(m, dtype=Z.dtype)
+    )
+    lam = jnp.where(real, nu2 + rn, 1.0)
+    sw = jnp.where(real, 1.0 / jnp.sqrt(lam), 0.0)
+
+    def add(carry, part):
+        B, t, q, tr = carry
+        x, y, s = part
+        A = jsl.solve_triangular(L, rbf_matrix(Z / ls, x / ls, var), lower=True) * s[None]
+        u = y * s
+        return (B + A @ A.T, t + A @ u, q + u @ u, tr + var * (s @ s) - jnp.sum(A * A)), None
+
+    zero = (jnp.zeros((m, m), Z.dtype), jnp.zeros(m, Z.dtype), jnp.zeros((), Z.dtype),
+            jnp.zeros((), Z.dtype))  # fmt: skip
+    (AAt, t, q, tr), _ = jax.lax.scan(add, zero, (Xp, yp, sw))
+    LB = jnp.linalg.cholesky(jnp.eye(m, dtype=Z.dtype) + AAt)
+    c = jsl.solve_triangular(LB, t, lower=True)
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diag(LB))) + jnp.sum(jnp.where(real, jnp.log(lam), 0.0))
+    n = jnp.sum(real)
+    return -0.5 * (n * jnp.log(2.0 * jnp.pi) + logdet + q - c @ c + tr)
+
+
+@float64
+def fit_collapsed(
+    X: Float[ArrayLike, "N D"],
+    y: Float[ArrayLike, " N"],
+    Z: Float[ArrayLike, "m D"],
+    *,
+    init: Hyper,
+    row_noise: Float[ArrayLike, " N"] | None = None,
+    noise_floor: float = 1e-6,
+    max_steps: int = 100,
+    chunk: int = 4096,
+) -> tuple[Hyper, bool]:
+    """σ, the lengthscales and ``ν²`` by maximising :func:`collapsed_bound` on every case
+    (optimistix BFGS on log-parameters, ``ν² = σ(floor + e^θ)`` as in
+    :func:`gpg.gp.fit.fit_hyperparameters`), started from ``init``: ``O(N m²)`` a step, so
+    the hyperparameters see every label where a dense likelihood sees a subset of them.
+
+    Args:
+        X: (N, D) inputs (normalised).
+        y: (N,) values.
+        Z: (m, D) inducing inputs (fixed).
+        init: where the fit starts (a subset's fit is a good start).
+        row_noise: (N,) each case's own noise variance, added to ``ν²``.
+        noise_floor: ``ν²/σ`` stays above it.
+        max_steps: BFGS steps.
+        chunk: cases read at a time.
+
+    Returns:
+        The hyperparameters and whether BFGS converged to a finite bound (where it did not,
+        the better of the start and the last iterate).
+
+    Raises:
+        ValueError: shapes that do not match (naming the input), non-finite values, or
+            ``init`` not positive.
+    """
+    Xp, yp, rn, real, Zc = _chunked(X, np.asarray(y, float).reshape(-1, 1), Z, row_noise, chunk)
+    d = Zc.shape[1]
+    ls0 = np.broadcast_to(np.asarray(init.lengthscale, float), (d,))
+    var0, nu0 = float(init.variance), float(init.noise)
+    if not (var0 > 0 and nu0 > 0 and np.all(ls0 > 0)):
+        raise ValueError(f"init must have positive variance, lengthscales and noise, got {init}")
+    args = (jnp.asarray(Xp), jnp.asarray(yp[..., 0]), jnp.asarray(rn), jnp.asarray(real),
+            jnp.asarray(Zc))  # fmt: skip
+    n = float(np.sum(real))
+
+    def unpack(p):
+        var = jnp.exp(p[0])
+        return var, jnp.exp(p[1 : 1 + d]), var * (noise_floor + jnp.exp(p[-1]))
+
+    def loss(p, a):
+        nll = -_bound(*a, *unpack(p)) / n
+        # A trial point whose K_mm or B is not positive definite gives NaN: a bad step.
+        return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
+
+    ratio = max(nu0 / var0 - noise_floor, 1e-12)
+    p0 = jnp.concatenate([jnp.log(jnp.array([var0])), jnp.log(jnp.asarray(ls0)),
+                          jnp.log(jnp.array([ratio]))])  # fmt: skip
+    sol = optx.minimise(loss, optx.BFGS(rtol=1e-6, atol=1e-6), p0, args=args,
+                        max_steps=int(max_steps), throw=False)  # fmt: skip
+    best = sol.value
+    f0, f1 = float(loss(p0, args)), float(loss(best, args))
+    ok = bool(sol.result == optx.RESULTS.successful) and f1 < 1e10
+    if not f1 <= f0:
+        best = p0
+    var, ls, nu2 = unpack(best)
+    return Hyper(variance=var, lengthscale=ls, noise=nu2), ok
 
 
 def inducing_inputs(

@@ -585,35 +585,48 @@ def test_correct_refuses_an_unknown_basis(synthetic_surrogate, flights):
         fc.correct(synthetic_surrogate, flights, basis="linear")
 
 
-def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights):
+def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monkeypatch):
     """Labels of two flights, the second pushed by a steady force the first did not have:
     each component's discrepancy and coefficient variance scaled by the ``c`` (at least 1)
     under which each flight, predicted from the other, has a mean squared standardised error
-    of 1, the labels' noise unscaled beside ``c`` times the latent variance; written out here
-    in NumPy for the most widened component; calibrate=False keeps 1."""
-    from gpg.flight.basis import PRIORS
+    of 1, the labels' noise unscaled beside ``c`` times the latent variance; the physical
+    terms' prior the candidate under which the worse-predicted held-out flight is predicted
+    best. Both
+    written out here in NumPy for the most widened component; calibrate=False keeps 1."""
+    from gpg.flight.basis import PRIORS, TERMS
 
+    # two candidates keep the test's fits few; the rule is the same for any grid
+    monkeypatch.setattr(fc, "BASIS_PRIOR_GRID", (0.01, 1.0))
     half = len(flights) // 2
     a = dataclasses.replace(flights.take(slice(0, half)), name="a")
     b_ = flights.take(slice(half, None))
     b_ = dataclasses.replace(b_, name="b", force=b_.force + np.array([0.4, -0.3, 0.2]))
-    cal = fc.correct(synthetic_surrogate, [a, b_], basis="physical", **FIT)
-    raw = fc.correct(synthetic_surrogate, [a, b_], basis="physical", calibrate=False, **FIT)
+    # ρ = 1 (the identified physics taken as it is): "auto" chooses the terms' prior
+    cal = fc.correct(synthetic_surrogate, [a, b_], basis="physical", scale=False, **FIT)
+    choice = cal.config["flight_correction"]["basis_prior"]
+    scores = np.asarray(choice["held_out_nlpd"])
+    assert choice["grid"] == [0.01, 1.0] and scores.shape == (6, 2)
+    np.testing.assert_array_equal(choice["factors"], np.take([0.01, 1.0], scores.argmin(1)))
     m = cal.model
     j = int(np.argmax([float(d.output_scale[0]) for d in m.delta]))
+    f = choice["factors"][j]
+    raw = fc.correct(synthetic_surrogate, [a, b_], basis="physical", scale=False,
+                     calibrate=False, basis_prior=f, **FIT)  # fmt: skip
+    assert raw.config["flight_correction"]["basis_prior"]["factors"] == [f] * 6
     X, Y, V = fc.training_rows(cal, Labels.concatenate([a, b_]))
     Y, V = Y[:, j], V[:, j]
     groups = np.repeat([0, 1], [half, len(flights) - half])
     d = m.delta[j]
     h = d.hyper
     ls, s2, nu = np.asarray(h.lengthscale), float(h.variance), float(h.noise)
-    mu = np.asarray(m.prior.predict_mean(X))[:, j]
+    Y = Y - np.asarray(m.prior.predict_mean(X))[:, j]  # ρ = 1: the prior's mean moved over
     Xj = jnp.asarray(X)
     simple, phys = jax.vmap(m.basis)(Xj)[:, j], jax.vmap(m.explicit.physics)(Xj)[:, j]
-    H = np.column_stack([mu, np.asarray(simple), np.asarray(phys)])
-    sd = np.array([PRIORS[c] for c in m.explicit.columns])
+    H = np.column_stack([np.asarray(simple), np.asarray(phys)])
+    assert m.explicit.columns == ("simple", *TERMS)
+    sd = np.array([PRIORS[c] * (f if c in TERMS else 1.0) for c in m.explicit.columns])
+    np.testing.assert_array_equal(fc._chosen_prior(cal, False, True)[j], sd)  # fit_drift's
     b = np.zeros(sd.size)
-    b[0] = 1.0
     e2v = []
     for g in (0, 1):
         tr, te = groups != g, groups == g
@@ -635,6 +648,12 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights):
     c = max(1.0, float(np.exp(lo)))
     assert c > 1.0  # each flight misses the other's push
     np.testing.assert_allclose(float(d.output_scale[0]), c, rtol=1e-6)
+    # the chosen candidate's score: the worse of the two held-out flights' mean negative log
+    # Gaussian density under c
+    s2c = c * v + n
+    nlpd = 0.5 * np.log(2 * np.pi * s2c) + 0.5 * e2 / s2c
+    worst = max(nlpd[:half].mean(), nlpd[half:].mean())
+    np.testing.assert_allclose(scores[j].min(), worst, rtol=1e-6)
     assert float(raw.model.delta[j].output_scale[0]) == 1.0
     np.testing.assert_allclose(
         np.asarray(m.explicit.cov_chol[j]), np.asarray(raw.model.explicit.cov_chol[j]) * np.sqrt(c),
@@ -674,6 +693,39 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     _exports_equal_predict(few, flights, tmp_path / "c", "float", n_casadi=4, onnx=False)
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)
+
+
+def test_hyperparameters_refined_on_every_label(synthetic_surrogate, flights):
+    """``hyperparameters="all"``: each discrepancy's subset fit refined on every label by the
+    collapsed bound through the model's own inducing inputs; the bound on every label is then
+    at least the subset's (for every output: the refinement starts there and keeps the
+    better), the model records it, and an unknown choice is refused by name."""
+    from gpg.gp.inducing import collapsed_bound
+
+    opts = {"exact_labels": N_LABELS // 2, "inducing": 12, "subset_size": 20, "max_steps": 20}
+    sub = fc.correct(synthetic_surrogate, flights, **opts)
+    every = fc.correct(synthetic_surrogate, flights, hyperparameters="all", **opts)
+    assert every.config["flight_correction"]["hyperparameters"] == "all"
+    m = sub.model
+    X, Y, V = fc.training_rows(sub, flights)
+    mu = np.asarray(m.prior.predict_mean(X))[:, :6]
+    ms = np.asarray(jax.vmap(m.basis)(jnp.asarray(X)))
+    np.testing.assert_array_equal(every.model.scale, m.scale)  # ρ, κ do not see δ
+    R = Y - np.asarray(m.scale)[:6] * mu - np.asarray(m.kappa) * ms
+    gain = []
+    for j in range(6):
+        Z = np.asarray(m.delta[j].X)
+        np.testing.assert_array_equal(every.model.delta[j].X, Z)  # the same inducing inputs
+        b_sub, b_all = (collapsed_bound(X, R[:, j], Z, hyper=mod.delta[j].hyper, row_noise=V[:, j])
+                        for mod in (m, every.model))  # fmt: skip
+        gain.append(b_all - b_sub)
+    # never worse (the refinement keeps the better of its start and its end, to rounding),
+    # and better somewhere: the subset of 20 labels did not fix the hyperparameters of 60
+    assert min(gain) >= -1e-6 * N_LABELS and max(gain) > 0.1
+    with pytest.raises(ValueError, match="hyperparameters must be"):
+        fc.correct(synthetic_surrogate, flights, hyperparameters="every")
+    with pytest.raises(ValueError, match="basis_prior must be"):
+        fc.correct(synthetic_surrogate, flights, basis_prior=0.0)
 
 
 def test_online_update_in_c_equals_jax(corrected, flights, tmp_path):

@@ -201,6 +201,9 @@ def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights
     its likelihood written here: the fitted θ is at least as likely as the grid's start and
     as the default, and the likelihood is the filter's prequential one (a NumPy filter over
     the same held-out residuals gives the same number)."""
+    # ρ fitted: the physical terms' prior as PRIORS states it ("auto"), which fit_drift holds
+    # out with
+    assert corrected.config["flight_correction"]["basis_prior"]["factors"] == [1.0] * 6
     drift = tk.fit_drift(corrected, flights)
     assert drift.source == "fitted" and drift.labels == N_LABELS
     assert drift.fast in tk.BANKS

@@ -6,8 +6,17 @@ import numpy as np
 import pytest
 
 from gpg.gp.exact import ExactGP
+from gpg.gp.fit import fit_hyperparameters
 from gpg.gp.hyper import Hyper
-from gpg.gp.inducing import JITTER, InducingGP, inducing_inputs, project
+from gpg.gp.inducing import (
+    JITTER,
+    InducingGP,
+    collapsed_bound,
+    fit_collapsed,
+    inducing_inputs,
+    project,
+)
+from gpg.gp.likelihood import log_marginal_likelihood
 
 HYPER = Hyper(variance=0.8, lengthscale=np.array([0.7, 0.9, 1.2]), noise=1e-2)
 
@@ -110,3 +119,63 @@ def test_bad_inputs_are_named(rng):
     gp = InducingGP.fit(X, y, X[:4], hyper=HYPER)
     with pytest.raises(ValueError, match="weights must have shape"):
         gp.with_weights(np.zeros((3, 1)))
+
+
+def test_collapsed_bound_matches_a_numpy_reference(rng):
+    X, y, noise = _data(rng, 150)
+    Z = inducing_inputs(X, 20, seed=0)
+    _, _, Kt = _reference(X, y, noise, Z, X[:1])
+    ls, s = np.asarray(HYPER.lengthscale), float(HYPER.variance)
+    Kmn = s * np.exp(-0.5 * (((Z[:, None] - X[None]) / ls) ** 2).sum(-1))
+    q = np.sum(Kmn * np.linalg.solve(_reference_kmm(Z), Kmn), 0)
+    lam = float(HYPER.noise) + noise
+    sign, logdet = np.linalg.slogdet(Kt)
+    ref = -0.5 * (y @ np.linalg.solve(Kt, y) + logdet + len(y) * np.log(2 * np.pi))
+    ref -= 0.5 * np.sum((s - q) / lam)
+    for chunk in (7, 4096):
+        b = collapsed_bound(X, y, Z, hyper=HYPER, row_noise=noise, chunk=chunk)
+        # 150 terms of O(1..100) nats through a K_mm of condition ~1e6: 1e-9 relative.
+        np.testing.assert_allclose(b, ref, rtol=1e-9)
+    # Every case inducing: the trace term vanishes and the bound is the exact likelihood,
+    # but for the jitter JITTER·σ on K_mm (its effect ~cond(K)·JITTER·N, under 1e-4 here).
+    exact = log_marginal_likelihood(jnp.asarray(X), jnp.asarray(y[:, None]), HYPER, (),
+                                    row_noise=jnp.asarray(noise))  # fmt: skip
+    np.testing.assert_allclose(collapsed_bound(X, y, X, hyper=HYPER, row_noise=noise),
+                               float(exact), atol=1e-4)  # fmt: skip
+    # A bound: fewer inducing inputs explain the cases less, never more than the likelihood.
+    assert b < float(exact)
+
+
+def _reference_kmm(Z):
+    ls, s = np.asarray(HYPER.lengthscale), float(HYPER.variance)
+    return s * np.exp(-0.5 * (((Z[:, None] - Z[None]) / ls) ** 2).sum(-1)) + JITTER * s * np.eye(
+        len(Z)
+    )
+
+
+def test_fit_collapsed_with_every_case_inducing_is_the_exact_fit(rng):
+    X, y, noise = _data(rng, 60)
+    init = Hyper(variance=0.5, lengthscale=np.full(3, 0.7), noise=5e-3)
+    h, ok = fit_collapsed(X, y, X, init=init, row_noise=noise)
+    dense = fit_hyperparameters(X, y[:, None], init=init, row_noise=noise, subset_size=None,
+                                on_failure="raise").hyper  # fmt: skip
+
+    def lml(h):
+        return float(log_marginal_likelihood(jnp.asarray(X), jnp.asarray(y[:, None]), h, (),
+                                             row_noise=jnp.asarray(noise)))  # fmt: skip
+
+    assert ok
+    # Both maximise the same function (the jitter's 1e-4 nats apart): the same maximum, and
+    # the optimum's location to what a flat maximum in six parameters fixes.
+    assert lml(h) > lml(init) + 1.0
+    np.testing.assert_allclose(lml(h), lml(dense), atol=1e-3)
+    np.testing.assert_allclose(h.lengthscale, dense.lengthscale, rtol=5e-2)
+    # the start's bound is never the better one
+    Z = X[::5]
+    h5, _ = fit_collapsed(X, y, Z, init=init, row_noise=noise, max_steps=30)
+    b = collapsed_bound(X, y, Z, hyper=h5, row_noise=noise)
+    assert b >= collapsed_bound(X, y, Z, hyper=init, row_noise=noise)
+    with pytest.raises(ValueError, match="init must have positive"):
+        fit_collapsed(X, y, Z, init=Hyper(variance=0.0), row_noise=noise)
+    with pytest.raises(ValueError, match="Z must be"):
+        collapsed_bound(X, y, Z[:, :2], hyper=HYPER)

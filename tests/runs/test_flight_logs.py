@@ -111,6 +111,10 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     co = saved["coefficients"]
     assert co["identified"]["rho"] == [1.0] * 6 and co["identified_rho"]["rho"] != [1.0] * 6
     assert all(c >= 1.0 for m in co.values() for c in m["calibration"])  # only widened
+    # the physical terms' prior chosen per output among the grid, by the winds held out
+    for m in co.values():
+        bp = m["basis_prior"]
+        assert set(bp["factors"]) <= set(bp["grid"]) and len(bp["held_out_nlpd"]) == 6
     load_vehicle(tmp_path / "identified_vehicle.yaml").require_generator()
     assert len(res["wind"]) == 4 and all(np.isfinite(w["rms_error"]) for w in res["wind"])
     assert set(res["identification"]["parameters"]) == set(cfg["hard"]["identify"]["free"])
