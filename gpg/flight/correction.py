@@ -908,7 +908,6 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     kappa = np.zeros(n_out)
     betas, Gs, chols, deltas = [], [], [], []
     b, sd0 = _coefficient_prior(fixed_rho is None, m is not None)
-    terms = np.arange(sd0.size) >= sd0.size - len(TERMS)
     held = groups is not None and np.unique(groups).size >= 2
     grid = _prior_grid(basis_prior, held)
     kc = np.arange(X.shape[0]) if cal is None else cal
@@ -922,7 +921,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         w = 1.0 / (V[:, j] + 1e-3)
         best = None
         for i, f in enumerate(grid):
-            sd = np.where(terms, f * sd0, sd0)
+            sd = _scale_terms(sd0, f)
             beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
             hyper = _delta_hyper(X, y - H @ beta0, V[:, j], subset_size, max_steps, seed + j, Zh)
             c, nlpd = (1.0, 0.0)
@@ -988,8 +987,14 @@ def _chosen_prior(sur: Surrogate, with_prior: bool, with_simple: bool) -> np.nda
     _, sd = _coefficient_prior(with_prior, with_simple)
     choice = sur.config.get("flight_correction", {}).get("basis_prior") or {}
     factors = np.asarray(choice.get("factors", np.ones(N_LOADS)), float)
+    return _scale_terms(sd, factors[:, None])
+
+
+def _scale_terms(sd: np.ndarray, factor) -> np.ndarray:
+    """The prior standard deviations ``sd`` (P,) with the physical terms' (the last
+    ``len(TERMS)``) times ``factor`` (a number, or (6, 1) for one per load output)."""
     terms = np.arange(sd.size) >= sd.size - len(TERMS)
-    return np.where(terms[None, :], factors[:, None] * sd[None, :], sd[None, :])
+    return np.where(terms, factor * sd, sd)
 
 
 def _basis_columns(mu, m, phys, j: int) -> np.ndarray:
