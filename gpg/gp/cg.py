@@ -105,7 +105,7 @@ class Nystrom(eqx.Module):
         # V = K̄_xu L_u⁻ᵀ a chunk of points at a time, into one host buffer in the
         # dimension-major row layout: K̄_xu itself is never held whole.
         V = np.empty((n * (1 + g), Lu.shape[0]))
-        block = jax.jit(partial(_nystrom_rows, grad_dims=grad_dims))
+        block = partial(_nystrom_rows_jit, grad_dims=tuple(grad_dims))
         for s in range(0, n, chunk):
             rows = np.asarray(block(X[s : s + chunk], Z, Lu, hyper))
             w = min(chunk, n - s)
@@ -154,6 +154,10 @@ def _nystrom_rows(Xc, Z, Lu, hyper, *, grad_dims):
     """Rows of ``V = K̄_xu L_u⁻ᵀ`` for the points ``Xc`` (their own dimension-major order)."""
     K = kernels.gram(Xc, Z, hyper.variance, hyper.lengthscale, grad_dims, grad_dims)
     return jsl.solve_triangular(Lu, K.T, lower=True).T
+
+
+# jitted once at module level (static "grad_dims"): calls of one shape share the program
+_nystrom_rows_jit = jax.jit(_nystrom_rows, static_argnames="grad_dims")
 
 
 @eqx.filter_jit

@@ -180,6 +180,26 @@ def _check_solves(X, Ybar, hyper, data, args, opts: Stochastic) -> float:
     return float(out.value)
 
 
+class _WithAux(eqx.Module):
+    """``loss`` as optimistix's ``fn`` (value, aux), a static field: the jitted steps below are
+    keyed by the loss itself, so the fits of one loss share their compiled programs."""
+
+    loss: Any = eqx.field(static=True)
+
+    def __call__(self, y, args):
+        return self.loss(y, args), None
+
+
+@eqx.filter_jit
+def _solver_step(solver, fn, y, state, args):
+    return solver.step(fn, y, args, {}, state, frozenset())
+
+
+@eqx.filter_jit
+def _solver_terminate(solver, fn, y, state, args):
+    return solver.terminate(fn, y, args, {}, state, frozenset())
+
+
 def _minimise_with_progress(
     loss, solver, params, args, max_steps: int, progress: bool, stall: int = 5,
     stall_step: float = 1e-3, ftol: float = 0.0, patience: int = 3,
@@ -202,11 +222,11 @@ def _minimise_with_progress(
     The full-data refit spends its second half crawling along a nearly flat valley that
     moves the likelihood by a few nats per step and the test errors hardly at all
     (docs/scaling.md measures both)."""
-    fn = lambda y, a: (loss(y, a), None)  # noqa: E731
+    fn = _WithAux(loss)
     f_struct = jax.ShapeDtypeStruct((), jnp.result_type(float))
     state = solver.init(fn, params, args, {}, f_struct, None, frozenset())
-    step = eqx.filter_jit(lambda y, s, a: solver.step(fn, y, a, {}, s, frozenset()))
-    terminate = eqx.filter_jit(lambda y, s, a: solver.terminate(fn, y, a, {}, s, frozenset()))
+    step = lambda y, s, a: _solver_step(solver, fn, y, s, a)  # noqa: E731
+    terminate = lambda y, s, a: _solver_terminate(solver, fn, y, s, a)  # noqa: E731
     y, aux, n, rejected, stalled, flat = params, None, 0, 0, False, 0
     done, status = terminate(y, state, args)
     best = np.inf
@@ -282,6 +302,44 @@ def _unpack(params, base: Hyper, grad_var, noise_floor: float):
         noise=noise,
         grad_noise=grad_noise,
     )
+
+
+def _finite(nll):
+    """A non-PD trial point gives NaN: reported as a bad step, so the line search backs off."""
+    return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
+
+
+@dataclass(frozen=True, eq=False)
+class _Host:
+    """A host array (or None) as a static argument of the jitted fit, equal by content: fits
+    on equal row layouts share a compiled program."""
+
+    a: Any
+
+    def _key(self):
+        a = self.a
+        return None if a is None else (a.shape, a.dtype.str, np.ascontiguousarray(a).tobytes())
+
+    def __hash__(self):
+        return hash(self._key())
+
+    def __eq__(self, other):
+        return isinstance(other, _Host) and self._key() == other._key()
+
+
+def _dense_loss(p, args):
+    """The dense negative log marginal likelihood per target at log-parameters ``p``."""
+    Xs, Ybar, noise, init, grad_var, floor, grad_dims, scale, rows, bases = args
+    h = _unpack(p, init, grad_var, floor)
+    lml = log_marginal_likelihood(Xs, Ybar, h, grad_dims, rows.a, bases.a, row_noise=noise)
+    return _finite(-lml / scale)
+
+
+def _stochastic_loss(p, args):
+    """The stochastic negative log marginal likelihood per target at log-parameters ``p``."""
+    fixed, Xs, Ybar, init, grad_var, floor, grad_dims, scale, sto = args
+    h = _unpack(p, init, grad_var, floor)
+    return _finite(-_stochastic_lml(Xs, Ybar, h, grad_dims, fixed, sto) / scale)
 
 
 _RENAMED = {"fit_jitter": "fit_noise", "jitter_floor": "noise_floor", "jitter_init": "noise_init"}
@@ -439,34 +497,30 @@ def fit_hyperparameters(
         data, init, fit_grad_noise, fit_noise, noise_init, noise_floor
     )
 
-    def loss(p, args):
-        h = _unpack(p, init, grad_var, noise_floor)
-        if likelihood == "dense":
-            lml = log_marginal_likelihood(
-                Xs, Ybar, h, data.grad_dims, rows, sub_bases, row_noise=sub_noise
-            )
-        else:
-            lml = _stochastic_lml(Xs, Ybar, h, data.grad_dims, args, sto)
-        nll = -lml / scale
-        # A non-PD trial point gives NaN: report it as a bad step so the line search backs off.
-        return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
-
     solver = optx.BFGS(rtol=opts.rtol, atol=opts.atol)
     max_steps = opts.max_steps
     if likelihood == "dense":
-        nll0 = float(loss(params, None))
-        sol = optx.minimise(loss, solver, params, max_steps=max_steps, throw=False)
+        # The data go in as arguments of one module-level loss (not a closure over them), so
+        # that fits of equal shapes and settings (a correction's six outputs, a test's many
+        # fits) reuse one traced and compiled optimiser instead of tracing it per call.
+        dense = (Xs, Ybar, sub_noise, init, grad_var, noise_floor, data.grad_dims, scale,
+                 _Host(rows), _Host(sub_bases))  # fmt: skip
+        nll0 = float(_dense_loss(params, dense))
+        sol = optx.minimise(_dense_loss, solver, params, args=dense, max_steps=max_steps,
+                            throw=False)  # fmt: skip
         value, status, steps = sol.value, sol.result, int(sol.stats["num_steps"])
-        nll1 = float(loss(value, None))
+        nll1 = float(_dense_loss(value, dense))
     else:
         sto = Stochastic() if opts.stochastic is None else opts.stochastic
         args = sto.arguments(Xs, len(data.grad_dims), Ybar.shape[0])
         h0 = _unpack(params, init, grad_var, noise_floor)
         nll0 = -_check_solves(Xs, Ybar, h0, data, args, sto) / scale
+        # as the dense fit's: the data are arguments of one module-level loss
+        args = (args, Xs, Ybar, init, grad_var, noise_floor, data.grad_dims, scale, sto)
         value, status, steps = _minimise_with_progress(
-            loss, solver, params, args, max_steps, sto.progress, ftol=sto.ftol
+            _stochastic_loss, solver, params, args, max_steps, sto.progress, ftol=sto.ftol
         )
-        nll1 = float(eqx.filter_jit(loss)(value, args))
+        nll1 = float(eqx.filter_jit(_stochastic_loss)(value, args))
     hyper = _unpack(value, init, grad_var, noise_floor)
     ok, message = _outcome(status, hyper, nll1)
     result = HyperFitResult(

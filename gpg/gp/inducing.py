@@ -384,6 +384,16 @@ def _bound(Xp, yp, rn, real, Z, var, ls, nu2):
     return -0.5 * (n * jnp.log(2.0 * jnp.pi) + p.logdet + p.gram[0, 0] + trace)
 
 
+def _collapsed_loss(p, a):
+    """The negative collapsed bound per label at log-parameters ``p`` = (log σ, log ℓ,
+    log(ν²/σ − floor)); ``a`` = (points, targets, noise, mask, inducing, count, floor)."""
+    *data, n, floor = a
+    var = jnp.exp(p[0])
+    nll = -_bound(*data, var, jnp.exp(p[1:-1]), var * (floor + jnp.exp(p[-1]))) / n
+    # A trial point whose K_mm or B is not positive definite gives NaN: a bad step.
+    return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
+
+
 @float64
 def fit_collapsed(
     X: Float[ArrayLike, "N D"],
@@ -426,19 +436,11 @@ def fit_collapsed(
     var0, nu0 = float(init.variance), float(init.noise)
     if not (var0 > 0 and nu0 > 0 and np.all(ls0 > 0)):
         raise ValueError(f"init must have positive variance, lengthscales and noise, got {init}")
-    args = (jnp.asarray(Xp), jnp.asarray(yp[..., 0]), jnp.asarray(rn), jnp.asarray(real),
-            jnp.asarray(Zc))  # fmt: skip
-    n = float(np.sum(real))
-
-    def unpack(p):
-        var = jnp.exp(p[0])
-        return var, jnp.exp(p[1 : 1 + d]), var * (noise_floor + jnp.exp(p[-1]))
-
-    def loss(p, a):
-        nll = -_bound(*a, *unpack(p)) / n
-        # A trial point whose K_mm or B is not positive definite gives NaN: a bad step.
-        return jnp.where(jnp.isfinite(nll), nll, jnp.asarray(1e10))
-
+    # the data, the label count and the floor are arguments of one module-level loss (not a
+    # closure): fits of equal shapes (a correction's six outputs) share one compiled program
+    args = tuple(jnp.asarray(a) for a in (Xp, yp[..., 0], rn, real, Zc))
+    args = (*args, jnp.asarray(float(np.sum(real))), jnp.asarray(float(noise_floor)))
+    loss = _collapsed_loss
     ratio = max(nu0 / var0 - noise_floor, 1e-12)
     p0 = jnp.concatenate([jnp.log(jnp.array([var0])), jnp.log(jnp.asarray(ls0)),
                           jnp.log(jnp.array([ratio]))])  # fmt: skip
@@ -449,8 +451,9 @@ def fit_collapsed(
     ok = bool(sol.result == optx.RESULTS.successful) and f1 < 1e10
     if not f1 <= f0:
         best = p0
-    var, ls, nu2 = unpack(best)
-    return Hyper(variance=var, lengthscale=ls, noise=nu2), ok
+    var = jnp.exp(best[0])
+    return Hyper(variance=var, lengthscale=jnp.exp(best[1 : 1 + d]),
+                 noise=var * (noise_floor + jnp.exp(best[-1]))), ok  # fmt: skip
 
 
 def inducing_inputs(

@@ -106,7 +106,7 @@ def _sharded(X, Ybar, hyper, dims, near: Sequence[np.ndarray], devs) -> list[Bin
     """Peak memory: one padded ``K̄_nn`` and its inverse factor per device."""
     n, g = X.shape[0], len(dims)
     units, pos = pad_units(X, Ybar, near, g)
-    results = parallel.map_units(jax.jit(partial(_block, dims=dims)), hyper, units, devs)
+    results = parallel.map_units(partial(_block_jit, dims=tuple(dims)), hyper, units, devs)
     out = []
     for b, ((coef, inv), r) in enumerate(zip(results, pos, strict=True)):
         if not (np.isfinite(coef).all() and np.isfinite(inv).all()):
@@ -123,3 +123,7 @@ def _block(h: Hyper, Xb: Array, Yb: Array, *, dims: tuple[int, ...]):
     L = jnp.linalg.cholesky(noisy_gram(Xb, h, dims))
     coef = jsl.cho_solve((L, True), Yb)
     return coef, jsl.solve_triangular(L, jnp.eye(L.shape[0], dtype=L.dtype), lower=True)
+
+
+# jitted once at module level (static "dims"): calls of one shape share the program
+_block_jit = jax.jit(_block, static_argnames="dims")

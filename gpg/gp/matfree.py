@@ -177,7 +177,7 @@ def gram_matvec_devices(
     devs = parallel.devices(devices)
     n, g, m = X.shape[0], len(grad_dims), V.shape[1]
     W, ls, il2 = _prepare(X, hyper, grad_dims, V)
-    fn = jax.jit(partial(_unit_product, grad_dims=grad_dims, m=m))
+    fn = partial(_unit_product_jit, grad_dims=tuple(grad_dims), m=m)
     units = [(np.asarray(t),) for t in _tiles(X, tile)]
     parts = parallel.map_units(fn, (X, W, hyper.variance, ls, il2), units, devs)
     value = jnp.concatenate([jnp.asarray(v) for v, _ in parts])
@@ -188,3 +188,7 @@ def gram_matvec_devices(
 def _unit_product(shared, xt, *, grad_dims, m):
     X, W, variance, ls, il2 = shared
     return _tile_product(xt, X, W, variance, ls, il2, grad_dims, m)
+
+
+# jitted once at module level (static "grad_dims", "m"): calls of one shape share the program
+_unit_product_jit = jax.jit(_unit_product, static_argnames=("grad_dims", "m"))

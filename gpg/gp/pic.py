@@ -291,8 +291,7 @@ def iter_precompute_devices(
     up = L_u.shape[0]
     units, pos = pad_units(X, Ybar, blocks, g)
     shared = (hyper, jnp.asarray(Z), jnp.asarray(L_u))
-    one = partial(_pass1_block, dims=dims)
-    parts = parallel.map_units(jax.jit(one), shared, units, devs)
+    parts = parallel.map_units(partial(_pass1_jit, dims=dims), shared, units, devs)
     Bm = np.eye(up)
     rhat = np.zeros((up, Ybar.shape[1]))
     for wtw, wty in parts:  # in block order: the same sums for any number of devices
@@ -301,7 +300,7 @@ def iter_precompute_devices(
     L_B = dense.cholesky_inplace(Bm, what="the PIC inducing system B")
     beta = dense.cho_solve(L_B, rhat)
     shared2 = (*shared, jnp.asarray(L_B), jnp.asarray(beta))
-    two = jax.jit(partial(_pass2_block, dims=dims))
+    two = partial(_pass2_jit, dims=dims)
     # Pass 2 in waves of one block per device: each block's dense form is stored compactly
     # by the consumer before the next wave is drawn.
     for start in range(0, len(units), len(devs)):
@@ -379,3 +378,9 @@ def _upper_factor(H: np.ndarray) -> np.ndarray:
     w, V = np.linalg.eigh(H)
     half = np.sqrt(np.clip(w, 0.0, None))[:, None] * V.T
     return np.ascontiguousarray(sla.qr(half, mode="r", check_finite=False)[0])
+
+
+# Module-level jitted passes (their dims static): every fit and rebuild of one shape reuses
+# the programs, where a jit of a fresh partial per call traced them again.
+_pass1_jit = jax.jit(_pass1_block, static_argnames="dims")
+_pass2_jit = jax.jit(_pass2_block, static_argnames="dims")

@@ -106,7 +106,8 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
         "gust",
     ]
     for key in ("prior", "corrected_regression", "values_only", "identified_prior", "identified",
-                "identified_rho", "identified_estimated_wind", "oracle"):  # fmt: skip
+                "identified_rho", "identified_estimated_wind", "identified_true_air",
+                "oracle"):  # fmt: skip
         assert res["tests"][0][f"{key}_mse"] > 0
     co = saved["coefficients"]
     assert co["identified"]["rho"] == [1.0] * 6 and co["identified_rho"]["rho"] != [1.0] * 6
