@@ -770,6 +770,8 @@ def predict_state(
     if sur.box_lo.dtype != dt:  # float64 arrays in a float32 program: convert once, explicitly
         sur = sur.astype(dt)
     rpm, euler, v_air = (jnp.asarray(a).astype(dt) for a in (rpm, euler, v_air))
+    if (wind := getattr(sur.model, "wind_state", lambda: None)()) is not None:
+        return _predict_in_wind(sur, wind, rpm, euler, v_air, with_var, body)
     finite = (
         jnp.all(jnp.isfinite(rpm)) & jnp.all(jnp.isfinite(euler)) & jnp.all(jnp.isfinite(v_air))
     )
@@ -821,6 +823,28 @@ def predict_state(
     return Prediction(
         force=force, torque=torque, levels=levels, variance=variance, in_domain=in_domain
     )
+
+
+def _predict_in_wind(sur, wind, rpm, euler, v_air, with_var: bool, body: bool) -> Prediction:
+    """A model that tracks a wind state ``g ~ N(ḡ, P_g)`` (:func:`gpg.flight.gusts`): its
+    prediction at ``v_air + ḡ``, the loads' variance with ``diag(J P_g Jᵀ)`` added (``J`` the
+    loads' derivative in the air velocity there, in the output frame)."""
+    mean, cov = (jnp.asarray(a).astype(v_air.dtype) for a in wind)
+    still = eqx.tree_at(lambda s: s.model, sur, sur.model.without_wind())
+    p = predict_state(still, rpm, euler, v_air + mean, with_var, body=body)
+    if not with_var:
+        return p
+
+    def loads(g):
+        q = predict_state(still, rpm, euler, v_air + g, False, body=body)
+        return jnp.concatenate([q.force, q.torque])
+
+    J = jax.jacfwd(loads)(mean)
+    extra = jnp.einsum("ia,ab,ib->i", J, cov, J)
+    variance = jnp.concatenate([p.variance[:6] + extra, p.variance[6:]])
+    in_domain = p.in_domain & jnp.all(jnp.isfinite(extra))
+    return Prediction(force=p.force, torque=p.torque, levels=p.levels, variance=variance,
+                      in_domain=in_domain)  # fmt: skip
 
 
 class SurrogateAero(AeroModel):

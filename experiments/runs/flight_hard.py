@@ -62,7 +62,7 @@ from gpg.flight.identify import hover_coefficients, identify, physics_loads
 from gpg.flight.labels import Labels, MotorCurve, label
 from gpg.flight.log import FlightLogWarning, read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed_config, random_plan
-from gpg.flight.tracking import fit_drift, track
+from gpg.flight.tracking import fit_drift, gusts, track
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController, WaypointPlan
@@ -383,7 +383,14 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                       fast=tuple(float(f) for f in cfg["track"]["compare_fast"]))  # fmt: skip
     t1 = time.perf_counter()
     adaptive = prequential_rows(
-        models["identified"], id_tests, drift, cfg["adapt"], out, progress, other=other
+        models["identified"],
+        id_tests,
+        drift,
+        cfg["adapt"],
+        out,
+        progress,
+        other=other,
+        gust_cfg=cfg["track"]["gusts"],
     )
     stages["prequential_s"] = time.perf_counter() - t1
 
@@ -451,10 +458,11 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
 
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
-                     progress: bool, other=None) -> dict[str, Any]:  # fmt: skip
+                     progress: bool, other=None, gust_cfg=None) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
-    tracked coefficients (the fitted drift, the default one, and ``other``, a drift fitted
-    with another bank, where given), each label predicted
+    tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
+    with another bank, where given, and the fitted drift with a wind state, horizontal and
+    with vertical gusts, where ``gust_cfg`` gives them), each label predicted
     before it is used (:func:`gpg.flight.prequential`): the force MSE against the truth and
     against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
     test gives one, as offline), the labels' noise floor; the per-label update cost from
@@ -475,6 +483,10 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         }
         if other is not None:
             models["tracked_other"] = track(offline, other, t0=t0)
+        if gust_cfg is not None:
+            tau = float(gust_cfg["tau"])
+            for m, key in (("tracked_gusts", "sd"), ("tracked_gusts_vertical", "sd_vertical")):
+                models[m] = track(offline, gusts(drift, gust_cfg[key], tau), t0=t0)
         extra = None
         if test.wind_sd is not None:
             extra = wind_variance(offline, lab.rpm, lab.euler, lab.v_air, test.wind_sd)
@@ -495,11 +507,18 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
             row[f"{m}_lag1"] = _lag1(lab.t, e)
         rows.append(row)
         jax.clear_caches()
-    cost = update_cost(track(offline, drift, t0=float(tests["steady"].labels.t[0])),
-                       tests["steady"].labels, 600.0)  # fmt: skip
-    _prequential_figure(out / "figures", curves)
-    return {"drift": dataclasses.asdict(drift), "tests": rows, "tracked_update": cost,
+    steady = tests["steady"].labels
+    cost = update_cost(track(offline, drift, t0=float(steady.t[0])), steady, 600.0)
+    out_ = {"drift": dataclasses.asdict(drift), "tests": rows, "tracked_update": cost,
             "other": None if other is None else dataclasses.asdict(other)}  # fmt: skip
+    if gust_cfg is not None:
+        with_gusts = gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"]))
+        out_["gusts"] = {"sd": list(with_gusts.wind_sd), "tau": with_gusts.wind_tau}
+        out_["tracked_gusts_update"] = update_cost(
+            track(offline, with_gusts, t0=float(steady.t[0])), steady, 600.0
+        )
+    _prequential_figure(out / "figures", curves)
+    return out_
 
 
 def _lag1(t: np.ndarray, e: np.ndarray) -> list[float]:
@@ -522,9 +541,12 @@ def _prequential_figure(where: Path, curves) -> None:
     fig, axes = plt.subplots(len(tests), 1, figsize=(8, 3 * len(tests)), sharex=True)
     styles = {"none": ("k--", "no adaptation"), "inducing": ("C1", "inducing-point term (today)"),
               "tracked": ("C0", "tracked coefficients, fitted drift"),
-              "tracked_default": ("C2:", "tracked coefficients, default drift")}  # fmt: skip
+              "tracked_default": ("C2:", "tracked coefficients, default drift"),
+              "tracked_gusts": ("C3", "tracked coefficients and a wind state")}  # fmt: skip
     for ax, test in zip(np.atleast_1d(axes), tests, strict=True):
         for m, (style, label_) in styles.items():
+            if (test, m) not in curves:
+                continue
             t, err = curves[(test, m)]
             k = min(50, len(err))  # 5 s at 10 labels a second
             ax.semilogy(t[k - 1 :], np.convolve(err, np.ones(k) / k, "valid"), style, lw=1,
@@ -605,12 +627,16 @@ def _report(res) -> str:
                  f"{d['tau']:.3g} s, spread {d['spread']:.3g}, bias tau {d['bias_tau']:.3g} s "
                  f"and sd {d['bias_sd']:.3g}, bank {d['fast']}:")  # fmt: skip
     pcols = [("test", "test", "s")]
-    for m in ("none", "inducing", "tracked", "tracked_default", "tracked_other"):
-        pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
+    for m in ("none", "inducing", "tracked", "tracked_default", "tracked_other", "tracked_gusts",
+              "tracked_gusts_vertical"):  # fmt: skip
+        if f"{m}_mse" in ad["tests"][0]:
+            pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
     pcols.append(("noise_floor", "noise", ".3g"))
     lines.append(table(ad["tests"], pcols))
     gcols = [("test", "test", "s"), ("after_gap_share", "share after a gap", ".2f")]
-    for m in ("none", "inducing", "tracked"):
+    for m in ("none", "inducing", "tracked", "tracked_gusts"):
+        if f"{m}_mse" not in ad["tests"][0]:
+            continue
         gcols += [(f"{m}_mse_after_gap", f"{m} after a gap", ".3g"),
                   (f"{m}_mse_no_gap", f"{m} otherwise", ".3g")]  # fmt: skip
     lines.append("prequential MSE on the labels after a stretch without labels, and on the rest:")
@@ -618,5 +644,9 @@ def _report(res) -> str:
     u = ad["tracked_update"]
     lines.append(f"tracked update from Python: {u['median_ms']:.3f} ms median (p10 "
                  f"{u['p10_ms']:.3f}, p90 {u['p90_ms']:.3f}, {u['n']} updates)")  # fmt: skip
+    if "tracked_gusts_update" in ad:
+        u = ad["tracked_gusts_update"]
+        lines.append(f"with the wind state {ad['gusts']}: {u['median_ms']:.3f} ms median (p10 "
+                     f"{u['p10_ms']:.3f}, p90 {u['p90_ms']:.3f})")  # fmt: skip
     lines.append("stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in res["stages_s"].items()))
     return "\n".join(lines)

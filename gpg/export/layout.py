@@ -484,6 +484,13 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
             "physical basis (gpg.flight.track): only a tracked correct(..., basis='physical') "
             "exports"
         )
+    if m.wind_state() is not None:
+        raise ValueError(
+            f"model {sur.model_name!r} tracks a wind state (gpg.flight.gusts): its prediction "
+            "differentiates the model in the air velocity, which the exports do not write; "
+            "export the model tracked without it (gpg.flight.track with a drift whose wind_sd "
+            "is empty)"
+        )
     if len(m.delta) not in (0, 6):
         raise ValueError(f"a corrected model exports with six discrepancies, got {len(m.delta)}")
     d_in = int(m.prior.n_inputs)

@@ -12,7 +12,8 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 * :func:`correct` corrects a fitted :class:`~gpg.Surrogate` by labels (a :class:`Corrected`
   model: the prior's mean, scaled, plus values-only discrepancy GPs); :func:`track` follows
   its physical basis's coefficients online (a Kalman filter, its drift fitted by
-  :func:`fit_drift`), :func:`adapt` adds an inducing-point term instead; :func:`update` and
+  :func:`fit_drift`; with :func:`gusts`, the wind's deviation from the log's too),
+  :func:`adapt` adds an inducing-point term instead; :func:`update` and
   :func:`online_step` update either label by label at a fixed cost, :func:`prequential` runs
   a flight through them.
 * :func:`identify` finds the vehicle's physical parameters from labels (an
@@ -46,6 +47,7 @@ from gpg.flight.tracking import (
     Tracker,
     default_drift,
     fit_drift,
+    gusts,
     prequential,
     track,
 )
@@ -80,6 +82,7 @@ __all__ = [
     "correct",
     "default_drift",
     "fit_drift",
+    "gusts",
     "hover_samples",
     "label",
     "label_logs",

@@ -333,9 +333,42 @@ class Corrected(Predictor):
             else {"columns": list(self.explicit.columns), "beta": plain(self.explicit.beta)},
             "tracker": None
             if self.tracker is None
-            else {"tau": plain(self.tracker.tau), "spread": plain(self.tracker.spread)},
+            else {
+                "tau": plain(self.tracker.tau),
+                "spread": plain(self.tracker.spread),
+                "wind_sd": None if self.tracker.wind_sd is None else plain(self.tracker.wind_sd),
+            },
         }
         return out
+
+    def wind_state(self) -> tuple[Float[Array, " 3"], Float[Array, "3 3"]] | None:
+        """The tracked wind state's mean ``ḡ`` and covariance ``P_g`` (m/s, world), or None.
+
+        A prediction (:func:`gpg.surrogate.predict_state`) reads the model at ``v_air + ḡ``
+        and adds ``J P_g Jᵀ`` to the loads' variance (``J`` the loads' derivative in the air
+        velocity).
+
+        Returns:
+            ``(ḡ, P_g)`` where the model tracks a wind state (:func:`gpg.flight.gusts`),
+            else None.
+        """
+        t = self.tracker
+        if t is None or getattr(t, "wind_mean", None) is None:
+            return None
+        return t.wind_mean, t.wind_cov
+
+    def without_wind(self) -> Corrected:
+        """This model with its tracked wind state removed (the coefficients' drift kept).
+
+        Returns:
+            The model that :meth:`wind_state`'s prediction shifts.
+        """
+        if self.wind_state() is None:
+            return self
+        none = (None, None, None, None)
+        t = eqx.tree_at(lambda o: (o.wind_mean, o.wind_cov, o.wind_tau, o.wind_sd), self.tracker,
+                        none, is_leaf=lambda a: a is None)  # fmt: skip
+        return eqx.tree_at(lambda c: c.tracker, self, t)
 
     def _pad(self, v: Float[Array, " L"]) -> Float[Array, " M"]:
         return jnp.concatenate([v, jnp.zeros(self.n_outputs - v.shape[0], v.dtype)])
@@ -1216,16 +1249,31 @@ def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_va
     then conditioned on the label's residual against ``sur``'s offline mean (its own online
     part is not read). Pure: the step of :func:`update`, :func:`online_step` and
     :func:`gpg.flight.prequential`."""
-    x, y, r = gp_rows(sur, rpm, euler, v_air, force, torque, force_var, torque_var)
     m = sur.model
-    prior_mean = m.prior.mean_one(x)
-    resid = y - m.offline_mean(x, prior_mean)[:N_LOADS]
+    label = (force, torque, force_var, torque_var)
     state = state.relaxed(t)
+
+    def rows(g):
+        x, y, r = gp_rows(sur, rpm, euler, v_air + g, *label)
+        prior_mean = m.prior.mean_one(x)
+        return x, prior_mean, y - m.offline_mean(x, prior_mean)[:N_LOADS], r
+
     if isinstance(state, Online):
+        x, _, resid, r = rows(0.0)
         return state.measured(x, resid, r)
-    with_state = eqx.tree_at(lambda c: c.tracker, m, state, is_leaf=lambda a: a is None)
-    h = with_state.tracker_columns(x, prior_mean)
-    return state.measured(h, resid, r)
+
+    def columns(st, x, prior_mean):
+        with_state = eqx.tree_at(lambda c: c.tracker, m, st, is_leaf=lambda a: a is None)
+        return with_state.tracker_columns(x, prior_mean)
+
+    g = 0.0
+    if getattr(state, "wind_mean", None) is not None:
+        # The wind first, its residual's band the coefficients' own; then the coefficients
+        # at the air velocity it implies.
+        x, prior_mean, _, _ = rows(state.wind_mean)
+        state, g = state.wind_measured(lambda w: rows(w)[2:], columns(state, x, prior_mean))
+    x, prior_mean, resid, r = rows(g)
+    return state.measured(columns(state, x, prior_mean), resid, r)
 
 
 def offline_model(m: Corrected) -> Corrected:

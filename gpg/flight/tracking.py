@@ -33,6 +33,14 @@ the others: the condition a new flight is in), so that no time constant is set b
 faster members (``fast``): a bank of filters whose biases relax faster, weighted by their
 predictive densities with a fixed share (Herbster and Warmuth's switching), for a force that
 changes faster than any training flight showed (a gust).
+With :func:`gusts` the filter also follows a wind state ``g``: the air's deviation from the
+logged ``v_air`` (world, m/s), an Ornstein-Uhlenbeck process of its own (``τ_g``, stationary
+standard deviations per axis). Each label first conditions ``g`` by a Kalman step linearised at
+``ḡ`` (``H`` the prediction's derivative in ``g``, by ``jax.jacfwd``; the innovation's
+covariance ``H P_g Hᵀ`` plus the label's noise, ``v`` and the coefficients' band ``hᵀΣh``), then
+the coefficients at ``v_air + ḡ``: two filters in turn on one label, the cross-covariance
+between them dropped. A prediction reads the wind-free model at ``v_air + ḡ`` and adds
+``diag(J P_g Jᵀ)`` to the loads' variance (:meth:`gpg.flight.Corrected.wind_state`).
 :func:`prequential` runs any adapted model over a flight and returns what it predicted before
 each update.
 """
@@ -42,7 +50,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -63,10 +71,13 @@ __all__ = [
     "DEFAULT_SPREAD",
     "DEFAULT_TAU",
     "Drift",
+    "GUST_SD",
+    "GUST_TAU",
     "Prequential",
     "Tracker",
     "default_drift",
     "fit_drift",
+    "gusts",
     "prequential",
     "track",
 ]
@@ -92,6 +103,17 @@ SHARE = 0.01
 # the spread from a thousandth to a hundred prior standard deviations.
 TAU_RANGE = (0.1, 86400.0)
 SPREAD_RANGE = (1e-3, 1e2)
+GUST_SD = (1.5, 1.5, 0.0)
+"""m/s: the gusts' stationary standard deviations along world x, y, z for :func:`gusts`: the
+Dryden model's light turbulence 5 m above the ground horizontally (MIL-HDBK-1797, low
+altitude, a wind of 15 kt at 20 ft: ``σ_u = σ_v = σ_w / (0.177 + 0.000823 h)^0.4 = 1.5`` m/s
+with ``σ_w = 0.1 W₂₀ = 0.77`` m/s and ``h`` in feet), none vertically: air through the disks
+is the thrust's inflow, which the tracked coefficients already follow, and a vertical wind
+state takes the thrust's errors for wind (measured: the guide, "Adaptation at the unseen
+winds"). Pass ``sd=(1.5, 1.5, 0.8)`` for the model's vertical gusts too."""
+GUST_TAU = 3.0
+"""s: the gusts' time constant for :func:`gusts`: the same model's horizontal length scale
+there (``L_u = h / (0.177 + 0.000823 h)^1.2``, 37 m) over an airspeed of about 12 m/s."""
 
 
 @dataclass(frozen=True)
@@ -112,6 +134,10 @@ class Drift:
         fast: s, the bias time constants of the bank's other members (module docstring);
             empty (the default): one filter.
         share: the bank's switching rate per label.
+        wind_sd: m/s, (3,) the stationary standard deviations of a wind state ``g`` (world
+            x, y, z) the filter follows beside the coefficients (module docstring); empty
+            (the default): none. :func:`gusts` sets it.
+        wind_tau: s, ``τ_g``: the wind state's time constant.
     """
 
     tau: float
@@ -124,6 +150,8 @@ class Drift:
     source: str = "default"
     fast: tuple[float, ...] = ()
     share: float = SHARE
+    wind_sd: tuple[float, ...] = ()
+    wind_tau: float = GUST_TAU
 
     @property
     def bias_taus(self) -> tuple[float, ...]:
@@ -188,6 +216,11 @@ class Tracker(eqx.Module):
         bias_sd: () ``s_b``.
         noise: (6,) ``v_j`` (normalised units).
         share: () the switching rate per label (fixed-share).
+        wind_mean: (3,) m/s, the wind state's posterior mean ``ḡ`` (world), or None: no wind
+            state (:func:`gusts`).
+        wind_cov: (3, 3) its posterior covariance ``P_g``.
+        wind_tau: () s, ``τ_g``.
+        wind_sd: (3,) m/s, its stationary standard deviations.
         with_simple: ``M``'s loads are a column (after the prior's mean).
     """
 
@@ -204,6 +237,10 @@ class Tracker(eqx.Module):
     bias_sd: Float[Array, ""]
     noise: Float[Array, " 6"]
     share: Float[Array, ""]
+    wind_mean: Float[Array, " 3"] | None = None
+    wind_cov: Float[Array, "3 3"] | None = None
+    wind_tau: Float[Array, ""] | None = None
+    wind_sd: Float[Array, " 3"] | None = None
     with_simple: bool = eqx.field(static=True, default=True)
 
     def bias_column(self) -> Float[Array, "6 1"]:
@@ -235,7 +272,48 @@ class Tracker(eqx.Module):
         dt = jnp.maximum(jnp.asarray(t, self.t.dtype) - self.t, 0.0)
         a = _rates(dt, self.tau, self.bias_tau, self.prior_sd.shape[0])  # (K, P)
         mean, cov = _relax_bank(self.mean, self.cov, a, self.stationary)
-        return eqx.tree_at(lambda o: (o.mean, o.cov, o.t), self, (mean, cov, self.t + dt))
+        out = eqx.tree_at(lambda o: (o.mean, o.cov, o.t), self, (mean, cov, self.t + dt))
+        if self.wind_mean is None:
+            return out
+        g = jnp.broadcast_to(jnp.exp(-dt / self.wind_tau), (3,))
+        wind = _relax(self.wind_mean, self.wind_cov, g, jnp.diag(self.wind_sd**2))
+        return eqx.tree_at(lambda o: (o.wind_mean, o.wind_cov), out, wind)
+
+    @highest
+    def wind_measured(
+        self, residual: Callable, h: Float[Array, "6 P"]
+    ) -> tuple[Tracker, Float[Array, " 3"]]:
+        """The wind state conditioned on one label (module docstring), linearised at ``ḡ``.
+
+        Args:
+            residual: ``g ↦ (e, r)``: the label's residual against the offline mean with the
+                air velocity shifted by ``g`` (normalised, GP frame) and its own noise.
+            h: (6, P) the columns at the label (shifted by ``ḡ``), for the coefficients' band.
+
+        Returns:
+            The tracker with ``ḡ`` and ``P_g`` updated, and the new ``ḡ``.
+
+        Raises:
+            ValueError: the tracker has no wind state.
+        """
+        if self.wind_mean is None:
+            raise ValueError("wind_measured needs a tracker with a wind state (gpg.flight.gusts)")
+
+        def f(g):
+            e, r = residual(g)
+            return e, (e, r)
+
+        jac, (e, r) = jax.jacfwd(f, has_aux=True)(self.wind_mean)
+        m, v = self.mean_var(h)
+        H = -jac  # the prediction's change with the wind: the residual falls as it rises
+        P = self.wind_cov
+        S = H @ P @ H.T + jnp.diag(r + self.noise + v)
+        PHt = P @ H.T
+        gain = jnp.linalg.solve(S, PHt.T).T  # P Hᵀ S⁻¹ (S symmetric)
+        mean = self.wind_mean + gain @ (e - m)
+        cov = P - gain @ PHt.T
+        cov = 0.5 * (cov + cov.T)
+        return eqx.tree_at(lambda o: (o.wind_mean, o.wind_cov), self, (mean, cov)), mean
 
     @highest
     def measured(
@@ -323,6 +401,30 @@ def default_drift(sur: Surrogate) -> Drift:
     return Drift(tau=DEFAULT_TAU, spread=DEFAULT_SPREAD, noise=noise)
 
 
+def _checked(drift: Drift) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`track`'s drift refused by name where it is not one; its noise and wind sd."""
+    noise = np.asarray(drift.noise, float)
+    if not (drift.tau > 0 and min(drift.bias_taus) > 0 and drift.spread > 0):
+        raise ValueError(
+            f"drift.tau, drift.bias_tau, drift.fast and drift.spread must be > 0, got "
+            f"{drift.tau}, {drift.bias_taus}, {drift.spread}"
+        )
+    if not drift.bias_sd >= 0:
+        raise ValueError(f"drift.bias_sd must be >= 0, got {drift.bias_sd}")
+    if not 0 <= drift.share < 1:
+        raise ValueError(f"drift.share must be in [0, 1), got {drift.share}")
+    if noise.shape != (N_LOADS,) or not np.all(noise >= 0):
+        raise ValueError(f"drift.noise must be {N_LOADS} numbers >= 0, got {drift.noise}")
+    wind_sd = np.asarray(drift.wind_sd, float)
+    if drift.wind_sd and (wind_sd.shape != (3,) or not np.all(wind_sd >= 0)
+                          or not drift.wind_tau > 0):  # fmt: skip
+        raise ValueError(
+            f"drift.wind_sd must be empty or 3 numbers >= 0 (m/s) and drift.wind_tau > 0, got "
+            f"{drift.wind_sd} and {drift.wind_tau}"
+        )
+    return noise, wind_sd
+
+
 @float64
 def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Surrogate:
     """``sur`` (corrected or not) with its physical basis's coefficients followed online.
@@ -342,22 +444,12 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
 
     Raises:
         ValueError: a model adapted by :func:`gpg.flight.adapt`, or a drift whose time
-            constants or spread are not positive, whose share is not in [0, 1) or whose
-            ``noise`` is not 6 non-negative numbers.
+            constants or spread are not positive, whose share is not in [0, 1), whose
+            ``noise`` is not 6 non-negative numbers, or whose ``wind_sd`` is neither empty
+            nor 3 non-negative numbers (with ``wind_tau`` > 0).
     """
     drift = default_drift(sur) if drift is None else drift
-    noise = np.asarray(drift.noise, float)
-    if not (drift.tau > 0 and min(drift.bias_taus) > 0 and drift.spread > 0):
-        raise ValueError(
-            f"drift.tau, drift.bias_tau, drift.fast and drift.spread must be > 0, got "
-            f"{drift.tau}, {drift.bias_taus}, {drift.spread}"
-        )
-    if not drift.bias_sd >= 0:
-        raise ValueError(f"drift.bias_sd must be >= 0, got {drift.bias_sd}")
-    if not 0 <= drift.share < 1:
-        raise ValueError(f"drift.share must be in [0, 1), got {drift.share}")
-    if noise.shape != (N_LOADS,) or not np.all(noise >= 0):
-        raise ValueError(f"drift.noise must be {N_LOADS} numbers >= 0, got {drift.noise}")
+    noise, wind_sd = _checked(drift)
     m = sur.model
     if not isinstance(m, fc.Corrected):
         m = fc.Corrected(prior=m, scale=jnp.ones(m.n_outputs), delta=())
@@ -393,8 +485,35 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
         share=jnp.asarray(float(drift.share)),
         with_simple=m.basis is not None,
     )
+    if drift.wind_sd:
+        tracker = eqx.tree_at(
+            lambda o: (o.wind_mean, o.wind_cov, o.wind_tau, o.wind_sd),
+            tracker,
+            (jnp.zeros(3), jnp.diag(jnp.asarray(wind_sd**2)),
+             jnp.asarray(float(drift.wind_tau)), jnp.asarray(wind_sd)),
+            is_leaf=lambda a: a is None,
+        )  # fmt: skip
     m = eqx.tree_at(lambda c: c.tracker, m, tracker, is_leaf=lambda a: a is None)
     return dataclasses.replace(sur, model=m)
+
+
+def gusts(drift: Drift, sd: Sequence[float] = GUST_SD, tau: float = GUST_TAU) -> Drift:
+    """``drift`` with a wind state: the air's deviation from the logged ``v_air`` followed
+    beside the coefficients (module docstring).
+
+    The gusts' statistics are stated, not fitted: training flights in steady winds cannot tell
+    them, and a wind the flights never had is what the state is for. The default is the
+    Dryden model's light turbulence near the ground (:data:`GUST_SD`, :data:`GUST_TAU`).
+
+    Args:
+        drift: the coefficients' drift (:func:`fit_drift` or :func:`default_drift`).
+        sd: m/s, the wind state's stationary standard deviations along world x, y, z.
+        tau: s, its time constant ``τ_g``.
+
+    Returns:
+        The drift with ``wind_sd`` and ``wind_tau`` set (:func:`track` checks them).
+    """
+    return dataclasses.replace(drift, wind_sd=tuple(float(v) for v in sd), wind_tau=float(tau))
 
 
 @float64

@@ -397,3 +397,109 @@ def test_tracked_update_in_c_equals_jax(corrected, flights, tmp_path):
         np.testing.assert_allclose(got[key], getattr(ref, key), atol=1e-5 * max(1.0, scale))
     # the band: the filter's in float64, rotated in float32 (a few roundings of it)
     np.testing.assert_allclose(got["variance"][:, :6], ref.variance[:, :6], rtol=1e-5)
+
+
+def _wind_drift(tau=2.0, **kw):
+    base = tk.Drift(tau=1e12, spread=0.5, noise=(0.01,) * 6, bias_tau=1e12, bias_sd=0.7)
+    return tk.gusts(dataclasses.replace(base, **kw), sd=(1.0, 0.8, 0.5), tau=tau)
+
+
+def _shifted(lab, i, g):
+    """Label ``i``'s update row with its air velocity shifted by ``g``."""
+    row = [np.asarray(c[i], float) for c in lab.columns()]
+    row[3] = row[3] + np.asarray(g, float)
+    return row
+
+
+def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
+    """gusts(): one update relaxes the wind state g (OU, τ_g), then conditions it on the label
+    by the Kalman step linearised at ḡ: H the prediction's derivative in g (central
+    differences of the residual here, step 1e-4 m/s: truncation ~1e-8 of H), the innovation's
+    covariance H P Hᵀ plus the label's noise, v and the coefficients' band hᵀΣh; the
+    coefficients are then updated at v_air + ḡ. A wind_sd that is not three numbers >= 0 is
+    refused by name, and so is the export."""
+    sur = tk.track(corrected, _wind_drift(), t0=float(flights[1].t[0]) - 0.3)
+    lab = flights[1]
+    new = fc.update_jit(sur, *_shifted(lab, 0, 0.0)).model.tracker
+    tr = sur.model.tracker
+    a = np.exp(-0.3 / 2.0)
+    P = np.diag(np.asarray(tr.wind_sd) ** 2)  # the start is the stationary law: relaxing keeps it
+    eps = 1e-4
+    _, e, r, h = _rows(sur, lab, 0)
+    J = np.zeros((6, 3))
+    for k in range(3):
+        d = np.eye(3)[k] * eps
+        up, dn = (_rows_jit(sur, *(jnp.asarray(c) for c in _shifted(lab, 0, s)[1:]))[1]
+                  for s in (d, -d))  # fmt: skip
+        J[:, k] = (np.asarray(up) - np.asarray(dn)) / (2 * eps)
+    H = -J
+    cov = np.asarray(tr.cov[0])  # stationary, so the relaxed coefficients' law too
+    band = np.einsum("jp,jpq,jq->j", h, cov, h)
+    S = H @ P @ H.T + np.diag(r + 0.01 + band)
+    gain = P @ H.T @ np.linalg.inv(S)
+    g = a * 0.0 + gain @ e
+    np.testing.assert_allclose(new.wind_mean, g, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(new.wind_cov, P - gain @ H @ P, rtol=1e-6, atol=1e-9)
+    # the coefficients: one Kalman step per output at the shifted air velocity
+    shifted = _shifted(lab, 0, np.asarray(new.wind_mean))[1:]
+    _, e2, r2, h2 = (np.asarray(v) for v in _rows_jit(sur, *(jnp.asarray(c) for c in shifted)))
+    for j in range(6):
+        Sh = cov[j] @ h2[j]
+        w = Sh * e2[j] / (h2[j] @ Sh + r2[j] + 0.01)
+        np.testing.assert_allclose(new.mean[0, j], w, rtol=1e-7, atol=1e-10)
+    with pytest.raises(ValueError, match="wind_sd must be"):
+        tk.track(corrected, tk.gusts(tk.default_drift(corrected), sd=(1.0, 1.0)))
+    with pytest.raises(ValueError, match="wind_tau > 0"):
+        tk.track(corrected, tk.gusts(tk.default_drift(corrected), tau=0.0))
+    from gpg.export import to_c
+
+    with pytest.raises(ValueError, match="wind state"):
+        to_c(sur, "/nonexistent")
+
+
+def test_wind_state_prediction_and_a_constant_wind_found(corrected, flights):
+    """A model tracking a wind state predicts as its wind-free self at v_air + ḡ, its loads'
+    variance widened by diag(J P_g Jᵀ) (J by central differences of that model); it stays a
+    JAX function (vmap, jit, reverse derivative against central differences). Labels made by
+    the corrected model at a wind 1.2 m/s along x and -0.6 along y beyond the logged one (its
+    coefficients held: spread and bias at 1e-6) give the wind state that wind within four of
+    its own posterior standard deviations (plus the 1e-3 m/s the linearisation leaves), τ_g long."""
+    lab = flights[1].take(slice(0, 40))
+    true = np.array([1.2, -0.6, 0.0])
+    p = corrected.predict_batch(lab.rpm, lab.euler, lab.v_air + true, mean_only=True)
+    rng = np.random.default_rng(8)
+    made = dataclasses.replace(
+        lab,
+        force=np.asarray(p.force) + 0.05 * rng.normal(size=(len(lab), 3)),
+        torque=np.asarray(p.torque) + 0.005 * rng.normal(size=(len(lab), 3)),
+    )
+    drift = _wind_drift(tau=1e6, spread=1e-6, bias_sd=1e-6)  # a wind that stays
+    pre = tk.prequential(tk.track(corrected, drift, t0=float(lab.t[0])), made)
+    st = pre.final.model.tracker
+    sd = np.sqrt(np.diag(np.asarray(st.wind_cov)))
+    assert np.all(np.abs(np.asarray(st.wind_mean) - true) <= 4 * sd + 1e-3), (st.wind_mean, sd)
+    assert sd[0] < 0.5 and sd[1] < 0.4  # the labels told it: half the start's 1.0 and 0.8
+    # the prediction
+    tracked = pre.final
+    still = dataclasses.replace(tracked, model=tracked.model.without_wind())
+    q = (lab.rpm[3], lab.euler[3], lab.v_air[3])
+    got = tracked.predict(*q)
+    base = still.predict(q[0], q[1], q[2] + np.asarray(st.wind_mean))
+    np.testing.assert_allclose(got.force, base.force, rtol=1e-12, atol=1e-12)
+    eps = 1e-4
+    J = np.zeros((6, 3))
+    for k in range(3):
+        d = np.eye(3)[k] * eps
+        up, dn = (still.predict(q[0], q[1], q[2] + np.asarray(st.wind_mean) + s)
+                  for s in (d, -d))  # fmt: skip
+        J[:, k] = (np.r_[up.force, up.torque] - np.r_[dn.force, dn.torque]) / (2 * eps)
+    extra = np.einsum("ia,ab,ib->i", J, np.asarray(st.wind_cov), J)
+    np.testing.assert_allclose(np.asarray(got.variance)[:6],
+                               np.asarray(base.variance)[:6] + extra, rtol=1e-6)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(got.variance)[6:], np.asarray(base.variance)[6:])
+    f = jax.jit(jax.vmap(lambda v: tracked.predict(q[0], q[1], v).force[0]))
+    v = jnp.asarray(lab.v_air[:3])
+    g = jax.jit(jax.grad(lambda v: tracked.predict(q[0], q[1], v).force[0]))(v[0])
+    e = jnp.array([eps, 0.0, 0.0])
+    fd = (f(jnp.stack([v[0] + e] * 3))[0] - f(jnp.stack([v[0] - e] * 3))[0]) / (2 * eps)
+    np.testing.assert_allclose(float(g[0]), float(fd), rtol=1e-5, atol=1e-7)

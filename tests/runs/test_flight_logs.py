@@ -122,4 +122,8 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     ad = res["adaptation"]
     assert [r["test"] for r in ad["tests"]] == ["steady", "gust"] and finite_numbers(ad["tests"])
     assert ad["tracked_update"]["bytes_start"] == ad["tracked_update"]["bytes_end"]
+    u = ad["tracked_gusts_update"]  # the wind state: fixed memory too
+    assert u["bytes_start"] == u["bytes_end"] > ad["tracked_update"]["bytes_end"]
+    gust = ad["tests"][1]
+    assert gust["tracked_gusts_mse"] > 0 and gust["tracked_gusts_vertical_mse"] > 0
     assert (tmp_path / "figures" / "prequential_along_flight.png").is_file()
