@@ -105,9 +105,12 @@ def to_c(
         g = s.global_mean["coef"].shape[1] - m
         n_const += n * (_padded(m, 4) * 8 - m * itemsize)
         n_const += n * (_padded(g, 4) - g) * itemsize
-    if s.correction is not None and s.has_variance:  # one triangle per δ (variance_factor)
-        n_const -= 8 * sum((d.post.shape[0] * (d.post.shape[0] + 1)) // 2
-                           for d in s.correction.deltas if d.post is not None)  # fmt: skip
+    if s.correction is not None and s.has_variance:  # one triangle per δ (variance_factor),
+        # stored in the dtype asked for (treal)
+        tri = [(d.points.shape[0] * (d.points.shape[0] + 1)) // 2 for d in s.correction.deltas]
+        n_const -= 8 * sum(t for t, d in zip(tri, s.correction.deltas, strict=True)
+                           if d.post is not None)  # fmt: skip
+        n_const -= (8 - itemsize) * sum(tri)
     if n_const > max_bytes:
         raise ValueError(
             f"the export of {s.model!r} holds {n_const / 2**20:.1f} MiB of constants, over "
@@ -441,7 +444,7 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
         sums = _coef_sums(m, m * len(s.grad_dims))
     corr = ""
     if s.correction is not None:
-        corr = "\n".join(_correction_constants(s)) + "\n" + fragment("correction.c")
+        corr = "\n".join(_correction_constants(s, dtype)) + "\n" + fragment("correction.c")
     if _online(s) is not None:
         corr += fragment("tracker.c" if s.correction.tracked is not None else "online.c")
     # the correction's code reads the body's helpers (the vector clones' switch among them)
@@ -557,10 +560,11 @@ int {name}_online_predict(const {name}_online *st, const double rpm[4], const do
 
 
 # Long by design: one declaration per array the correction's C reads, in the order it reads them.
-def _correction_constants(s: Layout) -> list[str]:
+def _correction_constants(s: Layout, dtype: str = "double") -> list[str]:
     """The arrays of a model corrected by flights (:class:`gpg.export.layout.Correction`), in
-    double whatever the dtype (``gpg/export/c/correction.c`` reads them); the variance's
-    triangles packed row by row."""
+    double whatever the dtype (``gpg/export/c/correction.c`` reads them, and sums in double),
+    but for the variance's triangles, packed row by row: stored in ``dtype`` (``treal``), the
+    largest array, read whole at every query."""
     c = s.correction
     out: list[str] = []
 
@@ -631,8 +635,12 @@ def _correction_constants(s: Layout) -> list[str]:
         tri = [(m * (m + 1)) // 2 for m in n]
         out.append(f"static const long DELTA_TRI_OFF[6] = {_ints(np.cumsum([0] + tri[:-1]))};")
         # the latent variance's one triangle per discrepancy (Discrepancy.variance_factor)
-        packed = [T[np.tril_indices(T.shape[0])] for T in (d.variance_factor() for d in c.deltas)]
-        dbl("DELTA_TRI", np.concatenate(packed))
+        packed = np.concatenate(
+            [T[np.tril_indices(T.shape[0])] for T in (d.variance_factor() for d in c.deltas)]
+        )
+        t_type, c_type = (np.float32, "float") if dtype == "float" else (np.float64, "double")
+        out += [f"typedef {c_type} treal;", f"#define TREAL_IS_DOUBLE {int(c_type == 'double')}"]
+        out.append(f"static const treal DELTA_TRI[{packed.size}] = {_literal(packed, t_type)};")
         if c.G is not None:
             dbl("CORR_G", np.concatenate([g.ravel() for g in c.G]))
             dbl("CORR_C", c.cov_chol)

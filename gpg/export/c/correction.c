@@ -8,8 +8,9 @@
  * |T_j k|^2 = |W_j k|^2 - |P_j k|^2 (gpg.export.layout.Discrepancy.variance_factor: one
  * triangle where an inducing-point discrepancy has two),
  * with m_j M's loads, h_j the physical columns (gpg.flight.basis.PhysicalBasis) and hbar_j the
- * integrated columns (the prior's mean, m_j, then h_j). Everything here is double: these
- * arrays are small beside the prior's, and the physics cancels in float. */
+ * integrated columns (the prior's mean, m_j, then h_j). Everything here is double (the
+ * physics cancels in float), but for the triangles T_j in a float export: the largest arrays,
+ * read whole at every query, stored in float (treal) and summed in double. */
 
 #if HAS_KAPPA
 /* M's loads in the GP's frame (gpg.flight.correction.SimpleBasis), normalised */
@@ -100,56 +101,63 @@ HOT FUSED static double delta_row(int j, const double xn[D_IN], double *k) {
 /* |T k|^2 of a packed lower triangle T (row i: its i + 1 first entries), a dot product per
  * row. With GCC or clang its partial sums are vectors (four of 32 bytes: AVX2 in the cloned
  * version, and 64 bytes in a version for CPUs with AVX-512, picked at run time, as the
- * prior's variance); -DGPG_NO_VECTOR or another compiler: the scalar loop. */
+ * prior's variance); -DGPG_NO_VECTOR or another compiler: the scalar loop. A float T is
+ * widened to double as it is loaded. */
 #if (defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 9)) && !defined(GPG_NO_VECTOR)
+#if TREAL_IS_DOUBLE
+#define TLOAD(V, T_, P) memcpy(&(V), (P), sizeof(V))
+#else
+#define TLOAD(V, T_, P) \
+  do { T_##_t t_; memcpy(&t_, (P), sizeof t_); (V) = __builtin_convertvector(t_, T_); } while (0)
+#endif
 #define TRI_SQ(NAME, T_, W)                                                                  \
-  static double NAME(const double *T, const double *k, int m) {                              \
+  static double NAME(const treal *T, const double *k, int m) {                               \
     double q = 0.0, a;                                                                       \
     int i, c, j;                                                                             \
     for (i = 0; i < m; i++) {                                                                \
       T_ s0 = {0}, s1 = {0}, s2 = {0}, s3 = {0}, x, y;                                       \
       int n = i + 1;                                                                         \
       for (c = 0; c + 4 * (W) <= n; c += 4 * (W)) {                                          \
-        memcpy(&x, T + c, sizeof x); memcpy(&y, k + c, sizeof y); s0 += x * y;               \
-        memcpy(&x, T + c + (W), sizeof x); memcpy(&y, k + c + (W), sizeof y); s1 += x * y;   \
-        memcpy(&x, T + c + 2 * (W), sizeof x); memcpy(&y, k + c + 2 * (W), sizeof y);        \
-        s2 += x * y;                                                                         \
-        memcpy(&x, T + c + 3 * (W), sizeof x); memcpy(&y, k + c + 3 * (W), sizeof y);        \
-        s3 += x * y;                                                                         \
+        TLOAD(x, T_, T + c); memcpy(&y, k + c, sizeof y); s0 += x * y;                       \
+        TLOAD(x, T_, T + c + (W)); memcpy(&y, k + c + (W), sizeof y); s1 += x * y;           \
+        TLOAD(x, T_, T + c + 2 * (W)); memcpy(&y, k + c + 2 * (W), sizeof y); s2 += x * y;   \
+        TLOAD(x, T_, T + c + 3 * (W)); memcpy(&y, k + c + 3 * (W), sizeof y); s3 += x * y;   \
       }                                                                                      \
       for (; c + (W) <= n; c += (W)) {                                                       \
-        memcpy(&x, T + c, sizeof x); memcpy(&y, k + c, sizeof y); s0 += x * y;               \
+        TLOAD(x, T_, T + c); memcpy(&y, k + c, sizeof y); s0 += x * y;                       \
       }                                                                                      \
       s0 += s1; s2 += s3; s0 += s2;                                                          \
       a = 0.0;                                                                               \
       for (j = 0; j < (W); j++) a += s0[j];                                                  \
-      for (; c < n; c++) a += T[c] * k[c];                                                   \
+      for (; c < n; c++) a += (double)T[c] * k[c];                                           \
       T += n;                                                                                \
       q += a * a;                                                                            \
     }                                                                                        \
     return q;                                                                                \
   }
 typedef double corr_v32 __attribute__((vector_size(32)));
+typedef treal corr_v32_t __attribute__((vector_size(4 * sizeof(treal))));
 HOT TRI_SQ(tri_sq_any, corr_v32, 4)
 #if defined(GPG_CLONES) && !defined(GPG_NO_AVX512)
 #pragma GCC push_options
 #pragma GCC target("arch=x86-64-v4")
 typedef double corr_v64 __attribute__((vector_size(64)));
+typedef treal corr_v64_t __attribute__((vector_size(8 * sizeof(treal))));
 TRI_SQ(tri_sq64, corr_v64, 8)
 #pragma GCC pop_options
 #else
 #define tri_sq64 tri_sq_any
 #endif
-static double tri_sq(const double *T, const double *k, int m) {
+static double tri_sq(const treal *T, const double *k, int m) {
   return HAS_AVX512() ? tri_sq64(T, k, m) : tri_sq_any(T, k, m);
 }
 #else
-static double tri_sq(const double *T, const double *k, int m) {
+static double tri_sq(const treal *T, const double *k, int m) {
   double q = 0.0, a;
   int i, c;
   for (i = 0; i < m; i++) {
     a = 0.0;
-    for (c = 0; c <= i; c++) a += T[c] * k[c];
+    for (c = 0; c <= i; c++) a += (double)T[c] * k[c];
     T += i + 1;
     q += a * a;
   }
