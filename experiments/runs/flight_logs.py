@@ -45,7 +45,7 @@ from gpg.flight import correction as fc
 from gpg.flight.labels import Labels, label
 from gpg.flight.log import read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
-from gpg.flight.tracking import default_drift, fit_drift, prequential, track
+from gpg.flight.tracking import default_drift, fit_drift, gusts, prequential, track
 from gpg.linalg import memory
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController
@@ -312,10 +312,11 @@ def _scores(sur, tests) -> dict[str, float]:
 def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tests):
     """Into a wind no training flight had: the corrected model adapted label by label (each
     label predicted before it is used, :func:`gpg.flight.prequential`) by today's inducing-point
-    term and by the tracked coefficients (their drift fitted on training flights), against an
+    term and by the tracked coefficients (their drift fitted on training flights; and with a
+    wind state beside them), against an
     offline correction fitted on another flight in that wind; the same on the held-out test
     flights; then the updates' cost over a long stream."""
-    a = bench.cfg["adapt"]
+    a, g = bench.cfg["adapt"], bench.cfg["track"]["gusts"]
     wind = [float(v) for v in a["wind"]]
     f_off = bench.flight("windy_offline", float(a["offline_s"]), wind)
     f_ad = bench.flight("windy_adapt", float(a["flight_s"]), wind)
@@ -336,6 +337,8 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
                 corrected, inducing=int(a["inducing"]), tau=float(a["tau"]), t0=t0
             ),  # fmt: skip
             "tracked": track(corrected, drift, t0=t0),
+            # the same drift with a wind state (gpg.flight.gusts): a new wind as a state
+            "tracked_gusts": track(corrected, gusts(drift, g["sd"], float(g["tau"])), t0=t0),
         }
 
     truth = _truth(f_ad, l_ad)
@@ -375,7 +378,7 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     seconds = float(a["stream_s"])
     models = prepared(float(l_ad.t[0]))
     out["cost"] = {m: update_cost(models[m], l_ad, seconds, bench.progress)
-                   for m in ("inducing", "tracked")}  # fmt: skip
+                   for m in ("inducing", "tracked", "tracked_gusts")}  # fmt: skip
     return out
 
 
@@ -461,7 +464,7 @@ def _report(curve, default, adapt, targets) -> str:
                f"{cost['n']}), state {cost['bytes_start']} -> {cost['bytes_end']} bytes")
         )  # fmt: skip
     pcols = [("test", "test", "s")]
-    for m in ("none", "inducing", "tracked"):
+    for m in ("none", "inducing", "tracked", "tracked_gusts"):
         pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
     pcols.append(("noise_floor", "noise", ".3g"))
     lines.append("prequential on the test flights:")

@@ -63,11 +63,12 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     for key in ("sim_only", "corrected", "values_only", "values_only_m", "corrected_unscaled"):
         assert d[f"{key}_force_rmse"] > 0
     a = saved["adaptation"]
-    for name in ("inducing", "tracked"):
+    for name in ("inducing", "tracked", "tracked_gusts"):
         c = a["cost"][name]
         assert c["bytes_start"] == c["bytes_end"] and c["median_ms"] > 0  # fixed memory
         assert len(a["models"][name]["windows"]) >= 2
-    assert {f"{m}_mse" for m in ("none", "inducing", "tracked")} <= set(a["tests"][0])
+    models = ("none", "inducing", "tracked", "tracked_gusts")
+    assert {f"{m}_mse" for m in models} <= set(a["tests"][0])
     assert a["drift"]["source"] == "fitted"
     for fig in ("error_vs_seconds", "force_along_flight"):
         assert (tmp_path / "figures" / f"{fig}.png").is_file()
