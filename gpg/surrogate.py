@@ -825,6 +825,7 @@ def predict_state(
     )
 
 
+@highest
 def _predict_in_wind(sur, wind, rpm, euler, v_air, with_var: bool, body: bool) -> Prediction:
     """A model that tracks a wind state ``g ~ N(ḡ, P_g)`` (:func:`gpg.flight.gusts`): its
     prediction at ``v_air + ḡ``, the loads' variance with ``diag(J P_g Jᵀ)`` added (``J`` the

@@ -1266,12 +1266,15 @@ def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_va
         with_state = eqx.tree_at(lambda c: c.tracker, m, st, is_leaf=lambda a: a is None)
         return with_state.tracker_columns(x, prior_mean)
 
+    def wind_rows(g):
+        x, prior_mean, resid, r = rows(g)
+        return resid, r, columns(state, x, prior_mean)
+
     g = 0.0
     if getattr(state, "wind_mean", None) is not None:
         # The wind first, its residual's band the coefficients' own; then the coefficients
         # at the air velocity it implies.
-        x, prior_mean, _, _ = rows(state.wind_mean)
-        state, g = state.wind_measured(lambda w: rows(w)[2:], columns(state, x, prior_mean))
+        state, g = state.wind_measured(wind_rows)
     x, prior_mean, resid, r = rows(g)
     return state.measured(columns(state, x, prior_mean), resid, r)
 

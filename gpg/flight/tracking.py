@@ -280,15 +280,13 @@ class Tracker(eqx.Module):
         return eqx.tree_at(lambda o: (o.wind_mean, o.wind_cov), out, wind)
 
     @highest
-    def wind_measured(
-        self, residual: Callable, h: Float[Array, "6 P"]
-    ) -> tuple[Tracker, Float[Array, " 3"]]:
+    def wind_measured(self, residual: Callable) -> tuple[Tracker, Float[Array, " 3"]]:
         """The wind state conditioned on one label (module docstring), linearised at ``ḡ``.
 
         Args:
-            residual: ``g ↦ (e, r)``: the label's residual against the offline mean with the
-                air velocity shifted by ``g`` (normalised, GP frame) and its own noise.
-            h: (6, P) the columns at the label (shifted by ``ḡ``), for the coefficients' band.
+            residual: ``g ↦ (e, r, h)``: the label's residual against the offline mean with
+                the air velocity shifted by ``g`` (normalised, GP frame), its own noise and the
+                (6, P) columns there (for the coefficients' band).
 
         Returns:
             The tracker with ``ḡ`` and ``P_g`` updated, and the new ``ḡ``.
@@ -300,10 +298,10 @@ class Tracker(eqx.Module):
             raise ValueError("wind_measured needs a tracker with a wind state (gpg.flight.gusts)")
 
         def f(g):
-            e, r = residual(g)
-            return e, (e, r)
+            e, r, h = residual(g)
+            return e, (e, r, h)
 
-        jac, (e, r) = jax.jacfwd(f, has_aux=True)(self.wind_mean)
+        jac, (e, r, h) = jax.jacfwd(f, has_aux=True)(self.wind_mean)
         m, v = self.mean_var(h)
         H = -jac  # the prediction's change with the wind: the residual falls as it rises
         P = self.wind_cov

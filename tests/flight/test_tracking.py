@@ -412,8 +412,8 @@ def _shifted(lab, i, g):
 
 
 def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
-    """gusts(): one update relaxes the wind state g (OU, τ_g), then conditions it on the label
-    by the Kalman step linearised at ḡ: H the prediction's derivative in g (central
+    """gusts(): the wind state g relaxes as an OU process (τ_g) and conditions on a label by
+    the Kalman step linearised at ḡ: H the prediction's derivative in g (central
     differences of the residual here, step 1e-4 m/s: truncation ~1e-8 of H), the innovation's
     covariance H P Hᵀ plus the label's noise, v and the coefficients' band hᵀΣh; the
     coefficients are then updated at v_air + ḡ. A wind_sd that is not three numbers >= 0 is
@@ -422,7 +422,6 @@ def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
     lab = flights[1]
     new = fc.update_jit(sur, *_shifted(lab, 0, 0.0)).model.tracker
     tr = sur.model.tracker
-    a = np.exp(-0.3 / 2.0)
     P = np.diag(np.asarray(tr.wind_sd) ** 2)  # the start is the stationary law: relaxing keeps it
     eps = 1e-4
     _, e, r, h = _rows(sur, lab, 0)
@@ -437,9 +436,14 @@ def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
     band = np.einsum("jp,jpq,jq->j", h, cov, h)
     S = H @ P @ H.T + np.diag(r + 0.01 + band)
     gain = P @ H.T @ np.linalg.inv(S)
-    g = a * 0.0 + gain @ e
-    np.testing.assert_allclose(new.wind_mean, g, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(new.wind_mean, gain @ e, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(new.wind_cov, P - gain @ H @ P, rtol=1e-6, atol=1e-9)
+    # relaxing from the label's posterior: ḡ ← a ḡ, P_g ← a² (P_g − S) + S, a = e^{−Δt/τ_g}
+    later = new.relaxed(float(new.t) + 0.7)
+    a = np.exp(-0.7 / 2.0)
+    np.testing.assert_allclose(later.wind_mean, a * np.asarray(new.wind_mean), rtol=1e-12)
+    np.testing.assert_allclose(later.wind_cov, a**2 * (np.asarray(new.wind_cov) - P) + P,
+                               rtol=1e-12, atol=1e-15)  # fmt: skip
     # the coefficients: one Kalman step per output at the shifted air velocity
     shifted = _shifted(lab, 0, np.asarray(new.wind_mean))[1:]
     _, e2, r2, h2 = (np.asarray(v) for v in _rows_jit(sur, *(jnp.asarray(c) for c in shifted)))
