@@ -128,6 +128,23 @@ def _test(name: str, f: Flight, user, simple, opts, gust) -> _Test:
                  f.log.command[i], sd)  # fmt: skip
 
 
+def _shared(a, b):
+    """Two labellings of one flight (:class:`Labels` or :class:`_Test`) at the instants both
+    have (their saturation tests read each curve's speeds and can drop a few apart)."""
+    ta, tb = (x.labels.t if isinstance(x, _Test) else x.t for x in (a, b))
+    ka, kb = np.isin(ta, tb), np.isin(tb, ta)
+
+    def take(x, keep):
+        if not isinstance(x, _Test):
+            return x.take(keep)
+        arrays = {f.name: getattr(x, f.name)[keep] for f in dataclasses.fields(x)
+                  if f.name not in ("labels", "wind_sd") and isinstance(getattr(x, f.name),
+                                                                        np.ndarray)}  # fmt: skip
+        return dataclasses.replace(x, labels=x.labels.take(keep), **arrays)
+
+    return take(a, ka), take(b, kb)
+
+
 def _thrust_per_command(calm: Flight, identified, truth) -> dict[str, list[float]]:
     """Each rotor's hover thrust (N) at the calm flight's 10, 50 and 90 % commands, of the
     identified vehicle through the identified curve and of the real one through its own:
@@ -231,6 +248,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     user_cfg = copy.deepcopy(base_cfg)
     for k, v in (h["vehicle"].get("changes") or {}).items():
         user_cfg[k] = v
+    if h["vehicle"].get("rotor_radius") is not None:  # measured: the propellers' size
+        user_cfg["rotor"] = {**user_cfg["rotor"], "radius": float(h["vehicle"]["rotor_radius"])}
     user_cfg["name"] = f"{base_cfg['name']}_user"
     user = Vehicle.from_config(user_cfg)
     real_cfg = perturbed_config(base_cfg, h["real"]["changes"])
@@ -284,12 +303,12 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     calm = next(f for w, f in train if w == 0.0)
     curve = MotorCurve.fit_hover(calm.log, user, simple)
 
-    def labelled(c: MotorCurve) -> tuple[list[Labels], dict[str, _Test]]:
+    def labelled(c: MotorCurve, veh: Vehicle = user) -> tuple[list[Labels], dict[str, _Test]]:
         opts = {"rate": float(h["label_rate"]), "source": "velocity", "curve": c}
         with warnings.catch_warnings():  # the curve's range is the hover's: counted, not news
             warnings.filterwarnings("ignore", "command.*extrapolated", FlightLogWarning)
-            return [label(f.log, user, reference=simple, **opts) for _, f in train], {
-                name: _test(name, f, user, simple, opts, gust) for name, f in tests_raw.items()
+            return [label(f.log, veh, reference=simple, **opts) for _, f in train], {
+                name: _test(name, f, veh, simple, opts, gust) for name, f in tests_raw.items()
             }
 
     train_labels, tests = labelled(curve)
@@ -304,12 +323,17 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         free=tuple(idc["free"]),
         max_labels=int(idc["max_labels"]),
         max_steps=int(idc["max_steps"]),
+        consider=dict(idc.get("consider") or {}),
     )
     ident.write(out / "identified_vehicle.yaml", overwrite=True)
     # The identified vehicle's rotor speeds are those of the identified curve: every model of
     # it is corrected and scored on the flights labelled again with that curve.
+    # Labelled with the identified vehicle (its motor range is the identified curve's); the
+    # test flights kept at the instants both labellings have: every model scored alike.
     id_curve = ident.curve(curve)
-    id_train, id_tests = labelled(id_curve)
+    id_train, id_tests = labelled(id_curve, ident.vehicle)
+    for name in tests:
+        tests[name], id_tests[name] = _shared(tests[name], id_tests[name])
     stages["identify_s"] = time.perf_counter() - t1
 
     data_cfg = conf.load(h["data"], "data")
@@ -351,6 +375,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     t1 = time.perf_counter()
     wind_rows, est_labels = [], []
     for (w, f), lab, lab_id in zip(train, train_labels, id_train, strict=True):
+        lab, lab_id = _shared(lab, lab_id)
         wind_at = f.log.wind[np.searchsorted(f.log.t, lab.t)]
         blind = dataclasses.replace(lab, v_air=lab.v_air + wind_at)
         # The identification reads the first curve's speeds (it applies its own gain and
@@ -580,7 +605,6 @@ def _truth_parameters(real_cfg, base_cfg, h_real) -> dict[str, float]:
         "airfoil.lift_slope": float(real_cfg["airfoil"]["lift_slope"]),
         "airfoil.alpha_zero_lift_deg": float(real_cfg["airfoil"]["alpha_zero_lift_deg"]),
         "airfoil.cd0": float(real_cfg["airfoil"]["cd0"]),
-        "motor.gain": 1.0,
         "generator.wake_gain": float(h_real["wake_gain"]),
     }  # fmt: skip
     for i, a in enumerate("xyz"):
@@ -602,7 +626,8 @@ def _report(res) -> str:
     ident = res["identification"]
     for k, p in ident["parameters"].items():
         lines.append(
-            f"  {k}: {p['value']:.4g} ± {p['se']:.2g} (truth {p['truth']}, "
+            f"  {k}: {p['value']:.4g} ± {p['se']:.2g} (labels alone ± {p['se_data']:.2g}; "
+            f"truth {p['truth']}, "
             f"file {p['nominal']:.4g}){'' if p['identified'] else ' NOT IDENTIFIED'}"
         )
     th = ident["thrust_per_command"]

@@ -23,12 +23,17 @@ loop itself is a handful of NumPy solves of the parameters' size). The standard 
 the posterior's Gauss-Newton curvature ``(JᵀJ + P)⁻¹``, the data's part divided by
 ``(1 + ρ)/(1 − ρ)`` for the lag-one correlation ``ρ`` of consecutive labels' residuals (what
 the physics misses varies slowly along a flight: correlated residuals inform less than as many
-independent ones). A parameter whose direction the
-flights do not determine (an eigenvalue of the data's information, in units of the prior's,
-under :data:`IDENTIFIABLE`) is named in :attr:`Identification.unidentified`: it keeps its prior
-value, the others are fitted again beside it, and the vehicle file says so. With commands
-only, ``motor.gain`` and the rotor's size are such a pair: a rotor that gives more thrust per
-rpm and a curve that gives fewer rpm per command explain the same flights.
+independent ones). Those errors hold the parameters that are not free at the file's values
+as if they were exact; ``consider`` names the ones that are not (a measured rotor radius, a
+wake gain no flight separates from the drag), each with a standard deviation, and adds
+``S Σ Sᵀ`` to the covariance, ``S`` the estimate's linear sensitivity to them (the "consider"
+covariance of orbit determination): errors that say what holding them fixed costs. A
+parameter whose direction the flights do not determine (an eigenvalue of the data's
+information, in units of the prior's, under :data:`IDENTIFIABLE`) is named in
+:attr:`Identification.unidentified`: it keeps its prior value, the others are fitted again
+beside it, and the vehicle file says so. With commands only, ``motor.gain`` and the rotor's
+size are such a pair: a rotor that gives more thrust per rpm and a curve that gives fewer rpm
+per command explain the same flights (measure the radius, free the gain).
 """
 
 from __future__ import annotations
@@ -125,7 +130,8 @@ class Identification:
         vehicle: the identified vehicle (generator part included).
         config: its vehicle file's mapping (:meth:`write` writes it).
         parameters: per freed parameter: ``value``, ``se`` (standard error, the value's
-            units), ``nominal`` (the file's), ``unit`` and ``identified`` (False: the flights
+            units, the considered parameters' uncertainty included), ``se_data`` (the labels'
+            alone), ``nominal`` (the file's), ``unit`` and ``identified`` (False: the flights
             do not determine it; it keeps the prior's value).
         unidentified: the names of the parameters the flights cannot identify.
         model_noise: (6,) the model-error variance per load component (N², N²m²), world.
@@ -137,6 +143,9 @@ class Identification:
         physics: the blade-element-momentum settings the parameters hold for.
         motor_exponent: the power on the rotor speeds (1 unless ``motor.exponent`` was freed).
         rpm_ref: rpm, the labels' median rotor speed, which the power leaves unchanged.
+        considered: the parameters held at the file's values whose uncertainty ``se``
+            carries, with their standard deviations in the prior's units (``identify``'s
+            ``consider``).
     """
 
     vehicle: Vehicle
@@ -152,6 +161,7 @@ class Identification:
     physics: bemt.BEMTConfig = field(default_factory=bemt.BEMTConfig)
     motor_exponent: float = 1.0
     rpm_ref: float = 1.0
+    considered: dict[str, float] = field(default_factory=dict)
 
     def curve(self, curve: MotorCurve) -> MotorCurve:
         """A motor curve with the identified gain and exponent applied (``motor.gain``,
@@ -212,7 +222,9 @@ class Identification:
 
     def data_config(self, data: str | Mapping[str, Any] = "default") -> dict[str, Any]:
         """The ``data`` config the identified vehicle's prior is generated with: ``data`` with
-        an identified ``generator.wake_gain`` in its ``generator`` mapping.
+        an identified ``generator.wake_gain`` in its ``generator`` mapping, and its rotor
+        speeds' box in the identified curve's speeds (:meth:`speeds`) where ``motor.gain`` or
+        ``motor.exponent`` was identified, as the identified file's motor range.
 
         Args:
             data: a ``data`` config of the package (``"default"``, ``"smoke"``) or its mapping.
@@ -226,6 +238,10 @@ class Identification:
         if "generator.wake_gain" in self.parameters:  # the physics' own identified setting
             cfg["generator"] = {**cfg.get("generator", {}),
                                 "wake_gain": float(self.physics.wake_gain)}  # fmt: skip
+        if (self.motor_gain, self.motor_exponent) != (1.0, 1.0) and "bounds" in cfg:
+            # the box in the identified speeds, as the vehicle file's motor range
+            lo, hi = np.asarray(self.speeds(jnp.asarray(cfg["bounds"]["rpm"], float)))
+            cfg["bounds"] = {**cfg["bounds"], "rpm": [round(float(lo), 3), round(float(hi), 3)]}
         return cfg
 
     def summary(self) -> str:
@@ -243,6 +259,10 @@ class Identification:
             )
         if self.unidentified:
             lines.append("not identified by these flights: " + ", ".join(self.unidentified))
+        if self.considered:
+            lines.append("± se with the uncertainty of " + ", ".join(
+                f"{k} (sd {v:.3g} {'log-factor' if PARAMETERS[k].kind == 'scale' else 'shift'})"
+                for k, v in self.considered.items()))  # fmt: skip
         return "\n".join(lines)
 
     def write(self, path: str | Path, *, overwrite: bool = False) -> Path:
@@ -471,6 +491,7 @@ def identify(
     max_labels: int = 400,
     max_steps: int = 40,
     passes: int = 3,
+    consider: Mapping[str, float | None] | Sequence[str] = (),
 ) -> Identification:
     """The vehicle's physical parameters from flight labels, by maximum likelihood (module
     docstring).
@@ -489,6 +510,12 @@ def identify(
             evaluates the physics and its derivatives at each).
         max_steps: Levenberg-Marquardt steps per pass.
         passes: fits alternated with the model-error variances' estimate.
+        consider: parameters of :data:`PARAMETERS` held at the vehicle file's values but not
+            known exactly (a measured rotor radius, a wake gain taken from another vehicle),
+            each with its standard deviation in the prior's units (a log-factor on a scale,
+            the shift's own units; ``None`` or a bare name: :data:`PARAMETERS`' prior). Their
+            uncertainty goes into the free parameters' standard errors: ``se`` is the
+            Schmidt "consider" covariance's, ``se_data`` the labels' alone.
 
     Returns:
         The :class:`Identification`: the vehicle, its file, the parameters with standard
@@ -496,18 +523,19 @@ def identify(
 
     Raises:
         ValueError: no labels, an unknown parameter or ``loads``, a vehicle without the
-            generator's part, or labels with NaN.
+            generator's part, labels with NaN, or a considered parameter that is free, unknown
+            or without a positive finite standard deviation.
     """
     names = tuple(free)
     data = _data(labels, names, loads, max_labels)
+    considered = _considered(consider, names)
     cfg0 = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
     veh0 = Vehicle.from_config(cfg0).require_generator()
     physics = bemt.BEMTConfig() if physics is None else physics
     fit, theta, model_var, steps, converged, info, weak = _fit_and_flag(
         veh0, physics, names, data, passes, max_steps
     )
-    sd = fit.sd_all[fit.free]
-    se_theta = np.sqrt(np.diag(np.linalg.inv(info + np.diag(1.0 / sd**2))))
+    se_theta, se_data = fit.standard_errors(theta, model_var, info, names, weak, considered)
     if not converged:
         warnings.warn(
             f"identify: Levenberg-Marquardt did not converge in {max_steps} steps a pass; the "
@@ -526,7 +554,7 @@ def identify(
         )
     theta[fit.free[_weak_mask(names, weak)]] = 0.0
     params, cfg, motor, physics = _identified_file(
-        cfg0, names, theta[fit.free], se_theta, weak, physics
+        cfg0, names, theta[fit.free], (se_theta, se_data), weak, physics, data["rpm_ref"]
     )
     resid = data["y"] - fit.loads(theta)[0]
     return Identification(
@@ -543,7 +571,27 @@ def identify(
         physics=physics,
         motor_exponent=motor["motor.exponent"],
         rpm_ref=float(data["rpm_ref"]),
+        considered=considered,
     )
+
+
+def _considered(consider, names: tuple[str, ...]) -> dict[str, float]:
+    """``consider`` as {name: standard deviation in the prior's units}, checked."""
+    if isinstance(consider, str):  # one name, not its characters
+        consider = (consider,)
+    items = consider.items() if isinstance(consider, Mapping) else ((n, None) for n in consider)
+    out: dict[str, float] = {}
+    for n, sd in items:
+        if n not in PARAMETERS or n in names:
+            raise ValueError(
+                f"consider must name parameters of {sorted(PARAMETERS)} that are not free, "
+                f"got {n!r}"
+            )
+        sd = PARAMETERS[n].prior if sd is None else float(sd)
+        if not (math.isfinite(sd) and sd > 0):
+            raise ValueError(f"consider[{n!r}] must be a positive finite standard deviation")
+        out[n] = sd
+    return out
 
 
 def _fit_and_flag(veh0, physics, names, data, passes: int, max_steps: int):
@@ -673,10 +721,52 @@ class _Fit:
         J = self.residuals(theta, model_var)[1][:, self.free]
         return J.T @ J
 
+    def standard_errors(self, theta, model_var, info, names, weak, considered):
+        """The free parameters' standard errors with the considered ones' uncertainty, and
+        the labels' alone (θ's units)."""
+        cov = np.linalg.inv(info + np.diag(1.0 / self.sd_all[self.free] ** 2))
+        se_data = np.sqrt(np.diag(cov))
+        if considered:
+            cov = cov + self.consider_covariance(theta, model_var, info, names, weak, considered)
+        return np.sqrt(np.diag(cov)), se_data
 
-def _identified_file(cfg0, names, theta, se_theta, weak, physics):
+    def consider_covariance(self, theta, model_var, info, names, weak, considered):
+        """What the considered parameters' uncertainty adds to the free ones' covariance:
+        ``S Σ_c Sᵀ`` with ``S = −(I + P)⁻¹ I_c`` the estimate's linear sensitivity to them
+        (``I_c`` the whitened Jacobians' cross-information, divided by the residuals'
+        correlation factor as ``I`` is; Tapley, Schutz and Born, chapter 6). The weak
+        parameters, held at the file's values, get none.
+
+        The derivatives along the considered parameters come from the fit's own compiled
+        program: its directions hold as many columns as the fit frees, so the considered
+        parameters' unit vectors go in that many at a time, padded with zeros."""
+        d, width = self.data, len(self.columns)
+        w = np.where(d["use"], 1.0 / np.sqrt(d["var"] + model_var), 0.0)
+        idx = [ALL.index(n) for n in considered]
+        cols = []
+        for start in range(0, len(idx), width):
+            chunk = idx[start : start + width]
+            E = np.zeros((len(ALL), width))
+            E[chunk, np.arange(len(chunk))] = 1.0
+            _, Jc = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta),
+                                       jnp.asarray(E), *self.states,
+                                       jnp.asarray(d["rpm_ref"]))  # fmt: skip
+            cols.append(np.asarray(Jc)[:, :, : len(chunk)])
+        Jc = (np.concatenate(cols, 2) * w[:, :, None]).reshape(-1, len(idx))
+        keep = ~_weak_mask(names, weak)
+        Jt = self.residuals(theta, model_var)[1][:, self.free[keep]]
+        factor = self.correlation_factor(theta, model_var)
+        H = info[np.ix_(keep, keep)] + np.diag(1.0 / self.sd_all[self.free[keep]] ** 2)
+        S = -np.linalg.solve(H, Jt.T @ Jc / factor)
+        out = np.zeros((len(names), len(names)))
+        out[np.ix_(keep, keep)] = S @ np.diag(list(considered.values())) ** 2 @ S.T
+        return out
+
+
+def _identified_file(cfg0, names, theta, se_theta, weak, physics, rpm_ref):
     """The parameters' table, the identified vehicle file (``M``'s coefficients fitted to its
-    hover), the motor curve's gain and exponent, and the physics' settings (the wake gain)."""
+    hover; its motor's speed range in the identified curve's speeds), the motor curve's gain
+    and exponent, and the physics' settings (the wake gain)."""
     params: dict[str, dict[str, Any]] = {}
     cfg = copy.deepcopy(cfg0)
     motor = {"motor.gain": 1.0, "motor.exponent": 1.0}
@@ -684,12 +774,14 @@ def _identified_file(cfg0, names, theta, se_theta, weak, physics):
     for i, n in enumerate(names):
         spec = PARAMETERS[n]
         nominal = _get(cfg0, n, physics0)
-        th, se = (0.0, float(spec.prior)) if n in weak else (float(theta[i]), float(se_theta[i]))
-        if spec.kind == "scale":
-            value, se_value = nominal * math.exp(th), nominal * math.exp(th) * se
+        if n in weak:
+            th, se, se_data = 0.0, float(spec.prior), float(spec.prior)
         else:
-            value, se_value = nominal + th, se
-        params[n] = {"value": value, "se": se_value, "nominal": nominal, "unit": spec.unit,
+            th, se, se_data = float(theta[i]), float(se_theta[0][i]), float(se_theta[1][i])
+        factor = nominal * math.exp(th) if spec.kind == "scale" else 1.0
+        value = nominal * math.exp(th) if spec.kind == "scale" else nominal + th
+        params[n] = {"value": value, "se": factor * se, "se_data": factor * se_data,
+                     "nominal": nominal, "unit": spec.unit,
                      "identified": n not in weak}  # fmt: skip
         if n in motor:
             motor[n] = value
@@ -698,6 +790,14 @@ def _identified_file(cfg0, names, theta, se_theta, weak, physics):
         else:
             _set(cfg, n, value)
     cfg["name"] = f"{cfg0.get('name', 'vehicle')}_identified"
+    if motor != {"motor.gain": 1.0, "motor.exponent": 1.0} and "motor" in cfg:
+        # The file's range was in the speeds the labels held: the identified rotor's is the
+        # identified curve's image of it (the saturation and the flight's limits follow).
+        cfg["motor"] = dict(cfg["motor"])
+        for key in ("rpm_min", "rpm_max"):
+            cfg["motor"][key] = round(float(motor_speeds(
+                jnp.asarray(float(cfg["motor"][key])), math.log(motor["motor.gain"]),
+                math.log(motor["motor.exponent"]), float(rpm_ref))), 3)  # fmt: skip
     P_F, T_z = hover_coefficients(Vehicle.from_config(cfg), physics)
     cfg["simple_model"] = {"thrust_coefficient": P_F, "torque_coefficient": T_z}
     return params, cfg, motor, physics
