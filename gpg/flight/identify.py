@@ -536,22 +536,7 @@ def identify(
         veh0, physics, names, data, passes, max_steps
     )
     se_theta, se_data = fit.standard_errors(theta, model_var, info, names, weak, considered)
-    if not converged:
-        warnings.warn(
-            f"identify: Levenberg-Marquardt did not converge in {max_steps} steps a pass; the "
-            "parameters are the last iterate",
-            IdentificationWarning,
-            stacklevel=2,
-        )
-    if weak:
-        warnings.warn(
-            "identify: the flights do not determine "
-            + ", ".join(weak)
-            + " (a near-singular information matrix): they keep the vehicle file's values "
-            "within their prior; fly manoeuvres that excite them, or fix them (free=)",
-            IdentificationWarning,
-            stacklevel=2,
-        )
+    _warn(converged, max_steps, weak, names, se_theta / se_data, considered)
     theta[fit.free[_weak_mask(names, weak)]] = 0.0
     params, cfg, motor, physics = _identified_file(
         cfg0, names, theta[fit.free], (se_theta, se_data), weak, physics, data["rpm_ref"]
@@ -573,6 +558,32 @@ def identify(
         rpm_ref=float(data["rpm_ref"]),
         considered=considered,
     )
+
+
+# A free parameter whose standard error is over this many times the labels' own owes it mostly
+# to the considered parameters: the flights do not tell it apart from them.
+CONSIDER_DOMINATES = 3.0
+
+
+def _warn(converged, max_steps, weak, names, widening, considered) -> None:
+    """The identification's warnings: no convergence, parameters the flights do not
+    determine, parameters whose error is mostly the considered ones'."""
+    said = []
+    if not converged:
+        said.append(f"Levenberg-Marquardt did not converge in {max_steps} steps a pass; the "
+                    "parameters are the last iterate")  # fmt: skip
+    if weak:
+        said.append("the flights do not determine " + ", ".join(weak) + " (a near-singular "
+                    "information matrix): they keep the vehicle file's values within their "
+                    "prior; fly manoeuvres that excite them, or fix them (free=)")  # fmt: skip
+    dominated = [n for n, r in zip(names, widening, strict=True)
+                 if n not in weak and r > CONSIDER_DOMINATES]  # fmt: skip
+    if dominated:
+        said.append(", ".join(dominated) + " owe their standard errors mostly to the "
+                    "uncertainty of " + ", ".join(considered) + " (consider=): know those "
+                    "better, or free them on flights that tell them apart")  # fmt: skip
+    for text in said:
+        warnings.warn("identify: " + text, IdentificationWarning, stacklevel=3)
 
 
 def _considered(consider, names: tuple[str, ...]) -> dict[str, float]:
