@@ -675,6 +675,9 @@ class _Fit:
         self.columns = np.array([ALL.index(n) for n in (names if columns is None else columns)])
         self.E = jnp.asarray(np.eye(len(ALL))[:, self.columns])
         self.states = tuple(jnp.asarray(data[k]) for k in ("rpm", "euler", "v_air"))
+        # a strong float64, as an array's median is: a weak-typed Python float would compile
+        # the physics' program a second time for the same shapes
+        self.rpm_ref = jnp.asarray(np.float64(data["rpm_ref"]))
         self._last: tuple[np.ndarray, tuple[np.ndarray, np.ndarray]] | None = None
 
     def loads(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -685,7 +688,7 @@ class _Fit:
         if self._last is not None and np.array_equal(self._last[0], theta):
             return self._last[1]
         out, Jf = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta), self.E,
-                                     *self.states, jnp.asarray(self.data["rpm_ref"]))  # fmt: skip
+                                     *self.states, self.rpm_ref)  # fmt: skip
         J = np.zeros((*out.shape, len(ALL)))
         J[:, :, self.columns] = np.asarray(Jf)
         self._last = (np.array(theta), (np.asarray(out), J))
@@ -761,7 +764,7 @@ class _Fit:
             E[chunk, np.arange(len(chunk))] = 1.0
             _, Jc = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta),
                                        jnp.asarray(E), *self.states,
-                                       jnp.asarray(d["rpm_ref"]))  # fmt: skip
+                                       self.rpm_ref)  # fmt: skip
             cols.append(np.asarray(Jc)[:, :, : len(chunk)])
         Jc = (np.concatenate(cols, 2) * w[:, :, None]).reshape(-1, len(idx))
         keep = ~_weak_mask(names, weak)

@@ -5,6 +5,7 @@ are known."""
 import math
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -34,8 +35,9 @@ BASE = load_vehicle("sui_endurance")
 
 def _labels(theta, n, seed, speed=1.0):
     """Labels of the physics with the parameters ``theta`` (all of PARAMETERS, in order) at
-    flight-like states in winds of 0-10 m/s (times ``speed``): the program identify compiles,
-    so that the tests compile it once."""
+    flight-like states in winds of 0-10 m/s (times ``speed``): the program identify compiles
+    (its shapes, its context and the strong float64 reference speed), so that the tests
+    compile it once."""
     rng = np.random.default_rng(seed)
     rpm = rng.uniform(3000, 5000, (n, 4))
     euler = np.column_stack(
@@ -45,8 +47,11 @@ def _labels(theta, n, seed, speed=1.0):
     states = (jnp.asarray(a) for a in (rpm, euler, v))
     # The reference speed identify takes: the labels' median (all N labels are used).
     ref = jnp.asarray(np.median(rpm))
-    y, _ = loads_and_jacobian(BASE, PHYSICS, jnp.asarray(theta), jnp.eye(len(ALL))[:, :3], *states,
-                              ref)  # fmt: skip
+    # identify's context (64 bits, matmul precision "highest": both in the compiled program's
+    # key): identify runs the program compiled here
+    with jax.enable_x64(True), jax.default_matmul_precision("highest"):
+        y, _ = loads_and_jacobian(BASE, PHYSICS, jnp.asarray(theta), jnp.eye(len(ALL))[:, :3],
+                                  *states, ref)  # fmt: skip
     y = np.asarray(y)
     f = y[:, :3] + SIGMA_F * rng.normal(size=(n, 3))
     t = y[:, 3:] + SIGMA_T * rng.normal(size=(n, 3))
