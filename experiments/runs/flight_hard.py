@@ -62,7 +62,7 @@ from gpg.flight.identify import hover_coefficients, identify, physics_loads
 from gpg.flight.labels import Labels, MotorCurve, label
 from gpg.flight.log import FlightLogWarning, read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed_config, random_plan
-from gpg.flight.tracking import fit_drift, gusts, track
+from gpg.flight.tracking import fit_drift, gusts, score_drift, track
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController, WaypointPlan
@@ -173,7 +173,8 @@ def _mse(pred_force, truth) -> float:
 
 def _score(sur: Surrogate, test: _Test, *, truth_states: bool = False,
            true_air: bool = False) -> dict[str, float]:  # fmt: skip
-    """MSE of the force vector against the truth, and the 95 % band's coverage per component;
+    """MSE of the force vector against the truth, and the 95 % band's coverage (both also per
+    component, with the mean squared standardised error);
     the band includes the wind's uncertainty where the test gives one (a gust's RMS). At the
     true states (``truth_states``: the oracle's), or at the labels' rotor speeds and attitudes
     with the true air velocity (``true_air``: what the model errs by with the wind known)."""
@@ -187,10 +188,14 @@ def _score(sur: Surrogate, test: _Test, *, truth_states: bool = False,
     if test.wind_sd is not None and not (truth_states or true_air):
         var = var + wind_variance(sur, *states, test.wind_sd)
     e = np.asarray(p.force) - test.force
-    sd = np.sqrt(var)
+    inside = np.abs(e) <= 1.959964 * np.sqrt(var)
     return {
         "mse": _mse(p.force, test.force),
-        "coverage95": float(np.mean(np.abs(e) <= 1.959964 * sd)),
+        "mse_components": np.mean(e**2, 0).tolist(),
+        "coverage95": float(np.mean(inside)),
+        "coverage95_components": np.mean(inside, 0).tolist(),
+        # the mean of e²/σ² per component: 1 for a band of the right width, under 1 too wide
+        "z2_components": np.mean(e**2 / var, 0).tolist(),
     }
 
 
@@ -416,7 +421,16 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         progress,
         other=other,
         gust_cfg=cfg["track"]["gusts"],
+        spreads=[float(v) for v in cfg["track"]["spread_sweep"]],
     )
+    # Each swept spread's score on the training winds held out (what fit_drift maximises),
+    # beside its prequential scores on the test flights: whether the flights could tell it.
+    adaptive["spread_sweep"] = [
+        {"spread": s, "held_out_log_likelihood": score_drift(
+            models["identified"], by_wind_id, dataclasses.replace(drift, spread=s),
+            max_labels=n_fit)}
+        for s in sorted({*adaptive["spreads"], drift.spread})
+    ]  # fmt: skip
     stages["prequential_s"] = time.perf_counter() - t1
 
     # Scores.
@@ -483,15 +497,17 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
 
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
-                     progress: bool, other=None, gust_cfg=None) -> dict[str, Any]:  # fmt: skip
+                     progress: bool, other=None, gust_cfg=None,
+                     spreads=()) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
-    with another bank, where given, and the fitted drift with a wind state, horizontal and
-    with vertical gusts, where ``gust_cfg`` gives them), each label predicted
+    with another bank, where given, the fitted drift with a wind state, horizontal and
+    with vertical gusts, where ``gust_cfg`` gives them, and the fitted drift with each of
+    ``spreads`` in place of its own: ``tracked_spread_<s>``), each label predicted
     before it is used (:func:`gpg.flight.prequential`): the force MSE against the truth and
     against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
-    test gives one, as offline), the labels' noise floor; the per-label update cost from
-    Python; the figure of the error along the flights."""
+    test gives one, as offline), the labels' log predictive density, the labels' noise floor;
+    the per-label update cost from Python; the figure of the error along the flights."""
     from experiments.runs.flight_logs import prequential_scores, update_cost
 
     rows, curves = [], {}
@@ -512,6 +528,10 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
             tau = float(gust_cfg["tau"])
             for m, key in (("tracked_gusts", "sd"), ("tracked_gusts_vertical", "sd_vertical")):
                 models[m] = track(offline, gusts(drift, gust_cfg[key], tau), t0=t0)
+        for sp in spreads:
+            models[f"tracked_spread_{sp:g}"] = track(
+                offline, dataclasses.replace(drift, spread=sp), t0=t0
+            )
         extra = None
         if test.wind_sd is not None:
             extra = wind_variance(offline, lab.rpm, lab.euler, lab.v_air, test.wind_sd)
@@ -528,6 +548,11 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
             err = np.sum(e**2, 1)
             row[f"{m}_mse_after_gap"] = float(err[gap].mean()) if gap.any() else None
             row[f"{m}_mse_no_gap"] = float(err[~gap].mean())
+            # the first 10 s in the flight's conditions against the rest: what the filter's
+            # start from its stationary law costs before the flight has told it much
+            early = lab.t - t0 < 10.0
+            row[f"{m}_mse_first_10s"] = float(err[early].mean())
+            row[f"{m}_mse_after_10s"] = float(err[~early].mean()) if (~early).any() else None
             curves[(name, m)] = (lab.t - t0, np.sum(e**2, 1))
             row[f"{m}_lag1"] = _lag1(lab.t, e)
         rows.append(row)
@@ -535,7 +560,8 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     steady = tests["steady"].labels
     cost = update_cost(track(offline, drift, t0=float(steady.t[0])), steady, 600.0)
     out_ = {"drift": dataclasses.asdict(drift), "tests": rows, "tracked_update": cost,
-            "other": None if other is None else dataclasses.asdict(other)}  # fmt: skip
+            "other": None if other is None else dataclasses.asdict(other),
+            "spreads": list(spreads)}  # fmt: skip
     if gust_cfg is not None:
         with_gusts = gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"]))
         out_["gusts"] = {"sd": list(with_gusts.wind_sd), "tau": with_gusts.wind_tau}
@@ -643,6 +669,20 @@ def _report(res) -> str:
     for name, c in res["coefficients"].items():
         lines.append(f"  {name}: the physical terms' prior times "
                      f"{c['basis_prior']['factors']} per output (basis_prior)")  # fmt: skip
+        if "held_out_coverage95" in c["basis_prior"]:
+            lines.append(
+                f"    calibration {np.round(c['calibration'], 2).tolist()}; each wind "
+                "held out, the share of its labels in the 95 % band, per output: "
+                f"{np.round(c['basis_prior']['held_out_coverage95'], 3).tolist()}"
+            )
+    for r in res["tests"]:
+        m = "identified"
+        lines.append(
+            f"  {r['test']}, {m} per force component: MSE "
+            f"{np.round(r[f'{m}_mse_components'], 3).tolist()}, coverage "
+            f"{np.round(r[f'{m}_coverage95_components'], 3).tolist()}, mean squared "
+            f"standardised error {np.round(r[f'{m}_z2_components'], 3).tolist()}"
+        )
     for w in res["wind"]:
         lines.append(f"  wind {w['flight']}: estimated {np.round(w['estimated_mean'], 2)}, "
                      f"RMS error {w['rms_error']:.3f} m/s")  # fmt: skip
@@ -658,6 +698,26 @@ def _report(res) -> str:
             pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
     pcols.append(("noise_floor", "noise", ".3g"))
     lines.append(table(ad["tests"], pcols))
+    if ad.get("spread_sweep"):
+        lines.append(
+            "the fitted drift with its spread swept: the held-out log likelihood on "
+            "the training winds (nats per label, what fit_drift maximises) and each "
+            "test flight's prequential force MSE, coverage and labels' log density:"
+        )
+        srows, scols = [], [("spread", "spread", ".3g"), ("ll", "held-out ll", ".4g")]
+        for t in ad["tests"]:
+            scols += [(f"{t['test']}_{k}", f"{t['test']} {k}", f) for k, f in
+                      (("mse", ".3g"), ("cov", ".3f"), ("lpd", ".4g"))]  # fmt: skip
+        for sw in ad["spread_sweep"]:
+            s = sw["spread"]
+            key = "tracked" if s == d["spread"] else f"tracked_spread_{s:g}"
+            r = {"spread": s, "ll": sw["held_out_log_likelihood"]}
+            for t in ad["tests"]:
+                r.update({f"{t['test']}_mse": t[f"{key}_mse"],
+                          f"{t['test']}_cov": t[f"{key}_coverage95"],
+                          f"{t['test']}_lpd": t[f"{key}_lpd_labels"]})  # fmt: skip
+            srows.append(r)
+        lines.append(table(srows, scols))
     gcols = [("test", "test", "s"), ("after_gap_share", "share after a gap", ".2f")]
     for m in ("none", "inducing", "tracked", "tracked_gusts"):
         if f"{m}_mse" not in ad["tests"][0]:
@@ -666,6 +726,14 @@ def _report(res) -> str:
                   (f"{m}_mse_no_gap", f"{m} otherwise", ".3g")]  # fmt: skip
     lines.append("prequential MSE on the labels after a stretch without labels, and on the rest:")
     lines.append(table(ad["tests"], gcols))
+    ecols = [("test", "test", "s")]
+    for m in ("none", "inducing", "tracked", "tracked_other", *(
+            f"tracked_spread_{s:g}" for s in ad.get("spreads", ()))):  # fmt: skip
+        if f"{m}_mse_first_10s" in ad["tests"][0]:
+            ecols += [(f"{m}_mse_first_10s", f"{m} first 10 s", ".3g"),
+                      (f"{m}_mse_after_10s", f"{m} after", ".3g")]  # fmt: skip
+    lines.append("prequential MSE in the flight's first 10 s, and after:")
+    lines.append(table(ad["tests"], ecols))
     u = ad["tracked_update"]
     lines.append(f"tracked update from Python: {u['median_ms']:.3f} ms median (p10 "
                  f"{u['p10_ms']:.3f}, p90 {u['p90_ms']:.3f}, {u['n']} updates)")  # fmt: skip

@@ -385,15 +385,24 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
 def prequential_scores(sur, lab: Labels, truth_force, extra_var=None):
     """The one-step-ahead force predictions of ``sur`` along a flight (:func:`gpg.flight.
     prequential`) scored: MSE against the truth and against the labels (N², the error vector's
-    squared norm), the 95 % band's coverage of the truth per component (``extra_var``, (N, 3),
-    added to the band: a wind known only as its RMS); and each label's error vector."""
+    squared norm), the 95 % band's coverage of the truth (``extra_var``, (N, 3), added to the
+    band: a wind known only as its RMS), both per component too; the labels' mean log
+    predictive density (nats per label, the force's three components, the band plus the
+    labels' own noise: the prequential score the labels alone can give, Dawid's); and each
+    label's error vector."""
     pre = prequential(sur, lab)
     e = pre.force - truth_force
-    sd = np.sqrt(pre.variance[:, :3] + (0.0 if extra_var is None else extra_var))
+    var = pre.variance[:, :3] + (0.0 if extra_var is None else extra_var)
+    inside = np.abs(e) <= 1.959964 * np.sqrt(var)
+    s2 = var + np.asarray(lab.force_var)
+    e_lab = pre.force - lab.force
     return {
         "mse": float(np.mean(np.sum(e**2, 1))),
-        "mse_labels": float(np.mean(np.sum((pre.force - lab.force) ** 2, 1))),
-        "coverage95": float(np.mean(np.abs(e) <= 1.959964 * sd)),
+        "mse_components": np.mean(e**2, 0).tolist(),
+        "mse_labels": float(np.mean(np.sum(e_lab**2, 1))),
+        "coverage95": float(np.mean(inside)),
+        "coverage95_components": np.mean(inside, 0).tolist(),
+        "lpd_labels": float(np.mean(np.sum(-0.5 * (np.log(2 * np.pi * s2) + e_lab**2 / s2), 1))),
     }, e
 
 

@@ -12,7 +12,8 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 * :func:`correct` corrects a fitted :class:`~gpg.Surrogate` by labels (a :class:`Corrected`
   model: the prior's mean, scaled, plus values-only discrepancy GPs); :func:`track` follows
   its physical basis's coefficients online (a Kalman filter, its drift fitted by
-  :func:`fit_drift`; with :func:`gusts`, the wind's deviation from the log's too),
+  :func:`fit_drift`, any drift scored alike by :func:`score_drift`; with :func:`gusts`, the
+  wind's deviation from the log's too),
   :func:`adapt` adds an inducing-point term instead; :func:`update` and
   :func:`online_step` update either label by label at a fixed cost, :func:`prequential` runs
   a flight through them.
@@ -49,6 +50,7 @@ from gpg.flight.tracking import (
     fit_drift,
     gusts,
     prequential,
+    score_drift,
     track,
 )
 from gpg.flight.ulog import read_ulog
@@ -91,6 +93,7 @@ __all__ = [
     "prequential",
     "read_csv",
     "read_ulog",
+    "score_drift",
     "synthetic",
     "track",
     "update",

@@ -72,6 +72,9 @@ LENGTHSCALE_MIN, LENGTHSCALE_MAX = 1e-2, 1e2
 # basis_prior="held_out") chooses among per load output: from the terms nearly held at zero
 # (the prior's physics as it is) to three times the stated prior.
 BASIS_PRIOR_GRID = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+# The standard normal's upper 2.5-percent point: a 95-percent band's half-width in standard
+# deviations.
+Z95 = 1.959963984540054
 
 
 class Online(eqx.Module):
@@ -800,20 +803,25 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
     return PhysicalBasis(prior.normalizer, hubs, prior.frame)
 
 
-def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> tuple[float, float]:
+def _held_out_scale(
+    X, H, y, noise, hyper: Hyper, b, sd, groups
+) -> tuple[float, float, list[float]]:
     """The factor ``c`` on the latent variance that makes each flight, predicted from the
     others (:func:`_held_out`), covered as the band says: the mean of ``e² / (c v + n)`` over
     the held-out labels is 1 (``e`` the error, ``v`` the latent variance, ``n`` the label's
-    noise), at least 1; and, under ``c``, the largest over the flights of a held-out flight's
+    noise), at least 1; under ``c``, the largest over the flights of a held-out flight's
     mean negative log predictive density (nats per label: what the basis's prior is chosen
-    by). ``c`` scales ``v`` only, so it is solved for with ``n`` beside it: the mean of
-    ``e² / (v + n)`` taken as ``c`` leaves a band too narrow by about ``n / v`` where the
-    labels' noise outweighs the latent variance."""
+    by); and each held-out flight's share of labels inside the band of ``Z95²(c v + n)`` (one
+    pooled ``c`` can cover one flight loosely and another tightly: the spread says how far
+    the band's width carries from one condition to the next). ``c`` scales ``v`` only, so it
+    is solved for with ``n`` beside it: the mean of ``e² / (v + n)`` taken as ``c`` leaves a
+    band too narrow by about ``n / v`` where the labels' noise outweighs the latent
+    variance."""
     from scipy.optimize import brentq
 
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
     if not parts:
-        return 1.0, 0.0
+        return 1.0, 0.0, []
     e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, _, _ in parts])
     v = np.concatenate([var for _, _, var, _ in parts])
     n = np.concatenate([noise[te] for te, _, _, _ in parts])
@@ -828,12 +836,13 @@ def _held_out_scale(X, H, y, noise, hyper: Hyper, b, sd, groups) -> tuple[float,
         c = float(brentq(excess, 1.0, float(np.mean(e2) / np.min(v)), rtol=1e-12))
     # The worst-predicted flight's score: a prior that predicts the flights within the others'
     # conditions well and the one beyond them badly is the one not to extrapolate with.
-    worst = -np.inf
+    worst, coverage = -np.inf, []
     for te, mean, var, _ in parts:
         s2 = c * var + noise[te]
         e2g = (y[te] - mean) ** 2
         worst = max(worst, float(np.mean(0.5 * np.log(2.0 * np.pi * s2) + 0.5 * e2g / s2)))
-    return c, worst
+        coverage.append(float(np.mean(e2g <= Z95**2 * s2)))
+    return c, worst, coverage
 
 
 def _prior_grid(basis_prior, held: bool) -> tuple[float, ...]:
@@ -945,6 +954,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     grid = _prior_grid(basis_prior, held)
     kc = np.arange(X.shape[0]) if cal is None else cal
     factors, scores = np.ones(n_out), np.zeros((n_out, len(grid)))
+    coverage: list[list[float]] = []
     for j in range(n_out):
         H = _basis_columns(mu if fixed_rho is None else None, m, phys, j)
         y = Y[:, j] - (0.0 if fixed_rho is None else float(fixed_rho)) * mu[:, j]
@@ -957,13 +967,15 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
             sd = _scale_terms(sd0, f)
             beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
             hyper = _delta_hyper(X, y - H @ beta0, V[:, j], subset_size, max_steps, seed + j, Zh)
-            c, nlpd = (1.0, 0.0)
+            c, nlpd, cover = (1.0, 0.0, [])
             if held:
-                c, nlpd = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b, sd, groups[kc])
+                c, nlpd, cover = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b, sd,
+                                                 groups[kc])  # fmt: skip
             scores[j, i] = nlpd
             if best is None or nlpd < best[0]:
-                best = (nlpd, f, sd, hyper, c)
-        _, factors[j], sd, hyper, c = best
+                best = (nlpd, f, sd, hyper, c, cover)
+        _, factors[j], sd, hyper, c, cover = best
+        coverage.append(cover)
         if Z is None:
             both = ExactGP.fit(X, np.column_stack([H, y]), hyper=hyper, row_noise=V[:, j])
             alpha = np.asarray(both.alpha)
@@ -1001,6 +1013,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     choice = {"grid": list(grid), "factors": factors.tolist()}
     if held:
         choice["held_out_nlpd"] = scores.tolist()
+        choice["held_out_coverage95"] = coverage
     return rho, kappa, tuple(deltas), explicit, choice
 
 

@@ -79,6 +79,7 @@ __all__ = [
     "fit_drift",
     "gusts",
     "prequential",
+    "score_drift",
     "track",
 ]
 
@@ -555,15 +556,7 @@ def fit_drift(
         ValueError: fewer than two parts, ``sur`` not corrected by flights, or a ``fast``
             time constant not positive or a ``share`` outside [0, 1).
     """
-    parts = [labels] if isinstance(labels, Labels) else list(labels)
-    if len(parts) < 2:
-        raise ValueError(
-            f"fit_drift needs labels of two or more flights or winds (each predicted from the "
-            f"others), got {len(parts)}; use gpg.flight.default_drift for one"
-        )
-    m = sur.model
-    if not isinstance(m, fc.Corrected) or len(m.delta) != N_LOADS:
-        raise ValueError("fit_drift needs a model corrected by gpg.flight.correct")
+    parts = _parts(sur, labels, "fit_drift")
     banks = BANKS if fast is None else (tuple(fast),)
     if not all(f > 0 for b in banks for f in b) or not 0 <= share < 1:
         raise ValueError(f"fast must be > 0 s and share in [0, 1), got {fast}, {share}")
@@ -571,6 +564,64 @@ def fit_drift(
     fits = [_fit_bank(data, v0, tuple(float(f) for f in b), float(share), max_steps)
             for b in banks]  # fmt: skip
     return max(fits, key=lambda d: d.log_likelihood)
+
+
+@float64
+def score_drift(
+    sur: Surrogate, labels: Sequence[Labels], drift: Drift | None = None, *, max_labels: int = 1500
+) -> float:
+    """``drift``'s prequential log likelihood per label on flights held out: the number
+    :func:`fit_drift` maximises (its ``log_likelihood``), for any drift, so that a drift set
+    by hand, the default or one fitted elsewhere is compared on the same footing.
+
+    Args:
+        sur: a corrected model (:func:`gpg.flight.correct`), as for :func:`fit_drift`.
+        labels: two or more parts (flights, or the flights of one wind), each predicted by a
+            model that did not see it (:func:`fit_drift`).
+        drift: the drift scored (its ``τ``, spread, bias, ``v`` and bank); default
+            :func:`default_drift`.
+        max_labels: at most this many labels, as :func:`fit_drift` takes them.
+
+    Returns:
+        The mean log predictive density per label (nats, the six load outputs summed).
+
+    Raises:
+        ValueError: as :func:`fit_drift` for ``sur`` and ``labels``; a drift :func:`track`
+            refuses, one with a wind state (the fit's likelihood has none), or one whose time
+            constants or spreads lie outside :data:`TAU_RANGE` and :data:`SPREAD_RANGE`.
+    """
+    drift = default_drift(sur) if drift is None else drift
+    noise, _ = _checked(drift)
+    if drift.wind_sd:
+        raise ValueError("score_drift scores the coefficients' drift; drift has a wind state")
+    inside = [TAU_RANGE[0] <= v <= TAU_RANGE[1] for v in (drift.tau, drift.bias_tau)]
+    inside += [SPREAD_RANGE[0] <= v <= SPREAD_RANGE[1] for v in (drift.spread, drift.bias_sd)]
+    if not all(inside):
+        raise ValueError(
+            f"score_drift: drift.tau and bias_tau must lie in {TAU_RANGE} s and spread and "
+            f"bias_sd in {SPREAD_RANGE} (fit_drift's ranges), got {drift.tau}, "
+            f"{drift.bias_tau}, {drift.spread}, {drift.bias_sd}"
+        )
+    data, _ = _held_out_sequences(sur, _parts(sur, labels, "score_drift"), max_labels)
+    theta = jnp.log(jnp.asarray([drift.tau, drift.spread, drift.bias_tau, drift.bias_sd,
+                                 *np.maximum(noise, 1e-300)]))  # fmt: skip
+    args = (data, jnp.asarray(drift.fast, float).reshape(-1), float(drift.share))
+    return -float(_neg_loglik(theta, args))
+
+
+def _parts(sur: Surrogate, labels, who: str) -> list[Labels]:
+    """``labels`` of :func:`fit_drift` or :func:`score_drift` (``who``, for the errors) as a
+    list of two or more parts, ``sur`` corrected."""
+    parts = [labels] if isinstance(labels, Labels) else list(labels)
+    if len(parts) < 2:
+        raise ValueError(
+            f"{who} needs labels of two or more flights or winds (each predicted from the "
+            f"others), got {len(parts)}; use gpg.flight.default_drift for one"
+        )
+    m = sur.model
+    if not isinstance(m, fc.Corrected) or len(m.delta) != N_LOADS:
+        raise ValueError(f"{who} needs a model corrected by gpg.flight.correct")
+    return parts
 
 
 def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int) -> Drift:

@@ -681,6 +681,17 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     nlpd = 0.5 * np.log(2 * np.pi * s2c) + 0.5 * e2 / s2c
     worst = max(nlpd[:half].mean(), nlpd[half:].mean())
     np.testing.assert_allclose(scores[j].min(), worst, rtol=1e-6)
+    # each flight's share inside the 95 % band held out (e² ≤ 1.96² (c v + n)): recorded per
+    # output, compared away from the edge (a label within 1e-6 of it could fall either way)
+    inside = e2 <= 1.959964**2 * s2c
+    assert not np.any(np.abs(e2 / (1.959964**2 * s2c) - 1) < 1e-6)
+    np.testing.assert_allclose(
+        choice["held_out_coverage95"][j],
+        [inside[:half].mean(), inside[half:].mean()],
+        rtol=0,
+        atol=1e-12,
+    )
+    assert len(choice["held_out_coverage95"]) == 6
     assert float(raw.model.delta[j].output_scale[0]) == 1.0
     np.testing.assert_allclose(
         np.asarray(m.explicit.cov_chol[j]), np.asarray(raw.model.explicit.cov_chol[j]) * np.sqrt(c),

@@ -212,8 +212,18 @@ def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights
     args = (data, jnp.asarray(drift.fast), drift.share)
     theta = jnp.asarray(np.log([drift.tau, drift.spread, drift.bias_tau, drift.bias_sd,
                                 *drift.noise]))  # fmt: skip
-    ll = -float(tk._neg_loglik(theta, args))
+    # score_drift gives any drift the fit's number: the fitted one its own likelihood, one
+    # with another spread (the fit's optimum, so no higher) a likelihood of its own
+    ll = tk.score_drift(corrected, flights, drift)
     np.testing.assert_allclose(ll, drift.log_likelihood, rtol=1e-9)
+    wider = tk.score_drift(corrected, flights, dataclasses.replace(drift, spread=2 * drift.spread))
+    assert wider < ll
+    with pytest.raises(ValueError, match="wind state"):
+        tk.score_drift(corrected, flights, tk.gusts(drift))
+    with pytest.raises(ValueError, match="spread and bias_sd"):
+        tk.score_drift(corrected, flights, dataclasses.replace(drift, spread=1e3))
+    with pytest.raises(ValueError, match="score_drift needs labels of two or more"):
+        tk.score_drift(corrected, flights[:1], drift)
     assert ll >= -float(tk._neg_loglik(tk._grid_start(args, v0), args)) - 1e-9
     # one member (no fast ones): the likelihood is the filter's, written out here, each
     # label's law the held-out posterior of its part plus the drift
