@@ -411,6 +411,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     stages["fit_drift_s"] = time.perf_counter() - t1
     other = fit_drift(models["identified"], by_wind_id, max_labels=n_fit,
                       fast=tuple(float(f) for f in cfg["track"]["compare_fast"]))  # fmt: skip
+    # the drift as fitted before spreads per column: one spread for every column
+    one_spread = fit_drift(models["identified"], by_wind_id, max_labels=n_fit, per_column=False)
     t1 = time.perf_counter()
     adaptive = prequential_rows(
         models["identified"],
@@ -422,14 +424,17 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         other=other,
         gust_cfg=cfg["track"]["gusts"],
         spreads=[float(v) for v in cfg["track"]["spread_sweep"]],
+        one_spread=one_spread,
     )
     # Each swept spread's score on the training winds held out (what fit_drift maximises),
     # beside its prequential scores on the test flights: whether the flights could tell it.
+    swept = [(f"tracked_spread_{s:g}", dataclasses.replace(drift, spread=s, columns=()))
+             for s in adaptive["spreads"]]  # fmt: skip
     adaptive["spread_sweep"] = [
-        {"spread": s, "held_out_log_likelihood": score_drift(
-            models["identified"], by_wind_id, dataclasses.replace(drift, spread=s),
-            max_labels=n_fit)}
-        for s in sorted({*adaptive["spreads"], drift.spread})
+        {"model": key, "spread": d.spread, "columns": list(d.columns),
+         "held_out_log_likelihood": score_drift(models["identified"], by_wind_id, d,
+                                                max_labels=n_fit)}
+        for key, d in [*swept, ("tracked", drift), ("tracked_one_spread", one_spread)]
     ]  # fmt: skip
     stages["prequential_s"] = time.perf_counter() - t1
 
@@ -497,13 +502,15 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
 
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
-                     progress: bool, other=None, gust_cfg=None,
-                     spreads=()) -> dict[str, Any]:  # fmt: skip
+                     progress: bool, other=None, gust_cfg=None, spreads=(),
+                     one_spread=None) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
     with another bank, where given, the fitted drift with a wind state, horizontal and
-    with vertical gusts, where ``gust_cfg`` gives them, and the fitted drift with each of
-    ``spreads`` in place of its own: ``tracked_spread_<s>``), each label predicted
+    with vertical gusts, where ``gust_cfg`` gives them, the fitted drift with each of
+    ``spreads`` for every column in place of its own: ``tracked_spread_<s>``, and
+    ``one_spread``, a drift fitted with one spread for all columns, where given), each label
+    predicted
     before it is used (:func:`gpg.flight.prequential`): the force MSE against the truth and
     against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
     test gives one, as offline), the labels' log predictive density, the labels' noise floor;
@@ -524,6 +531,8 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         }
         if other is not None:
             models["tracked_other"] = track(offline, other, t0=t0)
+        if one_spread is not None:
+            models["tracked_one_spread"] = track(offline, one_spread, t0=t0)
         if gust_cfg is not None:
             tau = float(gust_cfg["tau"])
             for m, key in (("tracked_gusts", "sd"), ("tracked_gusts_vertical", "sd_vertical")):
@@ -561,6 +570,7 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     cost = update_cost(track(offline, drift, t0=float(steady.t[0])), steady, 600.0)
     out_ = {"drift": dataclasses.asdict(drift), "tests": rows, "tracked_update": cost,
             "other": None if other is None else dataclasses.asdict(other),
+            "one_spread": None if one_spread is None else dataclasses.asdict(one_spread),
             "spreads": list(spreads)}  # fmt: skip
     if gust_cfg is not None:
         with_gusts = gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"]))
@@ -638,6 +648,14 @@ def _truth_parameters(real_cfg, base_cfg, h_real) -> dict[str, float]:
     return out
 
 
+def _spread_text(drift: dict[str, Any]) -> str:
+    """A drift's spread for the report: one number, or one per named column."""
+    s = drift["spread"]
+    if isinstance(s, (int, float)):
+        return f"{s:.3g}"
+    return "{" + ", ".join(f"{c} {v:.3g}" for c, v in zip(drift["columns"], s, strict=True)) + "}"
+
+
 def _report(res) -> str:
     cols = [("test", "test", "s")]
     for m in ("prior", "corrected_regression", "values_only", "flights_physical",
@@ -689,29 +707,35 @@ def _report(res) -> str:
     ad = res["adaptation"]
     d = ad["drift"]
     lines.append(f"prequential (each label predicted before it is used); drift fitted: tau "
-                 f"{d['tau']:.3g} s, spread {d['spread']:.3g}, bias tau {d['bias_tau']:.3g} s "
+                 f"{d['tau']:.3g} s, spread {_spread_text(d)}, bias tau {d['bias_tau']:.3g} s "
                  f"and sd {d['bias_sd']:.3g}, bank {d['fast']}:")  # fmt: skip
+    if ad.get("one_spread"):
+        o = ad["one_spread"]
+        lines.append(
+            f"  fitted with one spread for all columns (tracked_one_spread): spread "
+            f"{_spread_text(o)}, bias tau {o['bias_tau']:.3g} s, bank {o['fast']}"
+        )
     pcols = [("test", "test", "s")]
-    for m in ("none", "inducing", "tracked", "tracked_default", "tracked_other", "tracked_gusts",
-              "tracked_gusts_vertical"):  # fmt: skip
+    for m in ("none", "inducing", "tracked", "tracked_default", "tracked_other",
+              "tracked_one_spread", "tracked_gusts", "tracked_gusts_vertical"):  # fmt: skip
         if f"{m}_mse" in ad["tests"][0]:
             pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
     pcols.append(("noise_floor", "noise", ".3g"))
     lines.append(table(ad["tests"], pcols))
     if ad.get("spread_sweep"):
         lines.append(
-            "the fitted drift with its spread swept: the held-out log likelihood on "
+            "the fitted drift with one spread for all columns swept, beside the fitted ones: "
+            "the held-out log likelihood on "
             "the training winds (nats per label, what fit_drift maximises) and each "
             "test flight's prequential force MSE, coverage and labels' log density:"
         )
-        srows, scols = [], [("spread", "spread", ".3g"), ("ll", "held-out ll", ".4g")]
+        srows, scols = [], [("spread", "spread", "s"), ("ll", "held-out ll", ".4g")]
         for t in ad["tests"]:
             scols += [(f"{t['test']}_{k}", f"{t['test']} {k}", f) for k, f in
                       (("mse", ".3g"), ("cov", ".3f"), ("lpd", ".4g"))]  # fmt: skip
         for sw in ad["spread_sweep"]:
-            s = sw["spread"]
-            key = "tracked" if s == d["spread"] else f"tracked_spread_{s:g}"
-            r = {"spread": s, "ll": sw["held_out_log_likelihood"]}
+            key = sw["model"]
+            r = {"spread": f"{key}: {_spread_text(sw)}", "ll": sw["held_out_log_likelihood"]}
             for t in ad["tests"]:
                 r.update({f"{t['test']}_mse": t[f"{key}_mse"],
                           f"{t['test']}_cov": t[f"{key}_coverage95"],
@@ -727,7 +751,7 @@ def _report(res) -> str:
     lines.append("prequential MSE on the labels after a stretch without labels, and on the rest:")
     lines.append(table(ad["tests"], gcols))
     ecols = [("test", "test", "s")]
-    for m in ("none", "inducing", "tracked", "tracked_other", *(
+    for m in ("none", "inducing", "tracked", "tracked_other", "tracked_one_spread", *(
             f"tracked_spread_{s:g}" for s in ad.get("spreads", ()))):  # fmt: skip
         if f"{m}_mse_first_10s" in ad["tests"][0]:
             ecols += [(f"{m}_mse_first_10s", f"{m} first 10 s", ".3g"),

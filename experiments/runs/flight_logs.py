@@ -461,7 +461,8 @@ def _report(curve, default, adapt, targets) -> str:
     lines.append(
         f"adaptation into a {adapt['wind']} m/s wind (offline on that wind "
         f"{adapt['offline_rmse']:.3f} N, corrected on calm flights {adapt['corrected_rmse']:.3f}"
-        f" N); drift fitted: tau {d['tau']:.3g} s, spread {d['spread']:.3g}"
+        f" N); drift fitted: tau {d['tau']:.3g} s, spread "
+        f"{np.round(np.asarray(d['spread']), 3).tolist()}"
     )
     for name, r in adapt["models"].items():
         cost = adapt["cost"].get(name)

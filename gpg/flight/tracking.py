@@ -18,9 +18,10 @@ with ``a = e^{−Δt/τ}`` for the basis's coefficients and ``e^{−Δt/τ_b}`` 
 
 with ``C₀`` the coefficients' offline posterior covariance (the physical basis's ``A⁻¹``; zero
 for the regression form and the bias), ``σ_B`` their prior standard deviations
-(:data:`gpg.flight.basis.PRIORS`), ``s`` the drift's spread in those units and ``s_b`` the
-bias's. A flight starts from ``N(0, Σ_∞)``; each label is one rank-one update per output. Cost
-per label ``O(P²)`` per output (``P = 9`` with ``M``), fixed memory, pure for ``lax.scan``.
+(:data:`gpg.flight.basis.PRIORS`), ``s`` the drift's spread in those units (one per column:
+a term the flights do not move stays near its offline value) and ``s_b`` the bias's. A
+flight starts from ``N(0, Σ_∞)``; each label is one rank-one update per output. Cost per
+label ``O(P²)`` per output (``P = 9`` with ``M``), fixed memory, pure for ``lax.scan``.
 The prediction adds ``hᵀ w̄`` to the offline mean; its band on the loads is the filter's own,
 ``hᵀ Σ h + v``: the offline coefficients' share and the discrepancy's are in it, so the band
 narrows as the flight tells the coefficients and widens where the columns grow (a faster wind).
@@ -123,7 +124,9 @@ class Drift:
 
     Attributes:
         tau: s, ``τ``: how fast the coefficients move (and return to their offline values).
-        spread: ``s``, the drift's stationary standard deviation in prior standard deviations.
+        spread: ``s``, the drift's stationary standard deviation in prior standard deviations:
+            one number for every column, or one per column (:func:`fit_drift`'s default; in
+            the order of ``columns``).
         bias_tau: s, ``τ_b``: the bias's time constant (what the last labels' error says of
             the next one's).
         bias_sd: ``s_b``, the bias's stationary standard deviation (:data:`BIAS_SCALE` units).
@@ -139,10 +142,13 @@ class Drift:
             x, y, z) the filter follows beside the coefficients (module docstring); empty
             (the default): none. :func:`gusts` sets it.
         wind_tau: s, ``τ_g``: the wind state's time constant.
+        columns: the columns ``spread`` gives one number each for (``"prior"``, ``"simple"``
+            where ``M``'s loads are a column, then :data:`gpg.flight.basis.TERMS`); empty
+            where ``spread`` is one number.
     """
 
     tau: float
-    spread: float
+    spread: float | tuple[float, ...]
     noise: tuple[float, ...]
     bias_tau: float = DEFAULT_BIAS_TAU
     bias_sd: float = DEFAULT_BIAS_SD
@@ -153,6 +159,7 @@ class Drift:
     share: float = SHARE
     wind_sd: tuple[float, ...] = ()
     wind_tau: float = GUST_TAU
+    columns: tuple[str, ...] = ()
 
     @property
     def bias_taus(self) -> tuple[float, ...]:
@@ -212,7 +219,7 @@ class Tracker(eqx.Module):
         log_weight: (K,) the members' log weights.
         t: () s, the time of the last update.
         tau: () s, ``τ``.
-        spread: () ``s``.
+        spread: (B,) ``s`` per basis column.
         bias_tau: (K,) s, each member's ``τ_b``.
         bias_sd: () ``s_b``.
         noise: (6,) ``v_j`` (normalised units).
@@ -233,7 +240,7 @@ class Tracker(eqx.Module):
     log_weight: Float[Array, " K"]
     t: Float[Array, ""]
     tau: Float[Array, ""]
-    spread: Float[Array, ""]
+    spread: Float[Array, " B"]
     bias_tau: Float[Array, " K"]
     bias_sd: Float[Array, ""]
     noise: Float[Array, " 6"]
@@ -352,7 +359,8 @@ class Tracker(eqx.Module):
 
 
 def _drift_cov(spread, prior_sd, bias_sd):
-    """``S``: the drift's stationary covariance, the basis's ``s² diag(σ_B²)`` then ``s_b²``."""
+    """``S``: the drift's stationary covariance, the basis's ``diag(s² σ_B²)`` then ``s_b²``
+    (``s`` one number or one per column)."""
     return jnp.diag(jnp.concatenate([(spread * prior_sd) ** 2, jnp.reshape(bias_sd**2, (1,))]))
 
 
@@ -403,7 +411,13 @@ def default_drift(sur: Surrogate) -> Drift:
 def _checked(drift: Drift) -> tuple[np.ndarray, np.ndarray]:
     """:func:`track`'s drift refused by name where it is not one; its noise and wind sd."""
     noise = np.asarray(drift.noise, float)
-    if not (drift.tau > 0 and min(drift.bias_taus) > 0 and drift.spread > 0):
+    spread = np.atleast_1d(np.asarray(drift.spread, float))
+    if spread.ndim != 1 or (spread.size > 1 and len(drift.columns) != spread.size):
+        raise ValueError(
+            f"drift.spread must be one number, or one per column named in drift.columns, got "
+            f"{drift.spread} for columns {drift.columns}"
+        )
+    if not (drift.tau > 0 and min(drift.bias_taus) > 0 and np.all(spread > 0)):
         raise ValueError(
             f"drift.tau, drift.bias_tau, drift.fast and drift.spread must be > 0, got "
             f"{drift.tau}, {drift.bias_taus}, {drift.spread}"
@@ -465,8 +479,9 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
     physics = m.explicit.physics if m.explicit is not None else fc._physics(fc.base(sur))
     _, sd = fc._coefficient_prior(True, m.basis is not None)
     p = sd.size + 1
+    spread = _column_spread(drift, _column_names(sd.size))
     c0 = _offline_cov(m, p, m.basis is not None)
-    stat = c0 + np.asarray(_drift_cov(drift.spread, jnp.asarray(sd), drift.bias_sd))
+    stat = c0 + np.asarray(_drift_cov(spread, jnp.asarray(sd), drift.bias_sd))
     k = len(drift.bias_taus)
     tracker = Tracker(
         physics=physics,
@@ -477,7 +492,7 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
         log_weight=jnp.full(k, -math.log(k)),
         t=jnp.asarray(float(t0)),
         tau=jnp.asarray(float(drift.tau)),
-        spread=jnp.asarray(float(drift.spread)),
+        spread=jnp.asarray(spread),
         bias_tau=jnp.asarray(drift.bias_taus),
         bias_sd=jnp.asarray(float(drift.bias_sd)),
         noise=jnp.asarray(noise),
@@ -494,6 +509,25 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
         )  # fmt: skip
     m = eqx.tree_at(lambda c: c.tracker, m, tracker, is_leaf=lambda a: a is None)
     return dataclasses.replace(sur, model=m)
+
+
+def _column_names(n: int) -> tuple[str, ...]:
+    """The tracked basis columns' names for ``n`` of them: the prior's mean, ``M``'s loads
+    where there are ``2 + len(TERMS)``, then :data:`TERMS`."""
+    return ("prior", *(["simple"] if n == 2 + len(TERMS) else []), *TERMS)
+
+
+def _column_spread(drift: Drift, names: tuple[str, ...]) -> np.ndarray:
+    """``drift.spread`` as one number per column of ``names`` (B,); a spread per column must
+    name the same columns."""
+    spread = np.atleast_1d(np.asarray(drift.spread, float))
+    if spread.size == 1:
+        return np.full(len(names), float(spread[0]))
+    if tuple(drift.columns) != tuple(names):
+        raise ValueError(
+            f"drift.spread is per column for {drift.columns}, but the model tracks {names}"
+        )
+    return spread
 
 
 def gusts(drift: Drift, sd: Sequence[float] = GUST_SD, tau: float = GUST_TAU) -> Drift:
@@ -524,6 +558,7 @@ def fit_drift(
     max_steps: int = 200,
     fast: Sequence[float] | None = None,
     share: float = SHARE,
+    per_column: bool = True,
 ) -> Drift:
     """The drift that best predicts new flights, label by label (module docstring).
 
@@ -532,9 +567,10 @@ def fit_drift(
     labels' name), else the physical basis and discrepancy fitted on the other parts (with
     ``sur``'s discrepancy hyperparameters, the coefficients integrated out as in
     ``correct(basis="physical")``). The filter runs over it from the stationary law,
-    restarting at each flight (where the time runs back). ``τ``, ``s``, the first member's
-    ``τ_b``, ``s_b`` and ``v`` maximise the sum of the bank's one-step-ahead log densities
-    (optimistix BFGS on their logarithms, from the best of a small grid); the ``fast``
+    restarting at each flight (where the time runs back). ``τ``, ``s`` (one per basis column,
+    ``per_column``), the first member's ``τ_b``, ``s_b`` and ``v`` maximise the sum of the
+    bank's one-step-ahead log densities (optimistix BFGS on their logarithms, from the best of
+    a small grid, one ``s`` for all columns there); the ``fast``
     members keep their bias time constants (steady training flights cannot tell them: a gust
     can, and the bank's weights decide in flight).
 
@@ -548,6 +584,9 @@ def fit_drift(
         fast: s, the bank's other members' bias time constants; None (the default): each of
             :data:`BANKS`, the one whose fit predicts the held-out flights best.
         share: the bank's switching rate per label (:data:`SHARE`).
+        per_column: one spread per basis column (the prior's mean, ``M``'s loads, each
+            physical term: a term the flights move little is held near its offline value,
+            one they move is free to); False: one for all.
 
     Returns:
         The fitted :class:`Drift` (``source="fitted"``).
@@ -561,7 +600,8 @@ def fit_drift(
     if not all(f > 0 for b in banks for f in b) or not 0 <= share < 1:
         raise ValueError(f"fast must be > 0 s and share in [0, 1), got {fast}, {share}")
     data, v0 = _held_out_sequences(sur, parts, max_labels)
-    fits = [_fit_bank(data, v0, tuple(float(f) for f in b), float(share), max_steps)
+    n_spread = data[6].shape[0] if per_column else 1
+    fits = [_fit_bank(data, v0, tuple(float(f) for f in b), float(share), max_steps, n_spread)
             for b in banks]  # fmt: skip
     return max(fits, key=lambda d: d.log_likelihood)
 
@@ -595,7 +635,8 @@ def score_drift(
     if drift.wind_sd:
         raise ValueError("score_drift scores the coefficients' drift; drift has a wind state")
     inside = [TAU_RANGE[0] <= v <= TAU_RANGE[1] for v in (drift.tau, drift.bias_tau)]
-    inside += [SPREAD_RANGE[0] <= v <= SPREAD_RANGE[1] for v in (drift.spread, drift.bias_sd)]
+    inside += [SPREAD_RANGE[0] <= v <= SPREAD_RANGE[1]
+               for v in (*np.atleast_1d(drift.spread), drift.bias_sd)]  # fmt: skip
     if not all(inside):
         raise ValueError(
             f"score_drift: drift.tau and bias_tau must lie in {TAU_RANGE} s and spread and "
@@ -603,8 +644,8 @@ def score_drift(
             f"{drift.bias_tau}, {drift.spread}, {drift.bias_sd}"
         )
     data, _ = _held_out_sequences(sur, _parts(sur, labels, "score_drift"), max_labels)
-    theta = jnp.log(jnp.asarray([drift.tau, drift.spread, drift.bias_tau, drift.bias_sd,
-                                 *np.maximum(noise, 1e-300)]))  # fmt: skip
+    spread = _column_spread(drift, _column_names(data[6].shape[0]))
+    theta = _pack(drift.tau, drift.bias_tau, drift.bias_sd, np.maximum(noise, 1e-300), spread)
     args = (data, jnp.asarray(drift.fast, float).reshape(-1), float(drift.share))
     return -float(_neg_loglik(theta, args))
 
@@ -624,19 +665,22 @@ def _parts(sur: Surrogate, labels, who: str) -> list[Labels]:
     return parts
 
 
-def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int) -> Drift:
-    """:func:`fit_drift` for one bank."""
+def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int,
+              n_spread: int) -> Drift:  # fmt: skip
+    """:func:`fit_drift` for one bank, with ``n_spread`` spreads (1, or one per column)."""
     args = (data, jnp.asarray(fast, float).reshape(-1), share)
-    theta0 = _grid_start(args, v0)
+    theta0 = _grid_start(args, v0, n_spread)
     solver = optx.BFGS(rtol=1e-6, atol=1e-6)
     sol = optx.minimise(_neg_loglik, solver, theta0, args=args, max_steps=max_steps, throw=False)
     theta = sol.value
     if not bool(jnp.isfinite(_neg_loglik(theta, args))):
         theta = theta0
     tau, spread, bias_tau, bias_sd, noise = _unpack(theta)
+    names = _column_names(data[6].shape[0])
     return Drift(
         tau=float(tau),
-        spread=float(spread),
+        spread=tuple(float(v) for v in spread) if n_spread > 1 else float(spread[0]),
+        columns=names if n_spread > 1 else (),
         noise=tuple(float(v) for v in noise),
         bias_tau=float(bias_tau),
         bias_sd=float(bias_sd),
@@ -700,20 +744,26 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
     return tuple(jnp.asarray(a) for a in rows), v0
 
 
+def _pack(tau, bias_tau, bias_sd, noise, spread) -> Float[Array, " T"]:
+    """``θ = (log τ, log τ_b, log s_b, log v (6), log s (one, or one per column))``."""
+    return jnp.log(jnp.asarray([tau, bias_tau, bias_sd, *np.ravel(noise), *np.ravel(spread)]))
+
+
 def _unpack(theta):
-    """``θ = (log τ, log s, log τ_b, log s_b, log v)`` to its values, ``τ`` and the spreads
-    kept in their ranges."""
+    """:func:`_pack`'s ``θ`` to ``(τ, s, τ_b, s_b, v)``, the time constants and the spreads
+    kept in their ranges (``s`` (1,) or one per column)."""
     (t_lo, t_hi), (s_lo, s_hi) = np.log(TAU_RANGE), np.log(SPREAD_RANGE)
-    tau, bias_tau = (jnp.exp(jnp.clip(theta[i], t_lo, t_hi)) for i in (0, 2))
-    spread, bias_sd = (jnp.exp(jnp.clip(theta[i], s_lo, s_hi)) for i in (1, 3))
-    return tau, spread, bias_tau, bias_sd, jnp.exp(theta[4:])
+    tau, bias_tau = (jnp.exp(jnp.clip(theta[i], t_lo, t_hi)) for i in (0, 1))
+    bias_sd = jnp.exp(jnp.clip(theta[2], s_lo, s_hi))
+    spread = jnp.exp(jnp.clip(theta[3 + N_LOADS :], s_lo, s_hi))
+    return tau, spread, bias_tau, bias_sd, jnp.exp(theta[3 : 3 + N_LOADS])
 
 
 @jax.jit
 @highest
 def _neg_loglik(theta, args):
-    """Minus the prequential log likelihood per label of the bank with ``θ = (log τ, log s,
-    log v)`` and the other members' ``fast`` time constants over the held-out sequences."""
+    """Minus the prequential log likelihood per label of the bank with ``θ`` (:func:`_pack`)
+    and the other members' ``fast`` time constants over the held-out sequences."""
     (t, start, H, y, r, c0, sd), fast, share = args
     tau, spread, bias_tau, bias_sd, noise = _unpack(theta)
     bias_taus = jnp.concatenate([bias_tau[None], fast])
@@ -739,15 +789,15 @@ def _neg_loglik(theta, args):
     return -jnp.mean(ll)
 
 
-def _grid_start(args, v0) -> Float[Array, " 10"]:
-    """The best of a small grid of ``τ``, ``s``, ``τ_b`` and ``s_b``, with ``v`` at the
-    held-out variance."""
+def _grid_start(args, v0, n_spread: int = 1) -> Float[Array, " T"]:
+    """The best of a small grid of ``τ``, ``s`` (the same for the ``n_spread`` spreads),
+    ``τ_b`` and ``s_b``, with ``v`` at the held-out variance."""
     best, best_val = None, np.inf
-    log_v = np.log(np.maximum(v0, 1e-8))
+    v = np.maximum(v0, 1e-8)
     for tau, spread, bias_tau, bias_sd in itertools.product(
         (10.0, 60.0, 600.0), (0.1, 0.3, 1.0), (0.3, 3.0), (0.1, 1.0)
     ):
-        theta = jnp.asarray(np.log([tau, spread, bias_tau, bias_sd]).tolist() + log_v.tolist())
+        theta = _pack(tau, bias_tau, bias_sd, v, np.full(n_spread, spread))
         val = float(_neg_loglik(theta, args))
         if val < best_val:
             best, best_val = theta, val

@@ -198,9 +198,9 @@ def test_bank_against_numpy_and_relaxes_to_the_stationary_law(corrected, flights
 
 def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights):
     """The drift fitted on flights of different drag (each predicted from the other) against
-    its likelihood written here: the fitted θ is at least as likely as the grid's start and
-    as the default, and the likelihood is the filter's prequential one (a NumPy filter over
-    the same held-out residuals gives the same number)."""
+    its likelihood written here: the fitted θ is at least as likely as the grid's start, as
+    one spread for every column and as the default, and the likelihood is the filter's
+    prequential one (a NumPy filter over the same held-out residuals gives the same number)."""
     # ρ fitted: the physical terms' prior as PRIORS states it ("auto"), which fit_drift holds
     # out with
     assert corrected.config["flight_correction"]["basis_prior"]["factors"] == [1.0] * 6
@@ -208,28 +208,39 @@ def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights
     assert drift.source == "fitted" and drift.labels == N_LABELS
     assert drift.fast in tk.BANKS
     assert tk.TAU_RANGE[0] <= drift.tau <= tk.TAU_RANGE[1]
+    # a spread per column, named as the tracker orders them
+    assert drift.columns == ("prior", "simple", *TERMS) and len(drift.spread) == len(drift.columns)
+    spread = np.asarray(drift.spread)
     data, v0 = tk._held_out_sequences(corrected, flights, 1500)
     args = (data, jnp.asarray(drift.fast), drift.share)
-    theta = jnp.asarray(np.log([drift.tau, drift.spread, drift.bias_tau, drift.bias_sd,
-                                *drift.noise]))  # fmt: skip
-    # score_drift gives any drift the fit's number: the fitted one its own likelihood, one
-    # with another spread (the fit's optimum, so no higher) a likelihood of its own
+    theta = tk._pack(drift.tau, drift.bias_tau, drift.bias_sd, drift.noise, spread)
+    # score_drift gives any drift the fit's number: the fitted one its own likelihood; one
+    # spread for all (their geometric mean) or twice the spreads (the fit's optimum, so no
+    # higher) likelihoods of their own
     ll = tk.score_drift(corrected, flights, drift)
     np.testing.assert_allclose(ll, drift.log_likelihood, rtol=1e-9)
-    wider = tk.score_drift(corrected, flights, dataclasses.replace(drift, spread=2 * drift.spread))
-    assert wider < ll
+    uniform = dataclasses.replace(drift, spread=float(np.exp(np.log(spread).mean())), columns=())
+    for other in (uniform, dataclasses.replace(drift, spread=tuple(2 * spread))):
+        assert tk.score_drift(corrected, flights, other) < ll
+    np.testing.assert_allclose(  # one number is every column's
+        np.asarray(tk.track(corrected, uniform).model.tracker.spread), uniform.spread
+    )
     with pytest.raises(ValueError, match="wind state"):
         tk.score_drift(corrected, flights, tk.gusts(drift))
     with pytest.raises(ValueError, match="spread and bias_sd"):
-        tk.score_drift(corrected, flights, dataclasses.replace(drift, spread=1e3))
+        tk.score_drift(corrected, flights, dataclasses.replace(drift, spread=1e3, columns=()))
     with pytest.raises(ValueError, match="score_drift needs labels of two or more"):
         tk.score_drift(corrected, flights[:1], drift)
-    assert ll >= -float(tk._neg_loglik(tk._grid_start(args, v0), args)) - 1e-9
+    with pytest.raises(ValueError, match="one per column named in drift.columns"):
+        tk.track(corrected, dataclasses.replace(drift, columns=drift.columns[:-1]))
+    with pytest.raises(ValueError, match="but the model tracks"):
+        tk.track(corrected, dataclasses.replace(drift, columns=drift.columns[::-1]))
+    assert ll >= -float(tk._neg_loglik(tk._grid_start(args, v0, spread.size), args)) - 1e-9
     # one member (no fast ones): the likelihood is the filter's, written out here, each
     # label's law the held-out posterior of its part plus the drift
     one = (data, jnp.zeros(0), 0.0)
     t, start, H, y, r, c0, sd = (np.asarray(a) for a in data)
-    D = np.diag(np.concatenate([(drift.spread * sd) ** 2, [drift.bias_sd**2]]))
+    D = np.diag(np.concatenate([(spread * sd) ** 2, [drift.bias_sd**2]]))
     total = 0.0
     for j in range(6):
         for i in range(len(t)):

@@ -127,11 +127,14 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     assert u["bytes_start"] == u["bytes_end"] > ad["tracked_update"]["bytes_end"]
     gust = ad["tests"][1]
     assert gust["tracked_gusts_mse"] > 0 and gust["tracked_gusts_vertical_mse"] > 0
-    # the spread swept: each scored held out (the fitted one highest: fit_drift's optimum)
-    # and prequentially on both test flights
-    sweep = {s["spread"]: s["held_out_log_likelihood"] for s in ad["spread_sweep"]}
-    assert set(sweep) == {*cfg["track"]["spread_sweep"], ad["drift"]["spread"]}
-    assert max(sweep, key=sweep.get) == ad["drift"]["spread"]
-    for s in cfg["track"]["spread_sweep"]:
-        assert all(np.isfinite(r[f"tracked_spread_{s:g}_lpd_labels"]) for r in ad["tests"])
+    # a spread per column fitted; uniform spreads swept and one spread fitted beside it, each
+    # scored held out (the per-column fit highest: it nests them) and prequentially
+    assert ad["drift"]["columns"] and len(ad["drift"]["spread"]) == len(ad["drift"]["columns"])
+    assert isinstance(ad["one_spread"]["spread"], float)
+    sweep = {s["model"]: s["held_out_log_likelihood"] for s in ad["spread_sweep"]}
+    uniform = [f"tracked_spread_{s:g}" for s in cfg["track"]["spread_sweep"]]
+    assert set(sweep) == {*uniform, "tracked", "tracked_one_spread"}
+    assert sweep["tracked"] >= max(sweep.values()) - 1e-6
+    for m in [*uniform, "tracked_one_spread"]:
+        assert all(np.isfinite(r[f"{m}_lpd_labels"]) for r in ad["tests"])
     assert (tmp_path / "figures" / "prequential_along_flight.png").is_file()
