@@ -777,10 +777,11 @@ class _Fit:
         return out
 
 
-def _identified_file(cfg0, names, theta, se_theta, weak, physics, rpm_ref):
+def _identified_file(cfg0, names, theta, errors, weak, physics, rpm_ref):
     """The parameters' table, the identified vehicle file (``M``'s coefficients fitted to its
     hover; its motor's speed range in the identified curve's speeds), the motor curve's gain
-    and exponent, and the physics' settings (the wake gain)."""
+    and exponent, and the physics' settings (the wake gain). ``errors``: the free parameters'
+    standard errors with the considered ones' uncertainty, and the labels' alone (θ's units)."""
     params: dict[str, dict[str, Any]] = {}
     cfg = copy.deepcopy(cfg0)
     motor = {"motor.gain": 1.0, "motor.exponent": 1.0}
@@ -791,9 +792,10 @@ def _identified_file(cfg0, names, theta, se_theta, weak, physics, rpm_ref):
         if n in weak:
             th, se, se_data = 0.0, float(spec.prior), float(spec.prior)
         else:
-            th, se, se_data = float(theta[i]), float(se_theta[0][i]), float(se_theta[1][i])
-        factor = nominal * math.exp(th) if spec.kind == "scale" else 1.0
-        value = nominal * math.exp(th) if spec.kind == "scale" else nominal + th
+            th, se, se_data = float(theta[i]), float(errors[0][i]), float(errors[1][i])
+        scaled = nominal * math.exp(th)
+        factor = scaled if spec.kind == "scale" else 1.0  # θ's units to the value's
+        value = scaled if spec.kind == "scale" else nominal + th
         params[n] = {"value": value, "se": factor * se, "se_data": factor * se_data,
                      "nominal": nominal, "unit": spec.unit,
                      "identified": n not in weak}  # fmt: skip
