@@ -516,7 +516,7 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
   for (i = 0; i < N_OUT; i++) prior[i] = yn[i];
   track_columns(x, prior, h);
 #endif
-  corrected(x, xn, yn, 0.0, 0);
+  corrected(x, xn, yn, 0.0, 0, 0);
   for (i = 0; i < 3; i++) {{ f[i] = force[i]; tq[i] = torque[i]; }}
 #if HAS_ALLOCATION
   {{ /* the label's residual against M, world frame */

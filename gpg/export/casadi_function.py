@@ -142,6 +142,7 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
     if latent is not None:
         var = ca.fmax(latent, 0) * ca.DM(s.output_scale * c.scale**2)
     loads, extra = [ca.MX(0)] * 6, [ca.MX(0)] * 6
+    dl = [ca.MX(0)] * 6  # each δ's latent variance times its scale: in a tracked band
     for j, d in enumerate(c.deltas):
         m = d.points.shape[0]
         diff = (ca.repmat(xn.T, m, 1) - ca.DM(d.points)) / ca.repmat(ca.DM(d.lengthscale).T, m, 1)
@@ -152,7 +153,8 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
         v = d.sigma - ca.sumsqr(ca.mtimes(ca.DM(d.whiten), k))
         if d.post is not None:
             v = v + ca.sumsqr(ca.mtimes(ca.DM(d.post), k))
-        e = d.output_scale * (ca.fmax(v, 0) + d.noise)
+        dl[j] = d.output_scale * ca.fmax(v, 0)
+        e = dl[j] + d.output_scale * d.noise
         if c.G is not None:
             cols = ([prior[j]] if c.with_prior else []) + ([ms[j]] if c.with_simple else [])
             hb = ca.vertcat(*cols, h[j, :].T)
@@ -177,8 +179,8 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             mix = sum(w[k] * mk[k] for k in range(len(w)))
             loads[j] = loads[j] + mix
             second = sum(w[k] * (vk[k] + mk[k] ** 2) for k in range(len(w)))
-            # the loads' band is the filter's own (Corrected.predictive_variance)
-            extra[j] = ca.fmax(second - mix**2, 0) + r.noise[j]
+            # the loads' band: the filter's, v and δ's latent (Corrected.predictive_variance)
+            extra[j] = ca.fmax(second - mix**2, 0) + r.noise[j] + dl[j]
     mean = mean + ca.vertcat(*loads, ca.DM.zeros(s.n_outputs - 6))
     if var is not None and c.tracked is not None:
         var = ca.vertcat(*extra, var[6:])

@@ -521,7 +521,7 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
     if latent is not None:
         lat = g.op("Max", g.op("Cast", latent, to=DOUBLE), k64(0.0))
         var = g.mul(lat, g.const(s.output_scale * c.scale**2, "w", f64))
-    loads, extra = [], []
+    loads, extra, dl = [], [], []  # dl: each δ's latent variance, scaled (a tracked band's)
     for j, d in enumerate(c.deltas):
         x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
         diff = g.div(g.sub(x3, g.const(d.points, "pts", f64)), g.const(d.lengthscale, "ls", f64))
@@ -537,7 +537,8 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
         v = g.sub(k64(d.sigma), sq_norm(g.op("MatMul", k, g.const(d.whiten.T, "W", f64))))
         if d.post is not None:
             v = g.add(v, sq_norm(g.op("MatMul", k, g.const(d.post.T, "P", f64))))
-        e = g.mul(k64(d.output_scale), g.add(g.op("Max", v, k64(0.0)), k64(d.noise)))
+        dl.append(g.mul(k64(d.output_scale), g.op("Max", v, k64(0.0))))
+        e = g.add(dl[j], k64(d.output_scale * d.noise))
         if c.G is not None:
             hb = ([prior[j]] if c.with_prior else []) + ([ms[j]] if c.with_simple else [])
             r = g.sub(g.cat(hb + h[j]), g.op("MatMul", k, g.const(c.G[j], "G", f64)))
@@ -560,20 +561,21 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
         if var is not None:
             extra = [ev if not extra else g.add(extra[j], ev) for j, ev in enumerate(evs)]
     if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
-        loads, extra = _onnx_tracked(g, c, prior, ms, h, loads, k64)
+        loads, extra = _onnx_tracked(g, c, prior, ms, h, loads, k64, dl)
     if loads:
         mean = g.add(mean, pad(loads))
-    if var is not None and c.tracked is not None:  # the loads' band is the filter's own
+    if var is not None and c.tracked is not None:  # the loads' band: the filter's, v, δ's latent
         var = g.cat(extra + [g.col(var, i) for i in range(6, m_out)])
     elif var is not None and extra:
         var = g.add(var, pad(extra))
     return mean, var
 
 
-def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, k64):
+def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, k64, dl):
     """The tracked drift at its exported state: each load's mean with the members' mixture of
-    ``hᵀ w̄`` added, and its band ``hᵀ Σ h`` with the members' spread plus ``v`` (six (N, 1)
-    columns each, ``Corrected.predictive_variance`` with a tracker)."""
+    ``hᵀ w̄`` added, and its band ``hᵀ Σ h`` with the members' spread plus ``v`` and each
+    ``δ``'s latent variance ``dl`` (six (N, 1) columns each, or none without the variance;
+    ``Corrected.predictive_variance`` with a tracker)."""
     f64 = np.float64
     r, w = c.tracked, np.exp(c.tracked.log_weight)
     one = g.mul(prior[0], k64(0.0))
@@ -590,7 +592,8 @@ def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, k64):
             mix, second = (a, b) if mix is None else (g.add(mix, a), g.add(second, b))
         new_loads.append(mix if not loads else g.add(loads[j], mix))
         spread = g.op("Max", g.sub(second, g.sq(mix)), k64(0.0))
-        band.append(g.add(spread, k64(r.noise[j])))
+        b = g.add(spread, k64(r.noise[j]))
+        band.append(g.add(b, dl[j]) if dl else b)
     return new_loads, band
 
 

@@ -225,8 +225,9 @@ class Corrected(Predictor):
     are followed online, :mod:`gpg.flight.tracking`); :meth:`predictive_variance` turns it into
     the per-output predictive variance ``ρ² var_prior + var_δ + var_η + var_β + var_w``: the
     prior's latent variance (its value noise is the simulator data's), each ``δ``'s with its
-    own value noise (the flights'), ``η``'s, ``Rᵀ A⁻¹ R`` of the coefficients, and
-    ``hᵀ Σ_w h`` of their tracked drift.
+    own value noise (the flights'), ``η``'s, ``Rᵀ A⁻¹ R`` of the coefficients; where they are
+    tracked, ``hᵀ Σ_w h`` of their drift, its noise ``v`` and each ``δ``'s latent variance in
+    place of the prior's, the coefficients' and ``δ``'s ``ν²``.
 
     Attributes:
         prior: the simulator-trained predictor.
@@ -472,7 +473,8 @@ class Corrected(Predictor):
         ``ρ² var_prior`` scaled by the prior's output scale, plus each ``δ``'s predictive
         variance (its own value noise, the flights', included), ``η``'s and the coefficients',
         on the load outputs. A tracked model's loads have the filter's band instead: the
-        tracked drift's ``hᵀ Σ h`` plus its discrepancy ``v`` (:mod:`gpg.flight.tracking`).
+        tracked drift's ``hᵀ Σ h`` plus its extra noise ``v`` (:mod:`gpg.flight.tracking`) and
+        each ``δ``'s latent variance without its ``ν²``.
 
         Args:
             var: (..., V) the latent variance parts.
@@ -507,27 +509,49 @@ class Corrected(Predictor):
             )
             at += N_LOADS
         if self.tracker is not None:
-            # The tracked model's band on the loads is the filter's own: hᵀΣh plus the
-            # discrepancy v its drift was fitted with (what the held-out flights left after
-            # tracking), in place of the offline δ's and the prior's latent parts, which
-            # stood for errors the tracked coefficients now follow.
+            # The tracked model's band on the loads: the filter's hᵀΣh and the extra noise v
+            # its drift was fitted with, plus each δ's own latent variance. The tracked
+            # coefficients follow what the basis spans, so they take the place of the prior's
+            # latent part, the coefficients' offline share and δ's value noise ν² (which v
+            # stands for); δ's mean is still added, and what it does not know away from the
+            # flights (a state the basis does not span) still is not known.
             tracked = jnp.maximum(var[..., at - N_LOADS : at], 0.0) + self.tracker.noise
+            if nd:
+                tracked = tracked + self._delta_latent(var)
             out = jnp.concatenate([tracked, out[..., N_LOADS:]], axis=-1)
         return out
 
-    def mean_view(self) -> Corrected:
+    def _delta_latent(self, var: Float[ArrayLike, "*Q V"]) -> Float[Array, "*Q 6"]:
+        """Each ``δ``'s latent variance times its output scale (no ``ν²``), per load output,
+        from the latent parts ``var`` of :meth:`mean_var_one`."""
+        var = jnp.asarray(var)
+        parts = [jnp.maximum(var[..., 1 + j], 0.0) * d.output_scale[0]
+                 for j, d in enumerate(self.delta)]  # fmt: skip
+        return jnp.stack(parts, axis=-1)
+
+    def _delta_latent_at(self, x: Float[Array, " D"]) -> Float[Array, " 6"]:
+        """:meth:`_delta_latent` at one normalised query, the discrepancies alone (not the
+        prior's variance); zeros without them."""
+        if not self.delta:
+            return jnp.zeros(N_LOADS)
+        parts = [jnp.maximum(jnp.reshape(d.mean_var_one(x)[1], ()), 0.0) * d.output_scale[0]
+                 for d in self.delta]  # fmt: skip
+        return jnp.stack(parts)
+
+    def mean_view(self, keep_delta: bool = False) -> Corrected:
         """This model with the prior and each ``δ`` reduced to what their means read.
 
         For mean-only loops (:func:`online_step`); its variance is not to be used.
 
+        Args:
+            keep_delta: keep each ``δ`` whole (:meth:`_delta_latent_at` reads its variance:
+                the wind state's update does).
+
         Returns:
             The corrected model over the mean views.
         """
-        return eqx.tree_at(
-            lambda c: (c.prior, c.delta),
-            self,
-            (self.prior.mean_view(), tuple(d.mean_view() for d in self.delta)),
-        )
+        delta = self.delta if keep_delta else tuple(d.mean_view() for d in self.delta)
+        return eqx.tree_at(lambda c: (c.prior, c.delta), self, (self.prior.mean_view(), delta))
 
 
 def base(sur: Surrogate) -> Surrogate:
@@ -822,9 +846,9 @@ def _held_out_scale(
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
     if not parts:
         return 1.0, 0.0, []
-    e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, _, _ in parts])
-    v = np.concatenate([var for _, _, var, _ in parts])
-    n = np.concatenate([noise[te] for te, _, _, _ in parts])
+    e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, *_ in parts])
+    v = np.concatenate([var for _, _, var, *_ in parts])
+    n = np.concatenate([noise[te] for te, *_ in parts])
 
     def excess(c: float) -> float:
         return float(np.mean(e2 / (c * v + n))) - 1.0
@@ -837,7 +861,7 @@ def _held_out_scale(
     # The worst-predicted flight's score: a prior that predicts the flights within the others'
     # conditions well and the one beyond them badly is the one not to extrapolate with.
     worst, coverage = -np.inf, []
-    for te, mean, var, _ in parts:
+    for te, mean, var, *_ in parts:
         s2 = c * var + noise[te]
         e2g = (y[te] - mean) ** 2
         worst = max(worst, float(np.mean(0.5 * np.log(2.0 * np.pi * s2) + 0.5 * e2g / s2)))
@@ -862,10 +886,11 @@ def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None):
     ``predict`` names the groups to predict (default: every one).
 
     Returns:
-        A list of ``(mask, mean, variance, cov)``: the group's rows, their held-out mean and
-        latent variance (the discrepancy's, its ``ν²`` and the coefficients'; not the labels'
-        noise), and the coefficients' posterior covariance without the group (P, P).
-        A group whose complement has fewer than 8 labels is left out.
+        A list of ``(mask, mean, variance, cov, latent)``: the group's rows, their held-out
+        mean and latent variance (the discrepancy's, its ``ν²`` and the coefficients'; not the
+        labels' noise), the coefficients' posterior covariance without the group (P, P), and
+        the discrepancy's own latent variance alone (its posterior's, without ``ν²`` or the
+        coefficients'). A group whose complement has fewer than 8 labels is left out.
     """
     from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
@@ -889,8 +914,9 @@ def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None):
         mean = H[te] @ beta + kq @ (Kiy - KiH @ beta)
         v = solve_triangular(np.tril(L[0]), kq.T, lower=True)
         r = H[te] - kq @ KiH
-        var = np.maximum(s2 - np.sum(v * v, 0), 0) + nu + np.sum((r @ chol) ** 2, 1)
-        out.append((te, mean, var, chol @ chol.T))
+        latent = np.maximum(s2 - np.sum(v * v, 0), 0)
+        var = latent + nu + np.sum((r @ chol) ** 2, 1)
+        out.append((te, mean, var, chol @ chol.T, latent))
     return out
 
 
@@ -1281,7 +1307,10 @@ def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_va
 
     def wind_rows(g):
         x, prior_mean, resid, r = rows(g)
-        return resid, r, columns(state, x, prior_mean)
+        # The wind's innovation counts what δ does not know at the label (the tracked band
+        # has it): without it the wind state takes δ's errors for wind. The coefficients'
+        # gain leaves it out, as their drift was fitted.
+        return resid, r + m._delta_latent_at(x), columns(state, x, prior_mean)
 
     g = 0.0
     if getattr(state, "wind_mean", None) is not None:
@@ -1330,8 +1359,9 @@ def online_step(sur: Surrogate) -> Callable[..., Online | eqx.Module]:
 
     ``step(state, t, rpm, euler, v_air, force, torque, force_var, torque_var) -> state`` is
     :func:`update` on the online state alone (:class:`Online` or the tracked coefficients').
-    The offline model's arrays are flattened once here (the mean's only), not at every call,
-    and only the small online state goes in and out; :func:`with_online` puts a state back
+    The offline model's arrays are flattened once here (the mean's only, and the
+    discrepancies' variance where the state has a wind), not at every call, and only the
+    small online state goes in and out; :func:`with_online` puts a state back
     into the surrogate for predictions.
 
     Args:
@@ -1344,8 +1374,10 @@ def online_step(sur: Surrogate) -> Callable[..., Online | eqx.Module]:
     Raises:
         ValueError: ``sur`` carries no online state.
     """
-    online_state(sur, "online_step")
-    offline = eqx.tree_at(lambda s: s.model, sur, offline_model(sur.model).mean_view())
+    state = online_state(sur, "online_step")
+    # A wind state's update reads the discrepancies' variance at the label (advance)
+    wind = getattr(state, "wind_mean", None) is not None
+    offline = eqx.tree_at(lambda s: s.model, sur, offline_model(sur.model).mean_view(wind))
     leaves, treedef = jax.tree_util.tree_flatten(offline)
     leaves = tuple(leaves)
     fn = _online_step_fn(treedef)

@@ -22,9 +22,12 @@ for the regression form and the bias), ``σ_B`` their prior standard deviations
 a term the flights do not move stays near its offline value) and ``s_b`` the bias's. A
 flight starts from ``N(0, Σ_∞)``; each label is one rank-one update per output. Cost per
 label ``O(P²)`` per output (``P = 9`` with ``M``), fixed memory, pure for ``lax.scan``.
-The prediction adds ``hᵀ w̄`` to the offline mean; its band on the loads is the filter's own,
-``hᵀ Σ h + v``: the offline coefficients' share and the discrepancy's are in it, so the band
-narrows as the flight tells the coefficients and widens where the columns grow (a faster wind).
+The prediction adds ``hᵀ w̄`` to the offline mean; its band on the loads is the filter's
+``hᵀ Σ h + v`` plus the discrepancy's latent variance: the offline coefficients' share is in
+``Σ`` (it starts there), so the band narrows as the flight tells the coefficients and widens
+where the columns grow (a faster wind); the discrepancy's share widens it away from the
+flights' states, which the coefficients, spanning only the basis, do not learn. ``v`` takes
+the place of the discrepancy's value noise ``ν²``.
 
 :func:`fit_drift` fits ``τ``, ``s``, ``τ_b``, ``s_b`` and ``v`` by maximising the prequential
 likelihood (each label predicted before the filter sees it) of training flights, each predicted
@@ -38,10 +41,11 @@ With :func:`gusts` the filter also follows a wind state ``g``: the air's deviati
 logged ``v_air`` (world, m/s), an Ornstein-Uhlenbeck process of its own (``τ_g``, stationary
 standard deviations per axis). Each label first conditions ``g`` by a Kalman step linearised at
 ``ḡ`` (``H`` the prediction's derivative in ``g``, by ``jax.jacfwd``; the innovation's
-covariance ``H P_g Hᵀ`` plus the label's noise, ``v`` and the coefficients' band ``hᵀΣh``), then
-the coefficients at ``v_air + ḡ``: two filters in turn on one label, the cross-covariance
-between them dropped. A prediction reads the wind-free model at ``v_air + ḡ`` and adds
-``diag(J P_g Jᵀ)`` to the loads' variance (:meth:`gpg.flight.Corrected.wind_state`).
+covariance ``H P_g Hᵀ`` plus the label's noise, ``v``, the coefficients' band ``hᵀΣh`` and the
+discrepancy's latent variance), then the coefficients at ``v_air + ḡ``: two filters in turn
+on one label, the cross-covariance between them dropped. A prediction reads the wind-free
+model at ``v_air + ḡ`` and adds ``diag(J P_g Jᵀ)`` to the loads' variance
+(:meth:`gpg.flight.Corrected.wind_state`).
 :func:`prequential` runs any adapted model over a flight and returns what it predicted before
 each update.
 """
@@ -391,7 +395,9 @@ def default_drift(sur: Surrogate) -> Drift:
     """The drift for a vehicle never flown: ``τ`` = :data:`DEFAULT_TAU`, ``s`` =
     :data:`DEFAULT_SPREAD`, and ``v_j`` the discrepancy's own prior variance (its signal
     variance and value noise, times its output scale) where the model is corrected, else a
-    tenth of the data's variance.
+    tenth of the data's variance. Conservative: without flights held out to tell it, ``v``
+    slows the filter to what the discrepancy could be anywhere (``ν²`` alone adapted faster
+    and erred more), and the band holds the discrepancy's latent variance besides.
 
     Args:
         sur: the model to track.
@@ -567,7 +573,9 @@ def fit_drift(
     labels' name), else the physical basis and discrepancy fitted on the other parts (with
     ``sur``'s discrepancy hyperparameters, the coefficients integrated out as in
     ``correct(basis="physical")``). The filter runs over it from the stationary law,
-    restarting at each flight (where the time runs back). ``τ``, ``s`` (one per basis column,
+    restarting at each flight (where the time runs back), each label's noise its own plus
+    that model's discrepancies' latent variance there (as the tracked band has them).
+    ``τ``, ``s`` (one per basis column,
     ``per_column``), the first member's ``τ_b``, ``s_b`` and ``v`` maximise the sum of the
     bank's one-step-ahead log densities (optimistix BFGS on their logarithms, from the best of
     a small grid, one ``s`` for all columns there); the ``fast``
@@ -695,8 +703,9 @@ def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int,
 def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
     """Every label's residual against a model that did not see its part (``sur`` itself where
     its correction did not take the part, by name; else the basis fitted without it), with
-    that model's coefficient covariance, the columns, noise, time and whether a flight starts
-    there; and each output's mean held-out variance (the start of ``v``)."""
+    that model's coefficient covariance, the columns, the label's noise, time, whether a flight
+    starts there and that model's discrepancies' latent variance there; and each output's mean
+    held-out variance (the start of ``v``)."""
     prior = fc.base(sur)
     if sum(len(p) for p in parts) > max_labels:
         k = max(2, max_labels // len(parts))
@@ -721,18 +730,28 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
     seen = set(sur.config.get("flight_correction", {}).get("flights", []))
     refit = [g for g, lab in enumerate(parts) if lab.name in seen]
     unseen = ~np.isin(groups, refit)
+    # The latent variance of the discrepancy that predicts each label: in the tracked band
+    # (Corrected.predictive_variance), so in the density the fit scores, though not in the
+    # filter's gain (the update on board does not pay for δ's variance at every label).
+    DL = np.zeros(Y.shape)
     for j, d in enumerate(sur.model.delta):
         outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd_j[j], groups, refit)
-        for te, mean, _, cov in outs:
+        for te, mean, _, cov, latent in outs:
             resid[te, j] = Y[te, j] - mean
             c0[te, j, :p, :p] = cov
+            DL[te, j] = float(d.output_scale[0]) * latent
         # v starts at the held-out variance, or at the discrepancy's own where none was refit
-        var = [v for _, _, v, _ in outs] or [np.atleast_1d(d.hyper.variance + d.hyper.noise)]
+        var = [v for _, _, v, *_ in outs] or [np.atleast_1d(d.hyper.variance + d.hyper.noise)]
         v0[j] = np.mean(np.concatenate(var))
     if unseen.any():
         own = fc.offline_model(sur.model)
-        mean = jax.vmap(lambda x: own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS])
-        resid[unseen] = Y[unseen] - np.asarray(mean(jnp.asarray(X[unseen])))
+
+        def mean_latent(x):  # one program for both; δ's variance alone, not the prior's
+            return own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS], own._delta_latent_at(x)
+
+        mean, latent = jax.vmap(mean_latent)(jnp.asarray(X[unseen]))
+        resid[unseen] = Y[unseen] - np.asarray(mean)
+        DL[unseen] = np.asarray(latent)
         c0[unseen] = _offline_cov(own, p + 1, ms is not None)
     keep = np.all(np.isfinite(resid), 1)
     start = np.ones(len(t), bool)
@@ -740,7 +759,7 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
     start = start[keep]
     start[0] = True
     Ht = np.concatenate([H, np.broadcast_to(bias[None, :, None], (len(H), N_LOADS, 1))], 2)
-    rows = (t[keep], start, Ht[keep], resid[keep], V[keep], c0[keep], sd)
+    rows = (t[keep], start, Ht[keep], resid[keep], V[keep], c0[keep], sd, DL[keep])
     return tuple(jnp.asarray(a) for a in rows), v0
 
 
@@ -763,8 +782,11 @@ def _unpack(theta):
 @highest
 def _neg_loglik(theta, args):
     """Minus the prequential log likelihood per label of the bank with ``θ`` (:func:`_pack`)
-    and the other members' ``fast`` time constants over the held-out sequences."""
-    (t, start, H, y, r, c0, sd), fast, share = args
+    and the other members' ``fast`` time constants over the held-out sequences: the filter
+    as it runs (its gain and its members' weights from the label's noise and ``v``), scored
+    by the density of its band (the discrepancies' latent variance ``dl`` added, as the
+    tracked model predicts)."""
+    (t, start, H, y, r, c0, sd, dl), fast, share = args
     tau, spread, bias_tau, bias_sd, noise = _unpack(theta)
     bias_taus = jnp.concatenate([bias_tau[None], fast])
     k, p = bias_taus.shape[0], sd.shape[0] + 1
@@ -774,18 +796,21 @@ def _neg_loglik(theta, args):
 
     def body(carry, row):
         mean, cov, lw, t_prev = carry
-        ti, st, h, yi, ri, ci = row
+        ti, st, h, yi, ri, ci, di = row
         stat = ci + drift  # the law each row's group returns to
         a = _rates(jnp.maximum(ti - t_prev, 0.0), tau, bias_taus, p - 1)
         mean, cov = _relax_bank(mean, cov, a, stat)
         cov0 = jnp.broadcast_to(stat, cov.shape)
         mean, cov, lw = (jnp.where(st, x0, x) for x, x0 in ((mean, mean0), (cov, cov0), (lw, lw0)))
+        s = jnp.einsum("jp,kjpq,jq->kj", h, cov, h) + ri + noise + di
+        e = yi - jnp.einsum("jp,kjp->kj", h, mean)
+        _, total = _reweigh(lw, jnp.sum(-0.5 * (jnp.log(2 * jnp.pi * s) + e**2 / s), 1), share)
         mean, cov, ll = _measure_bank(mean, cov, h, yi, ri + noise)
-        lw, total = _reweigh(lw, jnp.sum(ll, 1), share)
+        lw, _ = _reweigh(lw, jnp.sum(ll, 1), share)
         return (mean, cov, lw, ti), total
 
     cov_init = jnp.broadcast_to(c0[0] + drift, (k, N_LOADS, p, p))
-    _, ll = jax.lax.scan(body, (mean0, cov_init, lw0, t[0]), (t, start, H, y, r, c0))
+    _, ll = jax.lax.scan(body, (mean0, cov_init, lw0, t[0]), (t, start, H, y, r, c0, dl))
     return -jnp.mean(ll)
 
 

@@ -77,7 +77,8 @@ def test_filter_is_the_batch_posterior(corrected, flights):
     regression's batch posterior of the residuals on the columns, prior N(0, C₀ + S) (C₀ the
     offline posterior's covariance of the basis's coefficients, S = diag(s² σ_B², s_b²)), noise
     the labels' own plus v; inside lax.scan and once a step from Python alike; the prediction
-    adds hᵀw̄ to the offline mean, and its band on the loads is hᵀΣh + v."""
+    adds hᵀw̄ to the offline mean, and its band on the loads is hᵀΣh + v plus each δ's latent
+    variance (the offline model's, times its output scale)."""
     drift = tk.Drift(tau=1e12, spread=0.5, noise=(0.01,) * 6, bias_tau=1e12, bias_sd=0.7)
     sur = tk.track(corrected, drift, t0=0.0)
     lab = flights[1]
@@ -116,7 +117,10 @@ def test_filter_is_the_batch_posterior(corrected, flights):
     mean0, var0 = _mean_var(corrected.model, jnp.asarray(x))
     np.testing.assert_allclose(np.asarray(mean - mean0)[:6], np.sum(h * st.mean[0], 1), rtol=1e-9)
     pv = np.asarray(tracked.model.predictive_variance(var))
-    band = np.einsum("jp,jpq,jq->j", h, st.cov[0], h) + 0.01
+    latent = np.array([float(var0[1 + j]) * float(d.output_scale[0])
+                       for j, d in enumerate(corrected.model.delta)])  # fmt: skip
+    assert np.all(latent > 0)
+    band = np.einsum("jp,jpq,jq->j", h, st.cov[0], h) + 0.01 + latent
     np.testing.assert_allclose(pv[:6], band, rtol=1e-9)
     pv0 = np.asarray(corrected.model.predictive_variance(var0))
     np.testing.assert_allclose(pv[6:], pv0[6:], rtol=1e-12)  # the levels keep the prior's
@@ -239,7 +243,7 @@ def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights
     # one member (no fast ones): the likelihood is the filter's, written out here, each
     # label's law the held-out posterior of its part plus the drift
     one = (data, jnp.zeros(0), 0.0)
-    t, start, H, y, r, c0, sd = (np.asarray(a) for a in data)
+    t, start, H, y, r, c0, sd, dl = (np.asarray(a) for a in data)
     D = np.diag(np.concatenate([(spread * sd) ** 2, [drift.bias_sd**2]]))
     total = 0.0
     for j in range(6):
@@ -254,19 +258,26 @@ def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights
                 m, C = a * m, np.outer(a, a) * (C - S) + S
             s = H[i, j] @ C @ H[i, j] + r[i, j] + drift.noise[j]
             e = y[i, j] - H[i, j] @ m
-            total += -0.5 * (np.log(2 * np.pi * s) + e**2 / s)
+            band = s + dl[i, j]  # the density is the band's, δ's latent variance in it
+            total += -0.5 * (np.log(2 * np.pi * band) + e**2 / band)
             k = C @ H[i, j] / s
             m, C = m + k * e, C - np.outer(k, C @ H[i, j])
     np.testing.assert_allclose(-float(tk._neg_loglik(theta, one)), total / len(t), rtol=1e-7)
     # a part the model was not corrected on (by its name) is predicted by the model itself
     other = dataclasses.replace(flights[1], name="not corrected on")
     seq, _ = tk._held_out_sequences(corrected, [flights[0], other], 1500)
-    X, Y, _ = fc.training_rows(corrected, other)
+    X, Y, V = fc.training_rows(corrected, other)
     own = corrected.model
     expect = (
         Y - np.asarray(jax.vmap(lambda x: own.offline_mean(x, own.prior.mean_one(x)))(X))[:, :6]
     )
     np.testing.assert_allclose(seq[3][-len(flights[1]) :], expect, rtol=1e-9, atol=1e-12)
+    # its labels' noise, and the model's δ latent variances there (in the band's density)
+    parts = np.stack([np.asarray(_mean_var(own, jnp.asarray(x))[1]) for x in X])
+    latent = parts[:, 1:7] * np.array([float(d.output_scale[0]) for d in own.delta])
+    np.testing.assert_allclose(seq[4][-len(flights[1]) :], V, rtol=1e-12)
+    np.testing.assert_allclose(seq[7][-len(flights[1]) :], latent, rtol=1e-9)
+    assert np.all(np.asarray(seq[7]) > 0)  # the held-out part's too
     with pytest.raises(ValueError, match="two or more"):
         tk.fit_drift(corrected, flights[:1])
     with pytest.raises(ValueError, match="corrected by gpg.flight.correct"):
@@ -314,9 +325,10 @@ def test_track_checks_and_composes(synthetic_surrogate, corrected, flights):
     with pytest.raises(ValueError, match="share must be"):
         tk.track(corrected, tk.Drift(tau=1.0, spread=1.0, noise=(0.0,) * 6, share=1.0))
     d = tk.default_drift(corrected)
+    d0 = corrected.model.delta[0]
     assert d.noise[0] == pytest.approx(
-        float((corrected.model.delta[0].hyper.variance + corrected.model.delta[0].hyper.noise)
-              * corrected.model.delta[0].output_scale[0]))  # fmt: skip
+        float((d0.hyper.variance + d0.hyper.noise) * d0.output_scale[0])
+    )
     lab = flights[0]
     s = fc.update_jit(plain, *(c[0] for c in lab.columns()))
     v = jnp.asarray(lab.v_air[:4])
@@ -436,16 +448,19 @@ def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
     """gusts(): the wind state g relaxes as an OU process (τ_g) and conditions on a label by
     the Kalman step linearised at ḡ: H the prediction's derivative in g (central
     differences of the residual here, step 1e-4 m/s: truncation ~1e-8 of H), the innovation's
-    covariance H P Hᵀ plus the label's noise, v and the coefficients' band hᵀΣh; the
-    coefficients are then updated at v_air + ḡ. A wind_sd that is not three numbers >= 0 is
-    refused by name, and so is the export."""
+    covariance H P Hᵀ plus the label's noise, v, the coefficients' band hᵀΣh and each δ's
+    latent variance; the
+    coefficients are then updated at v_air + ḡ; online_step's update is the same. A wind_sd
+    that is not three numbers >= 0 is refused by name, and so is the export."""
     sur = tk.track(corrected, _wind_drift(), t0=float(flights[1].t[0]) - 0.3)
     lab = flights[1]
     new = fc.update_jit(sur, *_shifted(lab, 0, 0.0)).model.tracker
     tr = sur.model.tracker
     P = np.diag(np.asarray(tr.wind_sd) ** 2)  # the start is the stationary law: relaxing keeps it
     eps = 1e-4
-    _, e, r, h = _rows(sur, lab, 0)
+    x, e, r, h = _rows(sur, lab, 0)
+    os = np.array([float(d.output_scale[0]) for d in corrected.model.delta])
+    latent = np.asarray(_mean_var(corrected.model, jnp.asarray(x))[1])[1:7] * os
     J = np.zeros((6, 3))
     for k in range(3):
         d = np.eye(3)[k] * eps
@@ -455,10 +470,14 @@ def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
     H = -J
     cov = np.asarray(tr.cov[0])  # stationary, so the relaxed coefficients' law too
     band = np.einsum("jp,jpq,jq->j", h, cov, h)
-    S = H @ P @ H.T + np.diag(r + 0.01 + band)
+    S = H @ P @ H.T + np.diag(r + 0.01 + band + latent)
     gain = P @ H.T @ np.linalg.inv(S)
     np.testing.assert_allclose(new.wind_mean, gain @ e, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(new.wind_cov, P - gain @ H @ P, rtol=1e-6, atol=1e-9)
+    # once a step from Python: the offline model's mean view keeps δ's variance for the wind
+    once = fc.online_step(sur)(fc.online_state(sur), *_shifted(lab, 0, 0.0))
+    np.testing.assert_allclose(once.wind_mean, new.wind_mean, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(once.mean, new.mean, rtol=1e-10, atol=1e-14)
     # relaxing from the label's posterior: ḡ ← a ḡ, P_g ← a² (P_g − S) + S, a = e^{−Δt/τ_g}
     later = new.relaxed(float(new.t) + 0.7)
     a = np.exp(-0.7 / 2.0)

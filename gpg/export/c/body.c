@@ -295,13 +295,18 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   (void)b; (void)nr; (void)latent;
 #if HAS_TRACKER
   double prior[N_OUT]; /* the tracked columns read the prior's mean */
+  double dl[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0}; /* each delta's latent variance, its scale */
   for (j = 0; j < N_OUT; j++) prior[j] = yn[j];
 #endif
 #if HAS_CORR
-  corrected(x, xn, yn, latent, variance ? pvn : 0);
+#if HAS_TRACKER
+  corrected(x, xn, yn, latent, variance ? pvn : 0, variance ? dl : 0);
+#else
+  corrected(x, xn, yn, latent, variance ? pvn : 0, 0);
+#endif
 #endif
 #if HAS_TRACKER
-  if (st) tracker_eta(st, x, prior, yn, variance ? pvn : 0);
+  if (st) tracker_eta(st, x, prior, yn, variance ? pvn : 0, dl);
 #elif HAS_ONLINE
   if (st) online_eta(st, xn, yn, variance ? pvn : 0);
 #endif

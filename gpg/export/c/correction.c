@@ -167,7 +167,7 @@ static double tri_sq(const treal *T, const double *k, int m) {
 #endif
 
 static void corrected(const double x[D_IN], const double xn[D_IN], double yn[N_OUT],
-                      double latent, double *pv) {
+                      double latent, double *pv, double *dl) {
   double prior[N_OUT], ms[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0}, h[6][N_TERMS > 0 ? N_TERMS : 1];
 #if N_DELTA
   double k[DELTA_MAX];
@@ -193,6 +193,7 @@ static void corrected(const double x[D_IN], const double xn[D_IN], double yn[N_O
     if (pv) {
       double v = DELTA_SIGMA[j] - tri_sq(DELTA_TRI + DELTA_TRI_OFF[j], k, DELTA_N[j]);
       pv[j] += DELTA_OS[j] * ((v > 0.0 ? v : 0.0) + DELTA_NU[j]);
+      if (dl) dl[j] = DELTA_OS[j] * (v > 0.0 ? v : 0.0); /* in a tracked model's band */
 #if N_INTEGRATED
       {
         double hb[N_INTEGRATED], r[N_INTEGRATED], u;
@@ -216,5 +217,5 @@ static void corrected(const double x[D_IN], const double xn[D_IN], double yn[N_O
 #endif
   }
 #endif
-  (void)ms; (void)h; (void)t; (void)latent;
+  (void)ms; (void)h; (void)t; (void)latent; (void)dl;
 }
