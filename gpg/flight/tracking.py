@@ -573,12 +573,12 @@ def fit_drift(
     labels' name), else the physical basis and discrepancy fitted on the other parts (with
     ``sur``'s discrepancy hyperparameters, the coefficients integrated out as in
     ``correct(basis="physical")``). The filter runs over it from the stationary law,
-    restarting at each flight (where the time runs back), each label's noise its own plus
-    that model's discrepancies' latent variance there (as the tracked band has them).
-    ``τ``, ``s`` (one per basis column,
-    ``per_column``), the first member's ``τ_b``, ``s_b`` and ``v`` maximise the sum of the
-    bank's one-step-ahead log densities (optimistix BFGS on their logarithms, from the best of
-    a small grid, one ``s`` for all columns there); the ``fast``
+    restarting at each flight (where the time runs back), its gain from each label's own
+    noise and ``v`` as in flight. ``τ``, ``s`` (one per basis column, ``per_column``), the
+    first member's ``τ_b``, ``s_b`` and ``v`` maximise the sum of the one-step-ahead log
+    densities of the bank's band, which adds the latent variance of that model's
+    discrepancies at each label as the tracked band does (optimistix BFGS on their
+    logarithms, from the best of a small grid, one ``s`` for all columns there); the ``fast``
     members keep their bias time constants (steady training flights cannot tell them: a gust
     can, and the bank's weights decide in flight).
 
