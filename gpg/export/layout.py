@@ -30,6 +30,7 @@ from gpg._version import __version__
 from gpg.gp.binned import BinnedGP, near_rows
 from gpg.gp.exact import ExactGP
 from gpg.gp.hybrid import HybridGP
+from gpg.gp.inducing import variance_factor
 from gpg.gp.mean import GlobalMean
 from gpg.gp.partition import Partition
 from gpg.names import AERO
@@ -134,30 +135,16 @@ class Discrepancy:
     post: np.ndarray | None
 
     def variance_factor(self) -> np.ndarray | None:
-        """One lower triangle ``T`` with ``‖T k‖² = ‖W k‖² − ‖P k‖²`` for every ``k``: the
-        latent variance's two triangles as one (``W`` itself for an exact GP), half the
+        """One lower triangle ``T`` with ``‖T k‖² = ‖W k‖² − ‖P k‖²`` for every ``k``
+        (:func:`gpg.gp.inducing.variance_factor`; ``W`` itself for an exact GP): half the
         products a query.
-
-        With ``P = L_B⁻¹ W``, ``WᵀW − PᵀP = Wᵀ(I − B⁻¹)W``, and ``B⁻¹ = SᵀS`` for
-        ``S = P W⁻¹ = L_B⁻¹`` (``W⁻¹`` is ``K_mm``'s Cholesky factor, of entries at most
-        ``√σ``). ``I − B⁻¹ = U diag(1 − e) Uᵀ`` from the eigenvalues ``e`` of ``SᵀS`` in
-        (0, 1], so ``F = diag(√(1 − e)) Uᵀ W`` has ``FᵀF = WᵀW − PᵀP`` without the difference
-        of two large matrices being formed; ``T`` is the triangle of ``F``'s QL
-        decomposition (a QR of ``F`` with its columns reversed), ``TᵀT = FᵀF``.
 
         Returns:
             (m, m) ``T``, lower triangular, or None (mean only).
         """
         if self.whiten is None or self.post is None:
             return self.whiten
-        from scipy.linalg import solve_triangular
-
-        W = self.whiten
-        S = self.post @ solve_triangular(W, np.eye(W.shape[0]), lower=True)
-        e, U = np.linalg.eigh(S.T @ S)
-        F = np.sqrt(np.clip(1.0 - e, 0.0, None))[:, None] * (U.T @ W)
-        R = np.linalg.qr(F[:, ::-1], mode="r")
-        return np.tril(R[::-1, ::-1])
+        return variance_factor(self.whiten, self.post)
 
 
 @dataclass(frozen=True)

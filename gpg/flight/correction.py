@@ -544,14 +544,29 @@ class Corrected(Predictor):
         For mean-only loops (:func:`online_step`); its variance is not to be used.
 
         Args:
-            keep_delta: keep each ``δ`` whole (:meth:`_delta_latent_at` reads its variance:
-                the wind state's update does).
+            keep_delta: keep each ``δ``'s variance (:meth:`_delta_latent_at` reads it: the
+                wind state's update does), as :meth:`variance_views` gives it.
 
         Returns:
             The corrected model over the mean views.
         """
-        delta = self.delta if keep_delta else tuple(d.mean_view() for d in self.delta)
+        delta = self.variance_views().delta if keep_delta else (
+            tuple(d.mean_view() for d in self.delta))  # fmt: skip
         return eqx.tree_at(lambda c: (c.prior, c.delta), self, (self.prior.mean_view(), delta))
+
+    def variance_views(self) -> Corrected:
+        """This model with each inducing-point ``δ``'s latent variance folded into one
+        triangle (:meth:`gpg.gp.inducing.InducingGP.variance_view`): the same predictions to
+        rounding, half the products a query in ``δ``'s variance. For the loops that read it
+        at every label (:func:`online_step` with a wind state, :func:`gpg.flight.prequential`);
+        on the host, once.
+
+        Returns:
+            The corrected model with folded discrepancies (an exact ``δ`` has one triangle
+            already and is kept).
+        """
+        delta = tuple(d.variance_view() if isinstance(d, InducingGP) else d for d in self.delta)
+        return eqx.tree_at(lambda c: c.delta, self, delta)
 
 
 def base(sur: Surrogate) -> Surrogate:

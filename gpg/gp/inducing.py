@@ -44,6 +44,7 @@ __all__ = [
     "fit_collapsed",
     "inducing_inputs",
     "project",
+    "variance_factor",
 ]
 
 # Relative jitter on K_mm's diagonal: k-means centres can lie close enough together for K_mm to
@@ -81,8 +82,10 @@ class InducingGP(Predictor):
         X: (m, D) the inducing inputs ``Z`` (named as the exact GP's rows: a kernel row is
             taken against them).
         weights: (m, M) ``w``.
-        whiten: (m, m) ``L⁻¹``, lower triangular (empty in :meth:`mean_view`).
-        post: (m, m) ``L_B⁻¹ L⁻¹``, lower triangular (empty in :meth:`mean_view`).
+        whiten: (m, m) ``L⁻¹``, lower triangular (empty in :meth:`mean_view`; the one
+            triangle of :func:`variance_factor` in :meth:`variance_view`).
+        post: (m, m) ``L_B⁻¹ L⁻¹``, lower triangular (empty in :meth:`mean_view` and
+            :meth:`variance_view`).
         hyper: σ, the lengthscales and ``ν²``.
         output_scale: (M,) per-output variance scale.
         n_cases: the cases it was fitted on.
@@ -222,6 +225,28 @@ class InducingGP(Predictor):
         a, b = self.whiten @ k, self.post @ k
         return k @ self.weights, self.hyper.variance - a @ a + b @ b
 
+    def variance_view(self) -> InducingGP:
+        """This GP with its latent variance's two triangles folded into one:
+        ``whiten`` the triangle ``T`` of :func:`variance_factor` and ``post`` empty, so
+        :meth:`mean_var_one` reads one (m, m) product a query instead of two (the loops that
+        read the variance at every step, :func:`gpg.flight.online_step`). The same mean, the
+        same variance to rounding. On the host (NumPy), once; not under ``jit``.
+
+        Returns:
+            The folded GP (itself if already folded).
+
+        Raises:
+            ValueError: a :meth:`mean_view`, which has no variance to fold.
+        """
+        if self.post.shape[0] == 0:
+            if self.whiten.shape[0] == 0:
+                raise ValueError("variance_view needs the GP's variance factors, not a mean_view")
+            return self
+        T = variance_factor(np.asarray(self.whiten), np.asarray(self.post))
+        dtype = self.whiten.dtype  # a float32 copy (astype) stays one
+        empty = jnp.zeros((0, T.shape[0]), dtype)
+        return eqx.tree_at(lambda m: (m.whiten, m.post), self, (jnp.asarray(T, dtype), empty))
+
     def mean_view(self) -> InducingGP:
         """This GP without its variance's factors (the mean reads ``X`` and ``weights``).
 
@@ -230,6 +255,37 @@ class InducingGP(Predictor):
         """
         empty = jnp.zeros((0, self.X.shape[0]), self.weights.dtype)
         return eqx.tree_at(lambda m: (m.whiten, m.post), self, (empty, empty))
+
+
+def variance_factor(
+    whiten: Float[np.ndarray, "m m"], post: Float[np.ndarray, "m m"]
+) -> Float[np.ndarray, "m m"]:
+    """One lower triangle ``T`` with ``‖T k‖² = ‖W k‖² − ‖P k‖²`` for every ``k``: the
+    latent variance's two triangles (``W = L⁻¹``, ``P = L_B⁻¹ L⁻¹``) as one, half the
+    products a query.
+
+    With ``P = L_B⁻¹ W``, ``WᵀW − PᵀP = Wᵀ(I − B⁻¹)W``, and ``B⁻¹ = SᵀS`` for
+    ``S = P W⁻¹ = L_B⁻¹`` (``W⁻¹`` is ``K_mm``'s Cholesky factor, of entries at most
+    ``√σ``). ``I − B⁻¹ = U diag(1 − e) Uᵀ`` from the eigenvalues ``e`` of ``SᵀS`` in
+    (0, 1], so ``F = diag(√(1 − e)) Uᵀ W`` has ``FᵀF = WᵀW − PᵀP`` without the difference
+    of two large matrices being formed; ``T`` is the triangle of ``F``'s QL decomposition
+    (a QR of ``F`` with its columns reversed), ``TᵀT = FᵀF``.
+
+    Args:
+        whiten: (m, m) ``W``, lower triangular.
+        post: (m, m) ``P``, lower triangular.
+
+    Returns:
+        (m, m) ``T``, lower triangular (NumPy, float64).
+    """
+    from scipy.linalg import solve_triangular
+
+    W, P = np.asarray(whiten, np.float64), np.asarray(post, np.float64)
+    S = P @ solve_triangular(W, np.eye(W.shape[0]), lower=True)
+    e, U = np.linalg.eigh(S.T @ S)
+    F = np.sqrt(np.clip(1.0 - e, 0.0, None))[:, None] * (U.T @ W)
+    R = np.linalg.qr(F[:, ::-1], mode="r")
+    return np.tril(R[::-1, ::-1])
 
 
 @float64

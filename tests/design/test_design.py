@@ -195,7 +195,8 @@ def test_propose_on_a_surrogate_and_bad_candidates(data):
         design.propose(sur, old, 1, candidates=outside, reference=16)
     with pytest.raises(ValueError, match="gradients must be one of"):
         design.propose(sur, old, 1, candidates=20, gradients="some")
-    w = design.propose(sur, old, 2, candidates=100, reference=32, weights={"L1": 1.0, "L2": 1.0})
+    # the sizes above: their compiled programs serve this call too
+    w = design.propose(sur, old, 2, candidates=200, reference=64, weights={"L1": 1.0, "L2": 1.0})
     assert w.x.shape == (2, 8)
     with pytest.raises(ValueError, match="unknown outputs"):
         design.propose(sur, old, 1, candidates=20, weights={"Q": 1.0})

@@ -723,6 +723,18 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
                      **FIT)  # fmt: skip
     assert few.model.describe()["flight_correction"]["inducing"] == 12
     assert few.model.describe()["flight_correction"]["n_labels"] == N_LABELS
+    # the loops that read δ's variance at every label fold its two triangles into one
+    X = jnp.asarray(fc.training_rows(few, flights)[0][:8])
+    for d, f in zip(few.model.delta, few.model.variance_views().delta, strict=True):
+        assert f.post.shape[0] == 0
+        v, vf = (np.asarray(jax.vmap(g.mean_var_one)(X)[1]) for g in (d, f))
+        # rounding of the largest terms the two forms pass through, ‖W‖₂² ‖k‖² ≤ ‖W‖₂² m σ²
+        W, m = np.asarray(d.whiten), d.X.shape[0]
+        bound = (
+            64 * np.finfo(float).eps * np.linalg.norm(W, 2) ** 2 * m * float(d.hyper.variance) ** 2
+        )
+        np.testing.assert_allclose(vf, v, rtol=0, atol=bound)
+        assert v.max() > 100 * bound  # the variance told apart from that rounding
     back = checkpoint.load(checkpoint.save(tmp_path / "few", few))
     assert jax.tree.structure(back.model) == jax.tree.structure(few.model)
     for a, b in zip(jax.tree.leaves(few.model), jax.tree.leaves(back.model), strict=True):

@@ -76,6 +76,12 @@ def test_projection_matches_a_numpy_reference(rng):
         # condition number ~1e6: 1e-8 relative is a hundred times their rounding.
         np.testing.assert_allclose(m[:, 0], mean, rtol=1e-8, atol=1e-9)
         np.testing.assert_allclose(v, var, rtol=1e-7, atol=1e-9)
+        # its two triangles folded into one: the same reference, one product a query
+        one = gp.variance_view()
+        assert one.post.shape == (0, 24) and one.whiten.shape == (24, 24)
+        mo, vo = jax.vmap(one.mean_var_one)(jnp.asarray(Xq))
+        np.testing.assert_array_equal(mo, m)
+        np.testing.assert_allclose(vo, var, rtol=1e-7, atol=1e-9)
         p = project(X, np.column_stack([H, y]), Z, hyper=HYPER, row_noise=noise, chunk=chunk)
         V = np.column_stack([H, y])
         np.testing.assert_allclose(p.gram, V.T @ np.linalg.solve(Kt, V), rtol=1e-7)
@@ -99,6 +105,10 @@ def test_a_jax_function_and_its_mean_view(rng):
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)  # central differences, O(eps²)
     np.testing.assert_allclose(jax.jvp(f, (x,), (jnp.ones(3),))[1], g.sum(), rtol=1e-12)
     np.testing.assert_array_equal(gp.mean_view().mean_one(x), gp.mean_one(x))
+    one = gp.variance_view()
+    assert one.variance_view() is one  # folded once
+    with pytest.raises(ValueError, match="not a mean_view"):
+        gp.mean_view().variance_view()
     assert gp.describe()["inducing"] == 16 and gp.describe()["cases"] == 80
 
 
