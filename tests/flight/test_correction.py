@@ -725,9 +725,10 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     assert few.model.describe()["flight_correction"]["n_labels"] == N_LABELS
     # the loops that read δ's variance at every label fold its two triangles into one
     X = jnp.asarray(fc.training_rows(few, flights)[0][:8])
+    latent = jax.jit(lambda g: jax.vmap(g.mean_var_one)(X)[1])  # one program for each form
     for d, f in zip(few.model.delta, few.model.variance_views().delta, strict=True):
         assert f.post.shape[0] == 0
-        v, vf = (np.asarray(jax.vmap(g.mean_var_one)(X)[1]) for g in (d, f))
+        v, vf = np.asarray(latent(d)), np.asarray(latent(f))
         # rounding of the largest terms the two forms pass through, ‖W‖₂² ‖k‖² ≤ ‖W‖₂² m σ²
         W, m = np.asarray(d.whiten), d.X.shape[0]
         bound = (
