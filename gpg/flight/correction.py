@@ -558,8 +558,9 @@ class Corrected(Predictor):
         """This model with each inducing-point ``δ``'s latent variance folded into one
         triangle (:meth:`gpg.gp.inducing.InducingGP.variance_view`): the same predictions to
         rounding, half the products a query in ``δ``'s variance. For the loops that read it
-        at every label (:func:`online_step` with a wind state, :func:`gpg.flight.prequential`);
-        on the host, once.
+        at every label from Python (:func:`online_step` with a wind state); on the host, once.
+        The fold (an eigendecomposition per ``δ``) costs more than a flight's
+        :func:`gpg.flight.prequential` scan saves by it, so that scan does not take it.
 
         Returns:
             The corrected model with folded discrepancies (an exact ``δ`` has one triangle

@@ -869,8 +869,7 @@ def prequential(sur: Surrogate, labels: Labels) -> Prequential:
         return Prequential(np.asarray(p.force), np.asarray(p.torque),
                            np.asarray(p.variance)[:, :6], sur)  # fmt: skip
     state = fc.online_state(sur)
-    # δ's variance is read at every label (the band, a wind state's innovation): folded once
-    offline = dataclasses.replace(sur, model=fc.offline_model(m).variance_views())
+    offline = dataclasses.replace(sur, model=fc.offline_model(m))
     cols = tuple(jnp.asarray(c) for c in labels.columns())
     state, (f, tq, var) = _prequential_scan(offline, state, cols)
     return Prequential(np.asarray(f), np.asarray(tq), np.asarray(var)[:, :6],
