@@ -339,6 +339,16 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     id_train, id_tests = labelled(id_curve, ident.vehicle)
     for name in tests:
         tests[name], id_tests[name] = _shared(tests[name], id_tests[name])
+    # What an online filter reads: every sample of each test log at the stream's rate, those
+    # with a saturated rotor too (the offline fits drop them: their rotor speeds are less
+    # sure); scored at the test labels' instants, which it holds.
+    st = h["stream"]
+    stream_opts = {"rate": float(st["rate"]), "source": "velocity", "curve": id_curve,
+                   "saturation": float(st["saturation"])}  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "command.*extrapolated", FlightLogWarning)
+        id_streams = {name: _test(name, f, ident.vehicle, simple, stream_opts, gust)
+                      for name, f in tests_raw.items()}  # fmt: skip
     stages["identify_s"] = time.perf_counter() - t1
 
     data_cfg = conf.load(h["data"], "data")
@@ -425,6 +435,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         gust_cfg=cfg["track"]["gusts"],
         spreads=[float(v) for v in cfg["track"]["spread_sweep"]],
         one_spread=one_spread,
+        streams=id_streams,
     )
     # Each swept spread's score on the training winds held out (what fit_drift maximises),
     # beside its prequential scores on the test flights: whether the flights could tell it.
@@ -503,7 +514,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
                      progress: bool, other=None, gust_cfg=None, spreads=(),
-                     one_spread=None) -> dict[str, Any]:  # fmt: skip
+                     one_spread=None, streams=None) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
     with another bank, where given, the fitted drift with a wind state, horizontal and
@@ -511,7 +522,10 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     ``spreads`` for every column in place of its own: ``tracked_spread_<s>``, and
     ``one_spread``, a drift fitted with one spread for all columns, where given), each label
     predicted
-    before it is used (:func:`gpg.flight.prequential`): the force MSE against the truth and
+    before it is used (:func:`gpg.flight.prequential`); where ``streams`` gives a test flight
+    labelled at every sample (saturated rotors too), the offline model, the inducing-point
+    term, the tracked coefficients and the wind state also read that stream, scored at the
+    test labels' instants (``stream_<model>_...``): the force MSE against the truth and
     against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
     test gives one, as offline), the labels' log predictive density, the labels' noise floor;
     the per-label update cost from Python; the figure of the error along the flights."""
@@ -564,6 +578,9 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
             row[f"{m}_mse_after_10s"] = float(err[~early].mean()) if (~early).any() else None
             curves[(name, m)] = (lab.t - t0, np.sum(e**2, 1))
             row[f"{m}_lag1"] = _lag1(lab.t, e)
+        if streams is not None:
+            row.update(_stream_scores(offline, streams[name], lab, drift, adapt_cfg, gust_cfg,
+                                      curves, (name, t0)))  # fmt: skip
         rows.append(row)
         jax.clear_caches()
     steady = tests["steady"].labels
@@ -580,6 +597,44 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         )
     _prequential_figure(out / "figures", curves)
     return out_
+
+
+def _stream_scores(
+    offline: Surrogate,
+    stream: _Test,
+    lab: Labels,
+    drift,
+    adapt_cfg,
+    gust_cfg,
+    curves,
+    where: tuple[str, float],
+) -> dict[str, Any]:
+    """The offline model and three online ones reading ``stream`` (every sample of the test
+    flight whose labels are ``lab``), each scored at ``lab``'s instants: the same labels and
+    truth as the rows read from ``lab`` alone. The error curves go into ``curves`` under the
+    test's name, timed from ``lab``'s first label (``where``)."""
+    from experiments.runs.flight_logs import prequential_scores
+
+    s = stream.labels
+    at = np.isin(s.t, lab.t)
+    out: dict[str, Any] = {"stream_labels": len(s), "stream_scored": int(at.sum())}
+    start = float(s.t[0])
+    models = {"none": offline,
+              "inducing": fc.adapt(offline, inducing=int(adapt_cfg["inducing"]),
+                                   tau=float(adapt_cfg["tau"]), t0=start),
+              "tracked": track(offline, drift, t0=start)}  # fmt: skip
+    if gust_cfg is not None:
+        models["tracked_gusts"] = track(
+            offline, gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"])), t0=start
+        )
+    extra = None
+    if stream.wind_sd is not None:
+        extra = wind_variance(offline, s.rpm, s.euler, s.v_air, stream.wind_sd)
+    for m, sur in models.items():
+        sc, e = prequential_scores(sur, s, stream.force, extra, at=at)
+        out.update({f"stream_{m}_{k}": v for k, v in sc.items()})
+        curves[(where[0], f"stream_{m}")] = (s.t[at] - where[1], np.sum(e**2, 1))
+    return out
 
 
 def _lag1(t: np.ndarray, e: np.ndarray) -> list[float]:
@@ -603,7 +658,9 @@ def _prequential_figure(where: Path, curves) -> None:
     styles = {"none": ("k--", "no adaptation"), "inducing": ("C1", "inducing-point term (today)"),
               "tracked": ("C0", "tracked coefficients, fitted drift"),
               "tracked_default": ("C2:", "tracked coefficients, default drift"),
-              "tracked_gusts": ("C3", "tracked coefficients and a wind state")}  # fmt: skip
+              "tracked_gusts": ("C3", "tracked coefficients and a wind state"),
+              "stream_tracked_gusts": ("C4", "the same reading every sample "
+                                              "of the log")}  # fmt: skip
     for ax, test in zip(np.atleast_1d(axes), tests, strict=True):
         for m, (style, label_) in styles.items():
             if (test, m) not in curves:
@@ -722,6 +779,18 @@ def _report(res) -> str:
             pcols += [(f"{m}_mse", f"{m} MSE", ".3g"), (f"{m}_coverage95", f"{m} cov95", ".3f")]
     pcols.append(("noise_floor", "noise", ".3g"))
     lines.append(table(ad["tests"], pcols))
+    if "stream_none_mse" in ad["tests"][0]:
+        st = res["config"]["hard"]["stream"]
+        lines.append(f"the same read from every sample at {st['rate']:g} Hz (saturation "
+                     f"{st['saturation']:g}), scored at the same labels:")  # fmt: skip
+        scols = [("test", "test", "s"), ("stream_labels", "stream labels", "d"),
+                 ("stream_scored", "scored", "d")]  # fmt: skip
+        for m in ("none", "inducing", "tracked", "tracked_gusts"):
+            if f"stream_{m}_mse" in ad["tests"][0]:
+                scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
+                          (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip
+        scols.append(("noise_floor", "noise", ".3g"))
+        lines.append(table(ad["tests"], scols))
     if ad.get("spread_sweep"):
         lines.append(
             "the fitted drift with one spread for all columns swept, beside the fitted ones: "

@@ -382,20 +382,22 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     return out
 
 
-def prequential_scores(sur, lab: Labels, truth_force, extra_var=None):
+def prequential_scores(sur, lab: Labels, truth_force, extra_var=None, at=None):
     """The one-step-ahead force predictions of ``sur`` along a flight (:func:`gpg.flight.
     prequential`) scored: MSE against the truth and against the labels (N², the error vector's
     squared norm), the 95 % band's coverage of the truth (``extra_var``, (N, 3), added to the
     band: a wind known only as its RMS), both per component too; the labels' mean log
     predictive density (nats per label, the force's three components, the band plus the
     labels' own noise: the prequential score the labels alone can give, Dawid's); and each
-    label's error vector."""
+    scored label's error vector. Every label is read; ``at`` (a boolean mask) scores only
+    those rows."""
     pre = prequential(sur, lab)
-    e = pre.force - truth_force
-    var = pre.variance[:, :3] + (0.0 if extra_var is None else extra_var)
+    at = np.ones(len(lab), bool) if at is None else np.asarray(at, bool)
+    e = (pre.force - truth_force)[at]
+    var = (pre.variance[:, :3] + (0.0 if extra_var is None else extra_var))[at]
     inside = np.abs(e) <= 1.959964 * np.sqrt(var)
-    s2 = var + np.asarray(lab.force_var)
-    e_lab = pre.force - lab.force
+    s2 = var + np.asarray(lab.force_var)[at]
+    e_lab = (pre.force - lab.force)[at]
     return {
         "mse": float(np.mean(np.sum(e**2, 1))),
         "mse_components": np.mean(e**2, 0).tolist(),

@@ -628,7 +628,10 @@ def label(
             from the log's hover, :meth:`MotorCurve.fit_hover`); its ``time_constant`` lags
             the speeds behind the commands.
         takeoff_s: seconds dropped after each take-off and before each landing.
-        saturation: a rotor at this fraction of its speed range (or command) is saturated.
+        saturation: a rotor at this fraction of its speed range (or command) is saturated;
+            1.0 keeps every sample short of the bounds themselves (an online filter's
+            stream, read at the log's own ``rate``: the labels at the default's instants
+            are the same, bit for bit).
 
     Returns:
         :class:`Labels` at ``rate`` Hz over the labelled stretches of the flight.

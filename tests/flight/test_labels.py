@@ -128,6 +128,31 @@ def test_dropped_segments_counted(veh, M):
     assert not np.any((lab.t > 9.89) & (lab.t < 10.16))
 
 
+def test_every_sample_holds_the_labels_as_they_are(veh, M):
+    """An online filter's stream (every sample, a saturated rotor's too) holds the default
+    labels at their instants with the same values, bit for bit: the loads are estimated on
+    the whole log before any sample is chosen, so a filter reading the stream is scored on
+    the labels an offline model is."""
+    n = int(20 * RATE)
+    t = np.arange(n) / RATE
+    rpm = np.full((n, 4), _hover_rpm(veh, M)) * (1 + 0.05 * np.sin(t))[:, None]
+    near_max = float(veh.rpm_min) + 0.99 * float(veh.rpm_max - veh.rpm_min)
+    rpm[2000:2200, 1] = near_max  # a rotor at 99 % of its range for 1 s
+    v = np.stack([np.sin(t), 0.5 * np.cos(2 * t), 0.0 * t], 1)
+    log = _log(veh, M, T=20.0, v=v, rpm=rpm)
+    labels = label(log, veh, reference=M, delay=0.0)
+    stream = label(log, veh, reference=M, delay=0.0, rate=RATE, saturation=1.0)
+    assert labels.dropped["saturated"] >= 200 and stream.dropped["saturated"] == 0
+    assert len(stream) > 4 * len(labels)
+    at = np.isin(stream.t, labels.t)
+    assert at.sum() == len(labels)
+    shared = stream.take(at)
+    for key in ("t", "rpm", "euler", "v_air", "force", "torque", "force_var", "torque_var",
+                "model_force", "model_torque"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(shared, key), getattr(labels, key), err_msg=key)
+    assert np.any(stream.rpm[:, 1] == near_max)  # the saturated stretch is in the stream
+
+
 def test_rotor_speed_units_and_rate_checked(veh, M):
     rpm = np.full((2000, 4), _hover_rpm(veh, M) * 2 * np.pi / 60)
     with pytest.raises(ValueError, match="look like rad/s"):

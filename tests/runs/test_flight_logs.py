@@ -137,4 +137,9 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     assert sweep["tracked"] >= max(sweep.values()) - 1e-6
     for m in [*uniform, "tracked_one_spread"]:
         assert all(np.isfinite(r[f"{m}_lpd_labels"]) for r in ad["tests"])
+    for r in ad["tests"]:  # the filters reading every sample, scored at the same labels
+        assert r["stream_scored"] == r["labels"] < r["stream_labels"]
+        assert all(r[f"stream_{m}_mse"] > 0 for m in ("inducing", "tracked", "tracked_gusts"))
+        # the offline model reads nothing: the same predictions at the same labels
+        assert r["stream_none_mse"] == pytest.approx(r["none_mse"], rel=1e-9)
     assert (tmp_path / "figures" / "prequential_along_flight.png").is_file()
