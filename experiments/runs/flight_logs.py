@@ -123,10 +123,16 @@ class _Bench:
         w = float(self.cfg["flights"]["wind_max"]) * speed
         return [w * np.cos(a), w * np.sin(a), 0.0]
 
-    def labelled(self, f: Flight) -> Labels:
+    def labelled(self, f: Flight, stream: bool = False) -> Labels:
+        """The flight's labels; ``stream``: what an online filter reads instead (every sample
+        at ``adapt.stream``'s rate, a saturated rotor's too), holding the labels bit for bit."""
         opts = self.cfg["label"]
-        return label(f.log, self.real, reference=self.prior.simple, rate=float(opts["rate"]),
-                     source=opts["source"])  # fmt: skip
+        rate, more = float(opts["rate"]), {}
+        if stream:
+            st = self.cfg["adapt"]["stream"]
+            rate, more = float(st["rate"]), {"saturation": float(st["saturation"])}
+        return label(f.log, self.real, reference=self.prior.simple, rate=rate,
+                     source=opts["source"], **more)  # fmt: skip
 
     def correct(self, labels, **kw):
         c = self.cfg["correct"]
@@ -315,7 +321,8 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     term and by the tracked coefficients (their drift fitted on training flights; and with a
     wind state beside them), against an
     offline correction fitted on another flight in that wind; the same on the held-out test
-    flights; then the updates' cost over a long stream."""
+    flights; each also reading every sample of the log (``stream_*``: ``adapt.stream``),
+    scored at the same labels; then the updates' cost over a long stream."""
     a, g = bench.cfg["adapt"], bench.cfg["track"]["gusts"]
     wind = [float(v) for v in a["wind"]]
     f_off = bench.flight("windy_offline", float(a["offline_s"]), wind)
@@ -353,7 +360,8 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     off_rmse = rmse(offline)
     out: dict[str, Any] = {"wind": wind, "check_s": float(a["check_s"]), "offline_rmse": off_rmse,
                            "corrected_rmse": rmse(corrected), "sim_only_rmse": rmse(bench.prior),
-                           "drift": dataclasses.asdict(drift), "models": {}}  # fmt: skip
+                           "drift": dataclasses.asdict(drift), "models": {},
+                           "stream_models": {}}  # fmt: skip
     for name, sur in prepared(float(l_ad.t[0])).items():
         sc, e = prequential_scores(sur, l_ad, truth.force)
         err = np.sum(e**2, 1)
@@ -365,14 +373,28 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
         adapted = float(np.sqrt(np.mean(err[after])))
         out["models"][name] = {**sc, "rmse_after": adapted, "ratio": adapted / off_rmse,
                                "windows": windows}  # fmt: skip
+    # The same models reading every sample, scored at the same labels (after check_s too).
+    s_ad = bench.labelled(f_ad, stream=True)
+    at = np.isin(s_ad.t, l_ad.t)
+    out["stream_labels"], out["stream_scored"] = len(s_ad), int(at.sum())
+    for name, sur in prepared(float(s_ad.t[0])).items():
+        sc, e = prequential_scores(sur, s_ad, _truth(f_ad, s_ad).force, at=at)
+        adapted = float(np.sqrt(np.mean(np.sum(e**2, 1)[after])))
+        out["stream_models"][name] = {**sc, "rmse_after": adapted, "ratio": adapted / off_rmse}
     rows = []
     for f, _ in tests:
-        lab = bench.labelled(f)
+        lab, stream = bench.labelled(f), bench.labelled(f, stream=True)
         row: dict[str, Any] = {"test": f.log.name, "labels": len(lab),
-                               "noise_floor": float(np.mean(np.sum(lab.force_var, 1)))}  # fmt: skip
+                               "noise_floor": float(np.mean(np.sum(lab.force_var, 1))),
+                               "stream_labels": len(stream)}  # fmt: skip
         for name, sur in prepared(float(lab.t[0])).items():
             sc, _ = prequential_scores(sur, lab, _truth(f, lab).force)
             row.update({f"{name}_{k}": v for k, v in sc.items()})
+        at = np.isin(stream.t, lab.t)
+        row["stream_scored"] = int(at.sum())
+        for name, sur in prepared(float(stream.t[0])).items():
+            sc, _ = prequential_scores(sur, stream, _truth(f, stream).force, at=at)
+            row.update({f"stream_{name}_{k}": v for k, v in sc.items()})
         rows.append(row)
     out["tests"] = rows
     seconds = float(a["stream_s"])
@@ -481,6 +503,19 @@ def _report(curve, default, adapt, targets) -> str:
     pcols.append(("noise_floor", "noise", ".3g"))
     lines.append("prequential on the test flights:")
     lines.append(table(adapt["tests"], pcols))
+    if adapt.get("stream_models"):
+        lines.append(f"the same reading every sample ({adapt['stream_labels']} of the windy "
+                     f"flight's, {adapt['stream_scored']} scored):")  # fmt: skip
+        for name, r in adapt["stream_models"].items():
+            lines.append(f"  {name}: after {adapt['check_s']:.0f} s {r['rmse_after']:.3f} N "
+                         f"(x{r['ratio']:.2f} of offline); prequential MSE {r['mse']:.3g} N², "
+                         f"coverage {r['coverage95']:.3f}")  # fmt: skip
+        scols = [("test", "test", "s"), ("stream_labels", "stream labels", "d")]
+        for m in ("none", "inducing", "tracked", "tracked_gusts"):
+            scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
+                      (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip
+        scols.append(("noise_floor", "noise", ".3g"))
+        lines.append(table(adapt["tests"], scols))
     lines.append("targets: " + ", ".join(f"{k} {v:.3g}" for k, v in targets.items()))
     return "\n".join(lines)
 

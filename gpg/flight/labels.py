@@ -56,6 +56,7 @@ __all__ = ["Labels", "MotorCurve", "calibrate_simple", "hover_samples", "label"]
 GROUND_THRUST = 0.5  # M's thrust below this fraction of the weight: on the ground (if still)
 GROUND_MIN_S = 0.5  # s: on the ground only for at least this long
 SATURATION_PAD_S = 0.1  # s dropped on each side of a saturated sample
+SATURATION = 0.98  # label's default: a rotor at this fraction of its range is saturated
 NOISE_WINDOW_S = 1.0  # s, window of the rolling noise estimate
 GCV_WINDOW = 300  # samples: the smoothing parameter is chosen by GCV on one such window
 DELAY_HIGHPASS_S = 0.2  # s, the high-pass window of the delay's cross-correlation
@@ -604,7 +605,7 @@ def label(
     max_delay: float = 0.1,
     curve: MotorCurve | None = None,
     takeoff_s: float = 2.0,
-    saturation: float = 0.98,
+    saturation: float = SATURATION,
 ) -> Labels:
     """Aerodynamic force and torque labels of a flight, with their noise (module docstring).
 
@@ -631,7 +632,8 @@ def label(
         saturation: a rotor at this fraction of its speed range (or command) is saturated;
             1.0 keeps every sample short of the bounds themselves (an online filter's
             stream, read at the log's own ``rate``: the labels at the default's instants
-            are the same, bit for bit).
+            are the same, bit for bit). The rotor speeds' lag is estimated on the samples
+            the default keeps, whatever this keeps.
 
     Returns:
         :class:`Labels` at ``rate`` Hz over the labelled stretches of the flight.
@@ -659,17 +661,17 @@ def label(
 
     dt = float(np.median(np.diff(log.t)))
     _warn_interpolated(log, src)
-    keep, drop = _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation)
+    keep, clean, drop = _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation)
     F_B, F_var_B, tau_B, tau_var_B, edges = _measured_loads(log, vehicle, R, src, dt)
     drop["edges"] = int((keep & edges).sum())
-    keep &= ~edges
+    keep, clean = keep & ~edges, clean & ~edges
 
     # The rotor-speed channel's lag, removed by reading it that much later. Speeds from
     # commands have none to remove: the curve's own lag is the motors'.
     if delay == "estimate" and log.rpm is None:
         lag = 0.0
     elif delay == "estimate":
-        lag = _estimate_delay(log.t, thrust_M, -F_B[:, 2], keep, max_delay)
+        lag = _estimate_delay(log.t, thrust_M, -F_B[:, 2], clean, max_delay)
     else:
         lag = float(delay)
     if lag != 0.0:
@@ -788,7 +790,11 @@ def _labels(log, rows, Rk, rpm, loads, reference, simple, drop, lag, src) -> Lab
 
 
 def _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation):
-    """Samples airborne, away from take-off and landing, unsaturated; and the counts dropped."""
+    """Samples airborne, away from take-off and landing, unsaturated; the same at the default
+    :data:`SATURATION` where ``saturation`` keeps more (the rotor speeds' lag is estimated
+    there: a saturated rotor's speed does not follow its thrust, and a stream that keeps
+    those samples keeps the default labels' lag, so it holds them bit for bit); and the
+    counts dropped."""
     m, g = float(vehicle.mass), float(vehicle.gravity)
     n = log.t.size
     # On the ground: little thrust, no motion, for a while (a brief low-thrust moment in the
@@ -800,13 +806,18 @@ def _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation):
     air = ~ground
     near = _near_transitions(air, int(round(takeoff_s / dt)))
     drop["takeoff_landing"] = int((near & air).sum())
-    sat = rpm >= vehicle.rpm_min + saturation * (vehicle.rpm_max - vehicle.rpm_min)
-    if log.command is not None:
-        sat |= (log.command >= saturation) | (air[:, None] & (log.command <= 1 - saturation))
-    sat = ndimage.binary_dilation(sat.any(1), iterations=max(1, int(SATURATION_PAD_S / dt)))
+
+    def saturated(level):
+        sat = rpm >= vehicle.rpm_min + level * (vehicle.rpm_max - vehicle.rpm_min)
+        if log.command is not None:
+            sat |= (log.command >= level) | (air[:, None] & (log.command <= 1 - level))
+        return ndimage.binary_dilation(sat.any(1), iterations=max(1, int(SATURATION_PAD_S / dt)))
+
+    sat = saturated(saturation)
     keep = air & ~near
     drop["saturated"] = int((keep & sat).sum())
-    return keep & ~sat, drop
+    clean = keep & ~saturated(SATURATION) if saturation > SATURATION else keep & ~sat
+    return keep & ~sat, clean, drop
 
 
 def _measured_loads(log, vehicle, R, src: str, dt: float):

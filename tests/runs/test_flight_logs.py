@@ -70,6 +70,11 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     models = ("none", "inducing", "tracked", "tracked_gusts")
     assert {f"{m}_mse" for m in models} <= set(a["tests"][0])
     assert a["drift"]["source"] == "fitted"
+    # every sample read too, scored at the same labels: the offline model's scores the same
+    assert a["stream_labels"] > a["stream_scored"] and set(a["stream_models"]) == set(models)
+    for r in a["tests"]:
+        assert r["stream_scored"] == r["labels"] < r["stream_labels"]
+        assert r["stream_none_mse"] == pytest.approx(r["none_mse"], rel=1e-9)
     for fig in ("error_vs_seconds", "force_along_flight"):
         assert (tmp_path / "figures" / f"{fig}.png").is_file()
     assert sorted(p.name for p in (tmp_path / "logs").glob("*.csv"))[0] == "test00.csv"
