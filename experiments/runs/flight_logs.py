@@ -125,7 +125,7 @@ class _Bench:
 
     def labelled(self, f: Flight, stream: bool = False) -> Labels:
         """The flight's labels; ``stream``: what an online filter reads instead (every sample
-        at ``adapt.stream``'s rate, a saturated rotor's too), holding the labels bit for bit."""
+        at ``adapt.stream``'s rate, a saturated rotor's too), holding the labels' instants."""
         opts = self.cfg["label"]
         rate, more = float(opts["rate"]), {}
         if stream:

@@ -631,9 +631,11 @@ def label(
         takeoff_s: seconds dropped after each take-off and before each landing.
         saturation: a rotor at this fraction of its speed range (or command) is saturated;
             1.0 keeps every sample short of the bounds themselves (an online filter's
-            stream, read at the log's own ``rate``: the labels at the default's instants
-            are the same, bit for bit). The rotor speeds' lag is estimated on the samples
-            the default keeps, whatever this keeps.
+            stream, read at the log's own ``rate``: at the default's instants its loads,
+            noise, rotor speeds and air velocity are the default labels' bit for bit, the
+            attitude and the reference's loads, computed in batches of another size, to
+            rounding). The rotor speeds' lag is estimated on the samples the default keeps,
+            whatever this keeps.
 
     Returns:
         :class:`Labels` at ``rate`` Hz over the labelled stretches of the flight.
@@ -793,7 +795,7 @@ def _where_to_label(log, vehicle, rpm, thrust_M, dt, takeoff_s, saturation):
     """Samples airborne, away from take-off and landing, unsaturated; the same at the default
     :data:`SATURATION` where ``saturation`` keeps more (the rotor speeds' lag is estimated
     there: a saturated rotor's speed does not follow its thrust, and a stream that keeps
-    those samples keeps the default labels' lag, so it holds them bit for bit); and the
+    those samples keeps the default labels' lag, so it holds their rotor speeds); and the
     counts dropped."""
     m, g = float(vehicle.mass), float(vehicle.gravity)
     n = log.t.size
