@@ -336,6 +336,10 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
         if len(parts) >= 2
         else default_drift(corrected)
     )
+    # the labels' flight-long offset (a sensor's bias): in the band, which no label tells
+    offset = label_offset(bench.cfg["track"]["label_offset"], bench.sensors, bench.real.mass,
+                          base_labels.source)  # fmt: skip
+    drift = dataclasses.replace(drift, label_offset=offset)
 
     def prepared(t0: float) -> dict[str, Any]:
         return {
@@ -402,6 +406,18 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     out["cost"] = {m: update_cost(models[m], l_ad, seconds, bench.progress)
                    for m in ("inducing", "tracked", "tracked_gusts")}  # fmt: skip
     return out
+
+
+def label_offset(value, sensors: Sensors, mass: float, source: str) -> tuple[float, float]:
+    """The labels' offset a tracked filter's band states (:attr:`gpg.flight.Drift.label_offset`,
+    N and N·m): ``value`` as given, or where it is ``"sensors"`` the accelerometer's bias (its
+    σ, as a datasheet states it) times the vehicle's mass for labels from the IMU, nothing for
+    labels from the velocity (the logs' attitude has no bias); the torque's from the gyro's
+    bias through ``ω × J ω`` is left out (a thousandth of the force's lever)."""
+    if value == "sensors":
+        return (float(sensors.accel_bias) * float(mass) if source == "imu" else 0.0, 0.0)
+    force, torque = (float(v) for v in value)
+    return force, torque
 
 
 def prequential_scores(sur, lab: Labels, truth_force, extra_var=None, at=None):

@@ -604,6 +604,7 @@ def _correction_constants(s: Layout, dtype: str = "double") -> list[str]:
                 f"#define TRACK_SHARE {r.share!r}"]  # fmt: skip
         dbl("TRACK_BIAS_TAU", r.bias_tau)
         dbl("TRACK_NOISE", r.noise)
+        dbl("TRACK_OFFSET", r.offset)
         dbl("TRACK_BIAS", r.bias)
         dbl("TRACK_STAT", r.stationary)
         dbl("TRACK_MEAN0", r.mean)

@@ -179,8 +179,8 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             mix = sum(w[k] * mk[k] for k in range(len(w)))
             loads[j] = loads[j] + mix
             second = sum(w[k] * (vk[k] + mk[k] ** 2) for k in range(len(w)))
-            # the loads' band: the filter's, v and δ's latent (Corrected.predictive_variance)
-            extra[j] = ca.fmax(second - mix**2, 0) + r.noise[j] + dl[j]
+            # the loads' band: the filter's, v, the labels' offset, δ's latent (predictive_variance)
+            extra[j] = ca.fmax(second - mix**2, 0) + (r.noise[j] + r.offset[j]) + dl[j]
     mean = mean + ca.vertcat(*loads, ca.DM.zeros(s.n_outputs - 6))
     if var is not None and c.tracked is not None:
         var = ca.vertcat(*extra, var[6:])

@@ -187,7 +187,7 @@ class TrackedTerm:
     ``e^{−Δt/τ_b,k}``); each label is a rank-one update per output and member, and the
     members are reweighed by their predictive densities with a fixed share. The prediction
     adds the mixture's ``hᵀ w̄`` to the offline mean; the loads' variance is the mixture's
-    ``hᵀ Σ h`` (with the members' spread) plus ``v``.
+    ``hᵀ Σ h`` (with the members' spread) plus ``v`` and the labels' offset ``σ_o²``.
 
     Attributes:
         stationary: (6, P, P) ``Σ_∞``.
@@ -201,6 +201,8 @@ class TrackedTerm:
         cov: (K, 6, P, P) their covariances.
         log_weight: (K,) their log weights.
         t: s, the state's time when exported.
+        offset: (6,) ``σ_o²``, the labels' offset's variance (normalised units; zeros: none),
+            in the band, not the gain.
     """
 
     stationary: np.ndarray
@@ -214,6 +216,7 @@ class TrackedTerm:
     cov: np.ndarray
     log_weight: np.ndarray
     t: float
+    offset: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -532,6 +535,7 @@ def _tracked(r: Any) -> TrackedTerm:
         cov=_f64(r.cov),
         log_weight=_f64(r.log_weight),
         t=float(np.asarray(r.t)),
+        offset=np.zeros(6) if r.offset is None else _f64(r.offset),
     )
 
 

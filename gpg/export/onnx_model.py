@@ -573,9 +573,9 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
 
 def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, k64, dl):
     """The tracked drift at its exported state: each load's mean with the members' mixture of
-    ``hᵀ w̄`` added, and its band ``hᵀ Σ h`` with the members' spread plus ``v`` and each
-    ``δ``'s latent variance ``dl`` (six (N, 1) columns each, or none without the variance;
-    ``Corrected.predictive_variance`` with a tracker)."""
+    ``hᵀ w̄`` added, and its band ``hᵀ Σ h`` with the members' spread plus ``v``, the labels'
+    offset ``σ_o²`` and each ``δ``'s latent variance ``dl`` (six (N, 1) columns each, or none
+    without the variance; ``Corrected.predictive_variance`` with a tracker)."""
     f64 = np.float64
     r, w = c.tracked, np.exp(c.tracked.log_weight)
     one = g.mul(prior[0], k64(0.0))
@@ -592,7 +592,7 @@ def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, k64, dl):
             mix, second = (a, b) if mix is None else (g.add(mix, a), g.add(second, b))
         new_loads.append(mix if not loads else g.add(loads[j], mix))
         spread = g.op("Max", g.sub(second, g.sq(mix)), k64(0.0))
-        b = g.add(spread, k64(r.noise[j]))
+        b = g.add(spread, k64(r.noise[j] + r.offset[j]))
         band.append(g.add(b, dl[j]) if dl else b)
     return new_loads, band
 

@@ -341,6 +341,7 @@ class Corrected(Predictor):
                 "tau": plain(self.tracker.tau),
                 "spread": plain(self.tracker.spread),
                 "wind_sd": None if self.tracker.wind_sd is None else plain(self.tracker.wind_sd),
+                "offset": None if self.tracker.offset is None else plain(self.tracker.offset),
             },
         }
         return out
@@ -473,8 +474,9 @@ class Corrected(Predictor):
         ``ρ² var_prior`` scaled by the prior's output scale, plus each ``δ``'s predictive
         variance (its own value noise, the flights', included), ``η``'s and the coefficients',
         on the load outputs. A tracked model's loads have the filter's band instead: the
-        tracked drift's ``hᵀ Σ h`` plus its extra noise ``v`` (:mod:`gpg.flight.tracking`) and
-        each ``δ``'s latent variance without its ``ν²``.
+        tracked drift's ``hᵀ Σ h`` plus its extra noise ``v`` (:mod:`gpg.flight.tracking`),
+        each ``δ``'s latent variance without its ``ν²`` and the labels' offset ``σ_o²``
+        (:attr:`gpg.flight.Drift.label_offset`).
 
         Args:
             var: (..., V) the latent variance parts.
@@ -518,6 +520,8 @@ class Corrected(Predictor):
             tracked = jnp.maximum(var[..., at - N_LOADS : at], 0.0) + self.tracker.noise
             if nd:
                 tracked = tracked + self._delta_latent(var)
+            if self.tracker.offset is not None:  # the labels' own offset: no label tells it
+                tracked = tracked + self.tracker.offset
             out = jnp.concatenate([tracked, out[..., N_LOADS:]], axis=-1)
         return out
 

@@ -27,7 +27,13 @@ The prediction adds ``hᵀ w̄`` to the offline mean; its band on the loads is t
 ``Σ`` (it starts there), so the band narrows as the flight tells the coefficients and widens
 where the columns grow (a faster wind); the discrepancy's share widens it away from the
 flights' states, which the coefficients, spanning only the basis, do not learn. ``v`` takes
-the place of the discrepancy's value noise ``ν²``.
+the place of the discrepancy's value noise ``ν²``. A flight's labels may be off by the same
+amount from start to end: a sensor's bias (the accelerometer's times the mass where the force
+comes from an IMU, the attitude's times the weight where it comes from the velocity). No label
+tells it from the loads, so the filter (its bias column above all) learns it with them and
+predicts the labels, off from the loads by it, sure of itself. :attr:`Drift.label_offset`
+states its standard deviation ``σ_o`` per axis (a datasheet's: no flight can fit it), and the
+band adds ``σ_o²``; the gain and the mean are unchanged.
 
 :func:`fit_drift` fits ``τ``, ``s``, ``τ_b``, ``s_b`` and ``v`` by maximising the prequential
 likelihood (each label predicted before the filter sees it) of training flights, each predicted
@@ -149,6 +155,10 @@ class Drift:
         columns: the columns ``spread`` gives one number each for (``"prior"``, ``"simple"``
             where ``M``'s loads are a column, then :data:`gpg.flight.basis.TERMS`); empty
             where ``spread`` is one number.
+        label_offset: (N, N·m) ``σ_o``, the standard deviation per axis of an offset the
+            flight's labels carry from start to end, force then torque: a sensor's bias
+            (module docstring). It widens the band by ``σ_o²`` per axis, not the gain; (0, 0),
+            the default: none.
     """
 
     tau: float
@@ -164,6 +174,7 @@ class Drift:
     wind_sd: tuple[float, ...] = ()
     wind_tau: float = GUST_TAU
     columns: tuple[str, ...] = ()
+    label_offset: tuple[float, float] = (0.0, 0.0)
 
     @property
     def bias_taus(self) -> tuple[float, ...]:
@@ -233,6 +244,8 @@ class Tracker(eqx.Module):
         wind_cov: (3, 3) its posterior covariance ``P_g``.
         wind_tau: () s, ``τ_g``.
         wind_sd: (3,) m/s, its stationary standard deviations.
+        offset: (6,) ``σ_o²`` per load output (normalised units), the labels' flight-long
+            offset's variance (:attr:`Drift.label_offset`), in the band only; None: none.
         with_simple: ``M``'s loads are a column (after the prior's mean).
     """
 
@@ -253,6 +266,7 @@ class Tracker(eqx.Module):
     wind_cov: Float[Array, "3 3"] | None = None
     wind_tau: Float[Array, ""] | None = None
     wind_sd: Float[Array, " 3"] | None = None
+    offset: Float[Array, " 6"] | None = None
     with_simple: bool = eqx.field(static=True, default=True)
 
     def bias_column(self) -> Float[Array, "6 1"]:
@@ -434,6 +448,12 @@ def _checked(drift: Drift) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"drift.share must be in [0, 1), got {drift.share}")
     if noise.shape != (N_LOADS,) or not np.all(noise >= 0):
         raise ValueError(f"drift.noise must be {N_LOADS} numbers >= 0, got {drift.noise}")
+    offset = np.asarray(drift.label_offset, float)
+    if offset.shape != (2,) or not np.all(np.isfinite(offset) & (offset >= 0)):
+        raise ValueError(
+            f"drift.label_offset must be two numbers >= 0 (N for the force, N·m for the "
+            f"torque), got {drift.label_offset}"
+        )
     wind_sd = np.asarray(drift.wind_sd, float)
     if drift.wind_sd and (wind_sd.shape != (3,) or not np.all(wind_sd >= 0)
                           or not drift.wind_tau > 0):  # fmt: skip
@@ -464,8 +484,9 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
     Raises:
         ValueError: a model adapted by :func:`gpg.flight.adapt`, or a drift whose time
             constants or spread are not positive, whose share is not in [0, 1), whose
-            ``noise`` is not 6 non-negative numbers, or whose ``wind_sd`` is neither empty
-            nor 3 non-negative numbers (with ``wind_tau`` > 0).
+            ``noise`` is not 6 non-negative numbers, whose ``wind_sd`` is neither empty
+            nor 3 non-negative numbers (with ``wind_tau`` > 0), or whose ``label_offset`` is
+            not two non-negative numbers.
     """
     drift = default_drift(sur) if drift is None else drift
     noise, wind_sd = _checked(drift)
@@ -513,6 +534,13 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
              jnp.asarray(float(drift.wind_tau)), jnp.asarray(wind_sd)),
             is_leaf=lambda a: a is None,
         )  # fmt: skip
+    if any(drift.label_offset):
+        # σ_o² in each load output's normalised units: the same in N² (N·m²) on every axis of
+        # the GP's frame, so the world's band (a rotation of it) gets σ_o² on every axis too.
+        o = np.repeat(np.asarray(drift.label_offset, float) ** 2, 3)
+        y_std = np.asarray(sur.normalizer.y_std)[:N_LOADS]
+        tracker = eqx.tree_at(lambda o_: o_.offset, tracker, jnp.asarray(o / y_std**2),
+                              is_leaf=lambda a: a is None)  # fmt: skip
     m = eqx.tree_at(lambda c: c.tracker, m, tracker, is_leaf=lambda a: a is None)
     return dataclasses.replace(sur, model=m)
 

@@ -306,6 +306,32 @@ def test_prequential_predicts_before_it_updates(corrected, flights):
         tk.prequential(sur, lab.take(slice(0, 0)))
 
 
+def test_label_offset_widens_the_band_only(corrected, flights):
+    """A drift's ``label_offset`` (σ_F, σ_τ): the same filter (the state after the labels is
+    bit for bit the one without it: the gain does not see it) and the same mean, and the
+    band wider by σ_F² on each world force axis and σ_τ² on each torque axis (the offset is
+    isotropic, so it is the same in the GP's frame and the world's), to the rounding of the
+    bands it is added to."""
+    lab = flights[1].take(slice(0, 40))
+    base = tk.Drift(tau=5.0, spread=1.0, noise=(0.01,) * 6)
+    sig = (0.3, 0.02)
+    pre = [tk.prequential(tk.track(corrected, d, t0=lab.t[0]), lab)
+           for d in (base, dataclasses.replace(base, label_offset=sig))]  # fmt: skip
+    a, b = (fc.online_state(p.final) for p in pre)
+    assert np.array_equal(np.asarray(a.mean), np.asarray(b.mean))
+    assert np.array_equal(np.asarray(a.cov), np.asarray(b.cov))
+    assert a.offset is None and b.offset is not None
+    np.testing.assert_array_equal(pre[1].force, pre[0].force)
+    np.testing.assert_array_equal(pre[1].torque, pre[0].torque)
+    want = pre[0].variance + np.repeat(np.square(sig), 3)
+    tol = 8 * np.finfo(float).eps * want  # a few roundings: the sum, the rotation, the scale
+    assert np.all(np.abs(pre[1].variance - want) <= tol)
+    desc = pre[1].final.model.describe()["flight_correction"]["tracker"]["offset"]
+    y_std = np.asarray(corrected.normalizer.y_std)[:6]
+    np.testing.assert_allclose(np.asarray(desc) * y_std**2, np.repeat(np.square(sig), 3),
+                               rtol=1e-12)  # fmt: skip
+
+
 def test_track_checks_and_composes(synthetic_surrogate, corrected, flights):
     """track takes a prior (its mean and M become columns) or a corrected model, refuses a bad
     drift and an adapted model; a tracked model is a JAX function (jit, vmap, forward and
@@ -324,6 +350,10 @@ def test_track_checks_and_composes(synthetic_surrogate, corrected, flights):
     assert plain.model.tracker.mean.shape == (1, 6, 3 + len(TERMS))
     with pytest.raises(ValueError, match="share must be"):
         tk.track(corrected, tk.Drift(tau=1.0, spread=1.0, noise=(0.0,) * 6, share=1.0))
+    for bad in ((0.1,), (-0.1, 0.0), (float("nan"), 0.0)):
+        with pytest.raises(ValueError, match="label_offset must be two numbers"):
+            tk.track(corrected, tk.Drift(tau=1.0, spread=1.0, noise=(0.0,) * 6,
+                                         label_offset=bad))  # fmt: skip
     d = tk.default_drift(corrected)
     d0 = corrected.model.delta[0]
     assert d.noise[0] == pytest.approx(
@@ -353,14 +383,16 @@ def test_tracked_update_in_c_equals_jax(corrected, flights, tmp_path):
     of their scale, the filter's band on the loads to 1e-7 relative. A label with NaN is
     refused, the state kept. CasADi and ONNX take the updated model at its state: CasADi's
     values to 1e-10 and band to 1e-9 (double throughout), ONNX's to 1e-5 (float32 inputs and
-    frame)."""
+    frame). The drift states a labels' offset: every export's band holds it."""
     import ctypes
 
     from gpg.export import to_casadi, to_onnx
     from tests.export.test_c_source import compiled
     from tests.flight.test_correction import _export_states, onnx_outputs
 
-    drift = dataclasses.replace(tk.default_drift(corrected), tau=30.0, bias_tau=5.0, fast=(0.5,))
+    # a labels' offset in the band (exported as a constant beside v)
+    drift = dataclasses.replace(tk.default_drift(corrected), tau=30.0, bias_tau=5.0, fast=(0.5,),
+                                label_offset=(0.3, 0.02))  # fmt: skip
     tracked = tk.track(corrected, drift)
     lab = Labels.concatenate(flights)
     n = 6000

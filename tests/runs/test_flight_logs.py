@@ -9,6 +9,7 @@ import pytest
 
 from experiments.runs import flight_logs
 from gpg import checkpoint
+from gpg.flight.synthetic import perturbed
 from tests.helpers import compose_plain, finite_numbers
 
 SMOKE = [
@@ -48,6 +49,17 @@ def test_options_checked_before_any_work(bad, message, tmp_path):
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+def test_label_offset_from_the_sensors():
+    """``track.label_offset: sensors``: the accelerometer's bias times the mass for labels from
+    the IMU, none from the velocity; a pair is taken as it is."""
+    from gpg.flight.synthetic import Sensors
+
+    s = Sensors(accel_bias=0.05)
+    assert flight_logs.label_offset("sensors", s, 2.0, "imu") == pytest.approx((0.1, 0.0))
+    assert flight_logs.label_offset("sensors", s, 2.0, "velocity") == (0.0, 0.0)
+    assert flight_logs.label_offset([0.2, 0.01], s, 2.0, "imu") == (0.2, 0.01)
+
+
 @pytest.mark.slow
 def test_flight_logs_run(smoke_cache, tmp_path):
     cfg = compose_plain("flight_logs", [*SMOKE, f"cache_dir={smoke_cache}"])
@@ -70,6 +82,9 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     models = ("none", "inducing", "tracked", "tracked_gusts")
     assert {f"{m}_mse" for m in models} <= set(a["tests"][0])
     assert a["drift"]["source"] == "fitted"
+    # the logs have an IMU: the band states its accelerometer's bias times the mass
+    mass = float(perturbed(cfg["vehicle"], cfg["real"].get("changes") or {}).mass)
+    assert a["drift"]["label_offset"] == pytest.approx([cfg["sensors"]["accel_bias"] * mass, 0])
     # every sample read too, scored at the same labels: the offline model's scores the same
     assert a["stream_labels"] > a["stream_scored"] and set(a["stream_models"]) == set(models)
     for r in a["tests"]:

@@ -25,8 +25,9 @@ static void track_columns(const double x[D_IN], const double prior[N_OUT], doubl
 }
 
 /* yn[j] += the members' mixture of h^T w; pv (when not null) gets the loads' band in place of
- * the offline one: the mixture's h^T S h with the members' spread, plus v_j and delta_j's
- * latent variance dl[j] (as Corrected's predictive_variance with a tracker) */
+ * the offline one: the mixture's h^T S h with the members' spread, plus v_j, the labels'
+ * offset's variance and delta_j's latent variance dl[j] (as Corrected's predictive_variance
+ * with a tracker) */
 static void tracker_eta(const ONLINE_T *st, const double x[D_IN], const double prior[N_OUT],
                         double yn[N_OUT], double *pv, const double dl[6]) {
   double h[6][TRACK_P], w[TRACK_K], m, v, sh, mean, second;
@@ -51,7 +52,7 @@ static void tracker_eta(const ONLINE_T *st, const double x[D_IN], const double p
     yn[j] += mean;
     if (pv) {
       v = second - mean * mean;
-      pv[j] = (v > 0.0 ? v : 0.0) + TRACK_NOISE[j] + dl[j];
+      pv[j] = (v > 0.0 ? v : 0.0) + (TRACK_NOISE[j] + TRACK_OFFSET[j]) + dl[j];
     }
   }
 }
