@@ -42,7 +42,7 @@ from experiments.runs.output import report, table
 from experiments.runs.timing import machine
 from gpg import checkpoint
 from gpg.flight import correction as fc
-from gpg.flight.labels import Labels, label
+from gpg.flight.labels import Labels, estimate_delay, label
 from gpg.flight.log import read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
 from gpg.flight.tracking import default_drift, fit_drift, gusts, prequential, track
@@ -173,7 +173,13 @@ def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
         raise ValueError(f"seconds go to {seconds[-1]} s but flights.train_s is {fl['train_s']}")
     t_start = time.perf_counter()
     bench = _Bench.create(cfg, out)
-    train_labels, tests, label_s = _fly_all(bench)
+    train_labels, tests, label_s, train_logs = _fly_all(bench)
+    # the rotor speeds' lag from the training logs at once (gpg.flight.estimate_delay): a
+    # telemetry's lag is every log's; each label above estimated its flight's alone
+    pooled = {f"{k}_flights": estimate_delay(train_logs[:k], bench.real,
+                                             reference=bench.prior.simple)
+              for k in sorted({min(10, len(train_logs)), len(train_logs)})}  # fmt: skip
+    del train_logs
     curve, corrected = _curve(bench, train_labels, tests, seconds, base_s)
     checkpoint.save(out / "corrected", corrected, overwrite=True)
     default = next(r for r in curve if r["seconds"] == base_s)
@@ -197,6 +203,8 @@ def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
             "train": len(train_all),
             "dropped": train_all.dropped,
             "delay_s": [lb.delay for lb in train_labels],
+            "delay_pooled_s": pooled,
+            "delay_true_s": float(bench.sensors.rpm_delay),
         },
         "curve": curve,
         "default": default,
@@ -215,14 +223,15 @@ def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
 
 
 def _fly_all(bench: _Bench):
-    """The training flights' labels, the test flights with their truth, and for each
-    training flight the seconds its labelling took and the seconds it lasted."""
+    """The training flights' labels, the test flights with their truth, for each training
+    flight the seconds its labelling took and the seconds it lasted, and the training logs."""
     fl = bench.cfg["flights"]
     n_train = int(np.ceil(fl["train_s"] / fl["flight_s"]))
     bar = tqdm(total=n_train + int(fl["test"]), desc="flying", disable=not bench.progress)
-    train_labels, label_s = [], []
+    train_labels, label_s, logs = [], [], []
     for i in range(n_train):
         f = bench.flight(f"train{i:02d}", float(fl["flight_s"]), bench.calm_wind())
+        logs.append(f.log)
         t0 = time.perf_counter()
         train_labels.append(bench.labelled(f))
         label_s.append((time.perf_counter() - t0, f.log.duration))
@@ -233,7 +242,7 @@ def _fly_all(bench: _Bench):
         tests.append((f, _truth(f, bench.labelled(f))))
         bar.update()
     bar.close()
-    return train_labels, tests, label_s
+    return train_labels, tests, label_s, logs
 
 
 def _curve(bench: _Bench, train_labels, tests, seconds, base_s):

@@ -6,7 +6,8 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
   checks its signals against each other (each an :class:`Agreement`; the readers refuse a log
   whose signals disagree).
 * :func:`label` turns measured motion into force and torque labels with their noise
-  (:class:`Labels`), :func:`label_logs` a directory of logs across processes or on a Dask
+  (:class:`Labels`; :func:`estimate_delay` the rotor speeds' lag from many logs at once),
+  :func:`label_logs` a directory of logs across processes or on a Dask
   cluster (:class:`LabelledLogs`); :class:`MotorCurve` and :func:`calibrate_simple` turn
   commands into rotor speeds and fit ``M`` to a hover.
 * :func:`correct` corrects a fitted :class:`~gpg.Surrogate` by labels (a :class:`Corrected`
@@ -40,7 +41,14 @@ from gpg.flight.correction import (
 )
 from gpg.flight.identify import Identification, IdentificationWarning, identify
 from gpg.flight.kinematics import Agreement, consistency
-from gpg.flight.labels import Labels, MotorCurve, calibrate_simple, hover_samples, label
+from gpg.flight.labels import (
+    Labels,
+    MotorCurve,
+    calibrate_simple,
+    estimate_delay,
+    hover_samples,
+    label,
+)
 from gpg.flight.log import CsvFormat, FlightLog, FlightLogWarning, read_csv, write_csv
 from gpg.flight.tracking import (
     Drift,
@@ -83,6 +91,7 @@ __all__ = [
     "calibrate_simple",
     "correct",
     "default_drift",
+    "estimate_delay",
     "fit_drift",
     "gusts",
     "hover_samples",

@@ -51,7 +51,7 @@ from gpg.quadrotor.vehicle import Vehicle
 if TYPE_CHECKING:
     from gpg.surrogate import Surrogate
 
-__all__ = ["Labels", "MotorCurve", "calibrate_simple", "hover_samples", "label"]
+__all__ = ["Labels", "MotorCurve", "calibrate_simple", "estimate_delay", "hover_samples", "label"]
 
 GROUND_THRUST = 0.5  # M's thrust below this fraction of the weight: on the ground (if still)
 GROUND_MIN_S = 0.5  # s: on the ground only for at least this long
@@ -648,9 +648,7 @@ def label(
     """
     _check_label_options(log, vehicle, reference, rate, source, delay, max_delay, curve)
     _check_segment_options(takeoff_s, saturation)
-    if source == "imu" and log.specific_force is None:
-        raise ValueError(f"{log.name}: source='imu' but the log has no specific force (ax..az)")
-    src = ("imu" if log.specific_force is not None else "velocity") if source == "auto" else source
+    src = _source(log, source)
     simple = _simple(vehicle, reference)
     m, g = float(vehicle.mass), float(vehicle.gravity)
     rpm = log.rpm
@@ -690,6 +688,16 @@ def label(
         )
     loads = (F_B[rows], F_var_B[rows], tau_B[rows], tau_var_B[rows])
     return _labels(log, rows, R[rows], rpm[rows], loads, reference, simple, drop, lag, src)
+
+
+def _source(log: FlightLog, source: str) -> str:
+    """``source`` with ``"auto"`` resolved: the IMU where the log has it, else the velocity;
+    ``"imu"`` on a log without specific force refused by name."""
+    if source == "imu" and log.specific_force is None:
+        raise ValueError(f"{log.name}: source='imu' but the log has no specific force (ax..az)")
+    if source == "auto":
+        return "imu" if log.specific_force is not None else "velocity"
+    return source
 
 
 def _check_segment_options(takeoff_s, saturation) -> None:
@@ -1005,16 +1013,20 @@ def _rotate_var(R: np.ndarray, var: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj->ni", R**2, var)
 
 
-def _estimate_delay(t, model, measured, keep, max_delay: float) -> float:
+def _delay_correlation(t, model, measured, keep, max_delay: float):
+    """The lags ``k`` (samples) within ``[-max_delay, max_delay]``, the correlation at each of
+    the fast parts (under :data:`DELAY_HIGHPASS_S`) of ``M``'s thrust read ``k`` samples later
+    against the measured one over the kept samples, and the sample step ``dt`` (s); None where
+    the log cannot tell (too slow, or too few samples)."""
     dt = float(np.median(np.diff(t)))
     k = max(1, int(round(max_delay / dt)))
     if keep.sum() < 4 * k + 8:
-        return 0.0
+        return None
     # Only the fast part carries the lag: slower changes of the measured thrust also follow
     # drag and attitude, which lead or lag the rotor speeds in closed loop.
     hp = int(round(DELAY_HIGHPASS_S / dt))
     if hp < 4:
-        return 0.0  # a log too slow to see a lag of this size
+        return None  # a log too slow to see a lag of this size
 
     def highpass(x):
         return x - ndimage.uniform_filter1d(x, hp, mode="nearest")
@@ -1024,22 +1036,104 @@ def _estimate_delay(t, model, measured, keep, max_delay: float) -> float:
     idx = idx[(idx >= k) & (idx < t.size - k)]
     lags = np.arange(-k, k + 1)
     # model read at i + lag against the measurement at i
-    c = np.array([np.dot(a[idx + lag], b[idx]) for lag in lags])
+    return lags, np.array([np.dot(a[idx + lag], b[idx]) for lag in lags]), dt
+
+
+def _delay_peak(lags: np.ndarray, c: np.ndarray, dt: float, max_delay: float,
+                stacklevel: int) -> float:  # fmt: skip
+    """The lag (s) of the correlation's peak (``lags`` in samples of ``dt``), refined by a
+    parabola between samples; 0 with a :class:`FlightLogWarning` where the peak is at the
+    bound."""
     j = int(np.argmax(c))
     if j in (0, lags.size - 1):
         warnings.warn(
             f"the rotor speeds' lag behind the IMU is not within ±{max_delay:g} s (the best "
             "alignment is at the bound): none removed; give delay= if it is known",
             FlightLogWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
         return 0.0
     shift = float(lags[j])
-    if 0 < j < lags.size - 1:  # parabolic refinement between samples
-        den = c[j - 1] - 2 * c[j] + c[j + 1]
-        if den < 0:
-            shift += 0.5 * (c[j - 1] - c[j + 1]) / den
+    den = c[j - 1] - 2 * c[j] + c[j + 1]
+    if den < 0:
+        shift += 0.5 * (c[j - 1] - c[j + 1]) / den
     return shift * dt
+
+
+def _estimate_delay(t, model, measured, keep, max_delay: float) -> float:
+    corr = _delay_correlation(t, model, measured, keep, max_delay)
+    return 0.0 if corr is None else _delay_peak(*corr, max_delay, stacklevel=4)
+
+
+def estimate_delay(
+    logs: Sequence[FlightLog],
+    vehicle: Vehicle,
+    *,
+    reference: SimpleModel | Surrogate | None = None,
+    source: str = "auto",
+    max_delay: float = 0.1,
+    takeoff_s: float = 2.0,
+) -> float:
+    """One rotor-speed lag behind the IMU for several logs of the same vehicle and telemetry.
+
+    :func:`label` estimates the lag on each log alone, from the fast parts of ``M``'s thrust
+    and the measured one; a minute of flight leaves that estimate tens of milliseconds off
+    (the guide has the figures). The lag is the telemetry's, the same in every log of a
+    vehicle: this sums every log's correlation curve (each weighted by its own length and
+    excitation) and takes the one peak, for ``label(log, vehicle, delay=lag)``.
+
+    Args:
+        logs: flights with rotor speeds and an IMU or velocity (as :func:`label` reads them).
+        vehicle: their vehicle (:func:`label`).
+        reference: ``M`` as for :func:`label`.
+        source: the measured force's source, as for :func:`label`.
+        max_delay: s, the lags searched: ``[-max_delay, max_delay]``.
+        takeoff_s: s dropped after each take-off and before each landing, as for
+            :func:`label`.
+
+    Returns:
+        The lag, s (positive: the rotor speeds come late); 0 with a
+        :class:`~gpg.flight.log.FlightLogWarning` where the summed curve peaks at a bound.
+        For one log it is :func:`label`'s own estimate.
+
+    Raises:
+        ValueError: no log, a log without rotor speeds (speeds from commands have no
+            telemetry lag: the curve's ``time_constant`` is the motors'), a bad option as
+            :func:`label` refuses it, or no log long and fast enough to tell a lag.
+    """
+    logs = [logs] if isinstance(logs, FlightLog) else list(logs)
+    if not logs:
+        raise ValueError("estimate_delay needs one or more flight logs")
+    curves = []
+    for log in logs:
+        if not isinstance(log, FlightLog):
+            raise ValueError(f"estimate_delay reads FlightLogs, got {type(log).__name__}")
+        _check_label_options(log, vehicle, reference, 1.0, source, "estimate", max_delay, None)
+        _check_segment_options(takeoff_s, SATURATION)
+        if log.rpm is None:
+            raise ValueError(
+                f"{log.name}: no rotor speeds, no telemetry lag to estimate (speeds from "
+                "commands lag by the motor curve's time_constant)"
+            )
+        src = _source(log, source)
+        simple = _simple(vehicle, reference)
+        thrust_M = (log.rpm**2).sum(1) * float(simple.P_F)
+        dt = float(np.median(np.diff(log.t)))
+        _, clean, _ = _where_to_label(log, vehicle, log.rpm, thrust_M, dt, takeoff_s,
+                                      SATURATION)  # fmt: skip
+        F_B, _, _, _, edges = _measured_loads(log, vehicle, log.R_WB(), src, dt)
+        corr = _delay_correlation(log.t, thrust_M, -F_B[:, 2], clean & ~edges, max_delay)
+        if corr is not None:
+            curves.append(corr)
+    if not curves:
+        raise ValueError(
+            f"estimate_delay: none of the {len(logs)} log(s) is long and fast enough to tell a "
+            f"lag within ±{max_delay:g} s (20 Hz or faster, seconds of flight)"
+        )
+    # One grid: the finest log's samples; a log at another rate is read between its lags.
+    grid, _, step = min(curves, key=lambda lc: lc[2])
+    total = sum(np.interp(grid * step, lags * dt, c) for lags, c, dt in curves)
+    return _delay_peak(grid, total, step, max_delay, stacklevel=3)
 
 
 def _dropped_text(drop: dict[str, int]) -> str:

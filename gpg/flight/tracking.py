@@ -625,7 +625,8 @@ def fit_drift(
             one they move is free to); False: one for all.
 
     Returns:
-        The fitted :class:`Drift` (``source="fitted"``).
+        The fitted :class:`Drift` (``source="fitted"``), without a labels' offset: the held-out
+        labels share it and cannot tell it (state it with ``label_offset``).
 
     Raises:
         ValueError: fewer than two parts, ``sur`` not corrected by flights, or a ``fast``
@@ -659,7 +660,8 @@ def score_drift(
         max_labels: at most this many labels, as :func:`fit_drift` takes them.
 
     Returns:
-        The mean log predictive density per label (nats, the six load outputs summed).
+        The mean log predictive density per label (nats, the six load outputs summed), of the
+        labels' band (``drift.label_offset`` left out: the labels share it).
 
     Raises:
         ValueError: as :func:`fit_drift` for ``sur`` and ``labels``; a drift :func:`track`

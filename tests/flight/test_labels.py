@@ -1,6 +1,8 @@
 """gpg.flight.labels: loads from measured motion against closed forms, noise, dropped segments,
 delays, motor curves and calibration."""
 
+import dataclasses
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -177,6 +179,51 @@ def test_rotor_speed_units_and_rate_checked(veh, M):
         label(_log(veh, M), veh, reference=M, source="imu")
     with pytest.raises(ValueError, match="no simple_model coefficients"):
         label(_log(veh, M), veh)
+
+
+def _lagged_logs(veh, M, k, sigma, T=6.0, lag=6):
+    """``k`` logs whose rotor speeds come ``lag`` samples late, each with its own band-limited
+    speed changes and white noise ``sigma`` (m/s²) on the specific force."""
+    out = []
+    for i in range(k):
+        rng = np.random.default_rng(10 + i)
+        n = int(T * RATE)
+        wiggle = np.convolve(rng.normal(size=n + 200), np.hanning(41), "same")[100:-100]
+        rpm = _hover_rpm(veh, M) * (1 + 0.02 * wiggle / np.abs(wiggle).max())[:, None] * np.ones(4)
+        f_B = np.zeros((n, 3))
+        f_B[:, 2] = -P_F * (rpm**2).sum(1) / float(veh.mass)
+        f_B += sigma * rng.normal(size=(n, 3))
+        late = np.concatenate([np.repeat(rpm[:1], lag, 0), rpm[:-lag]])
+        out.append(_log(veh, M, T=T, f_B=f_B, rpm=late))
+    return out
+
+
+def test_delay_estimated_from_many_logs(veh, M):
+    """``estimate_delay``: each log alone is ``label``'s own estimate exactly (the same curve
+    and peak), a log twice is the log once (the curve doubled, the same peak); six noisy logs
+    whose own estimates scatter by more than a sample give, summed, the 30 ms closer than
+    their own RMS error (the sum averages their noise: about RMS/√6 expected) and within a
+    sample. No log, a log without rotor speeds, or none long enough to tell: refused by
+    name."""
+    from gpg.flight.labels import estimate_delay
+
+    logs = _lagged_logs(veh, M, 6, sigma=0.5)
+    alone = [estimate_delay([lg], veh, reference=M, takeoff_s=0.0) for lg in logs]
+    assert alone[0] == label(logs[0], veh, reference=M, takeoff_s=0.0).delay
+    assert estimate_delay(logs[:1] * 2, veh, reference=M, takeoff_s=0.0) == alone[0]
+    err = np.array(alone) - 6 / RATE
+    assert np.max(np.abs(err)) > 1 / RATE  # alone, a sample off or more
+    pooled = estimate_delay(logs, veh, reference=M, takeoff_s=0.0) - 6 / RATE
+    assert abs(pooled) < min(np.sqrt(np.mean(err**2)), 1 / RATE)
+    with pytest.raises(ValueError, match="one or more flight logs"):
+        estimate_delay([], veh, reference=M)
+    no_rpm = dataclasses.replace(_log(veh, M, T=2.0, f_B=np.zeros((400, 3))), rpm=None,
+                                 command=np.full((400, 4), 0.5), name="calm")  # fmt: skip
+    with pytest.raises(ValueError, match="calm: no rotor speeds"):
+        estimate_delay([no_rpm], veh, reference=M)
+    with pytest.raises(ValueError, match="none of the 1 log"):
+        estimate_delay(_lagged_logs(veh, M, 1, sigma=0.5, T=0.3), veh, reference=M,
+                       takeoff_s=0.0)  # fmt: skip
 
 
 def test_delay_estimated(veh, M):

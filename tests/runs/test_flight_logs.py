@@ -82,6 +82,8 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     models = ("none", "inducing", "tracked", "tracked_gusts")
     assert {f"{m}_mse" for m in models} <= set(a["tests"][0])
     assert a["drift"]["source"] == "fitted"
+    pooled = saved["labels"]["delay_pooled_s"]
+    assert set(pooled) == {"2_flights"} and abs(pooled["2_flights"]) <= 0.1
     # the logs have an IMU: the band states its accelerometer's bias times the mass
     mass = float(perturbed(cfg["vehicle"], cfg["real"].get("changes") or {}).mass)
     assert a["drift"]["label_offset"] == pytest.approx([cfg["sensors"]["accel_bias"] * mass, 0])
