@@ -624,7 +624,8 @@ def label(
             :data:`DELAY_HIGHPASS_S`) of ``M``'s thrust and the measured one (rotor speeds from
             ESC telemetry lag the IMU); 0 for a log slower than 20 Hz, and 0 with a
             :class:`~gpg.flight.log.FlightLogWarning` where the best lag is at the bound; 0 for
-            speeds from commands (the curve's ``time_constant`` is their lag).
+            speeds from commands (the curve's ``time_constant`` is their lag). One log tells
+            it roughly: :func:`estimate_delay` gives one lag from many logs.
         curve: motor commands to rotor speeds, for a log without rotor speeds (default: fitted
             from the log's hover, :meth:`MotorCurve.fit_hover`); its ``time_constant`` lags
             the speeds behind the commands.
@@ -1098,8 +1099,9 @@ def estimate_delay(
 
     Raises:
         ValueError: no log, a log without rotor speeds (speeds from commands have no
-            telemetry lag: the curve's ``time_constant`` is the motors'), a bad option as
-            :func:`label` refuses it, or no log long and fast enough to tell a lag.
+            telemetry lag: the curve's ``time_constant`` is the motors'), rotor speeds that
+            look like rad/s, a bad option as :func:`label` refuses it, or no log long and fast
+            enough to tell a lag.
     """
     logs = [logs] if isinstance(logs, FlightLog) else list(logs)
     if not logs:
@@ -1117,6 +1119,7 @@ def estimate_delay(
             )
         src = _source(log, source)
         simple = _simple(vehicle, reference)
+        _check_rpm_unit(log.name, log.rpm, simple, float(vehicle.mass) * float(vehicle.gravity))
         thrust_M = (log.rpm**2).sum(1) * float(simple.P_F)
         dt = float(np.median(np.diff(log.t)))
         _, clean, _ = _where_to_label(log, vehicle, log.rpm, thrust_M, dt, takeoff_s,
