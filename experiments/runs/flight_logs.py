@@ -421,8 +421,8 @@ def label_offset(value, sensors: Sensors, mass: float, source: str) -> tuple[flo
     """The labels' offset a tracked filter's band states (:attr:`gpg.flight.Drift.label_offset`,
     N and N·m): ``value`` as given, or where it is ``"sensors"`` the accelerometer's bias (its
     σ, as a datasheet states it) times the vehicle's mass for labels from the IMU, nothing for
-    labels from the velocity (the logs' attitude has no bias); the torque's from the gyro's
-    bias through ``ω × J ω`` is left out (a thousandth of the force's lever)."""
+    labels from the velocity (the logs' attitude has no bias). The torque's is left out: a
+    constant gyro bias does not enter ``ω̇``, only the small ``ω × J ω``."""
     if value == "sensors":
         return (float(sensors.accel_bias) * float(mass) if source == "imu" else 0.0, 0.0)
     force, torque = (float(v) for v in value)

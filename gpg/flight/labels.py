@@ -1106,20 +1106,21 @@ def estimate_delay(
     logs = [logs] if isinstance(logs, FlightLog) else list(logs)
     if not logs:
         raise ValueError("estimate_delay needs one or more flight logs")
+    _check_segment_options(takeoff_s, SATURATION)
+    simple = _simple(vehicle, reference)
+    weight = float(vehicle.mass) * float(vehicle.gravity)
     curves = []
     for log in logs:
         if not isinstance(log, FlightLog):
             raise ValueError(f"estimate_delay reads FlightLogs, got {type(log).__name__}")
         _check_label_options(log, vehicle, reference, 1.0, source, "estimate", max_delay, None)
-        _check_segment_options(takeoff_s, SATURATION)
         if log.rpm is None:
             raise ValueError(
                 f"{log.name}: no rotor speeds, no telemetry lag to estimate (speeds from "
                 "commands lag by the motor curve's time_constant)"
             )
         src = _source(log, source)
-        simple = _simple(vehicle, reference)
-        _check_rpm_unit(log.name, log.rpm, simple, float(vehicle.mass) * float(vehicle.gravity))
+        _check_rpm_unit(log.name, log.rpm, simple, weight)
         thrust_M = (log.rpm**2).sum(1) * float(simple.P_F)
         dt = float(np.median(np.diff(log.t)))
         _, clean, _ = _where_to_label(log, vehicle, log.rpm, thrust_M, dt, takeoff_s,

@@ -510,6 +510,12 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
     c0 = _offline_cov(m, p, m.basis is not None)
     stat = c0 + np.asarray(_drift_cov(spread, jnp.asarray(sd), drift.bias_sd))
     k = len(drift.bias_taus)
+    offset = None
+    if any(drift.label_offset):
+        # σ_o² in each load output's normalised units: the same in N² (N·m²) on every axis of
+        # the GP's frame, so the world's band (a rotation of it) gets σ_o² on every axis too.
+        o = np.repeat(np.asarray(drift.label_offset, float) ** 2, 3)
+        offset = jnp.asarray(o / np.asarray(sur.normalizer.y_std)[:N_LOADS] ** 2)
     tracker = Tracker(
         physics=physics,
         prior_sd=jnp.asarray(sd),
@@ -524,6 +530,7 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
         bias_sd=jnp.asarray(float(drift.bias_sd)),
         noise=jnp.asarray(noise),
         share=jnp.asarray(float(drift.share)),
+        offset=offset,
         with_simple=m.basis is not None,
     )
     if drift.wind_sd:
@@ -534,13 +541,6 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
              jnp.asarray(float(drift.wind_tau)), jnp.asarray(wind_sd)),
             is_leaf=lambda a: a is None,
         )  # fmt: skip
-    if any(drift.label_offset):
-        # σ_o² in each load output's normalised units: the same in N² (N·m²) on every axis of
-        # the GP's frame, so the world's band (a rotation of it) gets σ_o² on every axis too.
-        o = np.repeat(np.asarray(drift.label_offset, float) ** 2, 3)
-        y_std = np.asarray(sur.normalizer.y_std)[:N_LOADS]
-        tracker = eqx.tree_at(lambda o_: o_.offset, tracker, jnp.asarray(o / y_std**2),
-                              is_leaf=lambda a: a is None)  # fmt: skip
     m = eqx.tree_at(lambda c: c.tracker, m, tracker, is_leaf=lambda a: a is None)
     return dataclasses.replace(sur, model=m)
 
