@@ -164,4 +164,14 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
         assert all(r[f"stream_{m}_mse"] > 0 for m in ("inducing", "tracked", "tracked_gusts"))
         # the offline model reads nothing: the same predictions at the same labels
         assert r["stream_none_mse"] == pytest.approx(r["none_mse"], rel=1e-9)
+    # today's adaptation (on the correction before the physical basis), each forgetting
+    # time, reading the labels and every sample at the same instants; the best is one of them
+    today = ad["today"]
+    assert today["taus"] == cfg["adapt"]["today_taus"]
+    for r, t in zip(ad["tests"], today["tests"], strict=True):
+        assert t["test"] == r["test"] and t["stream_scored"] == r["labels"]
+        for reading in ("labels", "stream"):
+            mses = [t[f"{reading}_tau_{v:g}_mse"] for v in today["taus"]]
+            assert t[f"{reading}_best_mse"] == min(mses) > 0
+            assert t[f"{reading}_tau_{t[f'{reading}_best_tau']:g}_mse"] == min(mses)
     assert (tmp_path / "figures" / "prequential_along_flight.png").is_file()
