@@ -14,6 +14,10 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   :func:`gpg.flight.adapt`) and with its physical basis's coefficients tracked instead
   (:func:`gpg.flight.track`); median and spread of ``updates`` calls each, and the online
   state's bytes before and after them.
+  With ``stacked``: the tracked step, and the step with a wind state, on a correction of
+  ``stacked.labels`` labels whose discrepancies are inducing-point GPs of
+  ``stacked.inducing`` inputs, read through one stack and one by one
+  (``online_step(stack=...)``), alternated ``rounds`` times: the ratio within each round.
 * ``parallel``: :func:`gpg.flight.label_logs` of a directory of ``logs`` CSV logs of
   ``seconds`` s each (``distinct`` flights of the nominal vehicle flown by
   :func:`gpg.flight.synthetic.fly` through the default sensors, 200 Hz with rotor speeds and an
@@ -298,21 +302,51 @@ def _update(cfg: dict[str, Any]) -> dict[str, Any]:
         "inducing": flight.adapt(corrected, inducing=int(cfg["inducing"]), t0=0.0),
         "tracked": flight.track(corrected, t0=0.0),  # the default drift: one filter
     }
-    return {
+    out = {
         "n_points": int(cfg["n_points"]),
         "labels": n,
         "inducing": int(cfg["inducing"]),
         "terms": {k: _updates(sur, labels, int(cfg["updates"])) for k, sur in terms.items()},
     }
+    if cfg.get("stacked"):
+        out["stacked"] = _stacked(prior, cfg["stacked"])
+    return out
 
 
-def _updates(sur, labels, updates: int) -> dict[str, Any]:
+def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
+    """The tracked step (and with a wind state) on a correction whose discrepancies are
+    inducing-point GPs, its six ``δ`` read through one stack (``online_step(stack=True)``)
+    and one by one, alternated ``rounds`` times: each form's per-round medians and the ratio
+    of the two per round (one by one over stacked)."""
+    from gpg import flight
+
+    n = int(cfg["labels"])
+    labels = _synthetic_labels(prior, n, 1)
+    corrected = flight.correct(prior, labels, basis="physical", exact_labels=n - 1,
+                               inducing=int(cfg["inducing"]), subset_size=min(n, 400))  # fmt: skip
+    drift = flight.default_drift(corrected)
+    models = {"tracked": flight.track(corrected, drift, t0=0.0),
+              "wind_state": flight.track(corrected, flight.gusts(drift), t0=0.0)}  # fmt: skip
+    out: dict[str, Any] = {"labels": n, "inducing": int(cfg["inducing"])}
+    for name, sur in models.items():
+        med: dict[str, list[float]] = {"stacked": [], "one_by_one": []}
+        for _ in range(int(cfg["rounds"])):
+            for form, stack in (("stacked", True), ("one_by_one", False)):
+                u = _updates(sur, labels, int(cfg["updates"]), stack=stack)
+                med[form].append(u["update_s"]["median_s"])
+        ratio = np.asarray(med["one_by_one"]) / np.asarray(med["stacked"])
+        out[name] = {**{f"{k}_median_s": v for k, v in med.items()},
+                     "ratio": ratio.tolist(), "ratio_median": float(np.median(ratio))}  # fmt: skip
+    return out
+
+
+def _updates(sur, labels, updates: int, stack: bool = True) -> dict[str, Any]:
     """``updates`` calls of the compiled step, once a label from Python (the labels replayed,
     time moving on), and the state's bytes before and after."""
     from gpg import flight
 
     n = len(labels)
-    step = flight.online_step(sur)
+    step = flight.online_step(sur, stack=stack)
     state = flight.online_state(sur)
     cols = labels.columns()
     before = sum(x.nbytes for x in jax.tree.leaves(state))
@@ -358,6 +392,16 @@ def flight_table(res: dict[str, Any]) -> str:
                          "median": u["update_s"]["median_s"] * 1e3,
                          "note": f"state {u['online_bytes']['before']} -> "
                                  f"{u['online_bytes']['after']} bytes"})  # fmt: skip
+    if "stacked" in res.get("update", {}):
+        st = res["update"]["stacked"]
+        for name in ("tracked", "wind_state"):
+            r = st[name]
+            rows.append({"what": f"online update, {name}, {st['labels']} labels, "
+                                 f"{st['inducing']}-inducing δ stacked",
+                         "median": float(np.median(r["stacked_median_s"])) * 1e3,
+                         "note": f"one by one {np.median(r['one_by_one_median_s']) * 1e3:.3f} "
+                                 f"ms; ratio {r['ratio_median']:.2f} (rounds "
+                                 f"{', '.join(f'{v:.2f}' for v in r['ratio'])})"})  # fmt: skip
     if "parallel" in res:
         pa = res["parallel"]
         for w, st in pa["wall_s"].items():

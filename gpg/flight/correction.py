@@ -46,7 +46,13 @@ from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
 from gpg.gp.fit import FitOptions, fit_hyperparameters
 from gpg.gp.hyper import Hyper
-from gpg.gp.inducing import InducingGP, fit_collapsed, inducing_inputs, project
+from gpg.gp.inducing import (
+    InducingGP,
+    StackedInducing,
+    fit_collapsed,
+    inducing_inputs,
+    project,
+)
 from gpg.gp.predictor import Predictor, plain
 from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
 from gpg.quadrotor.simple_model import SimpleModel
@@ -411,6 +417,9 @@ class Corrected(Predictor):
         """
         out = self.scale * prior_mean + self._mean_terms(x)
         if self.delta:
+            d0 = self.delta[0]
+            if isinstance(d0, StackedInducing):  # online_step's view
+                return out + self._pad(d0.means(x))
             out = out + self._pad(jnp.concatenate([d.mean_one(x) for d in self.delta]))
         return out
 
@@ -538,6 +547,9 @@ class Corrected(Predictor):
         prior's variance); zeros without them."""
         if not self.delta:
             return jnp.zeros(N_LOADS)
+        if isinstance(self.delta[0], StackedInducing):
+            d = self.delta[0]
+            return jnp.maximum(d.latents(x), 0.0) * d.output_scale
         parts = [jnp.maximum(jnp.reshape(d.mean_var_one(x)[1], ()), 0.0) * d.output_scale[0]
                  for d in self.delta]  # fmt: skip
         return jnp.stack(parts)
@@ -557,6 +569,22 @@ class Corrected(Predictor):
         delta = self.variance_views().delta if keep_delta else (
             tuple(d.mean_view() for d in self.delta))  # fmt: skip
         return eqx.tree_at(lambda c: (c.prior, c.delta), self, (self.prior.mean_view(), delta))
+
+    def stacked(self) -> Corrected:
+        """This model with its discrepancies stacked into one
+        :class:`~gpg.gp.inducing.StackedInducing` where they are one-output inducing-point
+        GPs of one size (else itself): their six kernel rows, means and variances at a query
+        in one program. For :func:`online_step`'s view only: :meth:`offline_mean` and the
+        wind state's variance read it, nothing else does. On the host, once.
+
+        Returns:
+            The corrected model over the stack (or the model itself).
+        """
+        variance = all(getattr(d, "whiten", jnp.zeros(0)).shape[0] > 0 for d in self.delta)
+        stack = StackedInducing.of(self.delta, variance)
+        if stack is None:
+            return self
+        return eqx.tree_at(lambda c: c.delta, self, (stack,))
 
     def variance_views(self) -> Corrected:
         """This model with each inducing-point ``δ``'s latent variance folded into one
@@ -1374,7 +1402,7 @@ def with_online(sur: Surrogate, online: Online | eqx.Module) -> Surrogate:
     return eqx.tree_at(lambda s: s.model.tracker, sur, online, is_leaf=none)
 
 
-def online_step(sur: Surrogate) -> Callable[..., Online | eqx.Module]:
+def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online | eqx.Module]:
     """A compiled step for loops that update once a step from Python.
 
     ``step(state, t, rpm, euler, v_air, force, torque, force_var, torque_var) -> state`` is
@@ -1387,6 +1415,10 @@ def online_step(sur: Surrogate) -> Callable[..., Online | eqx.Module]:
     Args:
         sur: a surrogate prepared by :func:`adapt` or :func:`gpg.flight.track` (its online
             state is the start state only).
+        stack: read the inducing-point discrepancies ``δ`` through one
+            :class:`~gpg.gp.inducing.StackedInducing` (:meth:`Corrected.stacked`), where
+            they can be; False reads them one by one, as :func:`update` does. The same step
+            to rounding.
 
     Returns:
         The step function.
@@ -1397,7 +1429,10 @@ def online_step(sur: Surrogate) -> Callable[..., Online | eqx.Module]:
     state = online_state(sur, "online_step")
     # A wind state's update reads the discrepancies' variance at the label (advance)
     wind = getattr(state, "wind_mean", None) is not None
-    offline = eqx.tree_at(lambda s: s.model, sur, offline_model(sur.model).mean_view(wind))
+    view = offline_model(sur.model).mean_view(wind)
+    if stack:  # six kernel rows in one program, not six: fewer, larger operations a step
+        view = view.stacked()
+    offline = eqx.tree_at(lambda s: s.model, sur, view)
     leaves, treedef = jax.tree_util.tree_flatten(offline)
     leaves = tuple(leaves)
     fn = _online_step_fn(treedef)

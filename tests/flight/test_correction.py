@@ -736,6 +736,7 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
         )
         np.testing.assert_allclose(vf, v, rtol=0, atol=bound)
         assert v.max() > 100 * bound  # the variance told apart from that rounding
+    _stacked_as_one_by_one(few, corrected, X, flights)
     back = checkpoint.load(checkpoint.save(tmp_path / "few", few))
     assert jax.tree.structure(back.model) == jax.tree.structure(few.model)
     for a, b in zip(jax.tree.leaves(few.model), jax.tree.leaves(back.model), strict=True):
@@ -744,6 +745,70 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     _exports_equal_predict(few, flights, tmp_path / "c", "float", n_casadi=4, onnx=False)
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)
+
+
+def _stacked_as_one_by_one(few, corrected, X, flights):
+    """online_step's view reads the six inducing-point δ through one StackedInducing: each
+    δ's mean and latent variance as the GP's own (the offline mean and the δ variance the
+    wind state's step reads), and the tracked step as the one reading them one by one."""
+    from gpg.flight.tracking import default_drift, track
+    from gpg.gp.inducing import StackedInducing
+
+    view = few.model.mean_view(True)
+    stacked = view.stacked()
+    (stack,) = stacked.delta
+    assert isinstance(stack, StackedInducing)
+    assert corrected.model.stacked() is corrected.model  # exact δ: nothing stacked
+
+    @eqx.filter_jit
+    @jax.vmap
+    def read(x):  # one program: both forms at each query
+        pm = view.prior.mean_one(x)
+        one = [d.mean_var_one(x) for d in view.delta]
+        return {"mean": stack.means(x), "var": stack.latents(x),
+                "mean_1": jnp.stack([m[0] for m, _ in one]),
+                "var_1": jnp.stack([v for _, v in one]),
+                "offline": stacked.offline_mean(x, pm), "offline_1": view.offline_mean(x, pm),
+                "latent": stacked._delta_latent_at(x), "latent_1": view._delta_latent_at(x),
+                "rows": jnp.stack([d._row(x) for d in view.delta]), "prior": pm}  # fmt: skip
+
+    xs = X[:4]
+    got = {k: np.asarray(v) for k, v in read(xs).items()}
+    eps = np.finfo(float).eps
+    for i, x in enumerate(np.asarray(xs)):
+        for j, d in enumerate(view.delta):
+            # the two sum r² = ‖a‖² + ‖b‖² − 2 a·b in other orders: |Δr²| ≤ 4 D ε (‖a‖² + ‖b‖²)
+            # for each row, so |Δk| ≤ k |Δr²| / 2; the mean's error at most Σ |k w| |Δr²| / 2,
+            # the variance's ‖T Δk‖ (2 ‖T k‖ + ‖T Δk‖) ≤ 3 ‖T‖₂² ‖k‖ ‖Δk‖.
+            ls = np.asarray(d.hyper.lengthscale)
+            a, B = x / ls, np.asarray(d.X) / ls
+            dr2 = 4 * B.shape[1] * eps * (a @ a + np.sum(B * B, 1))
+            k, w = got["rows"][i, j], np.asarray(d.weights)[:, 0]
+            dk = k * dr2 / 2 + 4 * eps * k
+            mean_tol = np.sum(np.abs(k * w) * dr2) + 4 * k.size * eps * np.sum(np.abs(k * w))
+            T = np.asarray(d.whiten)
+            var_tol = 3 * np.linalg.norm(T, 2) ** 2 * np.linalg.norm(k) * np.linalg.norm(dk)
+            var_tol += 4 * k.size * eps * np.linalg.norm(T @ k) ** 2
+            close = lambda u, v, tol: np.testing.assert_allclose(u, v, rtol=0, atol=tol)  # noqa: E731
+            close(got["mean"][i, j], got["mean_1"][i, j], mean_tol)
+            close(got["var"][i, j], got["var_1"][i, j], var_tol)
+            # what the step reads: the offline mean and the wind state's δ variance (scaled)
+            pm_tol = 4 * eps * float(np.abs(got["prior"][i]).max())
+            close(got["offline"][i, j], got["offline_1"][i, j], mean_tol + pm_tol)
+            sc = float(d.output_scale[0])
+            close(got["latent"][i, j], got["latent_1"][i, j], sc * var_tol)
+    # the step one by one is update's (tests/flight/test_tracking.py)
+    sur = track(few, default_drift(few), t0=0.0)
+    cols = flights.columns()
+    stacked_step, one_by_one = fc.online_step(sur), fc.online_step(sur, stack=False)
+    a = b = fc.online_state(sur)
+    for i in range(6):
+        args = [c[i] for c in cols]
+        a, b = stacked_step(a, *args), one_by_one(b, *args)
+    # rounding in the means (above) moves the steps apart by as little; six Kalman steps of a
+    # well-conditioned P-state filter amplify it by far less than 1e3
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-13 * float(np.abs(y).max()))
 
 
 def test_hyperparameters_refined_on_every_label(synthetic_surrogate, flights):
