@@ -433,6 +433,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     # the drift as fitted before spreads per column: one spread for every column
     one_spread = fit_drift(models["identified"], by_wind_id, max_labels=n_fit, per_column=False)
     t1 = time.perf_counter()
+    curves: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
     adaptive = prequential_rows(
         models["identified"],
         id_tests,
@@ -445,9 +446,11 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         spreads=[float(v) for v in cfg["track"]["spread_sweep"]],
         one_spread=one_spread,
         streams=id_streams,
+        curves=curves,
     )
     adaptive["today"] = today_rows(models["corrected_regression"], tests, streams,
-                                   cfg["adapt"], progress)  # fmt: skip
+                                   cfg["adapt"], progress, curves)  # fmt: skip
+    _prequential_figure(out / "figures", curves)
     # Each swept spread's score on the training winds held out (what fit_drift maximises),
     # beside its prequential scores on the test flights: whether the flights could tell it.
     swept = [(f"tracked_spread_{s:g}", dataclasses.replace(drift, spread=s, columns=()))
@@ -525,7 +528,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
                      progress: bool, other=None, gust_cfg=None, spreads=(),
-                     one_spread=None, streams=None) -> dict[str, Any]:  # fmt: skip
+                     one_spread=None, streams=None, curves=None) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
     with another bank, where given, the fitted drift with a wind state, horizontal and
@@ -539,10 +542,13 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     test labels' instants (``stream_<model>_...``): the force MSE against the truth and
     against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
     test gives one, as offline), the labels' log predictive density, the labels' noise floor;
-    the per-label update cost from Python; the figure of the error along the flights."""
+    the per-label update cost from Python; the error along the flights into ``curves``
+    (``(test, model) -> (seconds since the first label, squared error)``; not given: drawn
+    here as the figure)."""
     from experiments.runs.flight_logs import prequential_scores, update_cost
 
-    rows, curves = [], {}
+    draw = curves is None
+    rows, curves = [], {} if curves is None else curves
     for name, test in tqdm(tests.items(), desc="prequential", disable=not progress):
         lab = test.labels
         t0 = float(lab.t[0])
@@ -606,7 +612,8 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         out_["tracked_gusts_update"] = update_cost(
             track(offline, with_gusts, t0=float(steady.t[0])), steady, 600.0
         )
-    _prequential_figure(out / "figures", curves)
+    if draw:
+        _prequential_figure(out / "figures", curves)
     return out_
 
 
@@ -616,6 +623,7 @@ def today_rows(
     streams: dict[str, _Test],
     adapt_cfg,
     progress: bool,
+    curves=None,
 ) -> dict[str, Any]:
     """Today's adaptation, as the tracking issue measured it on real flights: the
     inducing-point term (:func:`gpg.flight.adapt`, ``adapt_cfg["inducing"]`` inputs) with each
@@ -624,7 +632,9 @@ def today_rows(
     curve), prequential on each test flight's labels and on every sample of it (``streams``,
     scored at the labels' instants), against the same truth as every other row. ``best`` is
     the least MSE over the forgetting times, per flight and per reading: the baseline the
-    issue's "a third of today's adaptation" is measured against, taken at its best."""
+    issue's "a third of today's adaptation" is measured against, taken at its best; its
+    error along each flight goes into ``curves`` (``today`` and ``stream_today``), where
+    given."""
     from experiments.runs.flight_logs import prequential_scores
 
     taus = [float(v) for v in adapt_cfg["today_taus"]]
@@ -633,6 +643,7 @@ def today_rows(
         lab, s = test.labels, streams[name].labels
         at = np.isin(s.t, lab.t)
         row: dict[str, Any] = {"test": name, "stream_scored": int(at.sum())}
+        t0 = float(lab.t[0])
         for reading, seq, truth, mask, wind_sd in (
             ("labels", lab, test.force, None, test.wind_sd),
             ("stream", s, streams[name].force, at, streams[name].wind_sd),
@@ -644,11 +655,14 @@ def today_rows(
             for tau in taus:
                 sur = fc.adapt(regression, inducing=int(adapt_cfg["inducing"]), tau=tau,
                                t0=float(seq.t[0]))  # fmt: skip
-                sc, _ = prequential_scores(sur, seq, truth, extra, at=mask)
+                sc, e = prequential_scores(sur, seq, truth, extra, at=mask)
                 row.update({f"{reading}_tau_{tau:g}_{k}": v for k, v in sc.items()})
                 if best is None or sc["mse"] < row[f"{reading}_best_mse"]:
                     best = tau
                     row.update({f"{reading}_best_{k}": v for k, v in sc.items()})
+                    if curves is not None:
+                        key = "today" if reading == "labels" else "stream_today"
+                        curves[(name, key)] = (lab.t - t0, np.sum(e**2, 1))
             row[f"{reading}_best_tau"] = best
         rows.append(row)
         jax.clear_caches()
@@ -710,13 +724,16 @@ def _prequential_figure(where: Path, curves) -> None:
 
     where.mkdir(parents=True, exist_ok=True)
     tests = sorted({t for t, _ in curves})
-    fig, axes = plt.subplots(len(tests), 1, figsize=(8, 3 * len(tests)), sharex=True)
-    styles = {"none": ("k--", "no adaptation"), "inducing": ("C1", "inducing-point term (today)"),
+    fig, axes = plt.subplots(len(tests), 1, figsize=(9, 3 * len(tests) + 1.5), sharex=True)
+    styles = {"none": ("k--", "no adaptation"),
+              "today": ("C5:", "today's adaptation (adapt on today's correct, best tau)"),
+              "stream_today": ("C5", "today's adaptation, every sample of the log"),
+              "inducing": ("C1", "inducing-point term (adapt)"),
               "tracked": ("C0", "tracked coefficients, fitted drift"),
               "tracked_default": ("C2:", "tracked coefficients, default drift"),
               "tracked_gusts": ("C3", "tracked coefficients and a wind state"),
-              "stream_tracked_gusts": ("C4", "the same reading every sample "
-                                              "of the log")}  # fmt: skip
+              "stream_tracked_gusts": ("C4", "tracked coefficients and a wind state, "
+                                              "every sample")}  # fmt: skip
     for ax, test in zip(np.atleast_1d(axes), tests, strict=True):
         for m, (style, label_) in styles.items():
             if (test, m) not in curves:
@@ -728,9 +745,11 @@ def _prequential_figure(where: Path, curves) -> None:
         ax.set_ylabel("force error² (N²), 5 s mean")
         ax.set_title(test, fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
-    np.atleast_1d(axes)[0].legend(fontsize=8)
     np.atleast_1d(axes)[-1].set_xlabel("time since the flight's first label (s)")
-    fig.tight_layout()
+    # below the panels: over them it hid the curves
+    handles, labels = np.atleast_1d(axes)[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=7)
+    fig.tight_layout(rect=(0, 0.16, 1, 1))
     for ext in ("png", "pdf"):
         fig.savefig(where / f"prequential_along_flight.{ext}", dpi=150)
     plt.close(fig)
