@@ -749,8 +749,8 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
 
 def _stacked_as_one_by_one(few, corrected, X, flights):
     """online_step's view reads the six inducing-point δ through one StackedInducing: each
-    δ's mean and latent variance as the GP's own (the offline mean and the δ variance the
-    wind state's step reads), and the tracked step as the one reading them one by one."""
+    δ's mean and latent variance as the GP's own (and the δ variance the wind state's step
+    reads), and the tracked step as the one reading them one by one."""
     from gpg.flight.tracking import default_drift, track
     from gpg.gp.inducing import StackedInducing
 
@@ -763,14 +763,12 @@ def _stacked_as_one_by_one(few, corrected, X, flights):
     @eqx.filter_jit
     @jax.vmap
     def read(x):  # one program: both forms at each query
-        pm = view.prior.mean_one(x)
         one = [d.mean_var_one(x) for d in view.delta]
         return {"mean": stack.means(x), "var": stack.latents(x),
                 "mean_1": jnp.stack([m[0] for m, _ in one]),
                 "var_1": jnp.stack([v for _, v in one]),
-                "offline": stacked.offline_mean(x, pm), "offline_1": view.offline_mean(x, pm),
                 "latent": stacked._delta_latent_at(x), "latent_1": view._delta_latent_at(x),
-                "rows": jnp.stack([d._row(x) for d in view.delta]), "prior": pm}  # fmt: skip
+                "rows": jnp.stack([d._row(x) for d in view.delta])}  # fmt: skip
 
     xs = X[:4]
     got = {k: np.asarray(v) for k, v in read(xs).items()}
@@ -792,12 +790,11 @@ def _stacked_as_one_by_one(few, corrected, X, flights):
             close = lambda u, v, tol: np.testing.assert_allclose(u, v, rtol=0, atol=tol)  # noqa: E731
             close(got["mean"][i, j], got["mean_1"][i, j], mean_tol)
             close(got["var"][i, j], got["var_1"][i, j], var_tol)
-            # what the step reads: the offline mean and the wind state's δ variance (scaled)
-            pm_tol = 4 * eps * float(np.abs(got["prior"][i]).max())
-            close(got["offline"][i, j], got["offline_1"][i, j], mean_tol + pm_tol)
+            # what the wind state's step reads: δ's variance, scaled (the offline mean: below)
             sc = float(d.output_scale[0])
             close(got["latent"][i, j], got["latent_1"][i, j], sc * var_tol)
-    # the step one by one is update's (tests/flight/test_tracking.py)
+    # the tracked step reads the offline mean through the stack; one by one it is update's
+    # (tests/flight/test_tracking.py)
     sur = track(few, default_drift(few), t0=0.0)
     cols = flights.columns()
     stacked_step, one_by_one = fc.online_step(sur), fc.online_step(sur, stack=False)
