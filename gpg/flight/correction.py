@@ -580,7 +580,8 @@ class Corrected(Predictor):
         Returns:
             The corrected model over the stack (or the model itself).
         """
-        variance = all(getattr(d, "whiten", jnp.zeros(0)).shape[0] > 0 for d in self.delta)
+        # a mean_view's δ have no variance factors (StackedInducing.of refuses exact δ)
+        variance = all(isinstance(d, InducingGP) and d.whiten.shape[0] > 0 for d in self.delta)
         stack = StackedInducing.of(self.delta, variance)
         if stack is None:
             return self

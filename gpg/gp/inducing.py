@@ -322,6 +322,7 @@ class StackedInducing(eqx.Module):
             output_scale=jnp.stack([g.output_scale[0] for g in gps]),
         )
 
+    @highest
     def rows(self, x: Float[Array, " D"]) -> Float[Array, "S m"]:
         """Each GP's kernel row ``k(x, Z)``.
 
