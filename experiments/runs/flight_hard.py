@@ -358,6 +358,12 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         # the same samples through the hover curve and the user's file: today's route
         streams = {name: _test(name, f, user, simple, {**stream_opts, "curve": curve}, gust)
                    for name, f in tests_raw.items()}  # fmt: skip
+        # the training flights read the same way: what a drift for the stream's filters is
+        # fitted on (gpg.flight.fit_drift's read; its seconds count in identify_s)
+        id_train_streams = None
+        if cfg["track"].get("fit_stream"):
+            id_train_streams = [label(f.log, ident.vehicle, reference=simple, **stream_opts)
+                                for _, f in train]  # fmt: skip
     stages["identify_s"] = time.perf_counter() - t1
 
     data_cfg = conf.load(h["data"], "data")
@@ -432,6 +438,14 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                       fast=tuple(float(f) for f in cfg["track"]["compare_fast"]))  # fmt: skip
     # the drift as fitted before spreads per column: one spread for every column
     one_spread = fit_drift(models["identified"], by_wind_id, max_labels=n_fit, per_column=False)
+    # the drift fitted on what the stream's filters read: every sample of the training
+    # flights over the labels' span, each wind predicted from the others' labels
+    stream_drift = None
+    if id_train_streams is not None:
+        t2 = time.perf_counter()
+        stream_drift = fit_drift(models["identified"], by_wind_id, max_labels=n_fit,
+                                 read=_by_wind(train, id_train_streams))  # fmt: skip
+        stages["fit_drift_stream_s"] = time.perf_counter() - t2
     t1 = time.perf_counter()
     curves: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
     adaptive = prequential_rows(
@@ -447,6 +461,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         one_spread=one_spread,
         streams=id_streams,
         curves=curves,
+        stream_drift=stream_drift,
     )
     adaptive["today"] = today_rows(models["corrected_regression"], tests, streams,
                                    cfg["adapt"], progress, curves)  # fmt: skip
@@ -528,7 +543,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
                      progress: bool, other=None, gust_cfg=None, spreads=(),
-                     one_spread=None, streams=None, curves=None) -> dict[str, Any]:  # fmt: skip
+                     one_spread=None, streams=None, curves=None,
+                     stream_drift=None) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
     with another bank, where given, the fitted drift with a wind state, horizontal and
@@ -539,7 +555,10 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     before it is used (:func:`gpg.flight.prequential`); where ``streams`` gives a test flight
     labelled at every sample (saturated rotors too), the offline model, the inducing-point
     term, the tracked coefficients and the wind state also read that stream, scored at the
-    test labels' instants (``stream_<model>_...``): the force MSE against the truth and
+    test labels' instants (``stream_<model>_...``; with ``stream_drift``, a drift fitted on
+    the training flights' streams, the tracked coefficients and the wind state with it too,
+    ``stream_tracked_fit_stream`` and ``stream_tracked_gusts_fit_stream``): the force MSE
+    against the truth and
     against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
     test gives one, as offline), the labels' log predictive density, the labels' noise floor;
     the per-label update cost from Python; the error along the flights into ``curves``
@@ -597,15 +616,20 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
             row[f"{m}_lag1"] = _lag1(lab.t, e)
         if streams is not None:
             row.update(_stream_scores(offline, streams[name], lab, drift, adapt_cfg, gust_cfg,
-                                      curves, (name, t0)))  # fmt: skip
+                                      curves, (name, t0), stream_drift))  # fmt: skip
         rows.append(row)
         jax.clear_caches()
     steady = tests["steady"].labels
     cost = update_cost(track(offline, drift, t0=float(steady.t[0])), steady, 600.0)
-    out_ = {"drift": dataclasses.asdict(drift), "tests": rows, "tracked_update": cost,
-            "other": None if other is None else dataclasses.asdict(other),
-            "one_spread": None if one_spread is None else dataclasses.asdict(one_spread),
-            "spreads": list(spreads)}  # fmt: skip
+    out_ = {
+        "drift": dataclasses.asdict(drift),
+        "tests": rows,
+        "tracked_update": cost,
+        "other": None if other is None else dataclasses.asdict(other),
+        "one_spread": None if one_spread is None else dataclasses.asdict(one_spread),
+        "spreads": list(spreads),
+        "stream_drift": None if stream_drift is None else dataclasses.asdict(stream_drift),
+    }
     if gust_cfg is not None:
         with_gusts = gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"]))
         out_["gusts"] = {"sd": list(with_gusts.wind_sd), "tau": with_gusts.wind_tau}
@@ -678,6 +702,7 @@ def _stream_scores(
     gust_cfg,
     curves,
     where: tuple[str, float],
+    stream_drift=None,
 ) -> dict[str, Any]:
     """The offline model and three online ones reading ``stream`` (every sample of the test
     flight whose labels are ``lab``), each scored at ``lab``'s instants: the same labels and
@@ -697,6 +722,12 @@ def _stream_scores(
         models["tracked_gusts"] = track(
             offline, gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"])), t0=start
         )
+    if stream_drift is not None:
+        models["tracked_fit_stream"] = track(offline, stream_drift, t0=start)
+        if gust_cfg is not None:
+            models["tracked_gusts_fit_stream"] = track(
+                offline, gusts(stream_drift, gust_cfg["sd"], float(gust_cfg["tau"])), t0=start
+            )
     extra = None
     if stream.wind_sd is not None:
         extra = wind_variance(offline, s.rpm, s.euler, s.v_air, stream.wind_sd)
@@ -860,7 +891,8 @@ def _report(res) -> str:
                      f"{st['saturation']:g}), scored at the same labels:")  # fmt: skip
         scols = [("test", "test", "s"), ("stream_labels", "stream labels", "d"),
                  ("stream_scored", "scored", "d")]  # fmt: skip
-        for m in ("none", "inducing", "tracked", "tracked_gusts"):
+        for m in ("none", "inducing", "tracked", "tracked_gusts", "tracked_fit_stream",
+                  "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
                           (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip

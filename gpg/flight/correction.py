@@ -926,16 +926,20 @@ def _prior_grid(basis_prior, held: bool) -> tuple[float, ...]:
     return (float(basis_prior),)
 
 
-def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None):
+def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None, at=None):
     """Each group of labels predicted from the others by one load output's physical basis
     (coefficients integrated out, prior ``N(b, diag(sd²))``) and discrepancy GP (``hyper``,
     the labels' ``noise`` on the diagonal), the same hyperparameters throughout: the
     coefficients' posterior and the discrepancy conditioned anew without the group. Dense
     LAPACK on the host: one factorisation per group, and no program compiled per shape.
-    ``predict`` names the groups to predict (default: every one).
+    ``predict`` names the groups to predict (default: every one); ``at`` = ``(X', H',
+    groups')``, other rows of the same groups to predict there (what a filter reads of the
+    group: every sample of its flights) instead of the group's own labels: the model that
+    predicts a group is conditioned on the other groups' labels alone either way.
 
     Returns:
-        A list of ``(mask, mean, variance, cov, latent)``: the group's rows, their held-out
+        A list of ``(mask, mean, variance, cov, latent)``: the group's rows (of ``at``'s where
+        given), their held-out
         mean and latent variance (the discrepancy's, its ``ν²`` and the coefficients'; not the
         labels' noise), the coefficients' posterior covariance without the group (P, P), and
         the discrepancy's own latent variance alone (its posterior's, without ``ν²`` or the
@@ -950,19 +954,21 @@ def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None):
         d2 = np.sum(A * A, 1)[:, None] + np.sum(B * B, 1)[None, :] - 2 * A @ B.T
         return s2 * np.exp(-0.5 * np.maximum(d2, 0.0))
 
+    Xa, Ha, ga = (X, H, groups) if at is None else at
+    Za = Xa / np.broadcast_to(np.asarray(hyper.lengthscale, float), Xa.shape[1:])
     out = []
     for g in np.unique(groups) if predict is None else predict:
-        tr, te = groups != g, groups == g
+        tr, te = groups != g, ga == g
         if tr.sum() < 8:
             continue
         K = kern(Z[tr], Z[tr]) + np.diag(noise[tr] + nu)
         L = cho_factor(K, lower=True)
         KiH, Kiy = cho_solve(L, H[tr]), cho_solve(L, y[tr])
         beta, chol = posterior(H[tr], KiH, Kiy, b, sd)
-        kq = kern(Z[te], Z[tr])
-        mean = H[te] @ beta + kq @ (Kiy - KiH @ beta)
+        kq = kern(Za[te], Z[tr])
+        mean = Ha[te] @ beta + kq @ (Kiy - KiH @ beta)
         v = solve_triangular(np.tril(L[0]), kq.T, lower=True)
-        r = H[te] - kq @ KiH
+        r = Ha[te] - kq @ KiH
         latent = np.maximum(s2 - np.sum(v * v, 0), 0)
         var = latent + nu + np.sum((r @ chol) ** 2, 1)
         out.append((te, mean, var, chol @ chol.T, latent))

@@ -39,7 +39,9 @@ band adds ``σ_o²``; the gain and the mean are unchanged.
 likelihood (each label predicted before the filter sees it) of training flights, each predicted
 by a model that did not see it (the corrected model itself, or the physical basis fitted on
 the others: the condition a new flight is in), so that no time constant is set by hand;
-:func:`default_drift` is the start for a vehicle never flown. A :class:`Drift` may also name
+:func:`default_drift` is the start for a vehicle never flown. A filter that reads every sample
+of a log is fitted on what it reads (``read``: the same flights at the log's rate, each still
+predicted by the model fitted on the other flights' labels). A :class:`Drift` may also name
 faster members (``fast``): a bank of filters whose biases relax faster, weighted by their
 predictive densities with a fixed share (Herbster and Warmuth's switching), for a force that
 changes faster than any training flight showed (a gust).
@@ -143,7 +145,8 @@ class Drift:
         noise: (6,) ``v_j``, the discrepancy each load output's measurements carry beyond the
             labels' own noise (the surrogate's normalised units).
         log_likelihood: the prequential log likelihood per label where fitted, else NaN.
-        labels: the labels it was fitted on (0: not fitted).
+        labels: the labels it was fitted on, or the rows read (``fit_drift``'s ``read``); 0:
+            not fitted.
         source: ``"fitted"`` or ``"default"``.
         fast: s, the bias time constants of the bank's other members (module docstring);
             empty (the default): one filter.
@@ -593,6 +596,7 @@ def fit_drift(
     fast: Sequence[float] | None = None,
     share: float = SHARE,
     per_column: bool = True,
+    read: Sequence[Labels] | None = None,
 ) -> Drift:
     """The drift that best predicts new flights, label by label (module docstring).
 
@@ -623,6 +627,12 @@ def fit_drift(
         per_column: one spread per basis column (the prior's mean, ``M``'s loads, each
             physical term: a term the flights move little is held near its offline value,
             one they move is free to); False: one for all.
+        read: what the filter will read of each part, one per part in the same order:
+            every sample of the same flights (labelled at the log's rate, as a filter on board
+            reads them), so that ``v``, the spreads and the time constants are those of the
+            filter on that stream. The held-out models are still fitted on ``labels``; the
+            likelihood is of ``read``'s rows over the span of the labels kept (``max_labels``
+            bounds the labels). None (the default): the labels themselves.
 
     Returns:
         The fitted :class:`Drift` (``source="fitted"``), without a labels' offset: the held-out
@@ -630,13 +640,15 @@ def fit_drift(
 
     Raises:
         ValueError: fewer than two parts, ``sur`` not corrected by flights, or a ``fast``
-            time constant not positive or a ``share`` outside [0, 1).
+            time constant not positive or a ``share`` outside [0, 1); ``read`` not one
+            non-empty part per part of ``labels``.
     """
     parts = _parts(sur, labels, "fit_drift")
+    stream = _checked_read(parts, read, "fit_drift")
     banks = BANKS if fast is None else (tuple(fast),)
     if not all(f > 0 for b in banks for f in b) or not 0 <= share < 1:
         raise ValueError(f"fast must be > 0 s and share in [0, 1), got {fast}, {share}")
-    data, v0 = _held_out_sequences(sur, parts, max_labels)
+    data, v0 = _held_out_sequences(sur, parts, max_labels, stream)
     n_spread = data[6].shape[0] if per_column else 1
     fits = [_fit_bank(data, v0, tuple(float(f) for f in b), float(share), max_steps, n_spread)
             for b in banks]  # fmt: skip
@@ -645,7 +657,12 @@ def fit_drift(
 
 @float64
 def score_drift(
-    sur: Surrogate, labels: Sequence[Labels], drift: Drift | None = None, *, max_labels: int = 1500
+    sur: Surrogate,
+    labels: Sequence[Labels],
+    drift: Drift | None = None,
+    *,
+    max_labels: int = 1500,
+    read: Sequence[Labels] | None = None,
 ) -> float:
     """``drift``'s prequential log likelihood per label on flights held out: the number
     :func:`fit_drift` maximises (its ``log_likelihood``), for any drift, so that a drift set
@@ -658,13 +675,14 @@ def score_drift(
         drift: the drift scored (its ``τ``, spread, bias, ``v`` and bank); default
             :func:`default_drift`.
         max_labels: at most this many labels, as :func:`fit_drift` takes them.
+        read: what the filter reads of each part, as :func:`fit_drift` scores it.
 
     Returns:
         The mean log predictive density per label (nats, the six load outputs summed), of the
         labels' band (``drift.label_offset`` left out: the labels share it).
 
     Raises:
-        ValueError: as :func:`fit_drift` for ``sur`` and ``labels``; a drift :func:`track`
+        ValueError: as :func:`fit_drift` for ``sur``, ``labels`` and ``read``; a drift :func:`track`
             refuses, one with a wind state (the fit's likelihood has none), or one whose time
             constants or spreads lie outside :data:`TAU_RANGE` and :data:`SPREAD_RANGE`.
     """
@@ -681,7 +699,8 @@ def score_drift(
             f"bias_sd in {SPREAD_RANGE} (fit_drift's ranges), got {drift.tau}, "
             f"{drift.bias_tau}, {drift.spread}, {drift.bias_sd}"
         )
-    data, _ = _held_out_sequences(sur, _parts(sur, labels, "score_drift"), max_labels)
+    parts = _parts(sur, labels, "score_drift")
+    data, _ = _held_out_sequences(sur, parts, max_labels, _checked_read(parts, read, "score_drift"))
     spread = _column_spread(drift, _column_names(data[6].shape[0]))
     theta = _pack(drift.tau, drift.bias_tau, drift.bias_sd, np.maximum(noise, 1e-300), spread)
     args = (data, jnp.asarray(drift.fast, float).reshape(-1), float(drift.share))
@@ -730,44 +749,57 @@ def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int,
     )
 
 
-def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
+def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
+                        read: list[Labels] | None = None):  # fmt: skip
     """Every label's residual against a model that did not see its part (``sur`` itself where
     its correction did not take the part, by name; else the basis fitted without it), with
     that model's coefficient covariance, the columns, the label's noise, time, whether a flight
     starts there and that model's discrepancies' latent variance there; and each output's mean
-    held-out variance (the start of ``v``)."""
+    held-out variance (the start of ``v``). With ``read`` (one per part, the same flights),
+    the sequences are of ``read``'s rows over the span of the labels kept, each predicted by
+    the model fitted on the other parts' labels."""
     prior = fc.base(sur)
     if sum(len(p) for p in parts) > max_labels:
         k = max(2, max_labels // len(parts))
+        if read is not None:
+            read = [_within(r, p.take(slice(0, k))) for r, p in zip(read, parts, strict=True)]
         parts = [p.take(slice(0, k)) for p in parts]
     X, Y, V, groups, t = fc._label_rows(prior, parts, max_labels, "physical")
-    mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
+    if read is not None:
+        Xr, Yr, Vr, gr, t = fc._label_rows(prior, read, None, "physical")
+    else:
+        Xr, Yr, Vr, gr = X, Y, V, groups
+    # The columns of the rows fitted on and of those read (the same rows without ``read``).
+    both = np.concatenate([X, Xr]) if read is not None else X
+    mu = np.asarray(prior.model.predict_mean(both))[:, :N_LOADS]
     ms = None
     if prior.simple is not None:
         simple = fc.SimpleBasis(prior.simple, prior.normalizer, prior.frame)
-        ms = np.asarray(jax.vmap(simple)(jnp.asarray(X)))
-    phys = np.asarray(jax.vmap(fc._physics(prior))(jnp.asarray(X)))
+        ms = np.asarray(jax.vmap(simple)(jnp.asarray(both)))
+    phys = np.asarray(jax.vmap(fc._physics(prior))(jnp.asarray(both)))
     b, sd = fc._coefficient_prior(True, ms is not None)
     sd_j = fc._chosen_prior(sur, True, ms is not None)  # the prior each output was fitted with
-    resid = np.full(Y.shape, np.nan)
-    H = np.stack([fc._basis_columns(mu, ms, phys, j) for j in range(N_LOADS)], 1)  # (N, 6, P)
+    H_all = np.stack([fc._basis_columns(mu, ms, phys, j) for j in range(N_LOADS)], 1)  # (N, 6, P)
+    H, Hr = (H_all[: len(X)], H_all[len(X) :]) if read is not None else (H_all, H_all)
+    resid = np.full(Yr.shape, np.nan)
     bias = np.asarray(BIAS_SCALE) / np.asarray(prior.normalizer.y_std[:N_LOADS])
     v0 = np.zeros(N_LOADS)
     p = sd.size
-    c0 = np.zeros((len(X), N_LOADS, p + 1, p + 1))  # the bias has no offline posterior
+    c0 = np.zeros((len(Xr), N_LOADS, p + 1, p + 1))  # the bias has no offline posterior
     # A part the model was not corrected on is predicted by the model itself: the drift is
     # then fitted for the model it will track, not for one refitted without the part.
     seen = set(sur.config.get("flight_correction", {}).get("flights", []))
     refit = [g for g, lab in enumerate(parts) if lab.name in seen]
-    unseen = ~np.isin(groups, refit)
+    unseen = ~np.isin(gr, refit)
     # The latent variance of the discrepancy that predicts each label: in the tracked band
     # (Corrected.predictive_variance), so in the density the fit scores, though not in the
     # filter's gain (the update on board does not pay for δ's variance at every label).
-    DL = np.zeros(Y.shape)
+    DL = np.zeros(Yr.shape)
     for j, d in enumerate(sur.model.delta):
-        outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd_j[j], groups, refit)
+        outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd_j[j], groups, refit,
+                            at=(Xr, Hr[:, j], gr))  # fmt: skip
         for te, mean, _, cov, latent in outs:
-            resid[te, j] = Y[te, j] - mean
+            resid[te, j] = Yr[te, j] - mean
             c0[te, j, :p, :p] = cov
             DL[te, j] = float(d.output_scale[0]) * latent
         # v starts at the held-out variance, or at the discrepancy's own where none was refit
@@ -779,18 +811,47 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int):
         def mean_latent(x):  # one program for both; δ's variance alone, not the prior's
             return own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS], own._delta_latent_at(x)
 
-        mean, latent = jax.vmap(mean_latent)(jnp.asarray(X[unseen]))
-        resid[unseen] = Y[unseen] - np.asarray(mean)
+        mean, latent = jax.vmap(mean_latent)(jnp.asarray(Xr[unseen]))
+        resid[unseen] = Yr[unseen] - np.asarray(mean)
         DL[unseen] = np.asarray(latent)
         c0[unseen] = _offline_cov(own, p + 1, ms is not None)
     keep = np.all(np.isfinite(resid), 1)
     start = np.ones(len(t), bool)
-    start[1:] = (groups[1:] != groups[:-1]) | (np.diff(t) <= 0)
+    start[1:] = (gr[1:] != gr[:-1]) | (np.diff(t) <= 0)
     start = start[keep]
     start[0] = True
-    Ht = np.concatenate([H, np.broadcast_to(bias[None, :, None], (len(H), N_LOADS, 1))], 2)
-    rows = (t[keep], start, Ht[keep], resid[keep], V[keep], c0[keep], sd, DL[keep])
+    Ht = np.concatenate([Hr, np.broadcast_to(bias[None, :, None], (len(Hr), N_LOADS, 1))], 2)
+    rows = (t[keep], start, Ht[keep], resid[keep], Vr[keep], c0[keep], sd, DL[keep])
     return tuple(jnp.asarray(a) for a in rows), v0
+
+
+def _flight_index(t: np.ndarray) -> np.ndarray:
+    """Each row's flight within a part of flights one after another (the time runs back
+    where the next starts)."""
+    return np.concatenate([[0], np.cumsum(np.diff(t) <= 0)])
+
+
+def _within(read: Labels, kept: Labels) -> Labels:
+    """``read``'s rows up to the last of ``kept``'s labels (their flight and time): what a
+    filter reading ``read`` saw over the span of the labels kept."""
+    f_r, f_k = _flight_index(np.asarray(read.t)), _flight_index(np.asarray(kept.t))
+    last_f, last_t = f_k[-1], float(kept.t[-1])
+    mask = (f_r < last_f) | ((f_r == last_f) & (np.asarray(read.t) <= last_t))
+    return read.take(np.flatnonzero(mask))
+
+
+def _checked_read(parts: list[Labels], read, who: str) -> list[Labels] | None:
+    """``read`` of :func:`fit_drift` or :func:`score_drift`: None, or one non-empty part per
+    part of the labels."""
+    if read is None:
+        return None
+    read = [read] if isinstance(read, Labels) else list(read)
+    if len(read) != len(parts) or any(len(r) == 0 for r in read):
+        raise ValueError(
+            f"{who}: read must give one non-empty part per part of labels (the same flights, "
+            f"in the same order), got {len(read)} for {len(parts)}"
+        )
+    return read
 
 
 def _pack(tau, bias_tau, bias_sd, noise, spread) -> Float[Array, " T"]:

@@ -284,6 +284,52 @@ def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights
         tk.fit_drift(synthetic_surrogate, flights)
 
 
+def test_fit_drift_reads_a_stream(synthetic_surrogate, corrected, flights):
+    """``read``: the filter's likelihood over every sample of the held-out flights, each
+    predicted by the model fitted on the other flights' labels. The labels read as their own
+    stream give the sequences without it, bit for bit; a stream holding half of a flight's
+    labels between new samples gives those labels' rows as before (the model that predicts
+    a flight does not see it) and the new samples' rows from the same model; ``max_labels``
+    keeps the stream over the labels' span; fit and score agree on the stream's likelihood."""
+    rng = np.random.default_rng(11)
+    half = N_LABELS // 4
+    streams = []
+    for f, a in zip(flights, (0.0, 0.03), strict=True):
+        new = _labels(synthetic_surrogate, rng, half, drag=a, t0=0.05)
+        both = Labels.concatenate([f.take(slice(0, half)), new])
+        streams.append(dataclasses.replace(both.take(np.argsort(both.t, kind="stable")),
+                                           name=f.name))  # fmt: skip
+    plain, v0 = tk._held_out_sequences(corrected, flights, 1500)
+    same, v1 = tk._held_out_sequences(corrected, flights, 1500, read=list(flights))
+    for a, b in zip(plain, same, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(v0, v1)
+    seq, _ = tk._held_out_sequences(corrected, flights, 1500, read=streams)
+    n = len(flights[0])
+    old = np.concatenate([np.arange(half), n + np.arange(half)])  # each flight's first labels
+    pairs = enumerate(zip(streams, flights, strict=True))
+    mine = np.concatenate([np.flatnonzero(np.isin(s.t, f.t[:half])) + i * 2 * half
+                           for i, (s, f) in pairs])  # fmt: skip
+    assert np.array_equal(np.asarray(seq[0])[mine], np.asarray(plain[0])[old])
+    for k in (2, 3, 4, 5, 7):  # columns, residual, noise, coefficients' covariance, δ's variance
+        np.testing.assert_allclose(np.asarray(seq[k])[mine], np.asarray(plain[k])[old],
+                                   rtol=1e-9, atol=1e-12)  # fmt: skip
+    assert np.all(np.isfinite(np.asarray(seq[3]))) and len(seq[0]) == 4 * half
+    assert list(np.flatnonzero(np.asarray(seq[1]))) == [0, 2 * half]  # each flight starts anew
+    # over the span of the labels kept: the first 10 labels of each flight, to t = 0.9 s
+    cut, _ = tk._held_out_sequences(corrected, flights, 20, read=streams)
+    span = np.concatenate([s.t[s.t <= f.t[9]] for s, f in zip(streams, flights, strict=True)])
+    assert span.size == 2 * 19 and np.array_equal(np.asarray(cut[0]), span)
+    drift = tk.fit_drift(corrected, flights, read=streams, fast=(), max_steps=5)
+    assert drift.labels == 4 * half
+    np.testing.assert_allclose(tk.score_drift(corrected, flights, drift, read=streams),
+                               drift.log_likelihood, rtol=1e-9)  # fmt: skip
+    with pytest.raises(ValueError, match="one non-empty part per part of labels"):
+        tk.fit_drift(corrected, flights, read=streams[:1])
+    with pytest.raises(ValueError, match="one non-empty part per part of labels"):
+        tk.score_drift(corrected, flights, drift, read=[streams[0], streams[1].take(slice(0, 0))])
+
+
 def test_prequential_predicts_before_it_updates(corrected, flights):
     """prequential's one compiled scan: the i-th prediction is the model after i updates,
     as a once-a-step loop from Python gives it; a model without an online state predicts."""

@@ -153,6 +153,10 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     # scored held out (the per-column fit highest: it nests them) and prequentially
     assert ad["drift"]["columns"] and len(ad["drift"]["spread"]) == len(ad["drift"]["columns"])
     assert isinstance(ad["one_spread"]["spread"], float)
+    # the drift fitted on every sample of the training flights reads more rows than the
+    # labels' over the same span
+    assert ad["stream_drift"]["source"] == "fitted"
+    assert ad["stream_drift"]["labels"] > ad["drift"]["labels"]
     sweep = {s["model"]: s["held_out_log_likelihood"] for s in ad["spread_sweep"]}
     uniform = [f"tracked_spread_{s:g}" for s in cfg["track"]["spread_sweep"]]
     assert set(sweep) == {*uniform, "tracked", "tracked_one_spread"}
@@ -161,7 +165,9 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
         assert all(np.isfinite(r[f"{m}_lpd_labels"]) for r in ad["tests"])
     for r in ad["tests"]:  # the filters reading every sample, scored at the same labels
         assert r["stream_scored"] == r["labels"] < r["stream_labels"]
-        assert all(r[f"stream_{m}_mse"] > 0 for m in ("inducing", "tracked", "tracked_gusts"))
+        assert all(r[f"stream_{m}_mse"] > 0 for m in ("inducing", "tracked", "tracked_gusts",
+                                                      "tracked_fit_stream",
+                                                      "tracked_gusts_fit_stream"))  # fmt: skip
         # the offline model reads nothing: the same predictions at the same labels
         assert r["stream_none_mse"] == pytest.approx(r["none_mse"], rel=1e-9)
     # today's adaptation (on the correction before the physical basis), each forgetting
