@@ -759,28 +759,17 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
     the sequences are of ``read``'s rows over the span of the labels kept, each predicted by
     the model fitted on the other parts' labels."""
     prior = fc.base(sur)
-    if sum(len(p) for p in parts) > max_labels:
-        k = max(2, max_labels // len(parts))
-        if read is not None:
-            read = [_within(r, p.take(slice(0, k))) for r, p in zip(read, parts, strict=True)]
-        parts = [p.take(slice(0, k)) for p in parts]
+    parts, read = _kept(parts, read, max_labels)
     X, Y, V, groups, t = fc._label_rows(prior, parts, max_labels, "physical")
     if read is not None:
         Xr, Yr, Vr, gr, t = fc._label_rows(prior, read, None, "physical")
     else:
         Xr, Yr, Vr, gr = X, Y, V, groups
     # The columns of the rows fitted on and of those read (the same rows without ``read``).
-    both = np.concatenate([X, Xr]) if read is not None else X
-    mu = np.asarray(prior.model.predict_mean(both))[:, :N_LOADS]
-    ms = None
-    if prior.simple is not None:
-        simple = fc.SimpleBasis(prior.simple, prior.normalizer, prior.frame)
-        ms = np.asarray(jax.vmap(simple)(jnp.asarray(both)))
-    phys = np.asarray(jax.vmap(fc._physics(prior))(jnp.asarray(both)))
-    b, sd = fc._coefficient_prior(True, ms is not None)
-    sd_j = fc._chosen_prior(sur, True, ms is not None)  # the prior each output was fitted with
-    H_all = np.stack([fc._basis_columns(mu, ms, phys, j) for j in range(N_LOADS)], 1)  # (N, 6, P)
+    H_all, with_simple = _columns(prior, np.concatenate([X, Xr]) if read is not None else X)
     H, Hr = (H_all[: len(X)], H_all[len(X) :]) if read is not None else (H_all, H_all)
+    b, sd = fc._coefficient_prior(True, with_simple)
+    sd_j = fc._chosen_prior(sur, True, with_simple)  # the prior each output was fitted with
     resid = np.full(Yr.shape, np.nan)
     bias = np.asarray(BIAS_SCALE) / np.asarray(prior.normalizer.y_std[:N_LOADS])
     v0 = np.zeros(N_LOADS)
@@ -814,7 +803,7 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
         mean, latent = jax.vmap(mean_latent)(jnp.asarray(Xr[unseen]))
         resid[unseen] = Yr[unseen] - np.asarray(mean)
         DL[unseen] = np.asarray(latent)
-        c0[unseen] = _offline_cov(own, p + 1, ms is not None)
+        c0[unseen] = _offline_cov(own, p + 1, with_simple)
     keep = np.all(np.isfinite(resid), 1)
     start = np.ones(len(t), bool)
     start[1:] = (gr[1:] != gr[:-1]) | (np.diff(t) <= 0)
@@ -823,6 +812,30 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
     Ht = np.concatenate([Hr, np.broadcast_to(bias[None, :, None], (len(Hr), N_LOADS, 1))], 2)
     rows = (t[keep], start, Ht[keep], resid[keep], Vr[keep], c0[keep], sd, DL[keep])
     return tuple(jnp.asarray(a) for a in rows), v0
+
+
+def _kept(parts: list[Labels], read: list[Labels] | None, max_labels: int):
+    """The parts (and what is read of them) within ``max_labels``: beyond, each part's first
+    labels, the same number of each, and what is read over their span."""
+    if sum(len(p) for p in parts) <= max_labels:
+        return parts, read
+    k = max(2, max_labels // len(parts))
+    if read is not None:
+        read = [_within(r, p.take(slice(0, k))) for r, p in zip(read, parts, strict=True)]
+    return [p.take(slice(0, k)) for p in parts], read
+
+
+def _columns(prior: Surrogate, X: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The basis's columns (N, 6, P) at the normalised rows ``X`` (the prior's mean, ``M``'s
+    loads where the prior has ``M``, the physical terms), and whether ``M``'s are there."""
+    mu = np.asarray(prior.model.predict_mean(X))[:, :N_LOADS]
+    ms = None
+    if prior.simple is not None:
+        simple = fc.SimpleBasis(prior.simple, prior.normalizer, prior.frame)
+        ms = np.asarray(jax.vmap(simple)(jnp.asarray(X)))
+    phys = np.asarray(jax.vmap(fc._physics(prior))(jnp.asarray(X)))
+    H = np.stack([fc._basis_columns(mu, ms, phys, j) for j in range(N_LOADS)], 1)
+    return H, ms is not None
 
 
 def _flight_index(t: np.ndarray) -> np.ndarray:
