@@ -396,11 +396,13 @@ def _constants(name: str, dtype: str, s: Layout) -> list[str]:
 # gpg/export/c/clones.c: the hot loops also in an AVX2/FMA version that glibc's loader picks
 # on CPUs that have it (GCC's function multiversioning): the default x86-64 target has 2-wide
 # doubles only (the mean's time with and without them: docs/measurements.md).
-# With them (GPG_CLONES), the variance's row products also have an AVX-512 version, picked at
-# run time (latent_variance). Off elsewhere (ARM, clang, musl, MSVC) and with
-# -DGPG_NO_CLONES; -DGPG_NO_AVX512 leaves out the AVX-512 version alone (for CPUs that slow
-# their clock for 512-bit work). The values do not depend on the version beyond FMA rounding
-# and the order of the variance's partial sums.
+# With them (GPG_CLONES), the variance's row products and the global mean (its kernel values
+# and its coefficients' sums) also have AVX-512 versions, picked at run time
+# (latent_variance, global_mean's clones, coef_sums). Off elsewhere (ARM, clang, musl, MSVC)
+# and with -DGPG_NO_CLONES; -DGPG_NO_AVX512 leaves out the AVX-512 versions alone (for CPUs
+# that slow their clock for 512-bit work). The values do not depend on the version beyond
+# FMA rounding and the order of the variance's partial sums (the mean's AVX-512 and AVX2
+# versions give the same bits).
 
 
 def _source(name: str, dtype: str, s: Layout, record: dict[str, Any]) -> str:
@@ -735,7 +737,14 @@ def _coef_sums(m: int, n_grad: int, most: int = 8) -> str:
         f"  for (j = 0; j < {n_grad}; j++) acc[{m} + j] = s[{w0} + j];",
         "}",
         "#pragma GCC pop_options",
+        *_coef_sums_avx512(m, n_grad, w0, wg),
         "static void coef_sums(const double *k, double *acc) {",
+        "#if !defined(GPG_NO_AVX512)",
+        '  if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl")) {',
+        "    coef_sums_avx512(k, acc);",
+        "    return;",
+        "  }",
+        "#endif",
         '  if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))',
         "    coef_sums_avx2(k, acc);",
         "  else",
@@ -746,6 +755,57 @@ def _coef_sums(m: int, n_grad: int, most: int = 8) -> str:
         "#endif",
     ]
     return "\n".join(L) + "\n"
+
+
+def _coef_sums_avx512(m: int, n_grad: int, w0: int, wg: int) -> list[str]:
+    """``coef_sums_avx512``: :func:`_coef_sums`'s sums for CPUs with AVX-512, in one pass
+    over the points: each row as vectors of eight doubles (a four-wide one for a row's last
+    four), every sum in one of the 32 registers; the products and sums in the AVX2 version's
+    order per element, so the two agree bit for bit."""
+    vecs = [(a, w, 8 * q, 8) for a, w in (("COEF0", w0), ("COEFG", wg)) for q in range(w // 8)]
+    vecs += [(a, w, w - 4, 4) for a, w in (("COEF0", w0), ("COEFG", wg)) if w % 8]
+    L = [
+        "#if !defined(GPG_NO_AVX512)",
+        "#pragma GCC push_options",
+        '#pragma GCC target("arch=x86-64-v4")',
+        "typedef double cs_v8 __attribute__((vector_size(64)));",
+        "#define CS_LOAD8(V, P) \\",
+        "  do { const real *q_ = (P); \\",
+        "       (V) = (cs_v8){q_[0], q_[1], q_[2], q_[3], q_[4], q_[5], q_[6], q_[7]}; \\",
+        "  } while (0)",
+        "FUSED static void coef_sums_avx512(const double *k, double *acc) {",
+        f"  double s[{w0 + wg}];",
+        "  cs_v8 t8;",
+        "  cs_vd t4;",
+        "  int p, j;",
+        "  "
+        + " ".join(
+            f"cs_v{n if n == 8 else 'd'} b{i} = {{0}};" for i, (_, _, _, n) in enumerate(vecs)
+        ),
+        "  for (p = 0; p < N_MEAN; p++) {",
+        "    const double kp = k[p];",
+        f"    const double *c0 = COEF0 + (long)p * {w0};",
+        f"    const real *cg = COEFG + (long)p * {wg};",
+    ]
+    for i, (array, _, o, n) in enumerate(vecs):
+        t = "t8" if n == 8 else "t4"
+        if array == "COEF0":
+            load = f"memcpy(&{t}, c0 + {o}, sizeof {t});"
+        else:
+            load = f"CS_LOAD{'8' if n == 8 else ''}({t}, cg + {o});"
+        L.append(f"    {load} b{i} += kp * {t};")
+    L.append("  }")
+    for i, (array, _, o, _n) in enumerate(vecs):
+        base = 0 if array == "COEF0" else w0
+        L.append(f"  memcpy(s + {base + o}, &b{i}, sizeof b{i});")
+    L += [
+        f"  for (j = 0; j < {m}; j++) acc[j] = s[j];",
+        f"  for (j = 0; j < {n_grad}; j++) acc[{m} + j] = s[{w0} + j];",
+        "}",
+        "#pragma GCC pop_options",
+        "#endif",
+    ]
+    return L
 
 
 def _coef_sums_scalar(m: int, n_grad: int, w0: int, wg: int, block: int = 24) -> str:

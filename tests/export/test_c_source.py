@@ -106,7 +106,8 @@ def test_mean_only_export_and_its_constants(tmp_path):
     arrays alone, in the bytes of the dtype asked for. Built with ``-DGPG_NO_CLONES`` (the
     code a CPU without AVX2, or another compiler, runs) it gives the same values to rounding:
     the AVX2 clone differs by FMA contraction only, a rounding of each term of the mean's
-    cancelling sum, so the bound is the one held against predict (1e-10 of the scale). The
+    cancelling sum, so the bound is the one held against predict (1e-10 of the scale). Built
+    with ``-DGPG_NO_AVX512`` (what a CPU with AVX2 alone runs) it gives the same bits. The
     rows of the mean's blocks are padded to whole vectors of four."""
     sur = fitted("gpg")
     state = (np.full(4, 3600.0), np.array([0.1, -0.05, 0.02]), np.array([3.0, 0.5, -0.2]))
@@ -120,6 +121,13 @@ def test_mean_only_export_and_its_constants(tmp_path):
                               variance=False)  # fmt: skip
         ok2, *vals2 = generic(*state, with_var=False)[:4]
         assert ok2 and all(rel_err(a, b) <= 1e-10 for a, b in zip(vals2, vals, strict=True))
+        # the AVX2 version beside the AVX-512 one (where the CPU has it; else the same code):
+        # the same operations in the same order per element, so the same bits
+        (tmp_path / dtype / "avx2").mkdir()
+        _, avx2 = compiled(sur, tmp_path / dtype / "avx2", dtype, ("-DGPG_NO_AVX512",),
+                           variance=False)  # fmt: skip
+        ok3, *vals3 = avx2(*state, with_var=False)[:4]
+        assert ok3 and all(np.array_equal(a, b) for a, b in zip(vals3, vals, strict=True))
         n, c = np.asarray(sur.model.mean.coef).shape
         m = len(sur.output_names)  # positions and the mean's value block in double
         w0, wg = -(-m // 4) * 4, -(-(c - m) // 4) * 4

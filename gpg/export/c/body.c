@@ -180,7 +180,7 @@ static inline double vexp(double x) {
  * stored), then the coefficients' sums held in registers (coef_sums). (The unfolded sum of
  * gpg.export.layout's alpha was tried: no more accurate in float here, where the
  * coefficients' own rounding dominates, and half again slower.) */
-HOT FUSED static void global_mean(const double xn[D_IN], double yn[N_OUT]) {
+HOT_MEAN FUSED static void global_mean(const double xn[D_IN], double yn[N_OUT]) {
   double k[N_MEAN], acc[N_OUT * (1 + N_GRAD)], xl[D_IN];
   int i, j, p;
   for (i = 0; i < D_IN; i++) xl[i] = xn[i] * INV_LS_M[i];

@@ -2,8 +2,14 @@
     defined(__x86_64__) && defined(__linux__) && defined(__GLIBC__) && !defined(GPG_NO_CLONES)
 #define GPG_CLONES 1
 #define HOT __attribute__((target_clones("arch=x86-64-v3", "default")))
+#if defined(GPG_NO_AVX512)
+#define HOT_MEAN HOT
+#else
+#define HOT_MEAN __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#endif
 #else
 #define HOT
+#define HOT_MEAN
 #endif
 
 
