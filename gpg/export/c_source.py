@@ -675,15 +675,18 @@ def _split_coef(
     return value, grad
 
 
-def _coef_sums(m: int, n_grad: int, most: int = 8) -> str:
+def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
     """``acc[j] = sum_p k[p] C[p, j]`` for the global mean (``C`` = ``COEF0`` for its ``m``
     value columns in double, then ``COEFG`` for its ``n_grad`` gradient ones in ``real``), each
-    row padded to whole vectors of four (:func:`_padded`), in two versions picked at run time.
+    row padded to whole vectors of four (:func:`_padded`), in versions picked at run time.
 
+    * AVX-512: :func:`_coef_sums_avx512`, one pass.
     * AVX2 with FMA (GCC on x86-64 Linux, as the variance's clones): one pass over the points
-      per group of at most ``most`` sums of four doubles held in registers; a point's
-      coefficients are a few vector loads (float ones widened to double as they are loaded)
-      and fused multiply-adds against its broadcast kernel value.
+      per group of at most ``most`` sums of four doubles held in registers (the groups of
+      about equal size, the two blocks mixed: 16 registers hold eleven sums beside a load
+      and the kernel value); a point's coefficients are a few vector loads (float ones
+      widened to double as they are loaded) and fused multiply-adds against its broadcast
+      kernel value.
     * Anywhere else (and with -DGPG_NO_VECTOR): :func:`_coef_sums_scalar`'s named sums, which
       compilers vectorise for the vectors the target has (32-byte vector types split in two
       on SSE2 were slower).
@@ -694,7 +697,10 @@ def _coef_sums(m: int, n_grad: int, most: int = 8) -> str:
     w0, wg = _padded(m, 4), _padded(n_grad, 4)
     v0 = [("COEF0", w0, q) for q in range(w0 // 4)]
     vg = [("COEFG", wg, q) for q in range(wg // 4)]
-    passes = [vs[i : i + most] for vs in (v0, vg) for i in range(0, len(vs), most)]
+    both = v0 + vg
+    n_pass = -(-len(both) // most)
+    per = -(-len(both) // n_pass)  # passes of about equal size, the two arrays mixed
+    passes = [both[i : i + per] for i in range(0, len(both), per)]
     L = [
         _coef_sums_scalar(m, n_grad, w0, wg).rstrip("\n"),
         "#if defined(GPG_CLONES) && !defined(GPG_NO_VECTOR)",
@@ -713,23 +719,22 @@ def _coef_sums(m: int, n_grad: int, most: int = 8) -> str:
         "  int p, j;",
     ]
     for vs in passes:
-        array, width = vs[0][0], vs[0][1]
-        names = [f"a{q}" for _, _, q in vs]
+        names = [f"a{i}" for i in range(len(vs))]
         L.append("  {")
         L.append("    cs_vd " + ", ".join(f"{n} = {{0}}" for n in names) + ";")
         L.append("    for (p = 0; p < N_MEAN; p++) {")
         L.append("      const double kp = k[p];")
-        if array == "COEF0":
-            L.append(f"      const double *c = COEF0 + (long)p * {width};")
-            load = "memcpy(&t, c + {o}, sizeof t);"
-        else:
-            L.append(f"      const real *c = COEFG + (long)p * {width};")
-            load = "CS_LOAD(t, c + {o});"
-        for n, (_, _, q) in zip(names, vs, strict=True):
-            L.append(f"      {load.format(o=4 * q)} {n} += kp * t;")
+        if any(a == "COEF0" for a, _, _ in vs):
+            L.append(f"      const double *c0 = COEF0 + (long)p * {w0};")
+        if any(a == "COEFG" for a, _, _ in vs):
+            L.append(f"      const real *cg = COEFG + (long)p * {wg};")
+        for n, (array, _, q) in zip(names, vs, strict=True):
+            load = (f"memcpy(&t, c0 + {4 * q}, sizeof t);" if array == "COEF0"
+                    else f"CS_LOAD(t, cg + {4 * q});")  # fmt: skip
+            L.append(f"      {load} {n} += kp * t;")
         L.append("    }")
-        base = 0 if array == "COEF0" else w0
-        for n, (_, _, q) in zip(names, vs, strict=True):
+        for n, (array, _, q) in zip(names, vs, strict=True):
+            base = 0 if array == "COEF0" else w0
             L.append(f"    memcpy(s + {base + 4 * q}, &{n}, sizeof t);")
         L.append("  }")
     L += [
