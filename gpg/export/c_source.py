@@ -718,25 +718,7 @@ def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
         "  cs_vd t;",
         "  int p, j;",
     ]
-    for vs in passes:
-        names = [f"a{i}" for i in range(len(vs))]
-        L.append("  {")
-        L.append("    cs_vd " + ", ".join(f"{n} = {{0}}" for n in names) + ";")
-        L.append("    for (p = 0; p < N_MEAN; p++) {")
-        L.append("      const double kp = k[p];")
-        if any(a == "COEF0" for a, _, _ in vs):
-            L.append(f"      const double *c0 = COEF0 + (long)p * {w0};")
-        if any(a == "COEFG" for a, _, _ in vs):
-            L.append(f"      const real *cg = COEFG + (long)p * {wg};")
-        for n, (array, _, q) in zip(names, vs, strict=True):
-            load = (f"memcpy(&t, c0 + {4 * q}, sizeof t);" if array == "COEF0"
-                    else f"CS_LOAD(t, cg + {4 * q});")  # fmt: skip
-            L.append(f"      {load} {n} += kp * t;")
-        L.append("    }")
-        for n, (array, _, q) in zip(names, vs, strict=True):
-            base = 0 if array == "COEF0" else w0
-            L.append(f"    memcpy(s + {base + 4 * q}, &{n}, sizeof t);")
-        L.append("  }")
+    L += [line for vs in passes for line in _coef_pass(vs, w0, wg)]
     L += [
         f"  for (j = 0; j < {m}; j++) acc[j] = s[j];",
         f"  for (j = 0; j < {n_grad}; j++) acc[{m} + j] = s[{w0} + j];",
@@ -760,6 +742,27 @@ def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
         "#endif",
     ]
     return "\n".join(L) + "\n"
+
+
+def _coef_pass(vs: list[tuple[str, int, int]], w0: int, wg: int) -> list[str]:
+    """One pass of :func:`_coef_sums`'s AVX2 version over the points: the sums ``vs`` (each
+    a block, its width and its vector's index) held in registers, then stored."""
+    names = [f"a{i}" for i in range(len(vs))]
+    L = ["  {", "    cs_vd " + ", ".join(f"{n} = {{0}}" for n in names) + ";",
+         "    for (p = 0; p < N_MEAN; p++) {", "      const double kp = k[p];"]  # fmt: skip
+    if any(a == "COEF0" for a, _, _ in vs):
+        L.append(f"      const double *c0 = COEF0 + (long)p * {w0};")
+    if any(a == "COEFG" for a, _, _ in vs):
+        L.append(f"      const real *cg = COEFG + (long)p * {wg};")
+    for n, (array, _, q) in zip(names, vs, strict=True):
+        load = (f"memcpy(&t, c0 + {4 * q}, sizeof t);" if array == "COEF0"
+                else f"CS_LOAD(t, cg + {4 * q});")  # fmt: skip
+        L.append(f"      {load} {n} += kp * t;")
+    L.append("    }")
+    for n, (array, _, q) in zip(names, vs, strict=True):
+        L.append(f"    memcpy(s + {(0 if array == 'COEF0' else w0) + 4 * q}, &{n}, sizeof t);")
+    L.append("  }")
+    return L
 
 
 def _coef_sums_avx512(m: int, n_grad: int, w0: int, wg: int) -> list[str]:
