@@ -43,7 +43,7 @@ from experiments.runs.timing import machine
 from gpg import checkpoint
 from gpg.flight import correction as fc
 from gpg.flight.labels import Labels, estimate_delay, label
-from gpg.flight.log import read_csv, write_csv
+from gpg.flight.log import FlightLog, read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, fly, perturbed, random_plan
 from gpg.flight.tracking import default_drift, fit_drift, gusts, prequential, track
 from gpg.linalg import memory
@@ -123,15 +123,17 @@ class _Bench:
         w = float(self.cfg["flights"]["wind_max"]) * speed
         return [w * np.cos(a), w * np.sin(a), 0.0]
 
-    def labelled(self, f: Flight, stream: bool = False) -> Labels:
-        """The flight's labels; ``stream``: what an online filter reads instead (every sample
-        at ``adapt.stream``'s rate, a saturated rotor's too), holding the labels' instants."""
+    def labelled(self, f: Flight | FlightLog, stream: bool = False) -> Labels:
+        """The flight's (or its log's) labels; ``stream``: what an online filter reads instead
+        (every sample at ``adapt.stream``'s rate, a saturated rotor's too), holding the
+        labels' instants."""
         opts = self.cfg["label"]
         rate, more = float(opts["rate"]), {}
         if stream:
             st = self.cfg["adapt"]["stream"]
             rate, more = float(st["rate"]), {"saturation": float(st["saturation"])}
-        return label(f.log, self.real, reference=self.prior.simple, rate=rate,
+        log = f if isinstance(f, FlightLog) else f.log
+        return label(log, self.real, reference=self.prior.simple, rate=rate,
                      source=opts["source"], **more)  # fmt: skip
 
     def correct(self, labels, **kw):
@@ -179,11 +181,17 @@ def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
     pooled = {f"{k}_flights": estimate_delay(train_logs[:k], bench.real,
                                              reference=bench.prior.simple)
               for k in sorted({min(10, len(train_logs)), len(train_logs)})}  # fmt: skip
+    # what the filters reading every sample of a flight are fitted on (track.fit_stream)
+    n_fit = int(cfg["track"]["fit_flights"])
+    train_streams = None
+    if cfg["track"].get("fit_stream") and min(n_fit, len(train_logs)) >= 2:
+        train_streams = [bench.labelled(log, stream=True) for log in train_logs[:n_fit]]
     del train_logs
     curve, corrected = _curve(bench, train_labels, tests, seconds, base_s)
     checkpoint.save(out / "corrected", corrected, overwrite=True)
     default = next(r for r in curve if r["seconds"] == base_s)
-    adapt = _adaptation(bench, corrected, _first(train_labels, base_s), train_labels, tests)
+    adapt = _adaptation(bench, corrected, _first(train_labels, base_s), train_labels, tests,
+                        train_streams)  # fmt: skip
     targets = {
         "corrected_vs_sim_only": default["corrected_force_rmse"] / default["sim_only_force_rmse"],
         "corrected_vs_values_only": default["corrected_force_rmse"]
@@ -324,14 +332,17 @@ def _scores(sur, tests) -> dict[str, float]:
     }
 
 
-def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tests):
+def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tests,
+                train_streams=None):  # fmt: skip
     """Into a wind no training flight had: the corrected model adapted label by label (each
     label predicted before it is used, :func:`gpg.flight.prequential`) by today's inducing-point
     term and by the tracked coefficients (their drift fitted on training flights; and with a
     wind state beside them), against an
     offline correction fitted on another flight in that wind; the same on the held-out test
     flights; each also reading every sample of the log (``stream_*``: ``adapt.stream``),
-    scored at the same labels; then the updates' cost over a long stream."""
+    scored at the same labels, and with ``train_streams`` (every sample of the training
+    flights the drift is fitted on) the tracked models with a drift fitted on those
+    (``*_fit_stream``); then the updates' cost over a long stream."""
     a, g = bench.cfg["adapt"], bench.cfg["track"]["gusts"]
     wind = [float(v) for v in a["wind"]]
     f_off = bench.flight("windy_offline", float(a["offline_s"]), wind)
@@ -349,9 +360,16 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     offset = label_offset(bench.cfg["track"]["label_offset"], bench.sensors, bench.real.mass,
                           base_labels.source)  # fmt: skip
     drift = dataclasses.replace(drift, label_offset=offset)
+    stream_drift = None
+    if train_streams is not None:
+        t1 = time.perf_counter()
+        stream_drift = fit_drift(corrected, parts, read=train_streams,
+                                 max_labels=int(bench.cfg["track"]["max_labels"]))  # fmt: skip
+        stream_drift = dataclasses.replace(stream_drift, label_offset=offset)
+        stream_fit_s = time.perf_counter() - t1
 
-    def prepared(t0: float) -> dict[str, Any]:
-        return {
+    def prepared(t0: float, stream: bool = False) -> dict[str, Any]:
+        models = {
             "none": corrected,
             "inducing": fc.adapt(
                 corrected, inducing=int(a["inducing"]), tau=float(a["tau"]), t0=t0
@@ -360,6 +378,12 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
             # the same drift with a wind state (gpg.flight.gusts): a new wind as a state
             "tracked_gusts": track(corrected, gusts(drift, g["sd"], float(g["tau"])), t0=t0),
         }
+        if stream and stream_drift is not None:  # fitted on what these filters read
+            models["tracked_fit_stream"] = track(corrected, stream_drift, t0=t0)
+            models["tracked_gusts_fit_stream"] = track(
+                corrected, gusts(stream_drift, g["sd"], float(g["tau"])), t0=t0
+            )
+        return models
 
     truth = _truth(f_ad, l_ad)
     tt = l_ad.t - l_ad.t[0]
@@ -374,6 +398,8 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     out: dict[str, Any] = {"wind": wind, "check_s": float(a["check_s"]), "offline_rmse": off_rmse,
                            "corrected_rmse": rmse(corrected), "sim_only_rmse": rmse(bench.prior),
                            "drift": dataclasses.asdict(drift), "models": {},
+                           "stream_drift": None if stream_drift is None else
+                           {**dataclasses.asdict(stream_drift), "fit_s": stream_fit_s},
                            "stream_models": {}}  # fmt: skip
     for name, sur in prepared(float(l_ad.t[0])).items():
         sc, e = prequential_scores(sur, l_ad, truth.force)
@@ -390,7 +416,7 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
     s_ad = bench.labelled(f_ad, stream=True)
     at = np.isin(s_ad.t, l_ad.t)
     out["stream_labels"], out["stream_scored"] = len(s_ad), int(at.sum())
-    for name, sur in prepared(float(s_ad.t[0])).items():
+    for name, sur in prepared(float(s_ad.t[0]), stream=True).items():
         sc, e = prequential_scores(sur, s_ad, _truth(f_ad, s_ad).force, at=at)
         adapted = float(np.sqrt(np.mean(np.sum(e**2, 1)[after])))
         out["stream_models"][name] = {**sc, "rmse_after": adapted, "ratio": adapted / off_rmse}
@@ -405,7 +431,7 @@ def _adaptation(bench: _Bench, corrected, base_labels: Labels, train_labels, tes
             row.update({f"{name}_{k}": v for k, v in sc.items()})
         at = np.isin(stream.t, lab.t)
         row["stream_scored"] = int(at.sum())
-        for name, sur in prepared(float(stream.t[0])).items():
+        for name, sur in prepared(float(stream.t[0]), stream=True).items():
             sc, _ = prequential_scores(sur, stream, _truth(f, stream).force, at=at)
             row.update({f"stream_{name}_{k}": v for k, v in sc.items()})
         rows.append(row)
@@ -536,7 +562,9 @@ def _report(curve, default, adapt, targets) -> str:
                          f"(x{r['ratio']:.2f} of offline); prequential MSE {r['mse']:.3g} N², "
                          f"coverage {r['coverage95']:.3f}")  # fmt: skip
         scols = [("test", "test", "s"), ("stream_labels", "stream labels", "d")]
-        for m in ("none", "inducing", "tracked", "tracked_gusts"):
+        names = ("none", "inducing", "tracked", "tracked_gusts", "tracked_fit_stream",
+                 "tracked_gusts_fit_stream")  # fmt: skip
+        for m in [m for m in names if f"stream_{m}_mse" in adapt["tests"][0]]:
             scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
                       (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip
         scols.append(("noise_floor", "noise", ".3g"))

@@ -88,7 +88,12 @@ def test_flight_logs_run(smoke_cache, tmp_path):
     mass = float(perturbed(cfg["vehicle"], cfg["real"].get("changes") or {}).mass)
     assert a["drift"]["label_offset"] == pytest.approx([cfg["sensors"]["accel_bias"] * mass, 0])
     # every sample read too, scored at the same labels: the offline model's scores the same
-    assert a["stream_labels"] > a["stream_scored"] and set(a["stream_models"]) == set(models)
+    # (and with a drift fitted on every sample of the training flights)
+    fit_stream = ("tracked_fit_stream", "tracked_gusts_fit_stream")
+    assert a["stream_labels"] > a["stream_scored"]
+    assert set(a["stream_models"]) == {*models, *fit_stream}
+    assert a["stream_drift"]["labels"] > a["drift"]["labels"] and a["stream_drift"]["fit_s"] > 0
+    assert all(r[f"stream_{m}_mse"] > 0 for r in a["tests"] for m in fit_stream)
     for r in a["tests"]:
         assert r["stream_scored"] == r["labels"] < r["stream_labels"]
         assert r["stream_none_mse"] == pytest.approx(r["none_mse"], rel=1e-9)
