@@ -806,7 +806,7 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
         c0[unseen] = _offline_cov(own, p + 1, with_simple)
     keep = np.all(np.isfinite(resid), 1)
     start = np.ones(len(t), bool)
-    start[1:] = (gr[1:] != gr[:-1]) | (np.diff(t) <= 0)
+    start[1:] = (gr[1:] != gr[:-1]) | (np.diff(_flight_index(t)) > 0)  # a new part or flight
     start = start[keep]
     start[0] = True
     Ht = np.concatenate([Hr, np.broadcast_to(bias[None, :, None], (len(Hr), N_LOADS, 1))], 2)
