@@ -10,7 +10,9 @@ from gpg.gp.fit import fit_hyperparameters
 from gpg.gp.hyper import Hyper
 from gpg.gp.inducing import (
     JITTER,
+    TRI_BANDS,
     InducingGP,
+    StackedInducing,
     collapsed_bound,
     fit_collapsed,
     inducing_inputs,
@@ -110,6 +112,30 @@ def test_a_jax_function_and_its_mean_view(rng):
     with pytest.raises(ValueError, match="not a mean_view"):
         gp.mean_view().variance_view()
     assert gp.describe()["inducing"] == 16 and gp.describe()["cases"] == 80
+
+
+@pytest.mark.parametrize("m", [3, 13])  # fewer rows than bands; bands of unequal sizes
+def test_stacked_latents_read_the_triangles_in_bands(rng, m):
+    """StackedInducing keeps each folded triangle ``T`` as row bands of its non-zero columns
+    only; its latent variances are the textbook projected process's (R&W eq. 8.27), and its
+    means each GP's own, for a stack of GPs of one size but different data."""
+    X, y, noise = _data(rng, 70)
+    Z = inducing_inputs(X, m)
+    gps = [InducingGP.fit(X, y * (1 + 0.5 * j), Z, hyper=HYPER, row_noise=noise) for j in range(3)]
+    stack = StackedInducing.of(gps, variance=True)
+    bands = [b.shape for b in stack.tri]
+    assert len(bands) == min(TRI_BANDS, m)
+    ends = np.cumsum([s[1] for s in bands])  # each band's rows end where its columns do
+    assert ends[-1] == m and all(s[2] == c for s, c in zip(bands, ends, strict=True))
+    assert StackedInducing.of(gps, variance=False).tri == ()
+    Xq = rng.uniform(-1, 1, (5, 3))
+    got = jax.vmap(stack.latents)(jnp.asarray(Xq))
+    means = jax.vmap(stack.means)(jnp.asarray(Xq))
+    for j in range(3):
+        mean, var, _ = _reference(X, y * (1 + 0.5 * j), noise, np.asarray(gps[j].X), Xq)
+        # Sigma by an explicit inverse of K_mm + K_mn Λ⁻¹ K_nm: its conditioning bounds both
+        np.testing.assert_allclose(got[:, j], var, rtol=0, atol=1e-9 * float(HYPER.variance))
+        np.testing.assert_allclose(means[:, j], mean, rtol=1e-8, atol=1e-10)
 
 
 def test_bad_inputs_are_named(rng):
