@@ -31,7 +31,8 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   synthetic labels: the cost depends on the sizes only), the online term's update and
   prediction (``online`` inducing inputs), and the same two calls of the corrected model
   tracked (:func:`gpg.flight.track`, the default drift with a second, one-second bias
-  member: a bank of two filters), in double and in float.
+  member: a bank of two filters) and tracked with a wind state (:func:`gpg.flight.gusts`,
+  ``wind_*``), in double and in float.
 * ``every_label``: :func:`gpg.flight.correct` (the physical basis, discrepancies through
   ``inducing`` inducing inputs) on ``hours`` of labels at 10 Hz (36 000 an hour; synthetic
   labels of a vehicle 10 % stronger than the prior, drawn in its box: the cost depends on the
@@ -156,7 +157,8 @@ def _c(cfg: dict[str, Any]) -> dict[str, Any]:
                                inducing=int(cfg["inducing"]), subset_size=400)  # fmt: skip
     adapted = flight.adapt(corrected, inducing=int(cfg["online"]), t0=0.0)
     drift = dataclasses.replace(flight.default_drift(corrected), fast=(1.0,))
-    tracked = flight.track(corrected, drift)
+    tracked = {"tracked": flight.track(corrected, drift),
+               "wind": flight.track(corrected, flight.gusts(drift))}  # fmt: skip
     calls = (("mean", "quad_mean(rpm, e, v, f, tq, lv)"),
              ("predict", "quad_predict(rpm, e, v, f, tq, lv, var)"))  # fmt: skip
     out: dict[str, Any] = {"cc": cc, "flags": cfg["flags"], "n_points": int(cfg["n_points"]),
@@ -173,15 +175,16 @@ def _c(cfg: dict[str, Any]) -> dict[str, Any]:
                 (where / "driver.c").write_text(c_driver(header, call))
                 sources = [where / "driver.c", info["c"]]
                 row[key] = compile_and_time(cc, cfg["flags"], where, sources, int(cfg["c_calls"]))
-            where = Path(tmp) / f"{dtype}_tracked"
-            info = to_c(tracked, where, name="quad", dtype=dtype)
-            (where / "online_bench.h").write_text(ONLINE_HEADER)
-            for key, call in ONLINE_CALLS:
-                (where / "driver.c").write_text(c_driver("online_bench.h", call))
-                sources = [where / "driver.c", info["c"]]
-                row[f"tracked_{key.removeprefix('online_')}"] = compile_and_time(
-                    cc, cfg["flags"], where, sources, int(cfg["c_calls"])
-                )
+            for kind, model in tracked.items():  # the tracked filter, and with a wind state
+                where = Path(tmp) / f"{dtype}_{kind}"
+                info = to_c(model, where, name="quad", dtype=dtype)
+                (where / "online_bench.h").write_text(ONLINE_HEADER)
+                for key, call in ONLINE_CALLS:
+                    (where / "driver.c").write_text(c_driver("online_bench.h", call))
+                    sources = [where / "driver.c", info["c"]]
+                    row[f"{kind}_{key.removeprefix('online_')}"] = compile_and_time(
+                        cc, cfg["flags"], where, sources, int(cfg["c_calls"])
+                    )
             out[dtype] = row
     return out
 
@@ -421,7 +424,7 @@ def flight_table(res: dict[str, Any]) -> str:
         c = res["c"]
         for dtype in ("double", "float"):
             keys = ("mean", "predict", "online_update", "online_predict", "tracked_update",
-                    "tracked_predict")  # fmt: skip
+                    "tracked_predict", "wind_update", "wind_predict")  # fmt: skip
             for key in (k for k in keys if k in c[dtype]):
                 t = c[dtype][key]
                 what = f"C {dtype}: corrected model's {key}, {c['inducing']} inducing"

@@ -16,8 +16,9 @@ A model corrected by flights (:func:`gpg.flight.correct`) exports with its corre
 prior's closed form (:class:`gpg.export.layout.Correction`), an adapted one
 (:func:`gpg.flight.adapt`) or tracked one (:func:`gpg.flight.track`, of the physical basis)
 with its online term as well (in C with its update, on a state the caller holds; CasADi and
-ONNX at the exported state); a tracked model with a wind state (:func:`gpg.flight.gusts`) is
-refused.
+ONNX at the exported state); a tracked model with a wind state (:func:`gpg.flight.gusts`)
+exports to C only (its update and prediction differentiate the model in the air velocity by
+central differences there), with its variance; CasADi and ONNX refuse it.
 """
 
 from gpg._deprecated import deprecated

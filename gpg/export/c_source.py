@@ -41,6 +41,10 @@ from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 __all__ = ["to_c"]
 
 DTYPES = {"double": (np.float64, "double"), "float": (np.float32, "float")}
+# m/s, the step of the wind state's fourth-order central differences in C (the library's
+# Jacobian is JAX's): truncation ~h⁴ f⁽⁵⁾/30 and rounding ~ε|f|/h, both near 1e-11 of the
+# residual at the model's lengthscales of metres per second (the design notes).
+WIND_FD_STEP = 1e-3
 
 
 def to_c(
@@ -210,6 +214,10 @@ def _online_state(name: str, s: Layout, c_type: str) -> tuple[str, str]:
     o = _online(s)
     if s.correction.tracked is not None:
         k, p = o.mean.shape[0], o.mean.shape[2]
+        wind = "" if o.wind_mean is None else (
+            "\n  double wind_mean[3];        /* m/s, the wind state's mean: the air's deviation "
+            "from the logged v_air (world) */\n"
+            "  double wind_cov[3][3];      /* and its covariance */")  # fmt: skip
         state = f"""
 /* The tracked coefficients of the model (gpg.flight.track): a bank of {k} Kalman filters on the
  * drift of the physical basis's {p} columns per load output (the prior's mean,
@@ -222,7 +230,7 @@ typedef struct {{
   {c_type} mean[{k}][6][{p}];       /* each member's drift mean, per load output */
   {c_type} cov[{k}][6][{p}][{p}];   /* and its covariance */
   double log_weight[{k}];       /* the members' log weights */
-  double t;                   /* s, the time of the last update */
+  double t;                   /* s, the time of the last update */{wind}
 }} {name}_online;
 """
         taus = ", ".join(f"{b:.6g}" for b in o.bias_tau)
@@ -479,6 +487,12 @@ void {name}_online_init({name}_online *st) {{
           st->cov[k][j][p][q] = (real)TRACK_COV0[(((long)k * 6 + j) * TRACK_P + p) * TRACK_P + q];
       }}
   }}
+#if TRACK_WIND
+  for (p = 0; p < 3; p++) {{
+    st->wind_mean[p] = WIND_MEAN0[p];
+    for (q = 0; q < 3; q++) st->wind_cov[p][q] = WIND_COV0[p * 3 + q];
+  }}
+#endif
 #else
   for (j = 0; j < 6; j++)
     for (p = 0; p < N_IND; p++) {{
@@ -490,19 +504,16 @@ void {name}_online_init({name}_online *st) {{
   st->t = {_online(s).t!r};
 }}
 
-int {name}_online_update({name}_online *st, double t, const double rpm[4],
-                         const double euler[3], const double v_air[3], const double force[3],
-                         const double torque[3], const double force_var[3],
-                         const double torque_var[3]) {{
-  double x[D_IN], xn[D_IN], rwh[3][3], yn[N_OUT], f[3], tq[3], y[6], r[6];
+/* the label's residual y against the offline mean and its noise variance r (normalised, GP
+ * frame) at the air velocity v_air; x, xn the GP's input, prior the prior's normalised mean
+ * (the tracked columns read it); dl (when not null) each delta's latent variance there,
+ * scaled (zeros without them) */
+static void label_rows(const double rpm[4], const double euler[3], const double v_air[3],
+                       const double force[3], const double torque[3], const double force_var[3],
+                       const double torque_var[3], double x[D_IN], double xn[D_IN],
+                       double prior[N_OUT], double y[6], double r[6], double *dl) {{
+  double rwh[3][3], yn[N_OUT], f[3], tq[3];
   int i, k;
-  if (!isfinite(t)) return 0;
-  for (i = 0; i < 4; i++) if (!isfinite(rpm[i])) return 0;
-  for (i = 0; i < 3; i++)
-    if (!isfinite(euler[i]) || !isfinite(v_air[i]) || !isfinite(force[i]) ||
-        !isfinite(torque[i]) || !(force_var[i] >= 0.0) || !(torque_var[i] >= 0.0) ||
-        !isfinite(force_var[i]) || !isfinite(torque_var[i]))
-      return 0;
   gp_input(rpm, euler, v_air, x, rwh);
   for (i = 0; i < D_IN; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
 #if HAS_GLOBAL_MEAN
@@ -513,12 +524,16 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
     binned_mean(xn, lookup(xn), kr, yn);
   }}
 #endif
-#if HAS_TRACKER
-  double prior[N_OUT], h[6][TRACK_P];
   for (i = 0; i < N_OUT; i++) prior[i] = yn[i];
-  track_columns(x, prior, h);
-#endif
+  if (dl) for (i = 0; i < 6; i++) dl[i] = 0.0;
+#if HAS_VAR
+  {{
+    double pvn[N_OUT]; /* the offline band, computed beside delta's variance and not read */
+    corrected(x, xn, yn, 0.0, dl ? pvn : 0, dl);
+  }}
+#else
   corrected(x, xn, yn, 0.0, 0, 0);
+#endif
   for (i = 0; i < 3; i++) {{ f[i] = force[i]; tq[i] = torque[i]; }}
 #if HAS_ALLOCATION
   {{ /* the label's residual against M, world frame */
@@ -544,10 +559,70 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
     y[i] = (y[i] - Y_MEAN[i]) / Y_STD[i] - yn[i];
     r[i] /= Y_STD[i] * Y_STD[i];
   }}
+}}
+
+#if HAS_TRACKER && TRACK_WIND
+/* fourth-order central differences at step WIND_FD_STEP (m/s) about v_air + g */
+static const double FD_AT[4] = {{2.0, 1.0, -1.0, -2.0}}, FD_W[4] = {{-1.0, 8.0, -8.0, 1.0}};
+
+/* J[6][3]: the label's residual's derivative in the wind at g (the library's jax.jacfwd) */
+static void wind_jacobian(const double rpm[4], const double euler[3], const double v_air[3],
+                          const double g[3], const double force[3], const double torque[3],
+                          const double force_var[3], const double torque_var[3],
+                          double J[6][3]) {{
+  double v[3], x[D_IN], xn[D_IN], prior[N_OUT], y[6], r[6];
+  int a, c, i, j;
+  for (a = 0; a < 3; a++) {{
+    for (j = 0; j < 6; j++) J[j][a] = 0.0;
+    for (c = 0; c < 4; c++) {{
+      for (i = 0; i < 3; i++) v[i] = v_air[i] + (g[i] + (i == a ? FD_AT[c] * WIND_FD_STEP : 0.0));
+      label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
+      for (j = 0; j < 6; j++) J[j][a] += FD_W[c] * y[j];
+    }}
+    for (j = 0; j < 6; j++) J[j][a] /= 12.0 * WIND_FD_STEP;
+  }}
+}}
+#endif
+
+int {name}_online_update({name}_online *st, double t, const double rpm[4],
+                         const double euler[3], const double v_air[3], const double force[3],
+                         const double torque[3], const double force_var[3],
+                         const double torque_var[3]) {{
+  double x[D_IN], xn[D_IN], prior[N_OUT], y[6], r[6];
+  int i;
+  if (!isfinite(t)) return 0;
+  for (i = 0; i < 4; i++) if (!isfinite(rpm[i])) return 0;
+  for (i = 0; i < 3; i++)
+    if (!isfinite(euler[i]) || !isfinite(v_air[i]) || !isfinite(force[i]) ||
+        !isfinite(torque[i]) || !(force_var[i] >= 0.0) || !(torque_var[i] >= 0.0) ||
+        !isfinite(force_var[i]) || !isfinite(torque_var[i]))
+      return 0;
 #if HAS_TRACKER
-  tracker_kalman(st, t, h, y, r);
+  double h[6][TRACK_P];
+  tracker_relax(st, t);
+#if TRACK_WIND
+  {{ /* the wind first, its innovation's band the coefficients' own; then the coefficients at
+      * the air velocity it implies (gpg.flight.correction.advance) */
+    double v[3], g[3], e[6], n[6], dl[6], mix[6], var[6], J[6][3];
+    for (i = 0; i < 3; i++) {{ g[i] = st->wind_mean[i]; v[i] = v_air[i] + g[i]; }}
+    label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, e, r, dl);
+    track_columns(x, prior, h);
+    tracker_mix(st, h, mix, var);
+    wind_jacobian(rpm, euler, v_air, g, force, torque, force_var, torque_var, J);
+    for (i = 0; i < 6; i++) n[i] = r[i] + dl[i] + TRACK_NOISE[i] + var[i];
+    wind_kalman(st, e, J, n, mix);
+    for (i = 0; i < 3; i++) v[i] = v_air[i] + st->wind_mean[i];
+    label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
+  }}
 #else
+  label_rows(rpm, euler, v_air, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
+#endif
+  track_columns(x, prior, h);
+  tracker_measure(st, h, y, r);
+#else
+  label_rows(rpm, euler, v_air, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
   online_kalman(st, t, xn, y, r);
+  (void)prior;
 #endif
   return 1;
 }}
@@ -555,8 +630,36 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
 int {name}_online_predict(const {name}_online *st, const double rpm[4], const double euler[3],
                           const double v_air[3], double force[3], double torque[3],
                           double *levels, double *variance) {{
+#if HAS_TRACKER && TRACK_WIND
+  /* at v_air + g, the loads' variance widened by diag(J P_g J^T), J the world loads'
+   * derivative in the air velocity there (gpg.surrogate's _predict_in_wind) */
+  double v[3], f[3], tq[3], lv[N_LEVELS > 0 ? N_LEVELS : 1], J[6][3], extra;
+  int a, b, c, i, ok;
+  for (i = 0; i < 3; i++) v[i] = v_air[i] + st->wind_mean[i];
+  ok = evaluate(rpm, euler, v, force, torque, levels, variance, st);
+  if (!variance) return ok;
+  for (a = 0; a < 3; a++) {{
+    for (i = 0; i < 6; i++) J[i][a] = 0.0;
+    for (c = 0; c < 4; c++) {{
+      for (i = 0; i < 3; i++)
+        v[i] = v_air[i] + (st->wind_mean[i] + (i == a ? FD_AT[c] * WIND_FD_STEP : 0.0));
+      evaluate(rpm, euler, v, f, tq, lv, 0, st);
+      for (i = 0; i < 3; i++) {{ J[i][a] += FD_W[c] * f[i]; J[3 + i][a] += FD_W[c] * tq[i]; }}
+    }}
+    for (i = 0; i < 6; i++) J[i][a] /= 12.0 * WIND_FD_STEP;
+  }}
+  for (i = 0; i < 6; i++) {{
+    extra = 0.0;
+    for (a = 0; a < 3; a++)
+      for (b = 0; b < 3; b++) extra += J[i][a] * st->wind_cov[a][b] * J[i][b];
+    variance[i] += extra;
+    if (!isfinite(extra)) ok = 0;
+  }}
+  return ok;
+#else
   (void)variance;
   return evaluate(rpm, euler, v_air, force, torque, levels, {var} ONLINE_PASS(st));
+#endif
 }}
 """
 
@@ -612,6 +715,12 @@ def _correction_constants(s: Layout, dtype: str = "double") -> list[str]:
         dbl("TRACK_MEAN0", r.mean)
         dbl("TRACK_COV0", r.cov)
         dbl("TRACK_LW0", r.log_weight)
+        out.append(f"#define TRACK_WIND {int(r.wind_mean is not None)}")
+        if r.wind_mean is not None:  # the wind state (gpg.flight.gusts)
+            out += [f"#define WIND_TAU {r.wind_tau!r}", f"#define WIND_FD_STEP {WIND_FD_STEP!r}"]
+            dbl("WIND_SD", r.wind_sd)
+            dbl("WIND_MEAN0", r.wind_mean)
+            dbl("WIND_COV0", r.wind_cov)
     dbl("CORR_SCALE", c.scale)
     if c.kappa is not None:  # a term of M implies M: the prior's allocation
         dbl("CORR_KAPPA", c.kappa)

@@ -203,6 +203,11 @@ class TrackedTerm:
         t: s, the state's time when exported.
         offset: (6,) ``σ_o²``, the labels' offset's variance (normalised units; zeros: none),
             in the band, not the gain.
+        wind_mean: (3,) m/s, the wind state's mean ``ḡ`` when exported (world), or None: no
+            wind state (:func:`gpg.flight.gusts`).
+        wind_cov: (3, 3) its covariance ``P_g``.
+        wind_tau: s, ``τ_g``.
+        wind_sd: (3,) m/s, its stationary standard deviations.
     """
 
     stationary: np.ndarray
@@ -217,6 +222,10 @@ class TrackedTerm:
     log_weight: np.ndarray
     t: float
     offset: np.ndarray
+    wind_mean: np.ndarray | None = None
+    wind_cov: np.ndarray | None = None
+    wind_tau: float | None = None
+    wind_sd: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -474,12 +483,10 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
             "physical basis (gpg.flight.track): only a tracked correct(..., basis='physical') "
             "exports"
         )
-    if m.wind_state() is not None:
+    if m.wind_state() is not None and not variance:
         raise ValueError(
-            f"model {sur.model_name!r} tracks a wind state (gpg.flight.gusts): its prediction "
-            "differentiates the model in the air velocity, which the exports do not write; "
-            "export the model tracked without it (gpg.flight.track with a drift whose wind_sd "
-            "is empty)"
+            f"model {sur.model_name!r} tracks a wind state (gpg.flight.gusts): its update reads "
+            "the discrepancies' variance, so it exports with variance=True only"
         )
     if len(m.delta) not in (0, 6):
         raise ValueError(f"a corrected model exports with six discrepancies, got {len(m.delta)}")
@@ -536,7 +543,30 @@ def _tracked(r: Any) -> TrackedTerm:
         log_weight=_f64(r.log_weight),
         t=float(np.asarray(r.t)),
         offset=np.zeros(6) if r.offset is None else _f64(r.offset),
-    )
+        **({} if r.wind_mean is None else {
+            "wind_mean": _f64(r.wind_mean), "wind_cov": _f64(r.wind_cov),
+            "wind_tau": float(np.asarray(r.wind_tau)), "wind_sd": _f64(r.wind_sd)}),
+    )  # fmt: skip
+
+
+def refuse_wind(s: Layout, fmt: str) -> None:
+    """Refuse, by name, a tracked model with a wind state in an export that does not write it.
+
+    Args:
+        s: the layout.
+        fmt: the export's name, for the message.
+
+    Raises:
+        ValueError: ``s`` tracks a wind state.
+    """
+    c = s.correction
+    if c is not None and c.tracked is not None and c.tracked.wind_mean is not None:
+        raise ValueError(
+            f"model {s.model!r} tracks a wind state (gpg.flight.gusts): its prediction "
+            f"differentiates the model in the air velocity, which {fmt} does not write (the C "
+            "export does); export the model tracked without it (gpg.flight.track with a drift "
+            "whose wind_sd is empty)"
+        )
 
 
 def _online(o: Any, d_in: int) -> OnlineTerm:
@@ -681,6 +711,13 @@ def _arrays(s: Layout):
             for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
                 yield f"online_{key}", getattr(o, key)
             yield "online_tau_t", np.array([o.tau, o.t])
+        if c.tracked is not None:
+            r = c.tracked
+            for key in ("stationary", "bias_tau", "noise", "bias", "mean", "cov", "log_weight",
+                        "offset", "wind_mean", "wind_cov", "wind_sd"):  # fmt: skip
+                if getattr(r, key) is not None:
+                    yield f"tracked_{key}", getattr(r, key)
+            yield "tracked_scalars", np.array([r.tau, r.share, r.t, r.wind_tau or 0.0])
         for j, d in enumerate(c.deltas):
             yield f"delta{j}_points", d.points
             yield f"delta{j}_weights", d.weights

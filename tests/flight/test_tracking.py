@@ -3,6 +3,7 @@ posterior and a Kalman filter written here in NumPy."""
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -510,6 +511,116 @@ def test_tracked_update_in_c_equals_jax(corrected, flights, tmp_path):
     np.testing.assert_allclose(got["variance"][:, :6], ref.variance[:, :6], rtol=1e-5)
 
 
+def test_wind_state_update_in_c_equals_jax(corrected, flights, tmp_path):
+    """A model tracking a wind state in C: in double, after a 10-minute stream at 10 Hz (the
+    labels replayed with a wind of 1.5 m/s along x and −1 along y that the logged air
+    velocity misses, time moving on) the coefficients' and the wind's state equal
+    ``lax.scan`` of :func:`fc.update`. The C's Jacobian in the wind is fourth-order central
+    differences at 1e-3 m/s where the library's is ``jax.jacfwd``: ~1e-11 of the residual
+    (truncation and rounding), which the filter's contraction keeps near that over the
+    stream (1e-12 seen); bound 1e-9 of each array's scale, as the tracked update's.
+    ``online_predict`` then equals ``predict``: force and torque to 1e-9 of their scale (the
+    same mean at v_air + ḡ), the band to 1e-9 (its diag(J P_g Jᵀ), a few per cent of it and
+    more, from the same differences). In float (the state stored in float) the stream ends
+    within 1e-5 of the scale. The export's record hashes the tracked state. Without the
+    variance, and through CasADi or ONNX, the model is refused by name."""
+    import ctypes
+
+    from gpg.export import spec, to_c, to_casadi, to_onnx
+    from tests.export.test_c_source import compiled
+    from tests.flight.test_correction import _export_states
+
+    drift = dataclasses.replace(tk.default_drift(corrected), tau=30.0, bias_tau=5.0,
+                                fast=(0.5,))  # fmt: skip
+    sur = tk.track(corrected, tk.gusts(drift, sd=(1.0, 1.0, 0.5), tau=20.0))
+    lab = Labels.concatenate(flights)
+    n = 6000
+    cols = [np.asarray(c, float)[np.arange(n) % len(lab)] for c in lab.columns()]
+    cols[0] = np.arange(n) * 0.1
+    true = np.array([1.5, -1.0, 0.0])
+    p = corrected.predict_batch(cols[1], cols[2], cols[3] + true, mean_only=True)
+    rng = np.random.default_rng(3)
+    cols[4] = np.asarray(p.force) + 0.05 * rng.normal(size=(n, 3))
+    cols[5] = np.asarray(p.torque) + 0.005 * rng.normal(size=(n, 3))
+    final, _ = jax.jit(lambda s, xs: jax.lax.scan(lambda c, r: (fc.update(c, *r), None), s, xs))(
+        sur, tuple(jnp.asarray(c) for c in cols)
+    )
+    r = final.model.tracker
+    assert np.abs(np.asarray(r.wind_mean)[:2] - true[:2]).max() < 0.5  # it found the wind
+    compiled(sur, tmp_path, "double")
+    lib = ctypes.CDLL(str(tmp_path / "quad.so"))
+    k, q = r.mean.shape[0], r.mean.shape[2]
+
+    class State(ctypes.Structure):
+        _fields_ = [
+            ("mean", ctypes.c_double * (k * 6 * q)),
+            ("cov", ctypes.c_double * (k * 6 * q * q)),
+            ("log_weight", ctypes.c_double * k),
+            ("t", ctypes.c_double),
+            ("wind_mean", ctypes.c_double * 3),
+            ("wind_cov", ctypes.c_double * 9),
+        ]
+
+    D = ctypes.POINTER(ctypes.c_double)
+    rows = np.column_stack([c.reshape(n, -1) for c in cols])
+    cuts = ((1, 5), (5, 8), (8, 11), (11, 14), (14, 17), (17, 20), (20, 23))
+    st = State()
+    lib.quad_online_init(ctypes.byref(st))
+    np.testing.assert_array_equal(st.wind_cov, np.diag([1.0, 1.0, 0.25]).ravel())
+    for row in rows:
+        a = [np.ascontiguousarray(row[i:j]).ctypes.data_as(D) for i, j in cuts]
+        assert lib.quad_online_update(ctypes.byref(st), ctypes.c_double(row[0]), *a) == 1
+    for key, want in (("mean", r.mean), ("cov", r.cov), ("log_weight", r.log_weight),
+                      ("wind_mean", r.wind_mean), ("wind_cov", r.wind_cov)):  # fmt: skip
+        want = np.asarray(want)
+        got = np.ctypeslib.as_array(getattr(st, key)).reshape(want.shape)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * max(1.0, np.abs(want).max()),
+                                   err_msg=key)  # fmt: skip
+    rpm, euler, v = _export_states(lab, 8)
+    ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
+    still = eqx.tree_at(lambda s: s.model, final, final.model.without_wind())
+    calm = jax.jit(jax.vmap(still.predict))(rpm, euler, v + np.asarray(r.wind_mean))
+    extra = np.asarray(ref.variance - calm.variance)[:, :6]  # diag(J P_g Jᵀ)
+    assert np.median(extra / np.asarray(calm.variance)[:, :6]) > 0.01  # a share worth testing
+    for i in range(len(rpm)):
+        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
+        args = [np.ascontiguousarray(x) for x in (rpm[i], euler[i], v[i], f, t, lv, var)]
+        ok = lib.quad_online_predict(ctypes.byref(st), *[x.ctypes.data_as(D) for x in args])
+        assert ok == bool(ref.in_domain[i])
+        want = np.concatenate([ref.force[i], ref.torque[i]])
+        assert np.abs(np.concatenate([f, t]) - want).max() <= 1e-9 * max(1, np.abs(want).max())
+        # 1e-11 seen: the band's other terms to rounding and the differences' ~1e-11 of J
+        np.testing.assert_allclose(var[:6], ref.variance[i, :6], rtol=1e-9)
+    # float: the state's means and covariances stored in float, the sums in double
+    compiled(sur, tmp_path / "f", "float")
+    libf = ctypes.CDLL(str(tmp_path / "f" / "quad.so"))
+
+    class StateF(ctypes.Structure):
+        _fields_ = [(a, ctypes.c_float * b._length_) if a in ("mean", "cov") else (a, b)
+                    for a, b in State._fields_]  # fmt: skip
+
+    sf = StateF()
+    libf.quad_online_init(ctypes.byref(sf))
+    for row in rows:
+        a = [np.ascontiguousarray(row[i:j]).ctypes.data_as(D) for i, j in cuts]
+        assert libf.quad_online_update(ctypes.byref(sf), ctypes.c_double(row[0]), *a) == 1
+    for key, want in (("mean", r.mean), ("cov", r.cov), ("log_weight", r.log_weight),
+                      ("wind_mean", r.wind_mean), ("wind_cov", r.wind_cov)):  # fmt: skip
+        want = np.asarray(want)
+        got = np.ctypeslib.as_array(getattr(sf, key)).reshape(want.shape)
+        # each step rounds the stored state to float (ε 6e-8; 6e-7 of the scale seen after
+        # the stream): within the exports' float tolerance
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * max(1.0, np.abs(want).max()),
+                                   err_msg=key)  # fmt: skip
+    with pytest.raises(ValueError, match="variance=True only"):
+        to_c(sur, tmp_path / "mean_only", variance=False)
+    # the record's hash reads the tracked state: the stream's end is another model
+    assert spec(sur).record["arrays_sha256"] != spec(final).record["arrays_sha256"]
+    for export in (lambda: to_casadi(sur), lambda: to_onnx(sur, tmp_path / "m.onnx")):
+        with pytest.raises(ValueError, match="wind state"):
+            export()
+
+
 def _wind_drift(tau=2.0, **kw):
     base = tk.Drift(tau=1e12, spread=0.5, noise=(0.01,) * 6, bias_tau=1e12, bias_sd=0.7)
     return tk.gusts(dataclasses.replace(base, **kw), sd=(1.0, 0.8, 0.5), tau=tau)
@@ -574,10 +685,6 @@ def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
         tk.track(corrected, tk.gusts(tk.default_drift(corrected), sd=(1.0, 1.0)))
     with pytest.raises(ValueError, match="wind_tau > 0"):
         tk.track(corrected, tk.gusts(tk.default_drift(corrected), tau=0.0))
-    from gpg.export import to_c
-
-    with pytest.raises(ValueError, match="wind state"):
-        to_c(sur, "/nonexistent")
 
 
 def test_wind_state_prediction_and_a_constant_wind_found(corrected, flights):

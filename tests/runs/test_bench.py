@@ -124,7 +124,7 @@ def test_bench_export_suite(tmp_path):
 def test_bench_flight_suite(tmp_path):
     """``suites=[flight]`` at a smoke size (the parallel logs left out: spawned processes):
     every part writes finite figures, and the C part times the adapted and the tracked
-    model's calls in both dtypes."""
+    model's calls (with a wind state too) in both dtypes."""
     overrides = ["suites=[flight]", "flight.log.repeats=1", "flight.update.n_points=40",
                  "flight.update.labels=60", "flight.update.inducing=6", "flight.update.updates=20",
                  "flight.update.stacked.labels=80", "flight.update.stacked.inducing=16",
@@ -137,7 +137,7 @@ def test_bench_flight_suite(tmp_path):
     res = json.loads((tmp_path / "bench.json").read_text())["flight"]
     assert finite_numbers(res) and set(res) == {"log", "update", "c", "every_label"}
     calls = ("mean", "predict", "online_update", "online_predict", "tracked_update",
-             "tracked_predict")  # fmt: skip
+             "tracked_predict", "wind_update", "wind_predict")  # fmt: skip
     for dtype in ("double", "float"):
         for key in calls:
             t = res["c"][dtype][key]
