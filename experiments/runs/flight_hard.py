@@ -68,7 +68,7 @@ from gpg.flight.identify import hover_coefficients, identify, physics_loads
 from gpg.flight.labels import Labels, MotorCurve, label
 from gpg.flight.log import FlightLogWarning, read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed_config, random_plan
-from gpg.flight.tracking import fit_drift, gusts, score_drift, track
+from gpg.flight.tracking import fit_drift, gusts, prequential, score_drift, track
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
 from gpg.quadrotor.bemt import BEMTConfig
 from gpg.quadrotor.control import GeometricController, WaypointPlan
@@ -462,6 +462,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         streams=id_streams,
         curves=curves,
         stream_drift=stream_drift,
+        hindsight=bool(cfg["track"].get("hindsight")),
     )
     adaptive["today"] = today_rows(models["corrected_regression"], tests, streams,
                                    cfg["adapt"], progress, curves)  # fmt: skip
@@ -544,7 +545,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
                      progress: bool, other=None, gust_cfg=None, spreads=(),
                      one_spread=None, streams=None, curves=None,
-                     stream_drift=None) -> dict[str, Any]:  # fmt: skip
+                     stream_drift=None, hindsight=False) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
     with another bank, where given, the fitted drift with a wind state, horizontal and
@@ -557,7 +558,10 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     term, the tracked coefficients and the wind state also read that stream, scored at the
     test labels' instants (``stream_<model>_...``; with ``stream_drift``, a drift fitted on
     the training flights' streams, the tracked coefficients and the wind state with it too,
-    ``stream_tracked_fit_stream`` and ``stream_tracked_gusts_fit_stream``): the force MSE
+    ``stream_tracked_fit_stream`` and ``stream_tracked_gusts_fit_stream``; with
+    ``hindsight``, the tracked coefficients and the inducing-point term fitted on the whole
+    stream without forgetting and scored at the labels, ``stream_hindsight_<term>_mse``: at a
+    steady wind the least error each term reaches): the force MSE
     against the truth and
     against the labels, the 95 % coverage of the truth (the band with the gust's RMS where the
     test gives one, as offline), the labels' log predictive density, the labels' noise floor;
@@ -617,6 +621,8 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         if streams is not None:
             row.update(_stream_scores(offline, streams[name], lab, drift, adapt_cfg, gust_cfg,
                                       curves, (name, t0), stream_drift))  # fmt: skip
+            if hindsight:
+                row.update(_hindsight(offline, streams[name], lab, drift, adapt_cfg))
         rows.append(row)
         jax.clear_caches()
     steady = tests["steady"].labels
@@ -735,6 +741,28 @@ def _stream_scores(
         sc, e = prequential_scores(sur, s, stream.force, extra, at=at)
         out.update({f"stream_{m}_{k}": v for k, v in sc.items()})
         curves[(where[0], f"stream_{m}")] = (s.t[at] - where[1], np.sum(e**2, 1))
+    return out
+
+
+def _hindsight(offline: Surrogate, stream: _Test, lab: Labels, drift, adapt_cfg) -> dict:
+    """The tracked coefficients (``drift``'s spreads, no drift in time: one filter, ``τ`` and
+    the bias's ``τ_b`` beyond the flight) and the inducing-point term (``adapt_cfg``'s
+    inputs, no forgetting), each fitted on every sample of the test flight and then scored
+    at its labels against the truth. At a steady wind, the least error each term reaches with
+    coefficients that stay (a filter reading the flight forward pays its start on top); in a
+    gust a filter that forgets can do better, following the gust in time."""
+    s = stream.labels
+    at = np.isin(s.t, lab.t)
+    start = float(s.t[0])
+    still = dataclasses.replace(drift, tau=1e12, bias_tau=1e12, fast=())
+    models = {"tracked": track(offline, still, t0=start),
+              "inducing": fc.adapt(offline, inducing=int(adapt_cfg["inducing"]), tau=1e12,
+                                   t0=start)}  # fmt: skip
+    out = {}
+    for m, sur in models.items():
+        final = prequential(sur, s).final
+        p = final.predict_batch(s.rpm[at], s.euler[at], s.v_air[at], mean_only=True)
+        out[f"stream_hindsight_{m}_mse"] = _mse(p.force, stream.force[at])
     return out
 
 
@@ -898,6 +926,21 @@ def _report(res) -> str:
                           (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip
         scols.append(("noise_floor", "noise", ".3g"))
         lines.append(table(ad["tests"], scols))
+    if "stream_hindsight_tracked_mse" in ad["tests"][0]:
+        lines.append(
+            "in hindsight: each term fitted on the whole stream without forgetting, "
+            "scored at the labels (at a steady wind, the least error it reaches):"
+        )
+        lines.append(
+            table(
+                ad["tests"],
+                [("test", "test", "s")]
+                + [
+                    (f"stream_hindsight_{m}_mse", f"{m} MSE", ".3g")
+                    for m in ("tracked", "inducing")
+                ],
+            )
+        )
     if ad.get("spread_sweep"):
         lines.append(
             "the fitted drift with one spread for all columns swept, beside the fitted ones: "
