@@ -710,8 +710,9 @@ def _stream_scores(
     where: tuple[str, float],
     stream_drift=None,
 ) -> dict[str, Any]:
-    """The offline model and three online ones reading ``stream`` (every sample of the test
-    flight whose labels are ``lab``), each scored at ``lab``'s instants: the same labels and
+    """The offline model and the online ones reading ``stream`` (every sample of the test
+    flight whose labels are ``lab``; the inducing-point term also with each forgetting time of
+    ``adapt_cfg["stream_taus"]``), each scored at ``lab``'s instants: the same labels and
     truth as the rows read from ``lab`` alone. The error curves go into ``curves`` under the
     test's name, timed from ``lab``'s first label (``where``)."""
     from experiments.runs.flight_logs import prequential_scores
@@ -727,6 +728,10 @@ def _stream_scores(
     if gust_cfg is not None:
         models["tracked_gusts"] = track(
             offline, gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"])), t0=start
+        )
+    for tau in adapt_cfg.get("stream_taus") or ():  # the term with other forgetting times
+        models[f"inducing_tau_{float(tau):g}"] = fc.adapt(
+            offline, inducing=int(adapt_cfg["inducing"]), tau=float(tau), t0=start
         )
     if stream_drift is not None:
         models["tracked_fit_stream"] = track(offline, stream_drift, t0=start)
@@ -919,7 +924,9 @@ def _report(res) -> str:
                      f"{st['saturation']:g}), scored at the same labels:")  # fmt: skip
         scols = [("test", "test", "s"), ("stream_labels", "stream labels", "d"),
                  ("stream_scored", "scored", "d")]  # fmt: skip
-        for m in ("none", "inducing", "tracked", "tracked_gusts", "tracked_fit_stream",
+        taus = [f"inducing_tau_{float(v):g}" for v in res["config"]["adapt"].get("stream_taus")
+                or ()]  # fmt: skip
+        for m in ("none", "inducing", *taus, "tracked", "tracked_gusts", "tracked_fit_stream",
                   "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),

@@ -181,6 +181,10 @@ def _online_header(name: str, s: Layout, c_type: str) -> str:
     if _online(s) is None:
         return ""
     state, relax = _online_state(name, s, c_type)
+    wind = ""
+    if s.correction.tracked is not None and s.correction.tracked.wind_mean is not None:
+        wind = ("; with the wind state, at v_air plus its mean, the loads' variance widened by "
+                "diag(J P_g J^T)")  # fmt: skip
     band = ("the loads' band is the filter's, as gpg's predict of a tracked model"
             if s.correction.tracked is not None else "added")  # fmt: skip
     return (
@@ -201,7 +205,7 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
 
 /* as {name}_predict{"" if s.has_variance else " (variance: not written; may be 0)"}, with the
  * online term's mean added and its variance ({band}; the state as it is: not relaxed to a
- * later time) */
+ * later time){wind} */
 int {name}_online_predict(const {name}_online *st, const double rpm[4], const double euler[3],
                           const double v_air[3], double force[3], double torque[3],
                           double *levels, double *variance);
@@ -234,6 +238,13 @@ typedef struct {{
 }} {name}_online;
 """
         taus = ", ".join(f"{b:.6g}" for b in o.bias_tau)
+        if o.wind_mean is not None:
+            return state, (
+                f"time constants {o.tau:.6g} s, for the bias {taus} s and for the wind state "
+                f"{o.wind_tau:.6g} s; the wind is conditioned first, linearised at its mean "
+                "(its derivative by central differences), then the coefficients at the air "
+                "velocity it implies"
+            )
         return state, f"time constants {o.tau:.6g} s and, for the bias, {taus} s"
     m = o.Z.shape[0]
     state = f"""

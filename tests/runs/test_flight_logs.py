@@ -175,8 +175,10 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
                                                       "tracked_gusts_fit_stream"))  # fmt: skip
         # the offline model reads nothing: the same predictions at the same labels
         assert r["stream_none_mse"] == pytest.approx(r["none_mse"], rel=1e-9)
-        # each term fitted on the whole stream in hindsight, scored at the same labels
+        # each term fitted on the whole stream in hindsight, scored at the same labels; the
+        # inducing-point term reading it with each other forgetting time
         assert all(r[f"stream_hindsight_{m}_mse"] > 0 for m in ("tracked", "inducing"))
+        assert all(r[f"stream_inducing_tau_{v:g}_mse"] > 0 for v in cfg["adapt"]["stream_taus"])
     # today's adaptation (on the correction before the physical basis), each forgetting
     # time, reading the labels and every sample at the same instants; the best is one of them
     today = ad["today"]
