@@ -69,6 +69,10 @@ def to_c(
     For a model adapted while flying (:func:`gpg.flight.adapt`) the header also declares its
     online state ``<name>_online`` and ``<name>_online_init``, ``_online_update`` (one label)
     and ``_online_predict``; ``<name>_mean`` and ``_predict`` are the model without the term.
+    So does a tracked model (:func:`gpg.flight.track`), its state the filters' and, with a wind
+    state (:func:`gpg.flight.gusts`; ``variance`` needed), the wind's: its update and
+    prediction take the model's derivative in the air velocity by fourth-order central
+    differences (:data:`WIND_FD_STEP`) where the library's is ``jax.jacfwd``.
 
     Units rpm, rad (yaw, pitch, roll: ``R_WB = Rz Ry Rx``), m/s, N, N·m, dB; world frame x
     forward, y right, z down; the same call for a surrogate of either frame. The header

@@ -717,7 +717,8 @@ def _arrays(s: Layout):
                         "offset", "wind_mean", "wind_cov", "wind_sd"):  # fmt: skip
                 if getattr(r, key) is not None:
                     yield f"tracked_{key}", getattr(r, key)
-            yield "tracked_scalars", np.array([r.tau, r.share, r.t, r.wind_tau or 0.0])
+            yield "tracked_scalars", np.array([r.tau, r.share, r.t, r.wind_tau or 0.0,
+                                               float(r.with_simple)])  # fmt: skip
         for j, d in enumerate(c.deltas):
             yield f"delta{j}_points", d.points
             yield f"delta{j}_weights", d.weights
