@@ -564,18 +564,23 @@ def test_wind_state_update_in_c_equals_jax(corrected, flights, tmp_path):
     D = ctypes.POINTER(ctypes.c_double)
     rows = np.column_stack([c.reshape(n, -1) for c in cols])
     cuts = ((1, 5), (5, 8), (8, 11), (11, 14), (14, 17), (17, 20), (20, 23))
-    st = State()
-    lib.quad_online_init(ctypes.byref(st))
-    np.testing.assert_array_equal(st.wind_cov, np.diag([1.0, 1.0, 0.25]).ravel())
-    for row in rows:
-        a = [np.ascontiguousarray(row[i:j]).ctypes.data_as(D) for i, j in cuts]
-        assert lib.quad_online_update(ctypes.byref(st), ctypes.c_double(row[0]), *a) == 1
-    for key, want in (("mean", r.mean), ("cov", r.cov), ("log_weight", r.log_weight),
-                      ("wind_mean", r.wind_mean), ("wind_cov", r.wind_cov)):  # fmt: skip
-        want = np.asarray(want)
-        got = np.ctypeslib.as_array(getattr(st, key)).reshape(want.shape)
-        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * max(1.0, np.abs(want).max()),
-                                   err_msg=key)  # fmt: skip
+
+    def streamed(lib, st, bound):  # the stream through the C, its state held to the scan's
+        lib.quad_online_init(ctypes.byref(st))
+        np.testing.assert_array_equal(st.wind_cov, np.diag([1.0, 1.0, 0.25]).ravel())
+        for row in rows:
+            a = [np.ascontiguousarray(row[i:j]).ctypes.data_as(D) for i, j in cuts]
+            assert lib.quad_online_update(ctypes.byref(st), ctypes.c_double(row[0]), *a) == 1
+        for key, want in (("mean", r.mean), ("cov", r.cov), ("log_weight", r.log_weight),
+                          ("wind_mean", r.wind_mean), ("wind_cov", r.wind_cov)):  # fmt: skip
+            want = np.asarray(want)
+            got = np.ctypeslib.as_array(getattr(st, key)).reshape(want.shape)
+            np.testing.assert_allclose(
+                got, want, rtol=0, atol=bound * max(1.0, np.abs(want).max()), err_msg=key
+            )
+        return st
+
+    st = streamed(lib, State(), 1e-9)
     rpm, euler, v = _export_states(lab, 8)
     ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
     still = eqx.tree_at(lambda s: s.model, final, final.model.without_wind())
@@ -599,19 +604,9 @@ def test_wind_state_update_in_c_equals_jax(corrected, flights, tmp_path):
         _fields_ = [(a, ctypes.c_float * b._length_) if a in ("mean", "cov") else (a, b)
                     for a, b in State._fields_]  # fmt: skip
 
-    sf = StateF()
-    libf.quad_online_init(ctypes.byref(sf))
-    for row in rows:
-        a = [np.ascontiguousarray(row[i:j]).ctypes.data_as(D) for i, j in cuts]
-        assert libf.quad_online_update(ctypes.byref(sf), ctypes.c_double(row[0]), *a) == 1
-    for key, want in (("mean", r.mean), ("cov", r.cov), ("log_weight", r.log_weight),
-                      ("wind_mean", r.wind_mean), ("wind_cov", r.wind_cov)):  # fmt: skip
-        want = np.asarray(want)
-        got = np.ctypeslib.as_array(getattr(sf, key)).reshape(want.shape)
-        # each step rounds the stored state to float (ε 6e-8; 6e-7 of the scale seen after
-        # the stream): within the exports' float tolerance
-        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * max(1.0, np.abs(want).max()),
-                                   err_msg=key)  # fmt: skip
+    # each step rounds the stored state to float (ε 6e-8; 6e-7 of the scale seen after the
+    # stream): within the exports' float tolerance
+    streamed(libf, StateF(), 1e-5)
     with pytest.raises(ValueError, match="variance=True only"):
         to_c(sur, tmp_path / "mean_only", variance=False)
     # the record's hash reads the tracked state: the stream's end is another model

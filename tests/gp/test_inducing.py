@@ -133,9 +133,10 @@ def test_stacked_latents_read_the_triangles_in_bands(rng, m):
     means = jax.vmap(stack.means)(jnp.asarray(Xq))
     for j in range(3):
         mean, var, _ = _reference(X, y * (1 + 0.5 * j), noise, np.asarray(gps[j].X), Xq)
-        # Sigma by an explicit inverse of K_mm + K_mn Λ⁻¹ K_nm: its conditioning bounds both
-        np.testing.assert_allclose(got[:, j], var, rtol=0, atol=1e-9 * float(HYPER.variance))
-        np.testing.assert_allclose(means[:, j], mean, rtol=1e-8, atol=1e-10)
+        # the reference inverts K_mm and K_mm + K_mn Λ⁻¹ K_nm explicitly: the bounds of
+        # test_projection_matches_a_numpy_reference, derived there from their conditioning
+        np.testing.assert_allclose(got[:, j], var, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(means[:, j], mean, rtol=1e-8, atol=1e-9)
 
 
 def test_bad_inputs_are_named(rng):
