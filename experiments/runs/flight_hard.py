@@ -64,6 +64,7 @@ from experiments.runs.timing import machine
 from gpg import conf
 from gpg.data.cache import ensure
 from gpg.flight import correction as fc
+from gpg.flight.forgetting import fit_forgetting
 from gpg.flight.identify import hover_coefficients, identify, physics_loads
 from gpg.flight.labels import Labels, MotorCurve, label
 from gpg.flight.log import FlightLogWarning, read_csv, write_csv
@@ -446,6 +447,15 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         stream_drift = fit_drift(models["identified"], by_wind_id, max_labels=n_fit,
                                  read=_by_wind(train, id_train_streams))  # fmt: skip
         stages["fit_drift_stream_s"] = time.perf_counter() - t2
+    # the inducing-point term's forgetting time and prior fitted the same way: on every
+    # sample of the training flights, each wind predicted from the others' labels
+    forgetting = None
+    if id_train_streams is not None and cfg["adapt"].get("fit_forgetting"):
+        t2 = time.perf_counter()
+        forgetting = fit_forgetting(models["identified"], by_wind_id,
+                                    inducing=int(cfg["adapt"]["inducing"]), max_labels=n_fit,
+                                    read=_by_wind(train, id_train_streams))  # fmt: skip
+        stages["fit_forgetting_s"] = time.perf_counter() - t2
     t1 = time.perf_counter()
     curves: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
     adaptive = prequential_rows(
@@ -463,6 +473,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         curves=curves,
         stream_drift=stream_drift,
         hindsight=bool(cfg["track"].get("hindsight")),
+        forgetting=forgetting,
     )
     adaptive["today"] = today_rows(models["corrected_regression"], tests, streams,
                                    cfg["adapt"], progress, curves)  # fmt: skip
@@ -545,7 +556,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg, out: Path,
                      progress: bool, other=None, gust_cfg=None, spreads=(),
                      one_spread=None, streams=None, curves=None,
-                     stream_drift=None, hindsight=False) -> dict[str, Any]:  # fmt: skip
+                     stream_drift=None, hindsight=False,
+                     forgetting=None) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
     with another bank, where given, the fitted drift with a wind state, horizontal and
@@ -559,6 +571,8 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     test labels' instants (``stream_<model>_...``; with ``stream_drift``, a drift fitted on
     the training flights' streams, the tracked coefficients and the wind state with it too,
     ``stream_tracked_fit_stream`` and ``stream_tracked_gusts_fit_stream``; with
+    ``forgetting``, the inducing-point term with that fitted forgetting time and prior,
+    ``stream_inducing_fitted``; with
     ``hindsight``, the tracked coefficients and the inducing-point term fitted on the whole
     stream without forgetting and scored at the labels, ``stream_hindsight_<term>_mse``: at a
     steady wind the least error each term reaches): the force MSE
@@ -620,7 +634,7 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
             row[f"{m}_lag1"] = _lag1(lab.t, e)
         if streams is not None:
             row.update(_stream_scores(offline, streams[name], lab, drift, adapt_cfg, gust_cfg,
-                                      curves, (name, t0), stream_drift))  # fmt: skip
+                                      curves, (name, t0), stream_drift, forgetting))  # fmt: skip
             if hindsight:
                 row.update(_hindsight(offline, streams[name], lab, drift, adapt_cfg))
         rows.append(row)
@@ -635,6 +649,7 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         "one_spread": None if one_spread is None else dataclasses.asdict(one_spread),
         "spreads": list(spreads),
         "stream_drift": None if stream_drift is None else dataclasses.asdict(stream_drift),
+        "forgetting": None if forgetting is None else dataclasses.asdict(forgetting),
     }
     if gust_cfg is not None:
         with_gusts = gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"]))
@@ -709,10 +724,12 @@ def _stream_scores(
     curves,
     where: tuple[str, float],
     stream_drift=None,
+    forgetting=None,
 ) -> dict[str, Any]:
     """The offline model and the online ones reading ``stream`` (every sample of the test
     flight whose labels are ``lab``; the inducing-point term also with each forgetting time of
-    ``adapt_cfg["stream_taus"]``), each scored at ``lab``'s instants: the same labels and
+    ``adapt_cfg["stream_taus"]``, and with ``forgetting``'s fitted time and prior,
+    ``inducing_fitted``), each scored at ``lab``'s instants: the same labels and
     truth as the rows read from ``lab`` alone. The error curves go into ``curves`` under the
     test's name, timed from ``lab``'s first label (``where``)."""
     from experiments.runs.flight_logs import prequential_scores
@@ -733,6 +750,10 @@ def _stream_scores(
         models[f"inducing_tau_{float(tau):g}"] = fc.adapt(
             offline, inducing=int(adapt_cfg["inducing"]), tau=float(tau), t0=start
         )
+    if forgetting is not None:
+        models["inducing_fitted"] = fc.adapt(offline, inducing=forgetting.inducing,
+                                             tau=forgetting.tau, variance=forgetting.variance,
+                                             t0=start)  # fmt: skip
     if stream_drift is not None:
         models["tracked_fit_stream"] = track(offline, stream_drift, t0=start)
         if gust_cfg is not None:
@@ -926,13 +947,20 @@ def _report(res) -> str:
                  ("stream_scored", "scored", "d")]  # fmt: skip
         taus = [f"inducing_tau_{float(v):g}" for v in res["config"]["adapt"].get("stream_taus")
                 or ()]  # fmt: skip
-        for m in ("none", "inducing", *taus, "tracked", "tracked_gusts", "tracked_fit_stream",
-                  "tracked_gusts_fit_stream"):  # fmt: skip
+        for m in ("none", "inducing", *taus, "inducing_fitted", "tracked", "tracked_gusts",
+                  "tracked_fit_stream", "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
                           (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip
         scols.append(("noise_floor", "noise", ".3g"))
         lines.append(table(ad["tests"], scols))
+        if ad.get("forgetting"):
+            fo = ad["forgetting"]
+            lines.append(
+                f"  inducing_fitted: tau {fo['tau']:.3g} s and {fo['factor']:.3g} times each "
+                f"discrepancy's variance, fitted on the training flights' streams "
+                f"({fo['labels']} rows, {fo['log_likelihood']:.4g} nats a row)"
+            )
     if "stream_hindsight_tracked_mse" in ad["tests"][0]:
         lines.append(
             "in hindsight: each term fitted on the whole stream without forgetting, "

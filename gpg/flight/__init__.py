@@ -15,7 +15,8 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
   its physical basis's coefficients online (a Kalman filter, its drift fitted by
   :func:`fit_drift`, any drift scored alike by :func:`score_drift`; with :func:`gusts`, the
   wind's deviation from the log's too),
-  :func:`adapt` adds an inducing-point term instead; :func:`update` and
+  :func:`adapt` adds an inducing-point term instead (its forgetting time fitted by
+  :func:`fit_forgetting`); :func:`update` and
   :func:`online_step` update either label by label at a fixed cost, :func:`prequential` runs
   a flight through them.
 * :func:`identify` finds the vehicle's physical parameters from labels (an
@@ -39,6 +40,7 @@ from gpg.flight.correction import (
     update_jit,
     with_online,
 )
+from gpg.flight.forgetting import Forgetting, fit_forgetting
 from gpg.flight.identify import Identification, IdentificationWarning, identify
 from gpg.flight.kinematics import Agreement, consistency
 from gpg.flight.labels import (
@@ -69,6 +71,7 @@ __all__ = [
     "Corrected",
     "consistency",
     "Drift",
+    "Forgetting",
     "Identification",
     "IdentificationWarning",
     "WindEstimate",
@@ -93,6 +96,7 @@ __all__ = [
     "default_drift",
     "estimate_delay",
     "fit_drift",
+    "fit_forgetting",
     "gusts",
     "hover_samples",
     "label",

@@ -1199,7 +1199,7 @@ def adapt(
     *,
     inducing: int = 48,
     tau: float = 5.0,
-    variance: float | None = None,
+    variance: float | Sequence[float] | None = None,
     lengthscale: float | None = None,
     inputs: ArrayLike | None = None,
     t0: float = 0.0,
@@ -1212,8 +1212,9 @@ def adapt(
         inducing: ``m``, the inducing inputs (fixed cost ``O(m²)`` per label and output).
         tau: s, the forgetting time constant (what was learnt ``τ`` seconds ago weighs
             ``1/e``).
-        variance: ``η``'s signal variance (normalised units); default: each ``δ``'s own, else
-            0.1 (a tenth of the data's variance).
+        variance: ``η``'s signal variance (normalised units), one for every load output or
+            six (:attr:`gpg.flight.Forgetting.variance`, fitted); default: each ``δ``'s own,
+            else 0.1 (a tenth of the data's variance).
         lengthscale: ``η``'s lengthscale (normalised inputs); default: each ``δ``'s own, else 1.
         inputs: (n, D) normalised inputs to place ``Z`` among (k-means); default: ``δ``'s
             training inputs, else the prior box's Latin hypercube.
@@ -1224,13 +1225,19 @@ def adapt(
         A :class:`~gpg.Surrogate` whose :class:`Corrected` model carries the online term.
 
     Raises:
-        ValueError: ``inducing`` under 1, ``tau`` not positive, ``inputs`` not (n, D), or a
-            model that already tracks its coefficients (:func:`gpg.flight.track`).
+        ValueError: ``inducing`` under 1, ``tau`` not positive, ``variance`` neither one nor
+            six positive numbers, ``inputs`` not (n, D), or a model that already tracks its
+            coefficients (:func:`gpg.flight.track`).
     """
     if inducing < 1:
         raise ValueError(f"inducing must be >= 1, got {inducing}")
     if not tau > 0:
         raise ValueError(f"tau must be > 0 s, got {tau}")
+    if variance is not None:
+        variance = np.asarray(variance, float)
+        if variance.shape not in ((), (N_LOADS,)) or not np.all(variance > 0):
+            raise ValueError(f"variance must be one or {N_LOADS} positive numbers, got "
+                             f"{variance.tolist()}")  # fmt: skip
     m = sur.model if isinstance(sur.model, Corrected) else None
     if m is None:
         ones = jnp.ones(sur.model.n_outputs)
@@ -1250,7 +1257,7 @@ def adapt(
     else:
         var, ls, nu = np.full(N_LOADS, 0.1), np.ones((N_LOADS, d)), np.full(N_LOADS, 1e-3)
     if variance is not None:
-        var = np.full(N_LOADS, float(variance))
+        var = np.broadcast_to(variance, (N_LOADS,)).copy()
     if lengthscale is not None:
         ls = np.full((N_LOADS, d), float(lengthscale))
     whiten = _whitening(Z, var, ls)

@@ -750,14 +750,17 @@ def _fit_bank(data, v0, fast: tuple[float, ...], share: float, max_steps: int,
 
 
 def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
-                        read: list[Labels] | None = None):  # fmt: skip
+                        read: list[Labels] | None = None, inputs: bool = False):  # fmt: skip
     """Every label's residual against a model that did not see its part (``sur`` itself where
     its correction did not take the part, by name; else the basis fitted without it), with
     that model's coefficient covariance, the columns, the label's noise, time, whether a flight
     starts there and that model's discrepancies' latent variance there; and each output's mean
     held-out variance (the start of ``v``). With ``read`` (one per part, the same flights),
     the sequences are of ``read``'s rows over the span of the labels kept, each predicted by
-    the model fitted on the other parts' labels."""
+    the model fitted on the other parts' labels. With ``inputs``, a third item: each row's
+    normalised input and that model's band on the loads (its discrepancy's and coefficients'
+    variance with ``ν²``, times the calibration factor ``δ`` carries; the model's own band
+    where ``sur`` predicts), the rows an online term (:func:`gpg.flight.adapt`) reads."""
     prior = fc.base(sur)
     parts, read = _kept(parts, read, max_labels)
     X, Y, V, groups, t = fc._label_rows(prior, parts, max_labels, "physical")
@@ -783,26 +786,22 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
     # The latent variance of the discrepancy that predicts each label: in the tracked band
     # (Corrected.predictive_variance), so in the density the fit scores, though not in the
     # filter's gain (the update on board does not pay for δ's variance at every label).
-    DL = np.zeros(Yr.shape)
+    DL, band = np.zeros(Yr.shape), np.zeros(Yr.shape)
     for j, d in enumerate(sur.model.delta):
         outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd_j[j], groups, refit,
                             at=(Xr, Hr[:, j], gr))  # fmt: skip
-        for te, mean, _, cov, latent in outs:
+        for te, mean, held_var, cov, latent in outs:
             resid[te, j] = Yr[te, j] - mean
             c0[te, j, :p, :p] = cov
             DL[te, j] = float(d.output_scale[0]) * latent
+            band[te, j] = float(d.output_scale[0]) * held_var
         # v starts at the held-out variance, or at the discrepancy's own where none was refit
         var = [v for _, _, v, *_ in outs] or [np.atleast_1d(d.hyper.variance + d.hyper.noise)]
         v0[j] = np.mean(np.concatenate(var))
     if unseen.any():
         own = fc.offline_model(sur.model)
-
-        def mean_latent(x):  # one program for both; δ's variance alone, not the prior's
-            return own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS], own._delta_latent_at(x)
-
-        mean, latent = jax.vmap(mean_latent)(jnp.asarray(Xr[unseen]))
-        resid[unseen] = Yr[unseen] - np.asarray(mean)
-        DL[unseen] = np.asarray(latent)
+        mean, DL[unseen], band[unseen] = _own_rows(own, Xr[unseen], inputs)
+        resid[unseen] = Yr[unseen] - mean
         c0[unseen] = _offline_cov(own, p + 1, with_simple)
     keep = np.all(np.isfinite(resid), 1)
     start = np.ones(len(t), bool)
@@ -811,7 +810,24 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
     start[0] = True
     Ht = np.concatenate([Hr, np.broadcast_to(bias[None, :, None], (len(Hr), N_LOADS, 1))], 2)
     rows = (t[keep], start, Ht[keep], resid[keep], Vr[keep], c0[keep], sd, DL[keep])
+    if inputs:
+        return tuple(jnp.asarray(a) for a in rows), v0, (Xr[keep], band[keep])
     return tuple(jnp.asarray(a) for a in rows), v0
+
+
+def _own_rows(own: fc.Corrected, X: np.ndarray, band: bool):
+    """The offline model's own mean, its discrepancies' latent variance (not the prior's) and,
+    with ``band``, its band on the loads (zeros without), at the normalised rows ``X``."""
+
+    def mean_latent(x):  # one program for both
+        return own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS], own._delta_latent_at(x)
+
+    mean, latent = jax.vmap(mean_latent)(jnp.asarray(X))
+    out = np.zeros((len(X), N_LOADS))
+    if band:
+        var = jax.vmap(lambda x: own.mean_var_one(x)[1])(jnp.asarray(X))
+        out = np.asarray(own.predictive_variance(var))[:, :N_LOADS]
+    return np.asarray(mean), np.asarray(latent), out
 
 
 def _kept(parts: list[Labels], read: list[Labels] | None, max_labels: int):

@@ -1,0 +1,195 @@
+"""The inducing-point term's forgetting time and signal variance, fitted on training flights.
+
+:func:`gpg.flight.adapt`'s term ``η`` (whitened weights on ``m`` inducing inputs, one set per
+load output) forgets at the rate ``1/τ``: between labels ``Δt`` apart its weights relax toward
+their prior, ``μ ← aμ``, ``Σ ← a²Σ + (1 − a²)I`` with ``a = e^{−Δt/τ}``. Its prior variance is
+each discrepancy's signal variance ``σ²_δ`` times a factor ``c`` (whitened features scale with
+``√c``). :func:`fit_forgetting` chooses ``τ`` and ``c`` as :func:`gpg.flight.fit_drift`
+chooses the tracked coefficients' drift: each training part (a flight, or the flights of one
+wind) is predicted by a model that did not see it (the physical basis and discrepancy refitted
+on the other parts with the corrected model's hyperparameters, or the corrected model itself
+where it did not take the part), the term runs over the part from its prior, restarting at
+each flight, and ``(τ, c)`` maximise the sum of the one-step-ahead log densities of the
+labels, each under the band the adapted model gives it: the held-out model's band, ``η``'s
+``ψᵀΣψ`` and the label's own noise. A grid first, then Nelder-Mead (optimistix) on the
+logarithms: the scan's reverse-mode derivative would store an ``m × m`` covariance per row,
+a gigabyte for a stream of ten thousand samples.
+
+Steady training winds favour a long memory (the residual they show stays); a gust asks for a
+short one. What the flights cannot show, the fit cannot choose: the guide ("Adaptation at the
+unseen winds") measures what this means at the hard scenario's test winds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from gpg._dtype import float64
+from gpg._precision import highest
+from gpg.flight import correction as fc
+from gpg.flight import tracking as tk
+from gpg.flight.labels import Labels
+from gpg.surrogate import Surrogate
+
+__all__ = ["FACTOR_RANGE", "Forgetting", "fit_forgetting"]
+
+N_LOADS = fc.N_LOADS
+FACTOR_RANGE = (1e-3, 1e2)
+"""The fitted factor ``c`` on each discrepancy's signal variance: from a thousandth (a term
+that barely moves) to a hundred times (a term free to take what the discrepancy did not)."""
+# The grid the Nelder-Mead search starts from: τ from a second to a day (a term that never
+# forgets, within the flights' length), c around the discrepancy's own variance.
+_TAU_GRID = (1.0, 3.0, 10.0, 30.0, 100.0, 1000.0, 86400.0)
+_FACTOR_GRID = (0.1, 1.0, 10.0)
+
+
+@dataclass(frozen=True)
+class Forgetting:
+    """The inducing-point term's fitted forgetting time and prior (:func:`fit_forgetting`);
+    pass ``tau`` and ``variance`` to :func:`gpg.flight.adapt`, with ``inducing``.
+
+    Attributes:
+        tau: s, the forgetting time ``τ``.
+        factor: ``c``, the factor on each discrepancy's signal variance.
+        variance: (6,) ``η``'s signal variance per load output, ``c σ²_δ`` (normalised).
+        inducing: the inducing inputs it was fitted with (``m``).
+        log_likelihood: the labels' mean one-step-ahead log density (nats per label, the six
+            load outputs summed) at the fit.
+        grid: ``((τ, c, log likelihood), ...)``: the grid the search started from, each point's
+            score (how much the choice matters).
+        labels: the rows the likelihood summed over.
+    """
+
+    tau: float
+    factor: float
+    variance: tuple[float, ...]
+    inducing: int
+    log_likelihood: float
+    grid: tuple[tuple[float, float, float], ...]
+    labels: int
+
+
+@float64
+def fit_forgetting(
+    sur: Surrogate,
+    labels: Sequence[Labels],
+    *,
+    inducing: int = 48,
+    max_labels: int = 1500,
+    max_steps: int = 60,
+    read: Sequence[Labels] | None = None,
+    seed: int = 0,
+) -> Forgetting:
+    """The forgetting time ``τ`` and prior factor ``c`` of :func:`gpg.flight.adapt`'s term
+    that best predict new flights, label by label (module docstring).
+
+    Args:
+        sur: a corrected model (:func:`gpg.flight.correct`; an adapted or tracked one is read
+            without its online part).
+        labels: two or more parts (flights, or the flights of one wind), in time order within
+            each.
+        inducing: ``m``, the term's inducing inputs, placed as :func:`gpg.flight.adapt`
+            places them (with ``seed``).
+        max_labels: at most this many labels, taken as :func:`gpg.flight.fit_drift` takes them.
+        max_steps: Nelder-Mead steps after the grid.
+        read: what the term will read of each part, one per part in the same order (every
+            sample of the same flights, as :func:`gpg.flight.fit_drift` reads them); None:
+            the labels themselves.
+        seed: the inducing inputs' k-means seed.
+
+    Returns:
+        The fitted :class:`Forgetting`.
+
+    Raises:
+        ValueError: fewer than two parts, ``sur`` not corrected by flights, ``inducing``
+            under 1, or ``read`` not one non-empty part per part of ``labels``.
+    """
+    if inducing < 1:
+        raise ValueError(f"fit_forgetting: inducing must be >= 1, got {inducing}")
+    parts = tk._parts(sur, labels, "fit_forgetting")
+    stream = tk._checked_read(parts, read, "fit_forgetting")
+    offline = dataclasses.replace(sur, model=fc.offline_model(sur.model))
+    template = fc.adapt(offline, inducing=inducing, seed=seed).model.online
+    data, _, (X, band) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
+    t, start, _, resid, noise, *_ = data
+    psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
+    args = (t, start, psi, resid, noise + template.noise, band + noise)
+    theta, scored = _search(args, max_steps)
+    tau, c = (float(v) for v in _unpack(theta))
+    return Forgetting(
+        tau=tau,
+        factor=c,
+        variance=tuple(float(c * v) for v in np.asarray(template.variance)),
+        inducing=int(template.Z.shape[0]),
+        log_likelihood=-float(_neg_loglik(theta, args)),
+        grid=tuple((a, b, ll) for (a, b), ll in scored),
+        labels=int(t.shape[0]),
+    )
+
+
+def _search(args, max_steps: int) -> tuple[Float[Array, " 2"], list]:
+    """The best ``θ`` from the grid, improved by Nelder-Mead, and the grid's scores
+    ``[((τ, c), log likelihood), ...]``."""
+    scored = [((tau, c), -float(_neg_loglik(_pack(tau, c), args)))
+              for tau, c in itertools.product(_TAU_GRID, _FACTOR_GRID)]  # fmt: skip
+    (tau0, c0), _ = max(scored, key=lambda s: s[1])
+    theta = _pack(tau0, c0)
+    sol = optx.minimise(_neg_loglik, optx.NelderMead(rtol=1e-4, atol=1e-4), theta, args=args,
+                        max_steps=max_steps, throw=False)  # fmt: skip
+    if float(_neg_loglik(sol.value, args)) < float(_neg_loglik(theta, args)):
+        theta = sol.value
+    return theta, scored
+
+
+def _pack(tau: float, factor: float) -> Float[Array, " 2"]:
+    """``θ = (log τ, log c)``."""
+    return jnp.log(jnp.asarray([tau, factor], float))
+
+
+def _unpack(theta: Float[Array, " 2"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """:func:`_pack`'s ``θ`` to ``(τ, c)``, each kept in its range."""
+    (t_lo, t_hi), (c_lo, c_hi) = np.log(tk.TAU_RANGE), np.log(FACTOR_RANGE)
+    return jnp.exp(jnp.clip(theta[0], t_lo, t_hi)), jnp.exp(jnp.clip(theta[1], c_lo, c_hi))
+
+
+@jax.jit
+@highest
+def _neg_loglik(theta, args):
+    """Minus the mean one-step-ahead log density per row of the term with ``θ`` over the
+    held-out rows: ``t``, whether a flight starts, the whitened features ``ψ`` at ``c = 1``
+    (N, 6, m), the residual against the held-out model, the update's noise (the label's and
+    the term's ``ν²``) and the band without ``η`` (the held-out model's and the label's)."""
+    t, start, psi, resid, gain_noise, band = args
+    tau, c = _unpack(theta)
+    m = psi.shape[-1]
+    eye = jnp.eye(m, dtype=psi.dtype)
+    mean0, cov0 = jnp.zeros((N_LOADS, m), psi.dtype), jnp.broadcast_to(eye, (N_LOADS, m, m))
+
+    def body(carry, row):
+        mean, cov, t_prev = carry
+        ti, st, p, e, r, b = row
+        a = jnp.exp(-jnp.maximum(ti - t_prev, 0.0) / tau)
+        mean, cov = a * mean, a**2 * cov + (1.0 - a**2) * eye
+        mean, cov = jnp.where(st, mean0, mean), jnp.where(st, cov0, cov)
+        p = jnp.sqrt(c) * p
+        Sp = jnp.einsum("jmn,jn->jm", cov, p)
+        q = jnp.einsum("jm,jm->j", p, Sp)
+        err = e - jnp.einsum("jm,jm->j", p, mean)
+        s = b + q
+        ll = jnp.sum(-0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s))
+        k = Sp / (q + r)[:, None]
+        mean = mean + k * err[:, None]
+        cov = cov - k[:, :, None] * Sp[:, None, :]
+        return (mean, 0.5 * (cov + jnp.swapaxes(cov, 1, 2)), ti), ll
+
+    _, ll = jax.lax.scan(body, (mean0, cov0, t[0]), (t, start, psi, resid, gain_noise, band))
+    return -jnp.mean(ll)
