@@ -449,12 +449,16 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         stages["fit_drift_stream_s"] = time.perf_counter() - t2
     # the inducing-point term's forgetting time and prior fitted the same way: on every
     # sample of the training flights, each wind predicted from the others' labels
-    forgetting = None
+    # (each band of adapt.fit_forgetting: the term's variance added to the offline band, or
+    # its prior a share of it)
+    forgetting = {}
     if id_train_streams is not None and cfg["adapt"].get("fit_forgetting"):
         t2 = time.perf_counter()
-        forgetting = fit_forgetting(models["identified"], by_wind_id,
-                                    inducing=int(cfg["adapt"]["inducing"]), max_labels=n_fit,
-                                    read=_by_wind(train, id_train_streams))  # fmt: skip
+        for band in cfg["adapt"]["fit_forgetting"]:
+            forgetting[band] = fit_forgetting(models["identified"], by_wind_id,
+                                              inducing=int(cfg["adapt"]["inducing"]),
+                                              max_labels=n_fit, band=str(band),
+                                              read=_by_wind(train, id_train_streams))  # fmt: skip
         stages["fit_forgetting_s"] = time.perf_counter() - t2
     t1 = time.perf_counter()
     curves: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
@@ -571,8 +575,9 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     test labels' instants (``stream_<model>_...``; with ``stream_drift``, a drift fitted on
     the training flights' streams, the tracked coefficients and the wind state with it too,
     ``stream_tracked_fit_stream`` and ``stream_tracked_gusts_fit_stream``; with
-    ``forgetting``, the inducing-point term with that fitted forgetting time and prior,
-    ``stream_inducing_fitted``; with
+    ``forgetting`` (band to :class:`gpg.flight.Forgetting`), the inducing-point term with each
+    fitted forgetting time and prior, ``stream_inducing_fitted`` (the band added) and
+    ``stream_inducing_fitted_shared``; with
     ``hindsight``, the tracked coefficients and the inducing-point term fitted on the whole
     stream without forgetting and scored at the labels, ``stream_hindsight_<term>_mse``: at a
     steady wind the least error each term reaches): the force MSE
@@ -649,7 +654,7 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         "one_spread": None if one_spread is None else dataclasses.asdict(one_spread),
         "spreads": list(spreads),
         "stream_drift": None if stream_drift is None else dataclasses.asdict(stream_drift),
-        "forgetting": None if forgetting is None else dataclasses.asdict(forgetting),
+        "forgetting": {b: dataclasses.asdict(f) for b, f in (forgetting or {}).items()},
     }
     if gust_cfg is not None:
         with_gusts = gusts(drift, gust_cfg["sd"], float(gust_cfg["tau"]))
@@ -728,8 +733,8 @@ def _stream_scores(
 ) -> dict[str, Any]:
     """The offline model and the online ones reading ``stream`` (every sample of the test
     flight whose labels are ``lab``; the inducing-point term also with each forgetting time of
-    ``adapt_cfg["stream_taus"]``, and with ``forgetting``'s fitted time and prior,
-    ``inducing_fitted``), each scored at ``lab``'s instants: the same labels and
+    ``adapt_cfg["stream_taus"]``, and with each of ``forgetting``'s fitted times and priors,
+    ``inducing_fitted[_shared]``), each scored at ``lab``'s instants: the same labels and
     truth as the rows read from ``lab`` alone. The error curves go into ``curves`` under the
     test's name, timed from ``lab``'s first label (``where``)."""
     from experiments.runs.flight_logs import prequential_scores
@@ -750,10 +755,10 @@ def _stream_scores(
         models[f"inducing_tau_{float(tau):g}"] = fc.adapt(
             offline, inducing=int(adapt_cfg["inducing"]), tau=float(tau), t0=start
         )
-    if forgetting is not None:
-        models["inducing_fitted"] = fc.adapt(offline, inducing=forgetting.inducing,
-                                             tau=forgetting.tau, variance=forgetting.variance,
-                                             t0=start)  # fmt: skip
+    for band, fo in (forgetting or {}).items():
+        key = "inducing_fitted" + ("" if band == "added" else f"_{band}")
+        models[key] = fc.adapt(offline, inducing=fo.inducing, tau=fo.tau, variance=fo.variance,
+                               t0=start, band=band)  # fmt: skip
     if stream_drift is not None:
         models["tracked_fit_stream"] = track(offline, stream_drift, t0=start)
         if gust_cfg is not None:
@@ -947,19 +952,19 @@ def _report(res) -> str:
                  ("stream_scored", "scored", "d")]  # fmt: skip
         taus = [f"inducing_tau_{float(v):g}" for v in res["config"]["adapt"].get("stream_taus")
                 or ()]  # fmt: skip
-        for m in ("none", "inducing", *taus, "inducing_fitted", "tracked", "tracked_gusts",
-                  "tracked_fit_stream", "tracked_gusts_fit_stream"):  # fmt: skip
+        for m in ("none", "inducing", *taus, "inducing_fitted", "inducing_fitted_shared",
+                  "tracked", "tracked_gusts", "tracked_fit_stream",
+                  "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
                           (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip
         scols.append(("noise_floor", "noise", ".3g"))
         lines.append(table(ad["tests"], scols))
-        if ad.get("forgetting"):
-            fo = ad["forgetting"]
+        for band, fo in (ad.get("forgetting") or {}).items():
             lines.append(
-                f"  inducing_fitted: tau {fo['tau']:.3g} s and {fo['factor']:.3g} times each "
-                f"discrepancy's variance, fitted on the training flights' streams "
-                f"({fo['labels']} rows, {fo['log_likelihood']:.4g} nats a row)"
+                f"  inducing_fitted ({band} band): tau {fo['tau']:.3g} s and "
+                f"{fo['factor']:.3g} times each discrepancy's variance, fitted on the training "
+                f"flights' streams ({fo['labels']} rows, {fo['log_likelihood']:.4g} nats a row)"
             )
     if "stream_hindsight_tracked_mse" in ad["tests"][0]:
         lines.append(

@@ -708,7 +708,8 @@ def _correction_constants(s: Layout, dtype: str = "double") -> list[str]:
     ]
     if c.online is not None:
         o = c.online
-        out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_TAU {o.tau!r}"]
+        out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_TAU {o.tau!r}",
+                f"#define ONLINE_SHARED {int(o.shared)}"]  # fmt: skip
         dbl("ONLINE_Z", o.Z)
         dbl("ONLINE_WHITEN_T", np.swapaxes(o.whiten, 1, 2))  # columns contiguous
         dbl("ONLINE_VAR", o.variance)

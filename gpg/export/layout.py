@@ -164,6 +164,8 @@ class OnlineTerm:
         mean: (6, m) ``μ`` when exported.
         cov: (6, m, m) ``Σ`` when exported.
         t: s, the state's time when exported.
+        shared: ``η``'s prior a share of the offline band (:func:`gpg.flight.adapt`'s
+            ``band="shared"``): the loads' band ``max(b − ψᵀψ, 0) + ψᵀΣψ``, not ``b + ψᵀΣψ``.
     """
 
     Z: np.ndarray
@@ -175,6 +177,7 @@ class OnlineTerm:
     mean: np.ndarray
     cov: np.ndarray
     t: float
+    shared: bool = False
 
 
 @dataclass(frozen=True)
@@ -550,16 +553,23 @@ def _tracked(r: Any) -> TrackedTerm:
 
 
 def refuse_wind(s: Layout, fmt: str) -> None:
-    """Refuse, by name, a tracked model with a wind state in an export that does not write it.
+    """Refuse, by name, a tracked model with a wind state, or an adapted one whose online term
+    shares the offline band, in an export that does not write it.
 
     Args:
         s: the layout.
         fmt: the export's name, for the message.
 
     Raises:
-        ValueError: ``s`` tracks a wind state.
+        ValueError: ``s`` tracks a wind state, or its online term's band is shared.
     """
     c = s.correction
+    if c is not None and c.online is not None and c.online.shared:
+        raise ValueError(
+            f"model {s.model!r} is adapted with band='shared' (gpg.flight.adapt): its band "
+            f"takes the online term's prior out of the offline one, which {fmt} does not write "
+            "(the C export does); adapt it with band='added' for this export"
+        )
     if c is not None and c.tracked is not None and c.tracked.wind_mean is not None:
         raise ValueError(
             f"model {s.model!r} tracks a wind state (gpg.flight.gusts): its prediction "
@@ -580,6 +590,7 @@ def _online(o: Any, d_in: int) -> OnlineTerm:
         mean=_f64(o.mean),
         cov=_f64(o.cov),
         t=float(np.asarray(o.t)),
+        shared=bool(getattr(o, "shared", False)),
     )
 
 

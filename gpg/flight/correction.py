@@ -96,6 +96,9 @@ class Online(eqx.Module):
         cov: (6, m, m) their posterior covariance.
         t: () time of the last update (s).
         tau: () s, the forgetting time constant.
+        shared: whether ``η``'s prior is a share of the offline model's band rather than an
+            addition to it (:func:`adapt`'s ``band``): the loads' band is then
+            ``max(b − ψᵀψ, 0) + ψᵀΣψ`` (``b`` the offline band), which starts as ``b``.
     """
 
     Z: Float[Array, "m D"]
@@ -107,6 +110,7 @@ class Online(eqx.Module):
     cov: Float[Array, "6 m m"]
     t: Float[Array, ""]
     tau: Float[Array, ""]
+    shared: bool = eqx.field(static=True, default=False)
 
     @highest
     def features(self, x: Float[Array, " D"]) -> Float[Array, "6 m"]:
@@ -143,6 +147,20 @@ class Online(eqx.Module):
         mean = jnp.einsum("om,om->o", psi, self.mean)
         var = jnp.einsum("om,omn,on->o", psi, self.cov, psi)
         return mean, var
+
+    @highest
+    def prior_var(self, x: Float[Array, " D"]) -> Float[Array, " 6"]:
+        """``η``'s prior variance per output at ``x``, ``ψ(x)ᵀψ(x)`` (at most its kernel's
+        variance: the part of ``η`` the inducing inputs span there).
+
+        Args:
+            x: (D,) a normalised input.
+
+        Returns:
+            (6,) the prior variance (normalised units).
+        """
+        psi = self.features(x)
+        return jnp.einsum("om,om->o", psi, psi)
 
     @highest
     def relaxed(self, t: Float[ArrayLike, ""]) -> Online:
@@ -469,6 +487,8 @@ class Corrected(Predictor):
             m, v = self.online.mean_var(x)
             mean = mean + self._pad(m)
             parts.append(v)
+            if self.online.shared:  # the share of the offline band η's prior takes
+                parts.append(self.online.prior_var(x))
         if self.explicit is not None and self.tracker is None:
             parts.append(self._explicit_variance(x, prior_mean))
         if self.tracker is not None:
@@ -510,15 +530,25 @@ class Corrected(Predictor):
         # A tracker carries the coefficients' offline covariance in its own: their share is
         # the tracker's, not counted twice.
         explicit = self.explicit if self.tracker is None else None
+        shared = None
         for part in (self.online, explicit, self.tracker):
             if part is None:
                 continue
             ov = jnp.maximum(var[..., at : at + N_LOADS], 0.0)
+            at += N_LOADS
+            if part is self.online and self.online.shared:
+                shared = (ov, jnp.maximum(var[..., at : at + N_LOADS], 0.0))
+                at += N_LOADS
+                continue
             out = out + jnp.concatenate(
                 [ov, jnp.zeros((*ov.shape[:-1], self.n_outputs - ov.shape[-1]), ov.dtype)],
                 axis=-1,
             )
-            at += N_LOADS
+        if shared is not None:
+            # η's prior is a share of the offline band: what the flight has told η leaves it
+            post, prior = shared
+            loads = jnp.maximum(out[..., :N_LOADS] - prior, 0.0) + post
+            out = jnp.concatenate([loads, out[..., N_LOADS:]], axis=-1)
         if self.tracker is not None:
             # The tracked model's band on the loads: the filter's hᵀΣh and the extra noise v
             # its drift was fitted with, plus each δ's own latent variance. The tracked
@@ -1204,6 +1234,7 @@ def adapt(
     inputs: ArrayLike | None = None,
     t0: float = 0.0,
     seed: int = 0,
+    band: str = "added",
 ) -> Surrogate:
     """``sur`` (corrected or not) with an online term ready to be updated (:func:`update`).
 
@@ -1220,15 +1251,22 @@ def adapt(
             training inputs, else the prior box's Latin hypercube.
         t0: s, the time of the first update.
         seed: k-means' seed.
+        band: how ``η``'s variance enters the loads' band: ``"added"`` to the offline
+            model's ``b`` (the band only ever widens), or ``"shared"``: ``η``'s prior is taken
+            as a share of ``b``, the band ``max(b − ψᵀψ, 0) + ψᵀΣψ``, which starts as ``b``
+            and narrows where the flight has told ``η`` (:class:`Online`'s ``shared``).
 
     Returns:
         A :class:`~gpg.Surrogate` whose :class:`Corrected` model carries the online term.
 
     Raises:
         ValueError: ``inducing`` under 1, ``tau`` not positive, ``variance`` neither one nor
-            six positive numbers, ``inputs`` not (n, D), or a model that already tracks its
-            coefficients (:func:`gpg.flight.track`).
+            six positive numbers, ``band`` neither ``"added"`` nor ``"shared"``, ``inputs``
+            not (n, D), or a model that already tracks its coefficients
+            (:func:`gpg.flight.track`).
     """
+    if band not in ("added", "shared"):
+        raise ValueError(f"band must be 'added' or 'shared', got {band!r}")
     if inducing < 1:
         raise ValueError(f"inducing must be >= 1, got {inducing}")
     if not tau > 0:
@@ -1271,6 +1309,7 @@ def adapt(
         cov=jnp.broadcast_to(jnp.eye(k), (N_LOADS, k, k)),
         t=jnp.asarray(float(t0)),
         tau=jnp.asarray(float(tau)),
+        shared=band == "shared",
     )
     return dataclasses.replace(
         sur, model=eqx.tree_at(lambda c: c.online, m, online, is_leaf=lambda x: x is None)

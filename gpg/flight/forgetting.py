@@ -26,6 +26,7 @@ import dataclasses
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -62,6 +63,7 @@ class Forgetting:
         factor: ``c``, the factor on each discrepancy's signal variance.
         variance: (6,) ``η``'s signal variance per load output, ``c σ²_δ`` (normalised).
         inducing: the inducing inputs it was fitted with (``m``).
+        band: the adapted band it was fitted for (:func:`gpg.flight.adapt`'s ``band``).
         log_likelihood: the labels' mean one-step-ahead log density (nats per label, the six
             load outputs summed) at the fit.
         grid: ``((τ, c, log likelihood), ...)``: the grid the search started from, each point's
@@ -73,6 +75,7 @@ class Forgetting:
     factor: float
     variance: tuple[float, ...]
     inducing: int
+    band: str
     log_likelihood: float
     grid: tuple[tuple[float, float, float], ...]
     labels: int
@@ -88,6 +91,7 @@ def fit_forgetting(
     max_steps: int = 60,
     read: Sequence[Labels] | None = None,
     seed: int = 0,
+    band: str = "added",
 ) -> Forgetting:
     """The forgetting time ``τ`` and prior factor ``c`` of :func:`gpg.flight.adapt`'s term
     that best predict new flights, label by label (module docstring).
@@ -105,24 +109,28 @@ def fit_forgetting(
             sample of the same flights, as :func:`gpg.flight.fit_drift` reads them); None:
             the labels themselves.
         seed: the inducing inputs' k-means seed.
+        band: the adapted band the labels are scored by, as :func:`gpg.flight.adapt` takes
+            it: ``"added"`` (the held-out band plus ``η``'s ``ψᵀΣψ``) or ``"shared"``
+            (``max(b − ψᵀψ, 0) + ψᵀΣψ``, ``b`` the held-out band).
 
     Returns:
         The fitted :class:`Forgetting`.
 
     Raises:
         ValueError: fewer than two parts, ``sur`` not corrected by flights, ``inducing``
-            under 1, or ``read`` not one non-empty part per part of ``labels``.
+            under 1, ``band`` neither ``"added"`` nor ``"shared"``, or ``read`` not one
+            non-empty part per part of ``labels``.
     """
     if inducing < 1:
         raise ValueError(f"fit_forgetting: inducing must be >= 1, got {inducing}")
     parts = tk._parts(sur, labels, "fit_forgetting")
     stream = tk._checked_read(parts, read, "fit_forgetting")
     offline = dataclasses.replace(sur, model=fc.offline_model(sur.model))
-    template = fc.adapt(offline, inducing=inducing, seed=seed).model.online
-    data, _, (X, band) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
+    template = fc.adapt(offline, inducing=inducing, seed=seed, band=band).model.online
+    data, _, (X, held) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
     t, start, _, resid, noise, *_ = data
     psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
-    args = (t, start, psi, resid, noise + template.noise, band + noise)
+    args = (t, start, psi, resid, noise + template.noise, held, noise, template.shared)
     theta, scored = _search(args, max_steps)
     tau, c = (float(v) for v in _unpack(theta))
     return Forgetting(
@@ -130,6 +138,7 @@ def fit_forgetting(
         factor=c,
         variance=tuple(float(c * v) for v in np.asarray(template.variance)),
         inducing=int(template.Z.shape[0]),
+        band=band,
         log_likelihood=-float(_neg_loglik(theta, args)),
         grid=tuple((a, b, ll) for (a, b), ll in scored),
         labels=int(t.shape[0]),
@@ -161,14 +170,15 @@ def _unpack(theta: Float[Array, " 2"]) -> tuple[Float[Array, ""], Float[Array, "
     return jnp.exp(jnp.clip(theta[0], t_lo, t_hi)), jnp.exp(jnp.clip(theta[1], c_lo, c_hi))
 
 
-@jax.jit
+@partial(jax.jit, static_argnums=2)
 @highest
-def _neg_loglik(theta, args):
+def _loglik(theta, rows, shared: bool):
     """Minus the mean one-step-ahead log density per row of the term with ``θ`` over the
     held-out rows: ``t``, whether a flight starts, the whitened features ``ψ`` at ``c = 1``
     (N, 6, m), the residual against the held-out model, the update's noise (the label's and
-    the term's ``ν²``) and the band without ``η`` (the held-out model's and the label's)."""
-    t, start, psi, resid, gain_noise, band = args
+    the term's ``ν²``), the held-out model's band ``b`` and the label's noise; ``shared``:
+    ``η``'s prior a share of ``b`` (:func:`gpg.flight.adapt`'s ``band``)."""
+    t, start, psi, resid, gain_noise, held, noise = rows
     tau, c = _unpack(theta)
     m = psi.shape[-1]
     eye = jnp.eye(m, dtype=psi.dtype)
@@ -176,20 +186,25 @@ def _neg_loglik(theta, args):
 
     def body(carry, row):
         mean, cov, t_prev = carry
-        ti, st, p, e, r, b = row
+        ti, st, p0, e, r, b, n = row
         a = jnp.exp(-jnp.maximum(ti - t_prev, 0.0) / tau)
         mean, cov = a * mean, a**2 * cov + (1.0 - a**2) * eye
         mean, cov = jnp.where(st, mean0, mean), jnp.where(st, cov0, cov)
-        p = jnp.sqrt(c) * p
+        p = jnp.sqrt(c) * p0
         Sp = jnp.einsum("jmn,jn->jm", cov, p)
         q = jnp.einsum("jm,jm->j", p, Sp)
         err = e - jnp.einsum("jm,jm->j", p, mean)
-        s = b + q
+        s = (jnp.maximum(b - c * jnp.sum(p0 * p0, 1), 0.0) if shared else b) + q + n
         ll = jnp.sum(-0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s))
         k = Sp / (q + r)[:, None]
         mean = mean + k * err[:, None]
         cov = cov - k[:, :, None] * Sp[:, None, :]
         return (mean, 0.5 * (cov + jnp.swapaxes(cov, 1, 2)), ti), ll
 
-    _, ll = jax.lax.scan(body, (mean0, cov0, t[0]), (t, start, psi, resid, gain_noise, band))
+    _, ll = jax.lax.scan(body, (mean0, cov0, t[0]), (t, start, psi, resid, gain_noise, held, noise))
     return -jnp.mean(ll)
+
+
+def _neg_loglik(theta, args):
+    """:func:`_loglik` with ``args = (*rows, shared)``: the form optimistix calls."""
+    return _loglik(theta, args[:-1], bool(args[-1]))

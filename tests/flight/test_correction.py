@@ -422,6 +422,87 @@ def test_forgetting_relaxes_to_the_prior(corrected, flights):
     np.testing.assert_allclose(same.cov, on.cov, rtol=0, atol=0)
 
 
+def _c_predict(lib, st, rpm, euler, v):
+    """``model_online_predict`` of a compiled export at each state: (N, 6) loads, (N, 12)
+    variances (the loads' first) and whether each is in the domain."""
+    import ctypes
+
+    D = ctypes.POINTER(ctypes.c_double)
+    loads, var, ok = np.zeros((len(rpm), 6)), np.zeros((len(rpm), 12)), []
+    for i in range(len(rpm)):
+        f, t, lv, vv = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
+        args = [np.ascontiguousarray(x).ctypes.data_as(D) for x in (rpm[i], euler[i], v[i], f,
+                                                                      t, lv, vv)]  # fmt: skip
+        ok.append(lib.model_online_predict(ctypes.byref(st), *args))
+        loads[i], var[i] = np.concatenate([f, t]), vv
+    return loads, var, np.asarray(ok, bool)
+
+
+def test_shared_band_takes_the_online_prior_out_of_the_offline_band(corrected, flights, tmp_path):
+    """``adapt(band="shared")``: the loads' band is ``max(b − ψᵀψ, 0) + ψᵀΣψ`` (``b`` the
+    offline model's, normalised), written here from the state's arrays; before any label it is
+    ``max(b, ψᵀψ)``, the offline band where η's prior fits inside it; the mean is the added
+    band's. Its C (to_c) predicts the same band; CasADi and ONNX refuse it by name; a
+    checkpoint keeps the mode."""
+    import ctypes
+    import subprocess
+
+    from gpg import checkpoint
+    from gpg.export import to_c, to_casadi, to_onnx
+
+    cols = tuple(jnp.asarray(c[:30]) for c in flights.columns())
+    scan = jax.jit(lambda s, xs: jax.lax.scan(lambda c, r: (fc.update(c, *r), None), s, xs)[0])
+    runs = {b: fc.adapt(corrected, inducing=8, tau=3.0, band=b) for b in ("added", "shared")}
+    assert runs["shared"].model.online.shared and not runs["added"].model.online.shared
+    offline = fc.offline_model(corrected.model)
+    X = np.asarray(fc.training_rows(corrected, flights)[0])
+    lat = jax.jit(jax.vmap(lambda m, x: m.predictive_variance(m.mean_var_one(x)[1])[:6],
+                           in_axes=(None, 0)))  # fmt: skip
+    b = np.asarray(lat(offline, X))
+    for when in ("start", "after"):
+        s_run = runs["shared"] if when == "start" else scan(runs["shared"], cols)
+        a_run = runs["added"] if when == "start" else scan(runs["added"], cols)
+        on = s_run.model.online
+        psi = np.asarray(jax.vmap(on.features)(jnp.asarray(X)))  # (N, 6, m)
+        q0 = np.einsum("njm,njm->nj", psi, psi)
+        post = np.einsum("njm,jmk,njk->nj", psi, np.asarray(on.cov), psi)
+        np.testing.assert_allclose(lat(s_run.model, X), np.maximum(b - q0, 0) + post,
+                                   rtol=1e-10, atol=1e-14)  # fmt: skip
+        np.testing.assert_allclose(lat(a_run.model, X), b + post, rtol=1e-10, atol=1e-14)
+        if when == "start":
+            np.testing.assert_allclose(post, q0, rtol=1e-12)
+            assert np.any(b > q0)  # where η's prior fits inside the band, the band is b's
+        ps = s_run.predict_batch(flights.rpm[:20], flights.euler[:20], flights.v_air[:20])
+        pa = a_run.predict_batch(flights.rpm[:20], flights.euler[:20], flights.v_air[:20])
+        np.testing.assert_array_equal(np.asarray(ps.force), np.asarray(pa.force))
+    to_c(s_run, tmp_path, name="model")
+    so = tmp_path / "model.so"
+    res = subprocess.run(["cc", "-O2", "-std=c99", "-Wall", "-Werror", "-shared", "-fPIC", "-o",
+                          str(so), str(tmp_path / "model.c"), "-lm"],
+                         capture_output=True, text=True)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    lib = ctypes.CDLL(str(so))
+    m = on.Z.shape[0]
+
+    class State(ctypes.Structure):
+        _fields_ = [("mean", ctypes.c_double * (6 * m)), ("cov", ctypes.c_double * (6 * m * m)),
+                    ("t", ctypes.c_double)]  # fmt: skip
+
+    st = State()
+    lib.model_online_init(ctypes.byref(st))  # the exported state: the updated one
+    rpm, euler, v = _export_states(flights, 12)
+    ref = jax.jit(jax.vmap(s_run.predict))(rpm, euler, v)
+    _, var, ok = _c_predict(lib, st, rpm, euler, v)
+    np.testing.assert_array_equal(ok, np.asarray(ref.in_domain))
+    np.testing.assert_allclose(var[:, :6], ref.variance[:, :6], rtol=1e-7)
+    with pytest.raises(ValueError, match="band='shared'"):
+        to_casadi(s_run)
+    with pytest.raises(ValueError, match="band='shared'"):
+        to_onnx(s_run, tmp_path / "model.onnx")
+    checkpoint.save(tmp_path / "ckpt", s_run)
+    assert checkpoint.load(tmp_path / "ckpt").model.online.shared
+
+
 def test_adapt_checks(synthetic_surrogate, corrected, flights):
     with pytest.raises(ValueError, match="prepared by gpg.flight.adapt"):
         fc.update(
@@ -439,6 +520,8 @@ def test_adapt_checks(synthetic_surrogate, corrected, flights):
         fc.adapt(corrected, tau=0.0)
     with pytest.raises(ValueError, match="inputs must be"):
         fc.adapt(corrected, inputs=np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="band must be 'added' or 'shared'"):
+        fc.adapt(corrected, band="both")
     # a prior without a correction adapts too (δ = 0, the online term alone)
     plain = fc.adapt(synthetic_surrogate, inducing=6)
     assert plain.model.delta == () and plain.model.online.Z.shape == (6, 8)

@@ -19,24 +19,29 @@ M = 8  # inducing inputs: the algebra is the same at 48
 
 @jax.jit
 def _step(on, t, x, e, r, b, start):
-    """One row through the library's own term: reset or relaxed, scored, then measured."""
+    """One row through the library's own term: reset or relaxed, scored (the band ``b``
+    plus η's, or with ``on.shared`` η's prior taken out of it first), then measured."""
     m = on.mean.shape[1]
     fresh = dataclasses.replace(on, mean=jnp.zeros_like(on.mean),
                                 cov=jnp.broadcast_to(jnp.eye(m), on.cov.shape), t=t)  # fmt: skip
     on = jax.tree.map(lambda a, b_: jnp.where(start, a, b_), fresh, on.relaxed(t))
     mu, q = on.mean_var(x)
+    if on.shared:
+        b = jnp.maximum(b - on.prior_var(x), 0.0)
     s = b + r + q
     ll = jnp.sum(-0.5 * (jnp.log(2 * jnp.pi * s) + (e - mu) ** 2 / s))
     return on.measured(x, e, r), ll
 
 
-def test_fit_scores_the_term_adapt_builds(corrected, flights):  # noqa: F811
+@pytest.mark.parametrize("band", ["added", "shared"])
+def test_fit_scores_the_term_adapt_builds(corrected, flights, band):  # noqa: F811
     """The fitted (τ, c) is at least as likely as every grid point, inside its ranges, and
-    its likelihood is that of the term ``adapt(tau=, variance=)`` builds, run over the same
-    held-out rows with its own ``relaxed``/``measured``/``mean_var``: the fit scores the term
-    a user then flies (the factor on the variance is the whitened features' √c)."""
-    f = fg.fit_forgetting(corrected, flights, inducing=M, max_steps=20)
-    assert f.labels == N_LABELS and f.inducing == M
+    its likelihood is that of the term ``adapt(tau=, variance=, band=)`` builds, run over the
+    same held-out rows with its own ``relaxed``/``measured``/``mean_var``/``prior_var``: the
+    fit scores the term a user then flies (the factor on the variance is the whitened
+    features' √c)."""
+    f = fg.fit_forgetting(corrected, flights, inducing=M, max_steps=20, band=band)
+    assert f.labels == N_LABELS and f.inducing == M and f.band == band
     assert tk.TAU_RANGE[0] <= f.tau <= tk.TAU_RANGE[1]
     assert fg.FACTOR_RANGE[0] <= f.factor <= fg.FACTOR_RANGE[1]
     own = np.array([float(d.hyper.variance) for d in corrected.model.delta])
@@ -44,12 +49,12 @@ def test_fit_scores_the_term_adapt_builds(corrected, flights):  # noqa: F811
     assert f.log_likelihood >= max(ll for *_, ll in f.grid) - 1e-12
     assert len({(a, b) for a, b, _ in f.grid}) == len(fg._TAU_GRID) * len(fg._FACTOR_GRID)
 
-    data, _, (X, band) = tk._held_out_sequences(corrected, flights, 1500, inputs=True)
+    data, _, (X, held) = tk._held_out_sequences(corrected, flights, 1500, inputs=True)
     t, start, _, resid, noise = (np.asarray(a) for a in data[:5])
-    on = fc.adapt(corrected, inducing=M, tau=f.tau, variance=f.variance).model.online
+    on = fc.adapt(corrected, inducing=M, tau=f.tau, variance=f.variance, band=band).model.online
     total = 0.0
     for i in range(len(t)):
-        on, ll = _step(on, t[i], X[i], resid[i], noise[i], band[i], start[i])
+        on, ll = _step(on, t[i], X[i], resid[i], noise[i], held[i], start[i])
         total += float(ll)
     # the scan and this loop add the same terms in another order: rounding of N_LABELS sums
     np.testing.assert_allclose(total / len(t), f.log_likelihood, rtol=1e-10)
@@ -84,7 +89,8 @@ def _constant_feature_args(resid, dt=0.1):
     start = np.zeros(n, bool)
     start[0] = True
     noise = np.full((n, 6), 0.01)
-    return tuple(jnp.asarray(a) for a in (np.arange(n) * dt, start, psi, e, noise, noise + 0.01))
+    rows = tuple(jnp.asarray(a) for a in (np.arange(n) * dt, start, psi, e, noise, noise, noise))
+    return (*rows, False)
 
 
 def test_search_follows_what_the_flights_show():
@@ -115,6 +121,8 @@ def test_fit_forgetting_and_adapt_refuse_bad_input(synthetic_surrogate, correcte
         fg.fit_forgetting(synthetic_surrogate, flights)
     with pytest.raises(ValueError, match="one non-empty part per part of labels"):
         fg.fit_forgetting(corrected, flights, read=flights[:1])
+    with pytest.raises(ValueError, match="band must be 'added' or 'shared'"):
+        fg.fit_forgetting(corrected, flights, band="both")
     for bad in ([1.0, 2.0], [1.0, 1.0, 1.0, 1.0, 1.0, -1.0], 0.0):
         with pytest.raises(ValueError, match="variance must be one or 6 positive"):
             fc.adapt(corrected, inducing=M, variance=bad)

@@ -164,10 +164,13 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     assert ad["stream_drift"]["labels"] > ad["drift"]["labels"]
     # the inducing-point term's forgetting time and prior fitted on the same rows, the best
     # of its grid at least, read by the stream's term
-    fo = ad["forgetting"]
-    assert fo["labels"] == ad["stream_drift"]["labels"] and fo["inducing"] <= 48
-    assert fo["log_likelihood"] >= max(ll for *_, ll in fo["grid"]) - 1e-9
-    assert all(r["stream_inducing_fitted_mse"] > 0 for r in ad["tests"])
+    assert set(ad["forgetting"]) == {"added", "shared"}
+    for band, fo in ad["forgetting"].items():
+        assert fo["labels"] == ad["stream_drift"]["labels"] and fo["inducing"] <= 48
+        assert fo["band"] == band
+        assert fo["log_likelihood"] >= max(ll for *_, ll in fo["grid"]) - 1e-9
+    for m in ("inducing_fitted", "inducing_fitted_shared"):
+        assert all(r[f"stream_{m}_mse"] > 0 for r in ad["tests"])
     sweep = {s["model"]: s["held_out_log_likelihood"] for s in ad["spread_sweep"]}
     uniform = [f"tracked_spread_{s:g}" for s in cfg["track"]["spread_sweep"]]
     assert set(sweep) == {*uniform, "tracked", "tracked_one_spread"}

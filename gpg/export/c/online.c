@@ -26,9 +26,11 @@ HOT static void online_features(const double xn[D_IN], double psi[6][N_IND]) {
   }
 }
 
-/* yn += eta's mean; pv (when not null) += max(eta's variance, 0), normalised */
+/* yn += eta's mean; pv (when not null) += max(eta's variance, 0), normalised; with
+ * ONLINE_SHARED, pv (the offline band, complete here) = max(pv - psi^T psi, 0) + that variance:
+ * eta's prior is a share of the offline band (gpg.flight.adapt's band="shared") */
 static void online_eta(const ONLINE_T *st, const double xn[D_IN], double yn[N_OUT], double *pv) {
-  double psi[6][N_IND], sp[N_IND], m, v;
+  double psi[6][N_IND], sp[N_IND], m, v, q0;
   int j, p, q;
   online_features(xn, psi);
   for (j = 0; j < 6; j++) {
@@ -40,7 +42,9 @@ static void online_eta(const ONLINE_T *st, const double xn[D_IN], double yn[N_OU
     for (q = 0; q < N_IND; q++) /* S psi by rows of the symmetric S */
       for (p = 0; p < N_IND; p++) sp[p] += (double)st->cov[j][q][p] * psi[j][q];
     v = 0.0;
-    for (p = 0; p < N_IND; p++) v += psi[j][p] * sp[p];
+    q0 = 0.0;
+    for (p = 0; p < N_IND; p++) { v += psi[j][p] * sp[p]; q0 += psi[j][p] * psi[j][p]; }
+    if (ONLINE_SHARED) pv[j] = pv[j] > q0 ? pv[j] - q0 : 0.0;
     pv[j] += v > 0.0 ? v : 0.0;
   }
 }
