@@ -355,7 +355,11 @@ class Corrected(Predictor):
             else None,
             "online": None
             if self.online is None
-            else {"inducing": int(self.online.Z.shape[0]), "tau": plain(self.online.tau)},
+            else {
+                "inducing": int(self.online.Z.shape[0]),
+                "tau": plain(self.online.tau),
+                "band": "shared" if self.online.shared else "added",
+            },
             "explicit": None
             if self.explicit is None
             else {"columns": list(self.explicit.columns), "beta": plain(self.explicit.beta)},
@@ -1271,11 +1275,7 @@ def adapt(
         raise ValueError(f"inducing must be >= 1, got {inducing}")
     if not tau > 0:
         raise ValueError(f"tau must be > 0 s, got {tau}")
-    if variance is not None:
-        variance = np.asarray(variance, float)
-        if variance.shape not in ((), (N_LOADS,)) or not np.all(variance > 0):
-            raise ValueError(f"variance must be one or {N_LOADS} positive numbers, got "
-                             f"{variance.tolist()}")  # fmt: skip
+    variance = None if variance is None else _checked_variance(variance)
     m = sur.model if isinstance(sur.model, Corrected) else None
     if m is None:
         ones = jnp.ones(sur.model.n_outputs)
@@ -1505,6 +1505,14 @@ def _online_step_fn(treedef):
         return advance(sur, online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
 
     return fn
+
+
+def _checked_variance(variance) -> np.ndarray:
+    """:func:`adapt`'s ``variance``: one or six positive numbers."""
+    v = np.asarray(variance, float)
+    if v.shape not in ((), (N_LOADS,)) or not np.all(v > 0):
+        raise ValueError(f"variance must be one or {N_LOADS} positive numbers, got {v.tolist()}")
+    return v
 
 
 def _inducing_inputs(m: Corrected, inducing: int, inputs, seed: int) -> np.ndarray:
