@@ -162,6 +162,7 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             r = hb - ca.mtimes(ca.DM(c.G[j]).T, k)
             e = e + ca.sumsqr(ca.mtimes(ca.DM(c.cov_chol[j]).T, r))
         extra[j] = e
+    shared = []  # (ψᵀΣψ, ψᵀψ) per load output where η's prior is a share of the band
     if c.online is not None:  # η at the exported state (gpg.export.layout.OnlineTerm)
         o = c.online
         m = o.Z.shape[0]
@@ -169,7 +170,11 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             diff = (ca.repmat(xn.T, m, 1) - ca.DM(o.Z)) / ca.repmat(ca.DM(o.lengthscale[j]).T, m, 1)
             psi = ca.mtimes(ca.DM(o.whiten[j]), o.variance[j] * ca.exp(-0.5 * ca.sum2(diff**2)))
             loads[j] = loads[j] + ca.dot(psi, ca.DM(o.mean[j]))
-            extra[j] = extra[j] + ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
+            post = ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
+            if o.shared:
+                shared.append((post, ca.dot(psi, psi)))
+            else:
+                extra[j] = extra[j] + post
     if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
         r, w = c.tracked, np.exp(c.tracked.log_weight)
         for j in range(6):
@@ -187,6 +192,9 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
         var = ca.vertcat(*extra, var[6:])
     elif var is not None:
         var = var + ca.vertcat(*extra, ca.DM.zeros(s.n_outputs - 6))
+        if shared:  # after every offline part (Corrected.predictive_variance)
+            band = [ca.fmax(var[j] - q0, 0) + post for j, (post, q0) in enumerate(shared)]
+            var = ca.vertcat(*band, var[6:])
     return mean, var
 
 

@@ -553,23 +553,16 @@ def _tracked(r: Any) -> TrackedTerm:
 
 
 def refuse_wind(s: Layout, fmt: str) -> None:
-    """Refuse, by name, a tracked model with a wind state, or an adapted one whose online term
-    shares the offline band, in an export that does not write it.
+    """Refuse, by name, a tracked model with a wind state in an export that does not write it.
 
     Args:
         s: the layout.
         fmt: the export's name, for the message.
 
     Raises:
-        ValueError: ``s`` tracks a wind state, or its online term's band is shared.
+        ValueError: ``s`` tracks a wind state.
     """
     c = s.correction
-    if c is not None and c.online is not None and c.online.shared:
-        raise ValueError(
-            f"model {s.model!r} is adapted with band='shared' (gpg.flight.adapt): its band "
-            f"takes the online term's prior out of the offline one, which {fmt} does not write "
-            "(the C export does); adapt it with band='added' for this export"
-        )
     if c is not None and c.tracked is not None and c.tracked.wind_mean is not None:
         raise ValueError(
             f"model {s.model!r} tracks a wind state (gpg.flight.gusts): its prediction "

@@ -545,6 +545,7 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
             r = g.sub(g.cat(hb + h[j]), g.op("MatMul", k, g.const(c.G[j], "G", f64)))
             e = g.add(e, sq_norm(g.op("MatMul", r, g.const(c.cov_chol[j], "C", f64))))
         extra.append(e)
+    q0s = []  # ψᵀψ per load output where η's prior is a share of the band
     if c.online is not None:  # η at the exported state (gpg.export.layout.OnlineTerm)
         o = c.online
         x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
@@ -558,8 +559,10 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
             q = g.mul(psi, g.op("MatMul", psi, g.const(o.cov[j], "S", f64)))
             q = g.op("ReduceSum", q, g.const([1], "ax", np.int64), keepdims=1)
             evs.append(g.op("Max", q, k64(0.0)))
+            if o.shared:
+                q0s.append(g.op("ReduceSum", g.sq(psi), g.const([1], "ax", np.int64), keepdims=1))
         loads = [eta if not loads else g.add(loads[j], eta) for j, eta in enumerate(etas)]
-        if var is not None:
+        if var is not None and not o.shared:
             extra = [ev if not extra else g.add(extra[j], ev) for j, ev in enumerate(evs)]
     if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
         loads, extra = _onnx_tracked(g, c, prior, ms, h, loads, k64, dl)
@@ -569,6 +572,10 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
         var = g.cat(extra + [g.col(var, i) for i in range(6, m_out)])
     elif var is not None and extra:
         var = g.add(var, pad(extra))
+    if var is not None and q0s:  # after every offline part (Corrected.predictive_variance)
+        band = [g.add(g.op("Max", g.sub(g.col(var, j), q0), k64(0.0)), evs[j])
+                for j, q0 in enumerate(q0s)]  # fmt: skip
+        var = g.cat(band + [g.col(var, i) for i in range(6, m_out)])
     return mean, var
 
 
