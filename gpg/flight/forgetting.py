@@ -10,14 +10,17 @@ wind) is predicted by a model that did not see it (the physical basis and discre
 on the other parts with the corrected model's hyperparameters, or the corrected model itself
 where it did not take the part), the term runs over the part from its prior, restarting at
 each flight, and ``(τ, c)`` maximise the sum of the one-step-ahead log densities of the
-labels, each under the band the adapted model gives it: the held-out model's band, ``η``'s
-``ψᵀΣψ`` and the label's own noise. A grid first, then Nelder-Mead (optimistix) on the
-logarithms: the scan's reverse-mode derivative would store an ``m × m`` covariance per row,
-a gigabyte for a stream of ten thousand samples.
+labels, each under the band the adapted model gives it (:func:`gpg.flight.adapt`'s ``band``):
+the held-out model's band ``b`` (its discrepancy's and coefficients' variance with ``ν²``,
+not the prior's latent variance), plus ``η``'s ``ψᵀΣψ`` (``"added"``) or with ``η``'s prior
+``ψᵀψ`` taken out of it first (``"shared"``), and the label's own noise. A grid first, then
+Nelder-Mead (optimistix) on the logarithms: the scan's reverse-mode derivative would store
+six ``m × m`` covariances per row, a gigabyte for a stream of ten thousand samples at
+``m = 48``.
 
 Steady training winds favour a long memory (the residual they show stays); a gust asks for a
 short one. What the flights cannot show, the fit cannot choose: the guide ("Adaptation at the
-unseen winds") measures what this means at the hard scenario's test winds.
+unseen winds") measures what each band's fit gives at the hard scenario's test winds.
 """
 
 from __future__ import annotations
