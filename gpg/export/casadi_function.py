@@ -162,19 +162,7 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             r = hb - ca.mtimes(ca.DM(c.G[j]).T, k)
             e = e + ca.sumsqr(ca.mtimes(ca.DM(c.cov_chol[j]).T, r))
         extra[j] = e
-    shared = []  # (ψᵀΣψ, ψᵀψ) per load output where η's prior is a share of the band
-    if c.online is not None:  # η at the exported state (gpg.export.layout.OnlineTerm)
-        o = c.online
-        m = o.Z.shape[0]
-        for j in range(6):
-            diff = (ca.repmat(xn.T, m, 1) - ca.DM(o.Z)) / ca.repmat(ca.DM(o.lengthscale[j]).T, m, 1)
-            psi = ca.mtimes(ca.DM(o.whiten[j]), o.variance[j] * ca.exp(-0.5 * ca.sum2(diff**2)))
-            loads[j] = loads[j] + ca.dot(psi, ca.DM(o.mean[j]))
-            post = ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
-            if o.shared:
-                shared.append((post, ca.dot(psi, psi)))
-            else:
-                extra[j] = extra[j] + post
+    shared = [] if c.online is None else _ca_online(ca, c.online, xn, loads, extra)
     if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
         r, w = c.tracked, np.exp(c.tracked.log_weight)
         for j in range(6):
@@ -196,6 +184,23 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             band = [ca.fmax(var[j] - q0, 0) + post for j, (post, q0) in enumerate(shared)]
             var = ca.vertcat(*band, var[6:])
     return mean, var
+
+
+def _ca_online(ca, o, xn, loads: list, extra: list) -> list:
+    """``η`` at the exported state (:class:`gpg.export.layout.OnlineTerm`): its mean added to
+    ``loads``, its ``ψᵀΣψ`` to ``extra`` (in place); with a shared band, ``(ψᵀΣψ, ψᵀψ)`` per
+    load output returned instead, to be applied after every offline part."""
+    m, shared = o.Z.shape[0], []
+    for j in range(6):
+        diff = (ca.repmat(xn.T, m, 1) - ca.DM(o.Z)) / ca.repmat(ca.DM(o.lengthscale[j]).T, m, 1)
+        psi = ca.mtimes(ca.DM(o.whiten[j]), o.variance[j] * ca.exp(-0.5 * ca.sum2(diff**2)))
+        loads[j] = loads[j] + ca.dot(psi, ca.DM(o.mean[j]))
+        post = ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
+        if o.shared:
+            shared.append((post, ca.dot(psi, psi)))
+        else:
+            extra[j] = extra[j] + post
+    return shared
 
 
 def _ca_simple(ca, s: Layout, x):
