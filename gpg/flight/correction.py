@@ -143,10 +143,24 @@ class Online(eqx.Module):
         Returns:
             The (6,) mean and the (6,) variance of ``η(x)`` (normalised units).
         """
-        psi = self.features(x)
+        return self.moments(self.features(x))[:2]
+
+    @highest
+    def moments(
+        self, psi: Float[Array, "6 m"]
+    ) -> tuple[Float[Array, " 6"], Float[Array, " 6"], Float[Array, " 6"]]:
+        """``η``'s mean ``ψᵀμ``, variance ``ψᵀΣψ`` and prior variance ``ψᵀψ`` per output from
+        the features :meth:`features` gave (one feature evaluation for all three).
+
+        Args:
+            psi: (6, m) ``ψ(x)`` of each load output.
+
+        Returns:
+            The (6,) mean, variance and prior variance (normalised units).
+        """
         mean = jnp.einsum("om,om->o", psi, self.mean)
         var = jnp.einsum("om,omn,on->o", psi, self.cov, psi)
-        return mean, var
+        return mean, var, jnp.einsum("om,om->o", psi, psi)
 
     @highest
     def prior_var(self, x: Float[Array, " D"]) -> Float[Array, " 6"]:
@@ -159,8 +173,7 @@ class Online(eqx.Module):
         Returns:
             (6,) the prior variance (normalised units).
         """
-        psi = self.features(x)
-        return jnp.einsum("om,om->o", psi, psi)
+        return self.moments(self.features(x))[2]
 
     @highest
     def relaxed(self, t: Float[ArrayLike, ""]) -> Online:
@@ -488,11 +501,11 @@ class Corrected(Predictor):
             mean = mean.at[len(parts) - 1].add(m[0])
             parts.append(jnp.reshape(v, (1,)))
         if self.online is not None:
-            m, v = self.online.mean_var(x)
+            m, v, prior = self.online.moments(self.online.features(x))
             mean = mean + self._pad(m)
             parts.append(v)
             if self.online.shared:  # the share of the offline band η's prior takes
-                parts.append(self.online.prior_var(x))
+                parts.append(prior)
         if self.explicit is not None and self.tracker is None:
             parts.append(self._explicit_variance(x, prior_mean))
         if self.tracker is not None:

@@ -133,8 +133,9 @@ def fit_forgetting(
     data, _, (X, held) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
     t, start, _, resid, noise, *_ = data
     psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
-    args = (t, start, psi, resid, noise + template.noise, held, noise, template.shared)
-    theta, scored = _search(args, max_steps)
+    prior = jnp.sum(psi * psi, -1)  # ψᵀψ at c = 1: the share of the band η's prior takes
+    args = (t, start, psi, prior, resid, noise + template.noise, held, noise, template.shared)
+    theta, best, scored = _search(args, max_steps)
     tau, c = (float(v) for v in _unpack(theta))
     return Forgetting(
         tau=tau,
@@ -142,24 +143,23 @@ def fit_forgetting(
         variance=tuple(float(c * v) for v in np.asarray(template.variance)),
         inducing=int(template.Z.shape[0]),
         band=band,
-        log_likelihood=-float(_neg_loglik(theta, args)),
+        log_likelihood=-best,
         grid=tuple((a, b, ll) for (a, b), ll in scored),
         labels=int(t.shape[0]),
     )
 
 
-def _search(args, max_steps: int) -> tuple[Float[Array, " 2"], list]:
-    """The best ``θ`` from the grid, improved by Nelder-Mead, and the grid's scores
-    ``[((τ, c), log likelihood), ...]``."""
+def _search(args, max_steps: int) -> tuple[Float[Array, " 2"], float, list]:
+    """The best ``θ`` from the grid, improved by Nelder-Mead, its minus log likelihood and the
+    grid's scores ``[((τ, c), log likelihood), ...]``."""
     scored = [((tau, c), -float(_neg_loglik(_pack(tau, c), args)))
               for tau, c in itertools.product(_TAU_GRID, _FACTOR_GRID)]  # fmt: skip
-    (tau0, c0), _ = max(scored, key=lambda s: s[1])
+    (tau0, c0), ll0 = max(scored, key=lambda s: s[1])
     theta = _pack(tau0, c0)
     sol = optx.minimise(_neg_loglik, optx.NelderMead(rtol=1e-4, atol=1e-4), theta, args=args,
                         max_steps=max_steps, throw=False)  # fmt: skip
-    if float(_neg_loglik(sol.value, args)) < float(_neg_loglik(theta, args)):
-        theta = sol.value
-    return theta, scored
+    found = float(_neg_loglik(sol.value, args))
+    return (sol.value, found, scored) if found < -ll0 else (theta, -ll0, scored)
 
 
 def _pack(tau: float, factor: float) -> Float[Array, " 2"]:
@@ -175,13 +175,13 @@ def _unpack(theta: Float[Array, " 2"]) -> tuple[Float[Array, ""], Float[Array, "
 
 @partial(jax.jit, static_argnums=2)
 @highest
-def _loglik(theta, rows, shared: bool):
+def _rows_neg_loglik(theta, rows, shared: bool):
     """Minus the mean one-step-ahead log density per row of the term with ``θ`` over the
     held-out rows: ``t``, whether a flight starts, the whitened features ``ψ`` at ``c = 1``
-    (N, 6, m), the residual against the held-out model, the update's noise (the label's and
-    the term's ``ν²``), the held-out model's band ``b`` and the label's noise; ``shared``:
-    ``η``'s prior a share of ``b`` (:func:`gpg.flight.adapt`'s ``band``)."""
-    t, start, psi, resid, gain_noise, held, noise = rows
+    (N, 6, m) and their ``ψᵀψ`` (N, 6), the residual against the held-out model, the update's
+    noise (the label's and the term's ``ν²``), the held-out model's band ``b`` and the label's
+    noise; ``shared``: ``η``'s prior a share of ``b`` (:func:`gpg.flight.adapt`'s ``band``)."""
+    t, start, psi, prior, resid, gain_noise, held, noise = rows
     tau, c = _unpack(theta)
     m = psi.shape[-1]
     eye = jnp.eye(m, dtype=psi.dtype)
@@ -189,7 +189,7 @@ def _loglik(theta, rows, shared: bool):
 
     def body(carry, row):
         mean, cov, t_prev = carry
-        ti, st, p0, e, r, b, n = row
+        ti, st, p0, q0, e, r, b, n = row
         a = jnp.exp(-jnp.maximum(ti - t_prev, 0.0) / tau)
         mean, cov = a * mean, a**2 * cov + (1.0 - a**2) * eye
         mean, cov = jnp.where(st, mean0, mean), jnp.where(st, cov0, cov)
@@ -197,17 +197,17 @@ def _loglik(theta, rows, shared: bool):
         Sp = jnp.einsum("jmn,jn->jm", cov, p)
         q = jnp.einsum("jm,jm->j", p, Sp)
         err = e - jnp.einsum("jm,jm->j", p, mean)
-        s = (jnp.maximum(b - c * jnp.sum(p0 * p0, 1), 0.0) if shared else b) + q + n
+        s = (jnp.maximum(b - c * q0, 0.0) if shared else b) + q + n
         ll = jnp.sum(-0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s))
         k = Sp / (q + r)[:, None]
         mean = mean + k * err[:, None]
         cov = cov - k[:, :, None] * Sp[:, None, :]
         return (mean, 0.5 * (cov + jnp.swapaxes(cov, 1, 2)), ti), ll
 
-    _, ll = jax.lax.scan(body, (mean0, cov0, t[0]), (t, start, psi, resid, gain_noise, held, noise))
+    _, ll = jax.lax.scan(body, (mean0, cov0, t[0]), rows)
     return -jnp.mean(ll)
 
 
 def _neg_loglik(theta, args):
-    """:func:`_loglik` with ``args = (*rows, shared)``: the form optimistix calls."""
-    return _loglik(theta, args[:-1], bool(args[-1]))
+    """:func:`_rows_neg_loglik` with ``args = (*rows, shared)``: the form optimistix calls."""
+    return _rows_neg_loglik(theta, args[:-1], bool(args[-1]))

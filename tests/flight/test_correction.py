@@ -422,9 +422,9 @@ def test_forgetting_relaxes_to_the_prior(corrected, flights):
     np.testing.assert_allclose(same.cov, on.cov, rtol=0, atol=0)
 
 
-def _c_predict(lib, st, rpm, euler, v):
-    """``model_online_predict`` of a compiled export at each state: (N, 6) loads, (N, 12)
-    variances (the loads' first) and whether each is in the domain."""
+def _c_predict(predict, st, rpm, euler, v):
+    """An export's ``<name>_online_predict`` (``predict``, from ctypes) at each state: (N, 6)
+    loads, (N, 12) variances (the loads' first) and whether each is in the domain."""
     import ctypes
 
     D = ctypes.POINTER(ctypes.c_double)
@@ -433,9 +433,21 @@ def _c_predict(lib, st, rpm, euler, v):
         f, t, lv, vv = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
         args = [np.ascontiguousarray(x).ctypes.data_as(D) for x in (rpm[i], euler[i], v[i], f,
                                                                       t, lv, vv)]  # fmt: skip
-        ok.append(lib.model_online_predict(ctypes.byref(st), *args))
+        ok.append(predict(ctypes.byref(st), *args))
         loads[i], var[i] = np.concatenate([f, t]), vv
     return loads, var, np.asarray(ok, bool)
+
+
+def assert_c_predicts(predict, st, ref, rpm, euler, v, var_rtol: float) -> None:
+    """:func:`_c_predict` against the library's ``ref`` (a batch of predictions at the same
+    states): ``in_domain`` equal, force and torque to 1e-9 of their scale, the loads'
+    variance to ``var_rtol``."""
+    loads, var, ok = _c_predict(predict, st, rpm, euler, v)
+    for i in range(len(rpm)):
+        assert ok[i] == bool(ref.in_domain[i])
+        want = np.concatenate([ref.force[i], ref.torque[i]])
+        assert np.abs(loads[i] - want).max() <= 1e-9 * max(1, np.abs(want).max())
+        np.testing.assert_allclose(var[i, :6], ref.variance[i, :6], rtol=var_rtol)
 
 
 def test_shared_band_takes_the_online_prior_out_of_the_offline_band(corrected, flights, tmp_path):
@@ -491,7 +503,7 @@ def test_shared_band_takes_the_online_prior_out_of_the_offline_band(corrected, f
     lib.model_online_init(ctypes.byref(st))  # the exported state: the updated one
     rpm, euler, v = _export_states(flights, 12)
     ref = jax.jit(jax.vmap(s_run.predict))(rpm, euler, v)
-    _, var, ok = _c_predict(lib, st, rpm, euler, v)
+    _, var, ok = _c_predict(lib.model_online_predict, st, rpm, euler, v)
     np.testing.assert_array_equal(ok, np.asarray(ref.in_domain))
     np.testing.assert_allclose(var[:, :6], ref.variance[:, :6], rtol=1e-7)
     # CasADi (double) and ONNX (the prior in float32, the correction in double): the band to
@@ -1023,19 +1035,7 @@ def test_online_update_in_c_equals_jax(corrected, flights, tmp_path):
     assert np.array_equal(np.ctypeslib.as_array(st.mean), before) and st.t == float(o.t)
     rpm, euler, v = _export_states(flights, 8)
     ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
-    for i in range(len(rpm)):
-        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
-        ok = lib.model_online_predict(
-            ctypes.byref(st),
-            *[
-                np.ascontiguousarray(x).ctypes.data_as(D)
-                for x in (rpm[i], euler[i], v[i], f, t, lv, var)
-            ],
-        )
-        assert ok == bool(ref.in_domain[i])
-        want = np.concatenate([ref.force[i], ref.torque[i]])
-        assert np.abs(np.concatenate([f, t]) - want).max() <= 1e-9 * max(1, np.abs(want).max())
-        np.testing.assert_allclose(var[:6], ref.variance[i, :6], rtol=1e-7)
+    assert_c_predicts(lib.model_online_predict, st, ref, rpm, euler, v, 1e-7)
     # the example loop on the first minute, each prediction made before its update
     csv = tmp_path / "labels.csv"
     np.savetxt(csv, rows[:600], delimiter=",", header="t,rpm,euler,v_air,force,torque,vars")

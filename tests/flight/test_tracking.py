@@ -13,7 +13,7 @@ from gpg.flight import correction as fc
 from gpg.flight import tracking as tk
 from gpg.flight.basis import PRIORS, TERMS
 from gpg.flight.labels import Labels
-from tests.flight.test_correction import N_LABELS, _states
+from tests.flight.test_correction import N_LABELS, _states, assert_c_predicts
 
 FIT = {"subset_size": N_LABELS // 2, "max_steps": 15}  # these tests check the filter's algebra
 
@@ -488,14 +488,7 @@ def test_tracked_update_in_c_equals_jax(corrected, flights, tmp_path):
     assert np.array_equal(np.ctypeslib.as_array(st.mean), before) and st.t == float(r.t)
     rpm, euler, v = _export_states(lab, 8)
     ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
-    for i in range(len(rpm)):
-        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
-        args = [np.ascontiguousarray(x) for x in (rpm[i], euler[i], v[i], f, t, lv, var)]
-        ok = lib.quad_online_predict(ctypes.byref(st), *[x.ctypes.data_as(D) for x in args])
-        assert ok == bool(ref.in_domain[i])
-        want = np.concatenate([ref.force[i], ref.torque[i]])
-        assert np.abs(np.concatenate([f, t]) - want).max() <= 1e-9 * max(1, np.abs(want).max())
-        np.testing.assert_allclose(var[:6], ref.variance[i, :6], rtol=1e-7)
+    assert_c_predicts(lib.quad_online_predict, st, ref, rpm, euler, v, 1e-7)
     # CasADi (double) and ONNX (float32 outside the correction) at the updated state
     f = to_casadi(final)
     for i in range(4):
@@ -587,15 +580,8 @@ def test_wind_state_update_in_c_equals_jax(corrected, flights, tmp_path):
     calm = jax.jit(jax.vmap(still.predict))(rpm, euler, v + np.asarray(r.wind_mean))
     extra = np.asarray(ref.variance - calm.variance)[:, :6]  # diag(J P_g Jᵀ)
     assert np.median(extra / np.asarray(calm.variance)[:, :6]) > 0.01  # a share worth testing
-    for i in range(len(rpm)):
-        f, t, lv, var = np.zeros(3), np.zeros(3), np.zeros(8), np.zeros(12)
-        args = [np.ascontiguousarray(x) for x in (rpm[i], euler[i], v[i], f, t, lv, var)]
-        ok = lib.quad_online_predict(ctypes.byref(st), *[x.ctypes.data_as(D) for x in args])
-        assert ok == bool(ref.in_domain[i])
-        want = np.concatenate([ref.force[i], ref.torque[i]])
-        assert np.abs(np.concatenate([f, t]) - want).max() <= 1e-9 * max(1, np.abs(want).max())
-        # 1e-11 seen: the band's other terms to rounding and the differences' ~1e-11 of J
-        np.testing.assert_allclose(var[:6], ref.variance[i, :6], rtol=1e-9)
+    # the band to 1e-9: 1e-11 seen, its other terms to rounding and the differences' ~1e-11 of J
+    assert_c_predicts(lib.quad_online_predict, st, ref, rpm, euler, v, 1e-9)
     # float: the state's means and covariances stored in float, the sums in double
     compiled(sur, tmp_path / "f", "float")
     libf = ctypes.CDLL(str(tmp_path / "f" / "quad.so"))
