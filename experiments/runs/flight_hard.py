@@ -454,11 +454,14 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     forgetting = {}
     if id_train_streams is not None and cfg["adapt"].get("fit_forgetting"):
         t2 = time.perf_counter()
-        for band in cfg["adapt"]["fit_forgetting"]:
-            forgetting[band] = fit_forgetting(models["identified"], by_wind_id,
-                                              inducing=int(cfg["adapt"]["inducing"]),
-                                              max_labels=n_fit, band=str(band),
-                                              read=_by_wind(train, id_train_streams))  # fmt: skip
+        per_output = set(cfg["adapt"].get("fit_forgetting_per_output") or ())
+        fits = [(str(b), False) for b in cfg["adapt"]["fit_forgetting"]]
+        fits += [(str(b), True) for b in cfg["adapt"]["fit_forgetting"] if b in per_output]
+        for band, own in fits:
+            forgetting[band + ("_per_output" if own else "")] = fit_forgetting(
+                models["identified"], by_wind_id, inducing=int(cfg["adapt"]["inducing"]),
+                max_labels=n_fit, band=band, per_output=own,
+                read=_by_wind(train, id_train_streams))  # fmt: skip
         stages["fit_forgetting_s"] = time.perf_counter() - t2
     t1 = time.perf_counter()
     curves: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
@@ -575,9 +578,10 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     test labels' instants (``stream_<model>_...``; with ``stream_drift``, a drift fitted on
     the training flights' streams, the tracked coefficients and the wind state with it too,
     ``stream_tracked_fit_stream`` and ``stream_tracked_gusts_fit_stream``; with
-    ``forgetting`` (band to :class:`gpg.flight.Forgetting`), the inducing-point term with each
-    fitted forgetting time and prior, ``stream_inducing_fitted`` (the band added) and
-    ``stream_inducing_fitted_shared``; with
+    ``forgetting`` (band, or band with ``_per_output``, to :class:`gpg.flight.Forgetting`),
+    the inducing-point term with each fitted forgetting time and prior,
+    ``stream_inducing_fitted`` (the band added), ``stream_inducing_fitted_shared`` and
+    ``stream_inducing_fitted_shared_per_output``; with
     ``hindsight``, the tracked coefficients and the inducing-point term fitted on the whole
     stream without forgetting and scored at the labels, ``stream_hindsight_<term>_mse``: at a
     steady wind the least error each term reaches): the force MSE
@@ -755,10 +759,10 @@ def _stream_scores(
         models[f"inducing_tau_{float(tau):g}"] = fc.adapt(
             offline, inducing=int(adapt_cfg["inducing"]), tau=float(tau), t0=start
         )
-    for band, fo in (forgetting or {}).items():
-        key = "inducing_fitted" + ("" if band == "added" else f"_{band}")
+    for name, fo in (forgetting or {}).items():
+        key = "inducing_fitted" + ("" if name == "added" else f"_{name}")
         models[key] = fc.adapt(offline, inducing=fo.inducing, tau=fo.tau, variance=fo.variance,
-                               t0=start, band=band)  # fmt: skip
+                               t0=start, band=fo.band)  # fmt: skip
     if stream_drift is not None:
         models["tracked_fit_stream"] = track(offline, stream_drift, t0=start)
         if gust_cfg is not None:
@@ -953,17 +957,18 @@ def _report(res) -> str:
         taus = [f"inducing_tau_{float(v):g}" for v in res["config"]["adapt"].get("stream_taus")
                 or ()]  # fmt: skip
         for m in ("none", "inducing", *taus, "inducing_fitted", "inducing_fitted_shared",
-                  "tracked", "tracked_gusts", "tracked_fit_stream",
-                  "tracked_gusts_fit_stream"):  # fmt: skip
+                  "inducing_fitted_shared_per_output", "tracked", "tracked_gusts",
+                  "tracked_fit_stream", "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
                           (f"stream_{m}_coverage95", f"{m} cov95", ".3f")]  # fmt: skip
         scols.append(("noise_floor", "noise", ".3g"))
         lines.append(table(ad["tests"], scols))
-        for band, fo in (ad.get("forgetting") or {}).items():
+        for name, fo in (ad.get("forgetting") or {}).items():
+            tau, c = (" ".join(f"{v:.3g}" for v in np.atleast_1d(fo[k])) for k in ("tau", "factor"))
             lines.append(
-                f"  inducing_fitted ({band} band): tau {fo['tau']:.3g} s and "
-                f"{fo['factor']:.3g} times each discrepancy's variance, fitted on the training "
+                f"  inducing_fitted ({name.replace('_', ' ')} band): tau {tau} s and "
+                f"{c} times each discrepancy's variance, fitted on the training "
                 f"flights' streams ({fo['labels']} rows, {fo['log_likelihood']:.4g} nats a row)"
             )
     if "stream_hindsight_tracked_mse" in ad["tests"][0]:

@@ -262,7 +262,10 @@ typedef struct {{
   double t;                 /* s, the time of the last update */
 }} {name}_online;
 """
-    return state, f"forgetting time constant {o.tau:.6g} s"
+    taus = sorted(set(o.tau.ravel().tolist()))
+    if len(taus) == 1:
+        return state, f"forgetting time constant {taus[0]:.6g} s"
+    return state, "forgetting time constants " + ", ".join(f"{v:.6g}" for v in taus) + " s"
 
 
 def _header(name: str, s: Layout, record: dict[str, Any], dtype: str) -> str:
@@ -708,8 +711,8 @@ def _correction_constants(s: Layout, dtype: str = "double") -> list[str]:
     ]
     if c.online is not None:
         o = c.online
-        out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_TAU {o.tau!r}",
-                f"#define ONLINE_SHARED {int(o.shared)}"]  # fmt: skip
+        out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_SHARED {int(o.shared)}"]
+        dbl("ONLINE_TAU", o.tau)  # (6, N_IND): per weight
         dbl("ONLINE_Z", o.Z)
         dbl("ONLINE_WHITEN_T", np.swapaxes(o.whiten, 1, 2))  # columns contiguous
         dbl("ONLINE_VAR", o.variance)

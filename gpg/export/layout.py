@@ -160,7 +160,8 @@ class OnlineTerm:
         variance: (6,) σ of each output's kernel.
         lengthscale: (6, D).
         noise: (6,) the term's value noise ``ν²``.
-        tau: s, the forgetting time constant.
+        tau: (6, m) s, each whitened weight's forgetting time constant (per output, or per
+            weight for a term of several time scales).
         mean: (6, m) ``μ`` when exported.
         cov: (6, m, m) ``Σ`` when exported.
         t: s, the state's time when exported.
@@ -173,7 +174,7 @@ class OnlineTerm:
     variance: np.ndarray
     lengthscale: np.ndarray
     noise: np.ndarray
-    tau: float
+    tau: np.ndarray
     mean: np.ndarray
     cov: np.ndarray
     t: float
@@ -579,7 +580,9 @@ def _online(o: Any, d_in: int) -> OnlineTerm:
         variance=_f64(o.variance),
         lengthscale=np.broadcast_to(_f64(o.lengthscale), (6, d_in)).copy(),
         noise=_f64(o.noise),
-        tau=float(np.asarray(o.tau)),
+        tau=np.broadcast_to(
+            _f64(o.tau).reshape(np.shape(o.tau) + (1,) * (2 - np.ndim(o.tau))), np.shape(o.mean)
+        ).copy(),
         mean=_f64(o.mean),
         cov=_f64(o.cov),
         t=float(np.asarray(o.t)),
@@ -714,7 +717,7 @@ def _arrays(s: Layout):
             o = c.online
             for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
                 yield f"online_{key}", getattr(o, key)
-            yield "online_tau_t", np.array([o.tau, o.t])
+            yield "online_tau_t", np.r_[o.tau.ravel(), o.t]
         if c.tracked is not None:
             r = c.tracked
             for key in ("stationary", "bias_tau", "noise", "bias", "mean", "cov", "log_weight",

@@ -95,7 +95,10 @@ class Online(eqx.Module):
         mean: (6, m) posterior mean of the whitened weights.
         cov: (6, m, m) their posterior covariance.
         t: () time of the last update (s).
-        tau: () s, the forgetting time constant.
+        tau: (), (6,) or (6, m) s, the forgetting time constant: one for every weight, one
+            per output (the outputs' weights are independent, so each may forget at its own
+            rate) or one per weight (an OU process per weight: a term of several time
+            scales).
         shared: whether ``η``'s prior is a share of the offline model's band rather than an
             addition to it (:func:`adapt`'s ``band``): the loads' band is then
             ``max(b − ψᵀψ, 0) + ψᵀΣψ`` (``b`` the offline band), which starts as ``b``.
@@ -109,7 +112,7 @@ class Online(eqx.Module):
     mean: Float[Array, "6 m"]
     cov: Float[Array, "6 m m"]
     t: Float[Array, ""]
-    tau: Float[Array, ""]
+    tau: Float[Array, ""] | Float[Array, " 6"] | Float[Array, "6 m"]
     shared: bool = eqx.field(static=True, default=False)
 
     @highest
@@ -189,10 +192,23 @@ class Online(eqx.Module):
             The online term with ``μ ← aμ``, ``Σ ← a²Σ + (1 − a²)I`` and its time advanced.
         """
         dt = jnp.maximum(jnp.asarray(t, self.t.dtype) - self.t, 0.0)
-        a = jnp.exp(-dt / self.tau)
+        a = self.rates(dt)
         eye = jnp.eye(self.Z.shape[0], dtype=self.cov.dtype)
-        cov = a**2 * self.cov + (1.0 - a**2) * eye
+        cov = a[:, :, None] * self.cov * a[:, None, :] + (1.0 - a**2)[:, :, None] * eye
         return eqx.tree_at(lambda o: (o.mean, o.cov, o.t), self, (a * self.mean, cov, self.t + dt))
+
+    def rates(self, dt: Float[ArrayLike, ""]) -> Float[Array, "6 m"]:
+        """Each weight's ``a = e^{−Δt/τ}`` over ``dt`` (s), :attr:`tau` broadcast to the weights.
+
+        Args:
+            dt: s, the time since the last update (not negative).
+
+        Returns:
+            (6, m) the factor on each output's whitened weights.
+        """
+        tau = jnp.asarray(self.tau)
+        tau = tau.reshape(tau.shape + (1,) * (2 - tau.ndim))  # (), (6,) or (6, m) to 2-D
+        return jnp.broadcast_to(jnp.exp(-jnp.asarray(dt) / tau), self.mean.shape)
 
     @highest
     def measured(
@@ -1245,7 +1261,7 @@ def adapt(
     sur: Surrogate,
     *,
     inducing: int = 48,
-    tau: float = 5.0,
+    tau: float | Sequence[float] = 5.0,
     variance: float | Sequence[float] | None = None,
     lengthscale: float | None = None,
     inputs: ArrayLike | None = None,
@@ -1259,7 +1275,8 @@ def adapt(
         sur: the model to adapt.
         inducing: ``m``, the inducing inputs (fixed cost ``O(m²)`` per label and output).
         tau: s, the forgetting time constant (what was learnt ``τ`` seconds ago weighs
-            ``1/e``).
+            ``1/e``), one for every load output or six (:attr:`gpg.flight.Forgetting.tau`
+            fitted per output).
         variance: ``η``'s signal variance (normalised units), one for every load output or
             six (:attr:`gpg.flight.Forgetting.variance`, fitted); default: each ``δ``'s own,
             else 0.1 (a tenth of the data's variance).
@@ -1277,8 +1294,8 @@ def adapt(
         A :class:`~gpg.Surrogate` whose :class:`Corrected` model carries the online term.
 
     Raises:
-        ValueError: ``inducing`` under 1, ``tau`` not positive, ``variance`` neither one nor
-            six positive numbers, ``band`` neither ``"added"`` nor ``"shared"``, ``inputs``
+        ValueError: ``inducing`` under 1, ``tau`` or ``variance`` neither one nor six
+            positive numbers, ``band`` neither ``"added"`` nor ``"shared"``, ``inputs``
             not (n, D), or a model that already tracks its coefficients
             (:func:`gpg.flight.track`).
     """
@@ -1286,8 +1303,7 @@ def adapt(
         raise ValueError(f"band must be 'added' or 'shared', got {band!r}")
     if inducing < 1:
         raise ValueError(f"inducing must be >= 1, got {inducing}")
-    if not tau > 0:
-        raise ValueError(f"tau must be > 0 s, got {tau}")
+    tau = _checked_variance(tau, "tau")
     variance = None if variance is None else _checked_variance(variance)
     m = sur.model if isinstance(sur.model, Corrected) else None
     if m is None:
@@ -1321,7 +1337,7 @@ def adapt(
         mean=jnp.zeros((N_LOADS, k)),
         cov=jnp.broadcast_to(jnp.eye(k), (N_LOADS, k, k)),
         t=jnp.asarray(float(t0)),
-        tau=jnp.asarray(float(tau)),
+        tau=jnp.asarray(tau, float),
         shared=band == "shared",
     )
     return dataclasses.replace(
@@ -1520,11 +1536,11 @@ def _online_step_fn(treedef):
     return fn
 
 
-def _checked_variance(variance) -> np.ndarray:
-    """:func:`adapt`'s ``variance``: one or six positive numbers."""
+def _checked_variance(variance, name: str = "variance") -> np.ndarray:
+    """:func:`adapt`'s ``variance`` (or ``tau``, ``name``): one or six positive numbers."""
     v = np.asarray(variance, float)
     if v.shape not in ((), (N_LOADS,)) or not np.all(v > 0):
-        raise ValueError(f"variance must be one or {N_LOADS} positive numbers, got {v.tolist()}")
+        raise ValueError(f"{name} must be one or {N_LOADS} positive numbers, got {v.tolist()}")
     return v
 
 

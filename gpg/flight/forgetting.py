@@ -62,20 +62,20 @@ class Forgetting:
     pass ``tau`` and ``variance`` to :func:`gpg.flight.adapt`, with ``inducing``.
 
     Attributes:
-        tau: s, the forgetting time ``τ``.
-        factor: ``c``, the factor on each discrepancy's signal variance.
+        tau: s, the forgetting time ``τ``; six, one per load output, when fitted per output.
+        factor: ``c``, the factor on each discrepancy's signal variance (six when per output).
         variance: (6,) ``η``'s signal variance per load output, ``c σ²_δ`` (normalised).
         inducing: the inducing inputs it was fitted with (``m``).
         band: the adapted band it was fitted for (:func:`gpg.flight.adapt`'s ``band``).
         log_likelihood: the labels' mean one-step-ahead log density (nats per label, the six
             load outputs summed) at the fit.
         grid: ``((τ, c, log likelihood), ...)``: the grid the search started from, each point's
-            score (how much the choice matters).
+            score with every output at that point (how much the choice matters).
         labels: the rows the likelihood summed over.
     """
 
-    tau: float
-    factor: float
+    tau: float | tuple[float, ...]
+    factor: float | tuple[float, ...]
     variance: tuple[float, ...]
     inducing: int
     band: str
@@ -95,6 +95,7 @@ def fit_forgetting(
     read: Sequence[Labels] | None = None,
     seed: int = 0,
     band: str = "added",
+    per_output: bool = False,
 ) -> Forgetting:
     """The forgetting time ``τ`` and prior factor ``c`` of :func:`gpg.flight.adapt`'s term
     that best predict new flights, label by label (module docstring).
@@ -115,6 +116,9 @@ def fit_forgetting(
         band: the adapted band the labels are scored by, as :func:`gpg.flight.adapt` takes
             it: ``"added"`` (the held-out band plus ``η``'s ``ψᵀΣψ``) or ``"shared"``
             (``max(b − ψᵀψ, 0) + ψᵀΣψ``, ``b`` the held-out band).
+        per_output: a ``(τ, c)`` for each load output. The outputs' weights are independent
+            and the likelihood a sum over them, so each output's pair is its own search
+            (the six together cost what one joint search does).
 
     Returns:
         The fitted :class:`Forgetting`.
@@ -134,13 +138,21 @@ def fit_forgetting(
     t, start, _, resid, noise, *_ = data
     psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
     prior = jnp.sum(psi * psi, -1)  # ψᵀψ at c = 1: the share of the band η's prior takes
-    args = (t, start, psi, prior, resid, noise + template.noise, held, noise, template.shared)
-    theta, best, scored = _search(args, max_steps)
-    tau, c = (float(v) for v in _unpack(theta))
+    rows = (t, start, psi, prior, resid, noise + template.noise, held, noise)
+    if per_output:
+        fits = [_search((*_output(rows, j), template.shared), max_steps) for j in range(N_LOADS)]
+        theta = jnp.stack([f[0] for f in fits])
+        best = sum(f[1] for f in fits)
+        # every output at one grid point: the joint grid's score, the outputs' sum
+        scored = [(pt, sum(f[2][i][1] for f in fits)) for i, (pt, _) in enumerate(fits[0][2])]
+    else:
+        theta, best, scored = _search((*rows, template.shared), max_steps)
+    tau, c = (np.asarray(v, float) for v in _unpack(theta.T))
+    per = np.broadcast_to(c, (N_LOADS,)) * np.asarray(template.variance)
     return Forgetting(
-        tau=tau,
-        factor=c,
-        variance=tuple(float(c * v) for v in np.asarray(template.variance)),
+        tau=tuple(tau.tolist()) if per_output else float(tau),
+        factor=tuple(c.tolist()) if per_output else float(c),
+        variance=tuple(float(v) for v in per),
         inducing=int(template.Z.shape[0]),
         band=band,
         log_likelihood=-best,
@@ -162,13 +174,20 @@ def _search(args, max_steps: int) -> tuple[Float[Array, " 2"], float, list]:
     return (sol.value, found, scored) if found < -ll0 else (theta, -ll0, scored)
 
 
+def _output(rows, j: int):
+    """:func:`_rows_neg_loglik`'s rows of load output ``j`` alone."""
+    t, start, *per = rows
+    return (t, start, *(r[:, j : j + 1] for r in per))
+
+
 def _pack(tau: float, factor: float) -> Float[Array, " 2"]:
     """``θ = (log τ, log c)``."""
     return jnp.log(jnp.asarray([tau, factor], float))
 
 
 def _unpack(theta: Float[Array, " 2"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
-    """:func:`_pack`'s ``θ`` to ``(τ, c)``, each kept in its range."""
+    """:func:`_pack`'s ``θ`` (or the rows of a stack of them, ``θᵀ``) to ``(τ, c)``, each
+    kept in its range."""
     (t_lo, t_hi), (c_lo, c_hi) = np.log(tk.TAU_RANGE), np.log(FACTOR_RANGE)
     return jnp.exp(jnp.clip(theta[0], t_lo, t_hi)), jnp.exp(jnp.clip(theta[1], c_lo, c_hi))
 
@@ -183,9 +202,9 @@ def _rows_neg_loglik(theta, rows, shared: bool):
     noise; ``shared``: ``η``'s prior a share of ``b`` (:func:`gpg.flight.adapt`'s ``band``)."""
     t, start, psi, prior, resid, gain_noise, held, noise = rows
     tau, c = _unpack(theta)
-    m = psi.shape[-1]
+    k, m = psi.shape[1:]  # the outputs scored (six, or one of them) and the inducing inputs
     eye = jnp.eye(m, dtype=psi.dtype)
-    mean0, cov0 = jnp.zeros((N_LOADS, m), psi.dtype), jnp.broadcast_to(eye, (N_LOADS, m, m))
+    mean0, cov0 = jnp.zeros((k, m), psi.dtype), jnp.broadcast_to(eye, (k, m, m))
 
     def body(carry, row):
         mean, cov, t_prev = carry

@@ -420,6 +420,21 @@ def test_forgetting_relaxes_to_the_prior(corrected, flights):
     # time never runs backwards: an older label does not un-forget
     same = on.relaxed(float(on.t) - 5.0)
     np.testing.assert_allclose(same.cov, on.cov, rtol=0, atol=0)
+    # one forgetting time per output: each output's weights relax at their own rate, in
+    # closed form a_j = e^{-Δt/τ_j}, Σ_j ← a_j² Σ_j + (1 − a_j²) I
+    taus = np.array([1.0, 2.0, 4.0, 8.0, 16.0, 2.0])
+    own = dataclasses.replace(on, tau=jnp.asarray(taus)).relaxed(float(on.t) + 3.0)
+    a = np.exp(-3.0 / taus)
+    np.testing.assert_allclose(own.mean, a[:, None] * np.asarray(on.mean), rtol=1e-12)
+    want = a[:, None, None] ** 2 * np.asarray(on.cov) + (1 - a[:, None, None] ** 2) * eye
+    np.testing.assert_allclose(own.cov, want, rtol=1e-12, atol=1e-15)
+    # one per weight (an OU process each: a term of several time scales): Σ ← AΣA + I − A²
+    per = np.linspace(1.0, 9.0, on.mean.size).reshape(on.mean.shape)
+    own = dataclasses.replace(on, tau=jnp.asarray(per)).relaxed(float(on.t) + 3.0)
+    a = np.exp(-3.0 / per)
+    np.testing.assert_allclose(own.mean, a * np.asarray(on.mean), rtol=1e-12)
+    want = a[:, :, None] * np.asarray(on.cov) * a[:, None, :] + (1 - a**2)[:, :, None] * eye
+    np.testing.assert_allclose(own.cov, want, rtol=1e-12, atol=1e-15)
 
 
 def _c_predict(predict, st, rpm, euler, v):
@@ -542,7 +557,7 @@ def test_adapt_checks(synthetic_surrogate, corrected, flights):
             flights.force_var[0],
             flights.torque_var[0],
         )
-    with pytest.raises(ValueError, match="tau must be > 0"):
+    with pytest.raises(ValueError, match="tau must be one or 6 positive"):
         fc.adapt(corrected, tau=0.0)
     with pytest.raises(ValueError, match="inputs must be"):
         fc.adapt(corrected, inputs=np.zeros((5, 3)))
@@ -964,7 +979,8 @@ def test_online_update_in_c_equals_jax(corrected, flights, tmp_path):
     from gpg.export import to_c
 
     m_ind = 48
-    adapted = fc.adapt(corrected, inducing=m_ind, tau=5.0)
+    # each output its own forgetting time (gpg.flight.fit_forgetting(per_output=True))
+    adapted = fc.adapt(corrected, inducing=m_ind, tau=(5.0, 3.0, 8.0, 5.0, 2.0, 20.0))
     n = 6000
     idx = np.arange(n) % len(flights)
     cols = [np.asarray(c, float)[idx] for c in flights.columns()]

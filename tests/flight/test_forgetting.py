@@ -33,17 +33,23 @@ def _step(on, t, x, e, r, b, start):
     return on.measured(x, e, r), ll
 
 
-@pytest.mark.parametrize("band", ["added", "shared"])
-def test_fit_scores_the_term_adapt_builds(corrected, flights, band):  # noqa: F811
+@pytest.mark.parametrize(("band", "per_output"), [("added", False), ("shared", False),
+                                                  ("shared", True)])  # fmt: skip
+def test_fit_scores_the_term_adapt_builds(corrected, flights, band, per_output):  # noqa: F811
     """The fitted (τ, c) is at least as likely as every grid point, inside its ranges, and
     its likelihood is that of the term ``adapt(tau=, variance=, band=)`` builds, run over the
     same held-out rows with its own ``relaxed``/``measured``/``mean_var``/``prior_var``: the
     fit scores the term a user then flies (the factor on the variance is the whitened
-    features' √c)."""
-    f = fg.fit_forgetting(corrected, flights, inducing=M, max_steps=20, band=band)
+    features' √c; per output, each output relaxes with its own τ)."""
+    f = fg.fit_forgetting(corrected, flights, inducing=M, max_steps=20, band=band,
+                          per_output=per_output)  # fmt: skip
     assert f.labels == N_LABELS and f.inducing == M and f.band == band
-    assert tk.TAU_RANGE[0] <= f.tau <= tk.TAU_RANGE[1]
-    assert fg.FACTOR_RANGE[0] <= f.factor <= fg.FACTOR_RANGE[1]
+    assert np.shape(f.tau) == np.shape(f.factor) == ((6,) if per_output else ())
+    # inside the ranges up to exp(log(.))'s rounding (a few ulp: the bounds are reached)
+    for v, (lo, hi) in ((f.tau, tk.TAU_RANGE), (f.factor, fg.FACTOR_RANGE)):
+        assert np.all((np.asarray(v) >= lo * (1 - 1e-12)) & (np.asarray(v) <= hi * (1 + 1e-12)))
+    if per_output:  # the outputs' residuals differ: so do their fitted pairs
+        assert len(set(f.tau)) > 1 and len(set(f.factor)) > 1
     own = np.array([float(d.hyper.variance) for d in corrected.model.delta])
     np.testing.assert_allclose(f.variance, f.factor * own, rtol=1e-12)
     assert f.log_likelihood >= max(ll for *_, ll in f.grid) - 1e-12
@@ -131,6 +137,10 @@ def test_fit_forgetting_and_adapt_refuse_bad_input(synthetic_surrogate, correcte
     for bad in ([1.0, 2.0], [1.0, 1.0, 1.0, 1.0, 1.0, -1.0], 0.0):
         with pytest.raises(ValueError, match="variance must be one or 6 positive"):
             fc.adapt(corrected, inducing=M, variance=bad)
+    for bad in ([1.0, 2.0], [1.0, 1.0, 1.0, 1.0, 1.0, np.nan], -1.0):
+        with pytest.raises(ValueError, match="tau must be one or 6 positive"):
+            fc.adapt(corrected, inducing=M, tau=bad)
     six = np.linspace(0.1, 0.6, 6)
-    on = fc.adapt(corrected, inducing=M, variance=six).model.online
+    on = fc.adapt(corrected, inducing=M, variance=six, tau=six).model.online
     np.testing.assert_allclose(np.asarray(on.variance), six, rtol=0)
+    np.testing.assert_allclose(np.asarray(on.tau), six, rtol=0)

@@ -55,18 +55,18 @@ static void online_eta(const ONLINE_T *st, const double xn[D_IN], double yn[N_OU
  * the step instead: the two agree to rounding). */
 HOT static void online_kalman(ONLINE_T *st, double t, const double xn[D_IN], const double y[6],
                               const double r[6]) {
-  double psi[6][N_IND], sp[N_IND], dt = t - st->t, a, a2, s, e, inv;
+  double psi[6][N_IND], sp[N_IND], a[N_IND], dt = t - st->t, s, e, inv;
   int j, p, q;
   if (dt < 0.0) dt = 0.0;
-  a = exp(-dt / ONLINE_TAU);
-  a2 = a * a;
   online_features(xn, psi);
   for (j = 0; j < 6; j++) {
+    /* each weight's own OU factor (one time constant per output, or per weight) */
+    for (p = 0; p < N_IND; p++) a[p] = exp(-dt / ONLINE_TAU[j * N_IND + p]);
     for (p = 0; p < N_IND; p++) {
       real *row = st->cov[j][p];
-      st->mean[j][p] = (real)(a * (double)st->mean[j][p]);
-      for (q = 0; q < N_IND; q++) row[q] = (real)(a2 * (double)row[q]);
-      row[p] = (real)((double)row[p] + (1.0 - a2));
+      st->mean[j][p] = (real)(a[p] * (double)st->mean[j][p]);
+      for (q = 0; q < N_IND; q++) row[q] = (real)((a[p] * a[q]) * (double)row[q]);
+      row[p] = (real)((double)row[p] + (1.0 - a[p] * a[p]));
     }
     for (p = 0; p < N_IND; p++) sp[p] = 0.0;
     for (q = 0; q < N_IND; q++) {
