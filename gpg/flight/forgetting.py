@@ -18,6 +18,10 @@ Nelder-Mead (optimistix) on the logarithms: the scan's reverse-mode derivative w
 six ``m × m`` covariances per row, a gigabyte for a stream of ten thousand samples at
 ``m = 48``.
 
+With ``per_output`` each load output gets its own pair: the outputs' weights are independent
+filters and the likelihood a sum over them, so each pair is searched on its output's columns
+alone (on the hard scenario the forces keep minutes, the torques seconds).
+
 Steady training winds favour a long memory (the residual they show stays); a gust asks for a
 short one. What the flights cannot show, the fit cannot choose: the guide ("Adaptation at the
 unseen winds") measures what each band's fit gives at the hard scenario's test winds.

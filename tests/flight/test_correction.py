@@ -979,8 +979,13 @@ def test_online_update_in_c_equals_jax(corrected, flights, tmp_path):
     from gpg.export import to_c
 
     m_ind = 48
-    # each output its own forgetting time (gpg.flight.fit_forgetting(per_output=True))
-    adapted = fc.adapt(corrected, inducing=m_ind, tau=(5.0, 3.0, 8.0, 5.0, 2.0, 20.0))
+    # a forgetting time per weight (per output, as fit_forgetting(per_output=True) gives, is
+    # the case of equal rows): the C must read each weight's own
+    adapted = fc.adapt(corrected, inducing=m_ind, tau=5.0)
+    per = np.geomspace(2.0, 20.0, 6 * m_ind).reshape(6, m_ind)
+    adapted = fc.with_online(
+        adapted, dataclasses.replace(adapted.model.online, tau=jnp.asarray(per))
+    )
     n = 6000
     idx = np.arange(n) % len(flights)
     cols = [np.asarray(c, float)[idx] for c in flights.columns()]
