@@ -182,14 +182,16 @@ class Online(eqx.Module):
     def relaxed(self, t: Float[ArrayLike, ""]) -> Online:
         """The weights' law at time ``t``: relaxed toward the prior since :attr:`t`.
 
-        The Ornstein-Uhlenbeck step of the module docstring, ``a = e^{−Δt/τ}``; a ``t`` before
-        the last update counts as ``Δt = 0`` (the state never runs backwards).
+        The Ornstein-Uhlenbeck step of the module docstring, ``a = e^{−Δt/τ}`` per weight
+        (:meth:`rates`); a ``t`` before the last update counts as ``Δt = 0`` (the state never
+        runs backwards).
 
         Args:
             t: the time (s) to relax to.
 
         Returns:
-            The online term with ``μ ← aμ``, ``Σ ← a²Σ + (1 − a²)I`` and its time advanced.
+            The online term with ``μ ← Aμ``, ``Σ ← AΣA + I − A²`` (``A = diag(a)``; with one
+            ``τ`` per output, ``a²Σ + (1 − a²)I``) and its time advanced.
         """
         dt = jnp.maximum(jnp.asarray(t, self.t.dtype) - self.t, 0.0)
         a = self.rates(dt)
