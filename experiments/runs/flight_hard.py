@@ -738,9 +738,9 @@ def _stream_scores(
     """The offline model and the online ones reading ``stream`` (every sample of the test
     flight whose labels are ``lab``; the inducing-point term also with each forgetting time of
     ``adapt_cfg["stream_taus"]``, and with each of ``forgetting``'s fitted times and priors,
-    ``inducing_fitted[_shared]``), each scored at ``lab``'s instants: the same labels and
-    truth as the rows read from ``lab`` alone. The error curves go into ``curves`` under the
-    test's name, timed from ``lab``'s first label (``where``)."""
+    ``inducing_fitted``, ``inducing_fitted_<name>``), each scored at ``lab``'s instants: the
+    same labels and truth as the rows read from ``lab`` alone. The error curves go into
+    ``curves`` under the test's name, timed from ``lab``'s first label (``where``)."""
     from experiments.runs.flight_logs import prequential_scores
 
     s = stream.labels

@@ -262,10 +262,13 @@ typedef struct {{
   double t;                 /* s, the time of the last update */
 }} {name}_online;
 """
-    taus = sorted(set(o.tau.ravel().tolist()))
-    if len(taus) == 1:
-        return state, f"forgetting time constant {taus[0]:.6g} s"
-    return state, "forgetting time constants " + ", ".join(f"{v:.6g}" for v in taus) + " s"
+    if np.all(o.tau == o.tau[0, 0]):
+        return state, f"forgetting time constant {o.tau[0, 0]:.6g} s"
+    if np.all(o.tau == o.tau[:, :1]):  # one per load output, in the outputs' order
+        return state, "forgetting time constants " + ", ".join(
+            f"{v:.6g}" for v in o.tau[:, 0]
+        ) + " s"
+    return state, f"forgetting time constants {o.tau.min():.6g}-{o.tau.max():.6g} s, one per weight"
 
 
 def _header(name: str, s: Layout, record: dict[str, Any], dtype: str) -> str:

@@ -580,9 +580,7 @@ def _online(o: Any, d_in: int) -> OnlineTerm:
         variance=_f64(o.variance),
         lengthscale=np.broadcast_to(_f64(o.lengthscale), (6, d_in)).copy(),
         noise=_f64(o.noise),
-        tau=np.broadcast_to(
-            _f64(o.tau).reshape(np.shape(o.tau) + (1,) * (2 - np.ndim(o.tau))), np.shape(o.mean)
-        ).copy(),
+        tau=_f64(o.tau_per_weight()),
         mean=_f64(o.mean),
         cov=_f64(o.cov),
         t=float(np.asarray(o.t)),

@@ -199,8 +199,18 @@ class Online(eqx.Module):
         cov = a[:, :, None] * self.cov * a[:, None, :] + (1.0 - a**2)[:, :, None] * eye
         return eqx.tree_at(lambda o: (o.mean, o.cov, o.t), self, (a * self.mean, cov, self.t + dt))
 
+    def tau_per_weight(self) -> Float[Array, "6 m"]:
+        """:attr:`tau` broadcast to the whitened weights, one time constant (s) each.
+
+        Returns:
+            (6, m) each output's weights' forgetting time constants.
+        """
+        tau = jnp.asarray(self.tau)
+        tau = tau.reshape(tau.shape + (1,) * (2 - tau.ndim))  # (), (6,) or (6, m) to 2-D
+        return jnp.broadcast_to(tau, self.mean.shape)
+
     def rates(self, dt: Float[ArrayLike, ""]) -> Float[Array, "6 m"]:
-        """Each weight's ``a = e^{−Δt/τ}`` over ``dt`` (s), :attr:`tau` broadcast to the weights.
+        """Each weight's ``a = e^{−Δt/τ}`` over ``dt`` (s) (:meth:`tau_per_weight`).
 
         Args:
             dt: s, the time since the last update (not negative).
@@ -208,9 +218,7 @@ class Online(eqx.Module):
         Returns:
             (6, m) the factor on each output's whitened weights.
         """
-        tau = jnp.asarray(self.tau)
-        tau = tau.reshape(tau.shape + (1,) * (2 - tau.ndim))  # (), (6,) or (6, m) to 2-D
-        return jnp.broadcast_to(jnp.exp(-jnp.asarray(dt) / tau), self.mean.shape)
+        return jnp.exp(-jnp.asarray(dt) / self.tau_per_weight())
 
     @highest
     def measured(
@@ -1305,8 +1313,8 @@ def adapt(
         raise ValueError(f"band must be 'added' or 'shared', got {band!r}")
     if inducing < 1:
         raise ValueError(f"inducing must be >= 1, got {inducing}")
-    tau = _checked_variance(tau, "tau")
-    variance = None if variance is None else _checked_variance(variance)
+    tau = _one_or_six(tau, "tau")
+    variance = None if variance is None else _one_or_six(variance, "variance")
     m = sur.model if isinstance(sur.model, Corrected) else None
     if m is None:
         ones = jnp.ones(sur.model.n_outputs)
@@ -1538,9 +1546,9 @@ def _online_step_fn(treedef):
     return fn
 
 
-def _checked_variance(variance, name: str = "variance") -> np.ndarray:
-    """:func:`adapt`'s ``variance`` (or ``tau``, ``name``): one or six positive numbers."""
-    v = np.asarray(variance, float)
+def _one_or_six(values, name: str) -> np.ndarray:
+    """:func:`adapt`'s ``tau`` or ``variance`` (``name``): one or six positive numbers."""
+    v = np.asarray(values, float)
     if v.shape not in ((), (N_LOADS,)) or not np.all(v > 0):
         raise ValueError(f"{name} must be one or {N_LOADS} positive numbers, got {v.tolist()}")
     return v
