@@ -472,7 +472,7 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
     m = s.n_outputs
     sums = ""
     if s.global_mean is not None:
-        sums = _coef_sums(m, m * len(s.grad_dims))
+        sums = _coef_sums(m, m * len(s.grad_dims), 4 if dtype == "float" else 8)
     corr = ""
     if s.correction is not None:
         corr = "\n".join(_correction_constants(s, dtype)) + "\n" + fragment("correction.c")
@@ -806,10 +806,13 @@ def _split_coef(
     return value, grad
 
 
-def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
+def _coef_sums(
+    m: int, n_grad: int, real_bytes: int = 4, most: int = 11, block_bytes: int = 24576
+) -> str:
     """``acc[j] = sum_p k[p] C[p, j]`` for the global mean (``C`` = ``COEF0`` for its ``m``
-    value columns in double, then ``COEFG`` for its ``n_grad`` gradient ones in ``real``), each
-    row padded to whole vectors of four (:func:`_padded`), in versions picked at run time.
+    value columns in double, then ``COEFG`` for its ``n_grad`` gradient ones in ``real`` of
+    ``real_bytes``), each row padded to whole vectors of four (:func:`_padded`), in versions
+    picked at run time.
 
     * AVX-512: :func:`_coef_sums_avx512`, one pass.
     * AVX2 with FMA (GCC on x86-64 Linux, as the variance's clones): one pass over the points
@@ -817,7 +820,11 @@ def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
       about equal size, the two blocks mixed: 16 registers hold eleven sums beside a load
       and the kernel value); a point's coefficients are a few vector loads (float ones
       widened to double as they are loaded) and fused multiply-adds against its broadcast
-      kernel value.
+      kernel value. The passes go block by block of points whose rows fill at most
+      ``block_bytes`` (within an L1 data cache: the default leaves room), the sums kept in
+      memory between blocks: every pass after the first reads its block from L1, not again
+      from L2. Each sum still adds its points in their order (``-DGPG_MEAN_BLOCK=n`` sets
+      another block: the same bits).
     * Anywhere else (and with -DGPG_NO_VECTOR): :func:`_coef_sums_scalar`'s named sums, which
       compilers vectorise for the vectors the target has (32-byte vector types split in two
       on SSE2 were slower).
@@ -826,6 +833,7 @@ def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
     hundreds of times the mean at data=default), and float sums and products, tried, put the
     float export's mean beyond its 1e-5 from ``predict``."""
     w0, wg = _padded(m, 4), _padded(n_grad, 4)
+    block = max(8, block_bytes // (8 * w0 + real_bytes * wg))
     v0 = [("COEF0", w0, q) for q in range(w0 // 4)]
     vg = [("COEFG", wg, q) for q in range(wg // 4)]
     both = v0 + vg
@@ -836,10 +844,14 @@ def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
         _coef_sums_scalar(m, n_grad, w0, wg).rstrip("\n"),
         "#if defined(GPG_CLONES) && !defined(GPG_NO_VECTOR)",
         "/* the same sums for AVX2 with FMA: sums of four doubles held in registers, one pass",
-        " * over the points per group of them (gpg/export/c_source.py: _coef_sums) */",
+        " * over a block of points per group of them, block by block (gpg/export/c_source.py:",
+        " * _coef_sums) */",
         "#pragma GCC push_options",
         '#pragma GCC target("arch=x86-64-v3")',
         "typedef double cs_vd __attribute__((vector_size(32)));",
+        f"#ifndef GPG_MEAN_BLOCK /* points a block: their rows fill <= {block_bytes} bytes */",
+        f"#define GPG_MEAN_BLOCK {block}",
+        "#endif",
         "/* four of real widened to double: one vcvtps2pd from memory in float",
         " * (__builtin_convertvector went through the stack in halves, slower) */",
         "#define CS_LOAD(V, P) \\",
@@ -847,10 +859,14 @@ def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
         "FUSED static void coef_sums_avx2(const double *k, double *acc) {",
         f"  double s[{w0 + wg}];",
         "  cs_vd t;",
-        "  int p, j;",
+        "  int p, j, p0;",
+        f"  for (j = 0; j < {w0 + wg}; j++) s[j] = 0.0;",
+        "  for (p0 = 0; p0 < N_MEAN; p0 += GPG_MEAN_BLOCK) {",
+        "    const int p1 = p0 + GPG_MEAN_BLOCK < N_MEAN ? p0 + GPG_MEAN_BLOCK : N_MEAN;",
     ]
     L += [line for vs in passes for line in _coef_pass(vs, w0, wg)]
     L += [
+        "  }",
         f"  for (j = 0; j < {m}; j++) acc[j] = s[j];",
         f"  for (j = 0; j < {n_grad}; j++) acc[{m} + j] = s[{w0} + j];",
         "}",
@@ -876,11 +892,14 @@ def _coef_sums(m: int, n_grad: int, most: int = 11) -> str:
 
 
 def _coef_pass(vs: list[tuple[str, int, int]], w0: int, wg: int) -> list[str]:
-    """One pass of :func:`_coef_sums`'s AVX2 version over the points: the sums ``vs`` (each
-    a block, its width and its vector's index) held in registers, then stored."""
+    """One pass of :func:`_coef_sums`'s AVX2 version over a block of points ``p0 .. p1``: the
+    sums ``vs`` (each an array, its width and its vector's index) loaded from ``s`` into
+    registers, then stored back."""
     names = [f"a{i}" for i in range(len(vs))]
-    L = ["  {", "    cs_vd " + ", ".join(f"{n} = {{0}}" for n in names) + ";",
-         "    for (p = 0; p < N_MEAN; p++) {", "      const double kp = k[p];"]  # fmt: skip
+    offsets = [(0 if array == "COEF0" else w0) + 4 * q for array, _, q in vs]
+    L = ["  {", "    cs_vd " + ", ".join(names) + ";"]
+    L += [f"    memcpy(&{n}, s + {o}, sizeof t);" for n, o in zip(names, offsets, strict=True)]
+    L += ["    for (p = p0; p < p1; p++) {", "      const double kp = k[p];"]
     if any(a == "COEF0" for a, _, _ in vs):
         L.append(f"      const double *c0 = COEF0 + (long)p * {w0};")
     if any(a == "COEFG" for a, _, _ in vs):
@@ -890,8 +909,7 @@ def _coef_pass(vs: list[tuple[str, int, int]], w0: int, wg: int) -> list[str]:
                 else f"CS_LOAD(t, cg + {4 * q});")  # fmt: skip
         L.append(f"      {load} {n} += kp * t;")
     L.append("    }")
-    for n, (array, _, q) in zip(names, vs, strict=True):
-        L.append(f"    memcpy(s + {(0 if array == 'COEF0' else w0) + 4 * q}, &{n}, sizeof t);")
+    L += [f"    memcpy(s + {o}, &{n}, sizeof t);" for n, o in zip(names, offsets, strict=True)]
     L.append("  }")
     return L
 

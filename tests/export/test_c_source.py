@@ -107,9 +107,12 @@ def test_mean_only_export_and_its_constants(tmp_path):
     code a CPU without AVX2, or another compiler, runs) it gives the same values to rounding:
     the AVX2 clone differs by FMA contraction only, a rounding of each term of the mean's
     cancelling sum, so the bound is the one held against predict (1e-10 of the scale). Built
-    with ``-DGPG_NO_AVX512`` (what a CPU with AVX2 alone runs) it gives the same bits. The
-    rows of the mean's blocks are padded to whole vectors of four."""
+    with ``-DGPG_NO_AVX512`` (what a CPU with AVX2 alone runs) it gives the same bits, and so
+    it does with its sums' blocks of points made small (``-DGPG_MEAN_BLOCK``: many blocks and
+    a shorter last one). The rows of the mean's blocks are padded to whole vectors of four."""
     sur = fitted("gpg")
+    n, c = np.asarray(sur.model.mean.coef).shape
+    block = next(b for b in (3, 5, 7) if n % b)  # several blocks, the last one shorter
     state = (np.full(4, 3600.0), np.array([0.1, -0.05, 0.02]), np.array([3.0, 0.5, -0.2]))
     for dtype, size in (("double", 8), ("float", 4)):
         (tmp_path / dtype).mkdir()
@@ -128,7 +131,11 @@ def test_mean_only_export_and_its_constants(tmp_path):
                            variance=False)  # fmt: skip
         ok3, *vals3 = avx2(*state, with_var=False)[:4]
         assert ok3 and all(np.array_equal(a, b) for a, b in zip(vals3, vals, strict=True))
-        n, c = np.asarray(sur.model.mean.coef).shape
+        (tmp_path / dtype / "blocks").mkdir()
+        small = ("-DGPG_NO_AVX512", f"-DGPG_MEAN_BLOCK={block}")
+        _, blocks = compiled(sur, tmp_path / dtype / "blocks", dtype, small, variance=False)
+        ok4, *vals4 = blocks(*state, with_var=False)[:4]
+        assert ok4 and all(np.array_equal(a, b) for a, b in zip(vals4, vals, strict=True))
         m = len(sur.output_names)  # positions and the mean's value block in double
         w0, wg = -(-m // 4) * 4, -(-(c - m) // 4) * 4
         assert out["constant_bytes"] == n * 8 * 8 + n * w0 * 8 + (n * wg + 8 + 1) * size

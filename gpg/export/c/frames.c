@@ -27,21 +27,22 @@ static void wind_axes(const double d[3], double R[3][3]) {
   rot_wb(heading, climb, 0.0, R);
 }
 
-/* R_WH of the airflow frame, blended toward the body heading (gpg.quadrotor.frames) */
-static void airflow_frame(const double v[3], double yaw, double R[3][3]) {
+/* R_WH of the airflow frame, blended toward the body heading (gpg.quadrotor.frames); cy, sy
+ * the heading's cosine and sine */
+static void airflow_frame(const double v[3], double cy, double sy, double R[3][3]) {
   double h = HOVER_SPEED, d[3], x[3], y[3], z[3], c, dxy2, n, yx;
   int i;
   if (h <= 0.0) { wind_axes(v, R); return; }
   c = 1.0 - (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) / (h * h);
   c = h * (c > 0.0 ? c * c : 0.0);
-  d[0] = v[0] + c * cos(yaw); d[1] = v[1] + c * sin(yaw); d[2] = v[2];
+  d[0] = v[0] + c * cy; d[1] = v[1] + c * sy; d[2] = v[2];
   dxy2 = d[0] * d[0] + d[1] * d[1];
   if (dxy2 >= h * h) { wind_axes(d, R); return; }
   n = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] > 0.0 ? norm3(d) : 1.0;
   for (i = 0; i < 3; i++) x[i] = d[i] / n;
   c = 1.0 - dxy2 / (h * h);
   c = h * (c > 0.0 ? c * c : 0.0);
-  y[0] = -d[1] - c * sin(yaw); y[1] = d[0] + c * cos(yaw); y[2] = 0.0;
+  y[0] = -d[1] - c * sy; y[1] = d[0] + c * cy; y[2] = 0.0;
   yx = y[0] * x[0] + y[1] * x[1] + y[2] * x[2];
   for (i = 0; i < 3; i++) y[i] -= yx * x[i];
   n = y[0] * y[0] + y[1] * y[1] + y[2] * y[2] > 0.0 ? norm3(y) : 1.0;
@@ -59,12 +60,12 @@ static void euler_from_r(double R[3][3], double e[3]) {
   else { e[0] = safe_atan2(R[1][0], R[0][0], 0.0); e[2] = safe_atan2(R[2][1], R[2][2], 0.0); }
 }
 
-/* the attitude in the airflow frame, and R_WH */
-static void to_airflow(const double euler[3], const double v[3], double eh[3], double rwh[3][3]) {
-  double rwb[3][3], rhb[3][3];
+/* the attitude R_WB (its yaw's cosine cy and sine sy) in the airflow frame of v, and R_WH */
+static void airflow_at(const double rwb[3][3], double cy, double sy, const double v[3],
+                       double eh[3], double rwh[3][3]) {
+  double rhb[3][3];
   int i, j, k;
-  airflow_frame(v, euler[0], rwh);
-  rot_wb(euler[0], euler[1], euler[2], rwb);
+  airflow_frame(v, cy, sy, rwh);
   for (i = 0; i < 3; i++)
     for (j = 0; j < 3; j++) {
       rhb[i][j] = 0.0;
@@ -73,16 +74,28 @@ static void to_airflow(const double euler[3], const double v[3], double eh[3], d
   euler_from_r(rhb, eh);
 }
 
-/* frames.airflow_frame_rate by central differences (rad per m/s) */
+/* the attitude in the airflow frame, and R_WH */
+static void to_airflow(const double euler[3], const double v[3], double eh[3], double rwh[3][3]) {
+  double rwb[3][3];
+  rot_wb(euler[0], euler[1], euler[2], rwb);
+  airflow_at(rwb, cos(euler[0]), sin(euler[0]), v, eh, rwh);
+}
+
+/* frames.airflow_frame_rate by central differences (rad per m/s); the attitude's rotation and
+ * its yaw's cosine and sine once, not at each of the six air velocities */
 static double frame_rate(const double euler[3], const double v[3]) {
   double se = 0.0, sr = 0.0, step = 1e-6, vp[3], vm[3], ep[3], em[3], rp[3][3], rm[3][3], t;
+  double rwb[3][3], cy, sy;
   int j, a, b;
   if (HOVER_SPEED <= 0.0 && v[0] * v[0] + v[1] * v[1] <= TINY_SPEED * TINY_SPEED) return INFINITY;
+  rot_wb(euler[0], euler[1], euler[2], rwb);
+  cy = cos(euler[0]);
+  sy = sin(euler[0]);
   for (j = 0; j < 3; j++) {
     for (a = 0; a < 3; a++) { vp[a] = v[a]; vm[a] = v[a]; }
     vp[j] += step; vm[j] -= step;
-    to_airflow(euler, vp, ep, rp);
-    to_airflow(euler, vm, em, rm);
+    airflow_at(rwb, cy, sy, vp, ep, rp);
+    airflow_at(rwb, cy, sy, vm, em, rm);
     for (a = 0; a < 3; a++) {
       t = ep[a] - em[a];
       t -= 6.283185307179586 * floor((t + 3.141592653589793) / 6.283185307179586);
