@@ -150,7 +150,7 @@ static inline double vexp(double x) {
   r = (y - n * 0.693147180369123816490) - n * 1.90821492927058770002e-10;
   {
     /* its even and odd terms as two chains in r^2, half as long as one (the loop's cost is
-     * the chain's latency: docs/measurements.md, the C mean on any box) */
+     * the chain's latency: docs/measurements.md, the C mean where only AVX2 runs) */
     double r2 = r * r, pe, po;
     pe = 2.08767569878680989792e-09;
     pe = pe * r2 + 2.75573192239858906526e-07;
