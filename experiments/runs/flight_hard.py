@@ -455,12 +455,16 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     if id_train_streams is not None and cfg["adapt"].get("fit_forgetting"):
         t2 = time.perf_counter()
         per_output = set(cfg["adapt"].get("fit_forgetting_per_output") or ())
-        fits = [(str(b), False) for b in cfg["adapt"]["fit_forgetting"]]
-        fits += [(str(b), True) for b in cfg["adapt"]["fit_forgetting"] if b in per_output]
-        for band, own in fits:
-            forgetting[band + ("_per_output" if own else "")] = fit_forgetting(
+        ahead = int(cfg["adapt"].get("fit_forgetting_ahead") or 1)
+        fits = [(str(b), False, 1) for b in cfg["adapt"]["fit_forgetting"]]
+        fits += [(str(b), True, 1) for b in cfg["adapt"]["fit_forgetting"] if b in per_output]
+        if ahead > 1:  # scored past the labels' correlated noise
+            fits += [(b, True, ahead) for b, own, _ in fits if own]
+        for band, own, lead in fits:
+            name = band + ("_per_output" if own else "") + (f"_ahead{lead}" if lead > 1 else "")
+            forgetting[name] = fit_forgetting(
                 models["identified"], by_wind_id, inducing=int(cfg["adapt"]["inducing"]),
-                max_labels=n_fit, band=band, per_output=own,
+                max_labels=n_fit, band=band, per_output=own, ahead=lead,
                 read=_by_wind(train, id_train_streams))  # fmt: skip
         stages["fit_forgetting_s"] = time.perf_counter() - t2
     t1 = time.perf_counter()
@@ -580,8 +584,9 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     ``stream_tracked_fit_stream`` and ``stream_tracked_gusts_fit_stream``; with
     ``forgetting`` (band, or band with ``_per_output``, to :class:`gpg.flight.Forgetting`),
     the inducing-point term with each fitted forgetting time and prior,
-    ``stream_inducing_fitted`` (the band added), ``stream_inducing_fitted_shared`` and
-    ``stream_inducing_fitted_shared_per_output``; with
+    ``stream_inducing_fitted`` (the band added), ``stream_inducing_fitted_shared``,
+    ``stream_inducing_fitted_shared_per_output`` and, fitted on predictions ``N`` samples
+    ahead, ``..._ahead<N>``; with
     ``hindsight``, the tracked coefficients and the inducing-point term fitted on the whole
     stream without forgetting and scored at the labels, ``stream_hindsight_<term>_mse``: at a
     steady wind the least error each term reaches): the force MSE
@@ -957,7 +962,9 @@ def _report(res) -> str:
         taus = [f"inducing_tau_{float(v):g}" for v in res["config"]["adapt"].get("stream_taus")
                 or ()]  # fmt: skip
         for m in ("none", "inducing", *taus, "inducing_fitted", "inducing_fitted_shared",
-                  "inducing_fitted_shared_per_output", "tracked", "tracked_gusts",
+                  "inducing_fitted_shared_per_output",
+                  *(f"inducing_fitted_{k}" for k in ad.get("forgetting") or {} if "_ahead" in k),
+                  "tracked", "tracked_gusts",
                   "tracked_fit_stream", "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),

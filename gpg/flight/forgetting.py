@@ -22,6 +22,11 @@ With ``per_output`` each load output gets its own pair: the outputs' weights are
 filters and the likelihood a sum over them, so each pair is searched on its output's columns
 alone (on the hard scenario the forces keep minutes, the torques seconds).
 
+With ``ahead = L`` each label is scored by the term's prediction from the labels ``L`` and
+more rows before it (the update with each label applied ``L − 1`` rows late): labels'
+errors that correlate over fewer samples than that (a velocity differentiated over a window)
+cannot be learnt from the samples just before, which the one-step likelihood rewards.
+
 Steady training winds favour a long memory (the residual they show stays); a gust asks for a
 short one. What the flights cannot show, the fit cannot choose: the guide ("Adaptation at the
 unseen winds") measures what each band's fit gives at the hard scenario's test winds.
@@ -71,11 +76,12 @@ class Forgetting:
         variance: (6,) ``η``'s signal variance per load output, ``c σ²_δ`` (normalised).
         inducing: the inducing inputs it was fitted with (``m``).
         band: the adapted band it was fitted for (:func:`gpg.flight.adapt`'s ``band``).
-        log_likelihood: the labels' mean one-step-ahead log density (nats per label, the six
-            load outputs summed) at the fit.
+        log_likelihood: the labels' mean log density, each predicted ``ahead`` rows ahead
+            (nats per label, the six load outputs summed) at the fit.
         grid: ``((τ, c, log likelihood), ...)``: the grid the search started from, each point's
             score with every output at that point (how much the choice matters).
         labels: the rows the likelihood summed over.
+        ahead: the rows ahead each label was predicted from (1: one step).
     """
 
     tau: float | tuple[float, ...]
@@ -86,6 +92,7 @@ class Forgetting:
     log_likelihood: float
     grid: tuple[tuple[float, float, float], ...]
     labels: int
+    ahead: int = 1
 
 
 @float64
@@ -100,6 +107,7 @@ def fit_forgetting(
     seed: int = 0,
     band: str = "added",
     per_output: bool = False,
+    ahead: int = 1,
 ) -> Forgetting:
     """The forgetting time ``τ`` and prior factor ``c`` of :func:`gpg.flight.adapt`'s term
     that best predict new flights, label by label (module docstring).
@@ -123,17 +131,21 @@ def fit_forgetting(
         per_output: a ``(τ, c)`` for each load output. The outputs' weights are independent
             and the likelihood a sum over them, so each output's pair is its own search
             (the six together cost what one joint search does).
+        ahead: ``L``: each label scored by the prediction from the labels ``L`` and more rows
+            before it (module docstring); 1: the one-step-ahead likelihood.
 
     Returns:
         The fitted :class:`Forgetting`.
 
     Raises:
         ValueError: fewer than two parts, ``sur`` not corrected by flights, ``inducing``
-            under 1, ``band`` neither ``"added"`` nor ``"shared"``, or ``read`` not one
-            non-empty part per part of ``labels``.
+            under 1, ``band`` neither ``"added"`` nor ``"shared"``, ``read`` not one
+            non-empty part per part of ``labels``, or ``ahead`` not a whole number >= 1.
     """
     if inducing < 1:
         raise ValueError(f"fit_forgetting: inducing must be >= 1, got {inducing}")
+    if isinstance(ahead, bool) or int(ahead) != ahead or ahead < 1:
+        raise ValueError(f"fit_forgetting: ahead must be a whole number >= 1, got {ahead!r}")
     parts = tk._parts(sur, labels, "fit_forgetting")
     stream = tk._checked_read(parts, read, "fit_forgetting")
     offline = dataclasses.replace(sur, model=fc.offline_model(sur.model))
@@ -144,13 +156,14 @@ def fit_forgetting(
     prior = jnp.sum(psi * psi, -1)  # ψᵀψ at c = 1: the share of the band η's prior takes
     rows = (t, start, psi, prior, resid, noise + template.noise, held, noise)
     if per_output:
-        fits = [_search((*_output(rows, j), template.shared), max_steps) for j in range(N_LOADS)]
+        fits = [_search((*_output(rows, j), template.shared, int(ahead)), max_steps)
+                for j in range(N_LOADS)]  # fmt: skip
         theta = jnp.stack([f[0] for f in fits])
         best = sum(f[1] for f in fits)
         # every output at one grid point: the joint grid's score, the outputs' sum
         scored = [(pt, sum(f[2][i][1] for f in fits)) for i, (pt, _) in enumerate(fits[0][2])]
     else:
-        theta, best, scored = _search((*rows, template.shared), max_steps)
+        theta, best, scored = _search((*rows, template.shared, int(ahead)), max_steps)
     tau, c = (np.asarray(v, float) for v in _unpack(theta.T))
     per = np.broadcast_to(c, (N_LOADS,)) * np.asarray(template.variance)
     return Forgetting(
@@ -162,6 +175,7 @@ def fit_forgetting(
         log_likelihood=-best,
         grid=tuple((a, b, ll) for (a, b), ll in scored),
         labels=int(t.shape[0]),
+        ahead=int(ahead),
     )
 
 
@@ -196,41 +210,70 @@ def _unpack(theta: Float[Array, " 2"]) -> tuple[Float[Array, ""], Float[Array, "
     return jnp.exp(jnp.clip(theta[0], t_lo, t_hi)), jnp.exp(jnp.clip(theta[1], c_lo, c_hi))
 
 
-@partial(jax.jit, static_argnums=2)
+def _predicted(mean, cov, p, q0, e, b, n, c, shared: bool):
+    """The term's prediction of one row: ``Σψ``, ``ψᵀΣψ``, the residual's error and its log
+    density per output under the band (:func:`_rows_neg_loglik`'s rows)."""
+    Sp = jnp.einsum("jmn,jn->jm", cov, p)
+    q = jnp.einsum("jm,jm->j", p, Sp)
+    err = e - jnp.einsum("jm,jm->j", p, mean)
+    s = (jnp.maximum(b - c * q0, 0.0) if shared else b) + q + n
+    return Sp, q, err, -0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s)
+
+
+def _updated(mean, cov, Sp, q, err, r):
+    """The Kalman update of each output's weights with one row's ``Σψ``, ``ψᵀΣψ``, error and
+    update noise ``r``."""
+    k = Sp / (q + r)[:, None]
+    cov = cov - k[:, :, None] * Sp[:, None, :]
+    return mean + k * err[:, None], 0.5 * (cov + jnp.swapaxes(cov, 1, 2))
+
+
+@partial(jax.jit, static_argnums=(2, 3))
 @highest
-def _rows_neg_loglik(theta, rows, shared: bool):
-    """Minus the mean one-step-ahead log density per row of the term with ``θ`` over the
-    held-out rows: ``t``, whether a flight starts, the whitened features ``ψ`` at ``c = 1``
-    (N, 6, m) and their ``ψᵀψ`` (N, 6), the residual against the held-out model, the update's
-    noise (the label's and the term's ``ν²``), the held-out model's band ``b`` and the label's
-    noise; ``shared``: ``η``'s prior a share of ``b`` (:func:`gpg.flight.adapt`'s ``band``)."""
+def _rows_neg_loglik(theta, rows, shared: bool, ahead: int = 1):
+    """Minus the mean log density per row of the term with ``θ`` over the held-out rows:
+    ``t``, whether a flight starts, the whitened features ``ψ`` at ``c = 1`` (N, 6, m) and
+    their ``ψᵀψ`` (N, 6), the residual against the held-out model, the update's noise (the
+    label's and the term's ``ν²``), the held-out model's band ``b`` and the label's noise;
+    ``shared``: ``η``'s prior a share of ``b`` (:func:`gpg.flight.adapt`'s ``band``). Each row
+    is predicted from the rows ``ahead`` and more before it: with ``ahead > 1`` the updates
+    wait in a ring of ``ahead`` rows, each applied (to the state relaxed to the row it waited
+    for) just before the row ``ahead`` later is predicted, the ring emptied where a flight
+    starts."""
     t, start, psi, prior, resid, gain_noise, held, noise = rows
     tau, c = _unpack(theta)
     k, m = psi.shape[1:]  # the outputs scored (six, or one of them) and the inducing inputs
     eye = jnp.eye(m, dtype=psi.dtype)
     mean0, cov0 = jnp.zeros((k, m), psi.dtype), jnp.broadcast_to(eye, (k, m, m))
+    lag = ahead if ahead > 1 else 0  # 1: each row's update right after its prediction
+    ring0 = (jnp.zeros((max(lag, 1), k, m), psi.dtype), jnp.zeros((max(lag, 1), k), psi.dtype),
+             jnp.ones((max(lag, 1), k), psi.dtype), jnp.zeros(max(lag, 1), bool))  # fmt: skip
 
     def body(carry, row):
-        mean, cov, t_prev = carry
+        mean, cov, t_prev, ring, i = carry
         ti, st, p0, q0, e, r, b, n = row
         a = jnp.exp(-jnp.maximum(ti - t_prev, 0.0) / tau)
         mean, cov = a * mean, a**2 * cov + (1.0 - a**2) * eye
         mean, cov = jnp.where(st, mean0, mean), jnp.where(st, cov0, cov)
         p = jnp.sqrt(c) * p0
-        Sp = jnp.einsum("jmn,jn->jm", cov, p)
-        q = jnp.einsum("jm,jm->j", p, Sp)
-        err = e - jnp.einsum("jm,jm->j", p, mean)
-        s = (jnp.maximum(b - c * q0, 0.0) if shared else b) + q + n
-        ll = jnp.sum(-0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s))
-        k = Sp / (q + r)[:, None]
-        mean = mean + k * err[:, None]
-        cov = cov - k[:, :, None] * Sp[:, None, :]
-        return (mean, 0.5 * (cov + jnp.swapaxes(cov, 1, 2)), ti), ll
+        if lag:  # the row `ahead` before: its update now, then this row predicted
+            rp, re, rr, live = ring
+            j = i % lag
+            live = jnp.where(st, jnp.zeros_like(live), live)
+            Sp, q, err, _ = _predicted(mean, cov, rp[j], q0, re[j], b, n, c, shared)
+            done = _updated(mean, cov, Sp, q, err, rr[j])
+            mean, cov = (jnp.where(live[j], x, y) for x, y in zip(done, (mean, cov), strict=True))
+            ring = (rp.at[j].set(p), re.at[j].set(e), rr.at[j].set(r), live.at[j].set(True))
+        Sp, q, err, ll = _predicted(mean, cov, p, q0, e, b, n, c, shared)
+        if not lag:
+            mean, cov = _updated(mean, cov, Sp, q, err, r)
+        return (mean, cov, ti, ring, i + 1), jnp.sum(ll)
 
-    _, ll = jax.lax.scan(body, (mean0, cov0, t[0]), rows)
+    _, ll = jax.lax.scan(body, (mean0, cov0, t[0], ring0, 0), rows)
     return -jnp.mean(ll)
 
 
 def _neg_loglik(theta, args):
-    """:func:`_rows_neg_loglik` with ``args = (*rows, shared)``: the form optimistix calls."""
-    return _rows_neg_loglik(theta, args[:-1], bool(args[-1]))
+    """:func:`_rows_neg_loglik` with ``args = (*rows, shared, ahead)``: the form optimistix
+    calls."""
+    return _rows_neg_loglik(theta, args[:-2], bool(args[-2]), int(args[-1]))

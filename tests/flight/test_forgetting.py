@@ -101,7 +101,7 @@ def _constant_feature_args(resid, dt=0.1):
     prior = np.sum(psi * psi, -1)
     rows = (np.arange(n) * dt, start, psi, prior, e, noise, noise, noise)
     rows = tuple(jnp.asarray(a) for a in rows)
-    return (*rows, False)
+    return (*rows, False, 1)
 
 
 def test_search_follows_what_the_flights_show():
@@ -123,6 +123,79 @@ def test_search_follows_what_the_flights_show():
             assert best <= float(fg._neg_loglik(theta + jnp.array([d, 0.0]), args)) + 1e-9
 
 
+def _delayed_reference(theta, rows, shared, ahead):
+    """NumPy: the term's weights per output relaxed row by row, each row predicted from the
+    updates of the rows ``ahead`` and more before it (an update waits until the relaxation to
+    the row ``ahead`` later, and is applied just before that row is predicted), restarting
+    at each flight."""
+    t, start, psi, prior, resid, gain_noise, held, noise = (np.asarray(a) for a in rows)
+    tau, c = np.exp(np.asarray(theta))
+    k, m = psi.shape[1:]
+    mean, cov, pending, total, t_prev = np.zeros((k, m)), np.stack([np.eye(m)] * k), [], 0.0, t[0]
+
+    def gain(mean, cov, p, e):
+        sp = np.einsum("jmn,jn->jm", cov, p)
+        return sp, np.einsum("jm,jm->j", p, sp), e - np.einsum("jm,jm->j", p, mean)
+
+    for i in range(len(t)):
+        a = np.exp(-max(t[i] - t_prev, 0.0) / tau)
+        mean, cov, t_prev = a * mean, a**2 * cov + (1 - a**2) * np.eye(m), t[i]
+        if start[i]:
+            mean, cov, pending = np.zeros((k, m)), np.stack([np.eye(m)] * k), []
+        if ahead > 1 and len(pending) == ahead:
+            p, e, r = pending.pop(0)
+            sp, q, err = gain(mean, cov, p, e)
+            g = sp / (q + r)[:, None]
+            mean, cov = mean + g * err[:, None], cov - g[:, :, None] * sp[:, None, :]
+        p = np.sqrt(c) * psi[i]
+        sp, q, err = gain(mean, cov, p, resid[i])
+        s = (np.maximum(held[i] - c * prior[i], 0.0) if shared else held[i]) + q + noise[i]
+        total += np.sum(-0.5 * (np.log(2 * np.pi * s) + err**2 / s))
+        if ahead == 1:
+            g = sp / (q + gain_noise[i])[:, None]
+            mean, cov = mean + g * err[:, None], cov - g[:, :, None] * sp[:, None, :]
+        else:
+            pending.append((p, resid[i], gain_noise[i]))
+    return -total / len(t)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("ahead", [1, 2, 5])
+def test_rows_predicted_ahead_match_a_numpy_filter(shared, ahead):
+    """``ahead``: each row predicted from the rows that many before it (two flights, the
+    second starting mid-way), against a NumPy loop of the same filter. Both sum the same
+    few hundred terms of O(1) in another order: 1e-12."""
+    rng = np.random.default_rng(5)
+    n, k, m = 40, 2, 3
+    psi = rng.normal(size=(n, k, m)) / np.sqrt(m)
+    rows = (np.cumsum(rng.uniform(0.05, 0.3, n)), np.arange(n) % 23 == 0, psi,
+            np.sum(psi * psi, -1), rng.normal(size=(n, k)), rng.uniform(0.05, 0.2, (n, k)),
+            rng.uniform(1.0, 2.0, (n, k)), rng.uniform(0.02, 0.1, (n, k)))  # fmt: skip
+    theta = np.log([1.5, 0.7])
+    got = float(fg._rows_neg_loglik(jnp.asarray(theta), tuple(map(jnp.asarray, rows)),
+                                    shared, ahead))  # fmt: skip
+    np.testing.assert_allclose(got, _delayed_reference(theta, rows, shared, ahead), rtol=1e-12)
+
+
+def test_predicting_ahead_does_not_follow_correlated_noise():
+    """A residual that stays, seen through noise that correlates over about ten rows (and is
+    larger than the labels' stated noise): scored one row ahead the fit follows the noise,
+    forgetting within a minute (a shorter memory predicts more of the next row's noise);
+    scored twenty rows ahead, beyond the correlation, it never forgets (τ at a day, its
+    range's end: 27.6 s and 86 400 s seen)."""
+    rng = np.random.default_rng(4)
+    n, phi = 1500, 0.9
+    w = rng.normal(scale=0.3 * np.sqrt(1 - phi**2), size=n)
+    ar = np.zeros(n)
+    for i in range(1, n):
+        ar[i] = phi * ar[i - 1] + w[i]
+    args = _constant_feature_args(1.0 + ar)
+    theta_1, *_ = fg._search(args, 40)
+    theta_20, *_ = fg._search((*args[:-1], 20), 40)
+    tau_1, tau_20 = float(fg._unpack(theta_1)[0]), float(fg._unpack(theta_20)[0])
+    assert tau_1 < 60.0 and tau_20 > 1000.0, (tau_1, tau_20)
+
+
 def test_fit_forgetting_and_adapt_refuse_bad_input(synthetic_surrogate, corrected, flights):  # noqa: F811
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fg.fit_forgetting(corrected, flights, inducing=0)
@@ -134,6 +207,9 @@ def test_fit_forgetting_and_adapt_refuse_bad_input(synthetic_surrogate, correcte
         fg.fit_forgetting(corrected, flights, read=flights[:1])
     with pytest.raises(ValueError, match="band must be 'added' or 'shared'"):
         fg.fit_forgetting(corrected, flights, band="both")
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="ahead must be a whole number >= 1"):
+            fg.fit_forgetting(corrected, flights, ahead=bad)
     for bad in ([1.0, 2.0], [1.0, 1.0, 1.0, 1.0, 1.0, -1.0], 0.0):
         with pytest.raises(ValueError, match="variance must be one or 6 positive"):
             fc.adapt(corrected, inducing=M, variance=bad)

@@ -164,16 +164,24 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     assert ad["stream_drift"]["labels"] > ad["drift"]["labels"]
     # the inducing-point term's forgetting time and prior fitted on the same rows, the best
     # of its grid at least, read by the stream's term
-    # (the shared band also with a pair per load output, at least as likely as the one pair)
-    assert set(ad["forgetting"]) == {"added", "shared", "shared_per_output"}
+    # (the shared band also with a pair per load output, at least as likely as the one pair,
+    # and per output with each label predicted from the samples ten before it)
+    assert set(ad["forgetting"]) == {"added", "shared", "shared_per_output",
+                                     "shared_per_output_ahead10"}  # fmt: skip
     for name, fo in ad["forgetting"].items():
         assert fo["labels"] == ad["stream_drift"]["labels"] and fo["inducing"] <= 48
-        assert fo["band"] == name.removesuffix("_per_output")
+        assert fo["band"] == name.split("_")[0]
+        assert fo["ahead"] == (10 if name.endswith("_ahead10") else 1)
         assert fo["log_likelihood"] >= max(ll for *_, ll in fo["grid"]) - 1e-9
     own = ad["forgetting"]["shared_per_output"]
     assert len(own["tau"]) == len(own["factor"]) == 6
     assert own["log_likelihood"] >= ad["forgetting"]["shared"]["log_likelihood"] - 1e-9
-    for m in ("inducing_fitted", "inducing_fitted_shared", "inducing_fitted_shared_per_output"):
+    for m in (
+        "inducing_fitted",
+        "inducing_fitted_shared",
+        "inducing_fitted_shared_per_output",
+        "inducing_fitted_shared_per_output_ahead10",
+    ):
         assert all(r[f"stream_{m}_mse"] > 0 for r in ad["tests"])
     sweep = {s["model"]: s["held_out_log_likelihood"] for s in ad["spread_sweep"]}
     uniform = [f"tracked_spread_{s:g}" for s in cfg["track"]["spread_sweep"]]
