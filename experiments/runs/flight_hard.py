@@ -728,6 +728,13 @@ def today_rows(
     return {"taus": taus, "tests": rows}
 
 
+def _fitted_key(name: str) -> str:
+    """The model key of the inducing-point term with the forgetting fit ``name`` (a band,
+    ``_per_output``, ``_ahead<N>``): ``inducing_fitted`` for the added band's, else
+    ``inducing_fitted_<name>``."""
+    return "inducing_fitted" + ("" if name == "added" else f"_{name}")
+
+
 def _stream_scores(
     offline: Surrogate,
     stream: _Test,
@@ -765,9 +772,9 @@ def _stream_scores(
             offline, inducing=int(adapt_cfg["inducing"]), tau=float(tau), t0=start
         )
     for name, fo in (forgetting or {}).items():
-        key = "inducing_fitted" + ("" if name == "added" else f"_{name}")
-        models[key] = fc.adapt(offline, inducing=fo.inducing, tau=fo.tau, variance=fo.variance,
-                               t0=start, band=fo.band)  # fmt: skip
+        models[_fitted_key(name)] = fc.adapt(offline, inducing=fo.inducing, tau=fo.tau,
+                                             variance=fo.variance, t0=start,
+                                             band=fo.band)  # fmt: skip
     if stream_drift is not None:
         models["tracked_fit_stream"] = track(offline, stream_drift, t0=start)
         if gust_cfg is not None:
@@ -961,10 +968,8 @@ def _report(res) -> str:
                  ("stream_scored", "scored", "d")]  # fmt: skip
         taus = [f"inducing_tau_{float(v):g}" for v in res["config"]["adapt"].get("stream_taus")
                 or ()]  # fmt: skip
-        for m in ("none", "inducing", *taus, "inducing_fitted", "inducing_fitted_shared",
-                  "inducing_fitted_shared_per_output",
-                  *(f"inducing_fitted_{k}" for k in ad.get("forgetting") or {} if "_ahead" in k),
-                  "tracked", "tracked_gusts",
+        fitted = [_fitted_key(name) for name in ad.get("forgetting") or {}]
+        for m in ("none", "inducing", *taus, *fitted, "tracked", "tracked_gusts",
                   "tracked_fit_stream", "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),

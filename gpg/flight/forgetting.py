@@ -210,14 +210,11 @@ def _unpack(theta: Float[Array, " 2"]) -> tuple[Float[Array, ""], Float[Array, "
     return jnp.exp(jnp.clip(theta[0], t_lo, t_hi)), jnp.exp(jnp.clip(theta[1], c_lo, c_hi))
 
 
-def _predicted(mean, cov, p, q0, e, b, n, c, shared: bool):
-    """The term's prediction of one row: ``Σψ``, ``ψᵀΣψ``, the residual's error and its log
-    density per output under the band (:func:`_rows_neg_loglik`'s rows)."""
+def _predicted(mean, cov, p, e):
+    """The term at features ``p`` of one row: ``Σψ``, ``ψᵀΣψ`` and the residual ``e``'s error
+    per output (what the row's score and its update both read)."""
     Sp = jnp.einsum("jmn,jn->jm", cov, p)
-    q = jnp.einsum("jm,jm->j", p, Sp)
-    err = e - jnp.einsum("jm,jm->j", p, mean)
-    s = (jnp.maximum(b - c * q0, 0.0) if shared else b) + q + n
-    return Sp, q, err, -0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s)
+    return Sp, jnp.einsum("jm,jm->j", p, Sp), e - jnp.einsum("jm,jm->j", p, mean)
 
 
 def _updated(mean, cov, Sp, q, err, r):
@@ -260,11 +257,12 @@ def _rows_neg_loglik(theta, rows, shared: bool, ahead: int = 1):
             rp, re, rr, live = ring
             j = i % lag
             live = jnp.where(st, jnp.zeros_like(live), live)
-            Sp, q, err, _ = _predicted(mean, cov, rp[j], q0, re[j], b, n, c, shared)
-            done = _updated(mean, cov, Sp, q, err, rr[j])
+            done = _updated(mean, cov, *_predicted(mean, cov, rp[j], re[j]), rr[j])
             mean, cov = (jnp.where(live[j], x, y) for x, y in zip(done, (mean, cov), strict=True))
             ring = (rp.at[j].set(p), re.at[j].set(e), rr.at[j].set(r), live.at[j].set(True))
-        Sp, q, err, ll = _predicted(mean, cov, p, q0, e, b, n, c, shared)
+        Sp, q, err = _predicted(mean, cov, p, e)
+        s = (jnp.maximum(b - c * q0, 0.0) if shared else b) + q + n
+        ll = -0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s)
         if not lag:
             mean, cov = _updated(mean, cov, Sp, q, err, r)
         return (mean, cov, ti, ring, i + 1), jnp.sum(ll)
