@@ -64,7 +64,8 @@ from experiments.runs.timing import machine
 from gpg import conf
 from gpg.data.cache import ensure
 from gpg.flight import correction as fc
-from gpg.flight.forgetting import fit_forgetting
+from gpg.flight.bank import adapt_bank
+from gpg.flight.forgetting import fit_bank, fit_forgetting
 from gpg.flight.identify import hover_coefficients, identify, physics_loads
 from gpg.flight.labels import Labels, MotorCurve, label
 from gpg.flight.log import FlightLogWarning, read_csv, write_csv
@@ -467,6 +468,20 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                 max_labels=n_fit, band=band, per_output=own, ahead=lead,
                 read=_by_wind(train, id_train_streams))  # fmt: skip
         stages["fit_forgetting_s"] = time.perf_counter() - t2
+    # the fitted memories flown together as one bank: with the configured weight forgetting
+    # time, and with one fitted on the same rows (adapt.bank_fit)
+    members = [forgetting[n] for n in cfg["adapt"].get("bank") or () if n in forgetting]
+    banks, bank_fit = {}, None
+    if members:
+        banks["bank"] = float(cfg["adapt"]["bank_weight_tau"])
+    if members and cfg["adapt"].get("bank_fit"):
+        t2 = time.perf_counter()
+        bank_fit = fit_bank(models["identified"], by_wind_id, members,
+                            ahead=int(cfg["adapt"]["bank_ahead"]),
+                            inducing=int(cfg["adapt"]["inducing"]), max_labels=n_fit,
+                            read=_by_wind(train, id_train_streams))  # fmt: skip
+        banks["bank_fitted"] = bank_fit.weight_tau
+        stages["fit_bank_s"] = time.perf_counter() - t2
     t1 = time.perf_counter()
     curves: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
     adaptive = prequential_rows(
@@ -485,7 +500,10 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         stream_drift=stream_drift,
         hindsight=bool(cfg["track"].get("hindsight")),
         forgetting=forgetting,
+        banks=banks,
     )
+    if bank_fit is not None:
+        adaptive["bank_fit"] = dataclasses.asdict(bank_fit)
     adaptive["today"] = today_rows(models["corrected_regression"], tests, streams,
                                    cfg["adapt"], progress, curves)  # fmt: skip
     _prequential_figure(out / "figures", curves)
@@ -568,7 +586,7 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
                      progress: bool, other=None, gust_cfg=None, spreads=(),
                      one_spread=None, streams=None, curves=None,
                      stream_drift=None, hindsight=False,
-                     forgetting=None) -> dict[str, Any]:  # fmt: skip
+                     forgetting=None, banks=None) -> dict[str, Any]:  # fmt: skip
     """Each test flight through the offline model, today's inducing-point adaptation and the
     tracked coefficients (the fitted drift, the default one, ``other``, a drift fitted
     with another bank, where given, the fitted drift with a wind state, horizontal and
@@ -586,7 +604,8 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
     the inducing-point term with each fitted forgetting time and prior,
     ``stream_inducing_fitted`` (the band added), ``stream_inducing_fitted_shared``,
     ``stream_inducing_fitted_shared_per_output`` and, fitted on predictions ``N`` samples
-    ahead, ``..._ahead<N>``; with
+    ahead, ``..._ahead<N>``; with ``banks`` (model key to a weight forgetting time), the
+    fitted memories of ``adapt_cfg["bank"]`` flown as one bank, ``stream_<key>``; with
     ``hindsight``, the tracked coefficients and the inducing-point term fitted on the whole
     stream without forgetting and scored at the labels, ``stream_hindsight_<term>_mse``: at a
     steady wind the least error each term reaches): the force MSE
@@ -648,7 +667,8 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
             row[f"{m}_lag1"] = _lag1(lab.t, e)
         if streams is not None:
             row.update(_stream_scores(offline, streams[name], lab, drift, adapt_cfg, gust_cfg,
-                                      curves, (name, t0), stream_drift, forgetting))  # fmt: skip
+                                      curves, (name, t0), stream_drift, forgetting,
+                                      banks))  # fmt: skip
             if hindsight:
                 row.update(_hindsight(offline, streams[name], lab, drift, adapt_cfg))
         rows.append(row)
@@ -671,6 +691,9 @@ def prequential_rows(offline: Surrogate, tests: dict[str, Any], drift, adapt_cfg
         out_["tracked_gusts_update"] = update_cost(
             track(offline, with_gusts, t0=float(steady.t[0])), steady, 600.0
         )
+    if banks:  # two filters a member and the offline band at every label
+        bank = _bank(offline, adapt_cfg, forgetting, float(steady.t[0]), banks["bank"])
+        out_["bank_update"] = update_cost(bank, steady, 120.0)
     if draw:
         _prequential_figure(out / "figures", curves)
     return out_
@@ -746,6 +769,7 @@ def _stream_scores(
     where: tuple[str, float],
     stream_drift=None,
     forgetting=None,
+    banks=None,
 ) -> dict[str, Any]:
     """The offline model and the online ones reading ``stream`` (every sample of the test
     flight whose labels are ``lab``; the inducing-point term also with each forgetting time of
@@ -775,6 +799,8 @@ def _stream_scores(
         models[_fitted_key(name)] = fc.adapt(offline, inducing=fo.inducing, tau=fo.tau,
                                              variance=fo.variance, t0=start,
                                              band=fo.band)  # fmt: skip
+    for key, weight_tau in (banks or {}).items():
+        models[key] = _bank(offline, adapt_cfg, forgetting, start, weight_tau)
     if stream_drift is not None:
         models["tracked_fit_stream"] = track(offline, stream_drift, t0=start)
         if gust_cfg is not None:
@@ -789,6 +815,15 @@ def _stream_scores(
         out.update({f"stream_{m}_{k}": v for k, v in sc.items()})
         curves[(where[0], f"stream_{m}")] = (s.t[at] - where[1], np.sum(e**2, 1))
     return out
+
+
+def _bank(offline: Surrogate, adapt_cfg, forgetting, t0: float, weight_tau: float) -> Surrogate:
+    """``adapt_cfg["bank"]``'s fitted memories (names of ``forgetting``) flown together as one
+    bank (:func:`gpg.flight.adapt_bank`) whose weights forget over ``weight_tau`` s."""
+    bank = [forgetting[n] for n in adapt_cfg["bank"] if n in forgetting]
+    return adapt_bank(offline, bank, ahead=int(adapt_cfg["bank_ahead"]),
+                      weight_tau=float(weight_tau), inducing=bank[0].inducing,
+                      t0=t0)  # fmt: skip
 
 
 def _hindsight(offline: Surrogate, stream: _Test, lab: Labels, drift, adapt_cfg) -> dict:
@@ -969,7 +1004,8 @@ def _report(res) -> str:
         taus = [f"inducing_tau_{float(v):g}" for v in res["config"]["adapt"].get("stream_taus")
                 or ()]  # fmt: skip
         fitted = [_fitted_key(name) for name in ad.get("forgetting") or {}]
-        for m in ("none", "inducing", *taus, *fitted, "tracked", "tracked_gusts",
+        for m in ("none", "inducing", *taus, *fitted, "bank", "bank_fitted", "tracked",
+                  "tracked_gusts",
                   "tracked_fit_stream", "tracked_gusts_fit_stream"):  # fmt: skip
             if f"stream_{m}_mse" in ad["tests"][0]:
                 scols += [(f"stream_{m}_mse", f"{m} MSE", ".3g"),
@@ -983,6 +1019,15 @@ def _report(res) -> str:
                 f"{c} times each discrepancy's variance, fitted on the training "
                 f"flights' streams ({fo['labels']} rows, {fo['log_likelihood']:.4g} nats a row)"
             )
+    if ad.get("bank_fit"):
+        bf = ad["bank_fit"]
+        lines.append(
+            f"  bank_fitted: weight forgetting time {bf['weight_tau']:.3g} s fitted on the "
+            f"training flights' streams ({bf['labels']} rows, scored {bf['ahead']} ahead: "
+            f"{bf['log_likelihood']:.4g} nats a row, the members alone "
+            + " / ".join(f"{v:.4g}" for v in bf["members"])
+            + ")"
+        )
     if "stream_hindsight_tracked_mse" in ad["tests"][0]:
         lines.append(
             "in hindsight: each term fitted on the whole stream without forgetting, "
@@ -1052,5 +1097,10 @@ def _report(res) -> str:
         u = ad["tracked_gusts_update"]
         lines.append(f"with the wind state {ad['gusts']}: {u['median_ms']:.3f} ms median (p10 "
                      f"{u['p10_ms']:.3f}, p90 {u['p90_ms']:.3f})")  # fmt: skip
+    if "bank_update" in ad:
+        u = ad["bank_update"]
+        lines.append(f"bank update from Python: {u['median_ms']:.3f} ms median (p10 "
+                     f"{u['p10_ms']:.3f}, p90 {u['p90_ms']:.3f}; "
+                     f"{u['bytes_end']} bytes)")  # fmt: skip
     lines.append("stages (s): " + ", ".join(f"{k} {v:.0f}" for k, v in res["stages_s"].items()))
     return "\n".join(lines)

@@ -500,7 +500,7 @@ def update_cost(adapted, lab: Labels, seconds: float, progress: bool = False) ->
         args[0] = args[0] + (k // len(lab)) * period
         t0 = time.perf_counter()
         state = step(state, *args)
-        jax.block_until_ready(state.mean)
+        jax.block_until_ready(state)
         per.append(time.perf_counter() - t0)
     ms = np.asarray(per[10:]) * 1e3
     return {

@@ -574,6 +574,11 @@ def refuse_wind(s: Layout, fmt: str) -> None:
 
 
 def _online(o: Any, d_in: int) -> OnlineTerm:
+    if not hasattr(o, "Z"):  # a gpg.flight.bank.Bank: K terms and their weights
+        raise ValueError(
+            "export: a bank of online terms (gpg.flight.adapt_bank) is not exported; export "
+            "the offline model, or one member as gpg.flight.adapt builds it"
+        )
     return OnlineTerm(
         Z=_f64(o.Z),
         whiten=_f64(o.whiten),

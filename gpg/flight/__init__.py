@@ -16,7 +16,9 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
   :func:`fit_drift`, any drift scored alike by :func:`score_drift`; with :func:`gusts`, the
   wind's deviation from the log's too),
   :func:`adapt` adds an inducing-point term instead (its forgetting time fitted by
-  :func:`fit_forgetting`); :func:`update` and
+  :func:`fit_forgetting`), :func:`adapt_bank` several of them mixed by their predictions
+  made ahead (a :class:`Bank`; its weights' forgetting fitted by :func:`fit_bank`);
+  :func:`update` and
   :func:`online_step` update either label by label at a fixed cost, :func:`prequential` runs
   a flight through them.
 * :func:`identify` finds the vehicle's physical parameters from labels (an
@@ -27,6 +29,7 @@ corrected by flights, adaptation while flying (docs: "From flight logs").
 """
 
 from gpg.flight import basis, synthetic
+from gpg.flight.bank import Bank, adapt_bank
 from gpg.flight.batch import LabelledLogs, label_logs
 from gpg.flight.correction import (
     Corrected,
@@ -40,7 +43,7 @@ from gpg.flight.correction import (
     update_jit,
     with_online,
 )
-from gpg.flight.forgetting import Forgetting, fit_forgetting
+from gpg.flight.forgetting import BankFit, Forgetting, fit_bank, fit_forgetting
 from gpg.flight.identify import Identification, IdentificationWarning, identify
 from gpg.flight.kinematics import Agreement, consistency
 from gpg.flight.labels import (
@@ -68,6 +71,8 @@ from gpg.flight.wind import WindEstimate, WindWarning, estimate_wind, with_wind
 
 __all__ = [
     "Agreement",
+    "Bank",
+    "BankFit",
     "Corrected",
     "consistency",
     "Drift",
@@ -90,11 +95,13 @@ __all__ = [
     "Prequential",
     "Tracker",
     "adapt",
+    "adapt_bank",
     "base",
     "calibrate_simple",
     "correct",
     "default_drift",
     "estimate_delay",
+    "fit_bank",
     "fit_drift",
     "fit_forgetting",
     "gusts",

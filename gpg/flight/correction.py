@@ -165,6 +165,54 @@ class Online(eqx.Module):
         var = jnp.einsum("om,omn,on->o", psi, self.cov, psi)
         return mean, var, jnp.einsum("om,om->o", psi, psi)
 
+    @property
+    def n_parts(self) -> int:
+        """The entries :meth:`latent` adds to the corrected model's latent variance."""
+        return N_LOADS * (2 if self.shared else 1)
+
+    def describe(self) -> dict[str, Any]:
+        """Plain values for a checkpoint's metadata.
+
+        Returns:
+            The inducing inputs ``m``, ``τ`` and the band.
+        """
+        return {"inducing": int(self.Z.shape[0]), "tau": plain(self.tau),
+                "band": "shared" if self.shared else "added"}  # fmt: skip
+
+    @highest
+    def latent(self, x: Float[Array, " D"]) -> tuple[Float[Array, " 6"], Float[Array, " P"]]:
+        """``η``'s mean at ``x`` and its parts of the corrected model's latent variance
+        (:meth:`Corrected.mean_var_one`), which :meth:`band` turns into the loads' band.
+
+        Args:
+            x: (D,) a normalised input.
+
+        Returns:
+            The (6,) mean and the (:attr:`n_parts`,) parts: ``ψᵀΣψ``, then with :attr:`shared`
+            ``ψᵀψ``.
+        """
+        mean, var, prior = self.moments(self.features(x))
+        return mean, jnp.concatenate([var, prior]) if self.shared else var
+
+    def band(
+        self, offline: Float[Array, "*Q 6"], parts: Float[Array, "*Q P"]
+    ) -> Float[Array, "*Q 6"]:
+        """The loads' band with ``η`` from the offline model's ``b`` and :meth:`latent`'s
+        parts: ``b + ψᵀΣψ``, or with :attr:`shared` ``max(b − ψᵀψ, 0) + ψᵀΣψ`` (what the flight
+        has told ``η`` leaves the offline band).
+
+        Args:
+            offline: (..., 6) ``b``, the offline model's predictive variance of the loads.
+            parts: (..., :attr:`n_parts`) the parts.
+
+        Returns:
+            (..., 6) the loads' predictive variance (normalised units).
+        """
+        post = jnp.maximum(parts[..., :N_LOADS], 0.0)
+        if not self.shared:
+            return offline + post
+        return jnp.maximum(offline - jnp.maximum(parts[..., N_LOADS:], 0.0), 0.0) + post
+
     @highest
     def prior_var(self, x: Float[Array, " D"]) -> Float[Array, " 6"]:
         """``η``'s prior variance per output at ``x``, ``ψ(x)ᵀψ(x)`` (at most its kernel's
@@ -298,7 +346,8 @@ class Corrected(Predictor):
         delta: the discrepancy GPs, one per load output (values only, one output each):
             exact (:class:`~gpg.gp.exact.ExactGP`) up to ``exact_labels`` labels, through
             inducing inputs (:class:`~gpg.gp.inducing.InducingGP`) on every label beyond.
-        online: the online term, or None.
+        online: the online term (:class:`Online`, or a :class:`gpg.flight.Bank` of them), or
+            None.
         kappa: (6,) ``κ``, the coefficients of ``M``'s own loads, or None.
         basis: ``m`` (:class:`SimpleBasis`) where ``kappa`` is given.
         explicit: the physical basis with its coefficients integrated out
@@ -392,13 +441,7 @@ class Corrected(Predictor):
             "inducing": int(self.delta[0].X.shape[0])
             if self.delta and isinstance(self.delta[0], InducingGP)
             else None,
-            "online": None
-            if self.online is None
-            else {
-                "inducing": int(self.online.Z.shape[0]),
-                "tau": plain(self.online.tau),
-                "band": "shared" if self.online.shared else "added",
-            },
+            "online": None if self.online is None else self.online.describe(),
             "explicit": None
             if self.explicit is None
             else {"columns": list(self.explicit.columns), "beta": plain(self.explicit.beta)},
@@ -458,7 +501,7 @@ class Corrected(Predictor):
         prior_mean = self.prior.mean_one(x)
         out = self.offline_mean(x, prior_mean)
         if self.online is not None:
-            out = out + self._pad(self.online.mean_var(x)[0])
+            out = out + self._pad(self.online.latent(x)[0])
         if self.tracker is not None:
             out = out + self._pad(self.tracker.mean_var(self.tracker_columns(x, prior_mean))[0])
         return out
@@ -527,11 +570,9 @@ class Corrected(Predictor):
             mean = mean.at[len(parts) - 1].add(m[0])
             parts.append(jnp.reshape(v, (1,)))
         if self.online is not None:
-            m, v, prior = self.online.moments(self.online.features(x))
+            m, v = self.online.latent(x)
             mean = mean + self._pad(m)
             parts.append(v)
-            if self.online.shared:  # the share of the offline band η's prior takes
-                parts.append(prior)
         if self.explicit is not None and self.tracker is None:
             parts.append(self._explicit_variance(x, prior_mean))
         if self.tracker is not None:
@@ -573,24 +614,21 @@ class Corrected(Predictor):
         # A tracker carries the coefficients' offline covariance in its own: their share is
         # the tracker's, not counted twice.
         explicit = self.explicit if self.tracker is None else None
-        shared = None
-        for part in (self.online, explicit, self.tracker):
+        online = None
+        if self.online is not None:  # its band is taken from the offline one, summed below
+            online = var[..., at : at + self.online.n_parts]
+            at += self.online.n_parts
+        for part in (explicit, self.tracker):
             if part is None:
                 continue
             ov = jnp.maximum(var[..., at : at + N_LOADS], 0.0)
             at += N_LOADS
-            if part is self.online and self.online.shared:
-                shared = (ov, jnp.maximum(var[..., at : at + N_LOADS], 0.0))
-                at += N_LOADS
-                continue
             out = out + jnp.concatenate(
                 [ov, jnp.zeros((*ov.shape[:-1], self.n_outputs - ov.shape[-1]), ov.dtype)],
                 axis=-1,
             )
-        if shared is not None:
-            # η's prior is a share of the offline band: what the flight has told η leaves it
-            post, prior = shared
-            loads = jnp.maximum(out[..., :N_LOADS] - prior, 0.0) + post
+        if online is not None:
+            loads = self.online.band(out[..., :N_LOADS], online)
             out = jnp.concatenate([loads, out[..., N_LOADS:]], axis=-1)
         if self.tracker is not None:
             # The tracked model's band on the loads: the filter's hᵀΣh and the extra noise v
@@ -1440,6 +1478,13 @@ def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_va
     if isinstance(state, Online):
         x, _, resid, r = rows(0.0)
         return state.measured(x, resid, r)
+    if getattr(state, "needs_band", False):  # a gpg.flight.Bank: its members are scored
+        # under the offline band at the label
+        x, y, r = gp_rows(sur, rpm, euler, v_air, *label)
+        off = offline_model(m)
+        mean, var = off.mean_var_one(x)
+        band = off.predictive_variance(var)[:N_LOADS]
+        return state.measured(x, y - mean[:N_LOADS], r, band)
 
     def columns(st, x, prior_mean):
         with_state = eqx.tree_at(lambda c: c.tracker, m, st, is_leaf=lambda a: a is None)
@@ -1489,7 +1534,7 @@ def with_online(sur: Surrogate, online: Online | eqx.Module) -> Surrogate:
         The surrogate with ``online`` in place of its own.
     """
     none = lambda a: a is None  # noqa: E731
-    if isinstance(online, Online):
+    if not hasattr(online, "wind_mean"):  # an Online or a gpg.flight.Bank, not a Tracker
         return eqx.tree_at(lambda s: s.model.online, sur, online, is_leaf=none)
     return eqx.tree_at(lambda s: s.model.tracker, sur, online, is_leaf=none)
 
@@ -1499,8 +1544,9 @@ def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online |
 
     ``step(state, t, rpm, euler, v_air, force, torque, force_var, torque_var) -> state`` is
     :func:`update` on the online state alone (:class:`Online` or the tracked coefficients').
-    The offline model's arrays are flattened once here (the mean's only, and the
-    discrepancies' variance where the state has a wind), not at every call, and only the
+    The offline model's arrays are flattened once here (the mean's only, the
+    discrepancies' variance where the state has a wind, the whole band for a
+    :class:`gpg.flight.Bank`), not at every call, and only the
     small online state goes in and out; :func:`with_online` puts a state back
     into the surrogate for predictions.
 
@@ -1521,9 +1567,13 @@ def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online |
     state = online_state(sur, "online_step")
     # A wind state's update reads the discrepancies' variance at the label (advance)
     wind = getattr(state, "wind_mean", None) is not None
-    view = offline_model(sur.model).mean_view(wind)
-    if stack:  # six kernel rows in one program, not six: fewer, larger operations a step
-        view = view.stacked()
+    view = offline_model(sur.model)
+    if getattr(state, "needs_band", False):  # a Bank scores under the offline band: δ's
+        view = view.variance_views()  # variance in one triangle each
+    else:
+        view = view.mean_view(wind)
+        if stack:  # six kernel rows in one program, not six: fewer, larger operations a step
+            view = view.stacked()
     offline = eqx.tree_at(lambda s: s.model, sur, view)
     leaves, treedef = jax.tree_util.tree_flatten(offline)
     leaves = tuple(leaves)

@@ -50,10 +50,11 @@ from gpg._dtype import float64
 from gpg._precision import highest
 from gpg.flight import correction as fc
 from gpg.flight import tracking as tk
+from gpg.flight.bank import adapt_bank
 from gpg.flight.labels import Labels
 from gpg.surrogate import Surrogate
 
-__all__ = ["FACTOR_RANGE", "Forgetting", "fit_forgetting"]
+__all__ = ["FACTOR_RANGE", "BankFit", "Forgetting", "fit_bank", "fit_forgetting"]
 
 N_LOADS = fc.N_LOADS
 FACTOR_RANGE = (1e-3, 1e2)
@@ -63,6 +64,10 @@ that barely moves) to a hundred times (a term free to take what the discrepancy 
 # forgets, within the flights' length), c around the discrepancy's own variance.
 _TAU_GRID = (1.0, 3.0, 10.0, 30.0, 100.0, 1000.0, 86400.0)
 _FACTOR_GRID = (0.1, 1.0, 10.0)
+WEIGHT_TAU_RANGE = (0.02, 86400.0)
+"""s, the range :func:`fit_bank`'s weight forgetting time ``τ_w`` is searched in: from a
+sample at 50 Hz (the weights read the last score alone) to a day (every score counts)."""
+_WEIGHT_TAU_GRID = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 100.0, 1000.0, 86400.0)
 
 
 @dataclass(frozen=True)
@@ -93,6 +98,180 @@ class Forgetting:
     grid: tuple[tuple[float, float, float], ...]
     labels: int
     ahead: int = 1
+
+
+@dataclass(frozen=True)
+class BankFit:
+    """A bank's weight forgetting time fitted on training flights (:func:`fit_bank`); pass
+    ``weight_tau`` and ``ahead`` to :func:`gpg.flight.adapt_bank` with the same members.
+
+    Attributes:
+        weight_tau: s, ``τ_w``, how long a member's past scores count.
+        ahead: ``L``, the labels ahead each label is scored from (the members' weights and the
+            mixture's score alike).
+        log_likelihood: the labels' mean log density under the mixture, each label predicted
+            by the members ``L`` labels behind under the weights before it (nats per label, the
+            six load outputs summed), at the fit.
+        members: each member alone, scored the same way (nats per label).
+        grid: ``((τ_w, log likelihood), ...)``: the grid the search started from.
+        labels: the rows the likelihood summed over.
+    """
+
+    weight_tau: float
+    ahead: int
+    log_likelihood: float
+    members: tuple[float, ...]
+    grid: tuple[tuple[float, float], ...]
+    labels: int
+
+
+@float64
+def fit_bank(
+    sur: Surrogate,
+    labels: Sequence[Labels],
+    members: Sequence,
+    *,
+    ahead: int = 10,
+    inducing: int = 48,
+    max_labels: int = 1500,
+    max_steps: int = 40,
+    read: Sequence[Labels] | None = None,
+    seed: int = 0,
+    band: str = "shared",
+) -> BankFit:
+    """The weight forgetting time ``τ_w`` of :func:`gpg.flight.adapt_bank` that best predicts
+    new flights, label by label.
+
+    The members run over the held-out rows :func:`fit_forgetting` scores (each training part
+    predicted by a model that did not see it, restarting at each flight), each row scored under
+    every member ``ahead`` rows behind, and ``τ_w`` maximises the sum over rows of the
+    mixture's log density ``log Σ_k w_k p_k(y)`` with the weights before the row (a grid, then
+    Nelder-Mead on ``log τ_w``). The members' runs do not depend on ``τ_w``: they are scanned
+    once.
+
+    Args:
+        sur: a corrected model (:func:`gpg.flight.correct`).
+        labels: two or more parts (flights, or the flights of one wind), in time order.
+        members: the bank's memories, as :func:`gpg.flight.adapt_bank` takes them.
+        ahead: ``L``, as :func:`gpg.flight.adapt_bank` takes it.
+        inducing: ``m``, each term's inducing inputs.
+        max_labels: at most this many labels, taken as :func:`fit_forgetting` takes them.
+        max_steps: Nelder-Mead steps after the grid.
+        read: what the bank will read of each part (:func:`fit_forgetting`'s ``read``).
+        seed: the inducing inputs' k-means seed.
+        band: ``"shared"`` or ``"added"`` (:func:`gpg.flight.adapt`'s ``band``).
+
+    Returns:
+        The fitted :class:`BankFit`.
+
+    Raises:
+        ValueError: what :func:`gpg.flight.adapt_bank` or :func:`fit_forgetting` refuse.
+    """
+    parts = tk._parts(sur, labels, "fit_bank")
+    stream = tk._checked_read(parts, read, "fit_bank")
+    offline = dataclasses.replace(sur, model=fc.offline_model(sur.model))
+    bank = adapt_bank(offline, members, ahead=ahead, inducing=inducing, seed=seed, band=band)
+    on = bank.model.online.members
+    template = fc.adapt(offline, inducing=inducing, seed=seed, band=band).model.online
+    data, _, (X, held) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
+    t, start, _, resid, noise, *_ = data
+    psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
+    prior = jnp.sum(psi * psi, -1)
+    rows = (t, start, psi, prior, resid, noise + template.noise, held, noise)
+    factor = on.variance / template.variance  # each member's c per output
+    ll = _bank_rows_loglik(on.tau, factor, rows, template.shared, int(ahead))
+    scored = [(w, -float(_mixture_neg_loglik(jnp.log(w), (ll, t, start))))
+              for w in _WEIGHT_TAU_GRID]  # fmt: skip
+    w0, best = max(scored, key=lambda s: s[1])
+    sol = optx.minimise(_mixture_neg_loglik, optx.NelderMead(rtol=1e-4, atol=1e-4),
+                        jnp.log(jnp.asarray([w0])), args=(ll, t, start), max_steps=max_steps,
+                        throw=False)  # fmt: skip
+    found = -float(_mixture_neg_loglik(sol.value, (ll, t, start)))
+    if found > best:
+        w0, best = float(_weight_tau(sol.value[0])), found
+    return BankFit(
+        weight_tau=float(w0),
+        ahead=int(ahead),
+        log_likelihood=best,
+        members=tuple(float(v) for v in jnp.mean(jnp.sum(ll, -1), 0)),
+        grid=tuple(scored),
+        labels=int(t.shape[0]),
+    )
+
+
+def _weight_tau(log_tau: Float[Array, ""]) -> Float[Array, ""]:
+    lo, hi = np.log(WEIGHT_TAU_RANGE)
+    return jnp.exp(jnp.clip(log_tau, lo, hi))
+
+
+@jax.jit
+def _mixture_neg_loglik(log_tau, args):
+    """Minus the mean log density per row of the mixture with ``τ_w = e^{log_tau}`` from each
+    row's members' log densities ``ll`` (N, K, 6), the weights before the row (reset where a
+    flight starts)."""
+    ll, t, start = args
+    tw = _weight_tau(jnp.reshape(log_tau, ()))
+
+    def body(carry, row):
+        lw, t_prev = carry
+        lr, ti, st = row
+        lw = jnp.where(st, 0.0, lw * jnp.exp(-jnp.maximum(ti - t_prev, 0.0) / tw))
+        logw = lw - jax.nn.logsumexp(lw, axis=0)
+        return (lw + lr, ti), jnp.sum(jax.nn.logsumexp(logw + lr, axis=0))
+
+    _, out = jax.lax.scan(body, (jnp.zeros(ll.shape[1:], ll.dtype), t[0]), (ll, t, start))
+    return -jnp.mean(out)
+
+
+@partial(jax.jit, static_argnums=(3, 4))
+@highest
+def _bank_rows_loglik(tau, factor, rows, shared: bool, ahead: int):
+    """Each row's log density under each member ``ahead`` rows behind, (N, K, 6): the members'
+    weights (``τ`` (K, 6, m), factors ``c`` (K, 6)) as :class:`gpg.flight.bank.Bank` runs
+    them, on :func:`_rows_neg_loglik`'s rows. The members behind take each waiting row
+    relaxed to its own time, as the bank does; a flight's start empties the ring."""
+    t, start, psi, prior, resid, gain_noise, held, noise = rows
+    k, m = factor.shape[0], psi.shape[-1]
+    eye = jnp.eye(m, dtype=psi.dtype)
+    fresh = (jnp.zeros((k, N_LOADS, m), psi.dtype), jnp.broadcast_to(eye, (k, N_LOADS, m, m)))
+    root = jnp.sqrt(factor)[:, :, None]
+    ring0 = (jnp.zeros((ahead, N_LOADS, m), psi.dtype), jnp.zeros((ahead, N_LOADS), psi.dtype),
+             jnp.ones((ahead, N_LOADS), psi.dtype), jnp.zeros(ahead, bool),
+             jnp.zeros(ahead, psi.dtype))  # fmt: skip
+
+    def relax(state, dt):
+        a = jnp.exp(-dt / tau)
+        return a * state[0], a[..., None] * state[1] * a[..., None, :] + (1 - a**2)[..., None] * eye
+
+    def per_member(fn, state, p, *a):
+        return jax.vmap(fn, in_axes=(0, 0, 0) + (None,) * len(a))(*state, p, *a)
+
+    def body(carry, row):
+        cur, lag, t_cur, t_lag, ring, i = carry
+        ti, st, p0, q0, e, r, b, n = row
+        rp, re, rr, live, rt = ring
+        cur = jax.tree.map(lambda f, x: jnp.where(st, f, x), fresh,
+                           relax(cur, jnp.maximum(ti - t_cur, 0.0)))  # fmt: skip
+        lag = jax.tree.map(lambda f, x: jnp.where(st, f, x), fresh, lag)
+        live, t_lag = jnp.where(st, False, live), jnp.where(st, ti, t_lag)
+        j = i % ahead
+        waiting = relax(lag, jnp.maximum(rt[j] - t_lag, 0.0))
+        done = per_member(lambda mu, S, p, e_, r_: _updated(mu, S, *_predicted(mu, S, p, e_), r_),
+                          waiting, root * rp[j], re[j], rr[j])  # fmt: skip
+        lag = jax.tree.map(lambda d, x: jnp.where(live[j], d, x), done, lag)
+        t_lag = jnp.where(live[j], rt[j], t_lag)
+        p = root * p0
+        _, q, err = per_member(_predicted, relax(lag, jnp.maximum(ti - t_lag, 0.0)), p, e)
+        s = (jnp.maximum(b - factor * q0, 0.0) if shared else b) + q + n
+        ll = -0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s)
+        Sp, q1, err1 = per_member(_predicted, cur, p, e)
+        cur = jax.vmap(_updated, in_axes=(0, 0, 0, 0, 0, None))(*cur, Sp, q1, err1, r)
+        ring = (rp.at[j].set(p0), re.at[j].set(e), rr.at[j].set(r), live.at[j].set(True),
+                rt.at[j].set(ti))  # fmt: skip
+        return (cur, lag, ti, t_lag, ring, i + 1), ll
+
+    init = (fresh, fresh, t[0], t[0], ring0, 0)
+    return jax.lax.scan(body, init, rows)[1]
 
 
 @float64

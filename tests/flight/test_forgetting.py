@@ -220,3 +220,92 @@ def test_fit_forgetting_and_adapt_refuse_bad_input(synthetic_surrogate, correcte
     on = fc.adapt(corrected, inducing=M, variance=six, tau=six).model.online
     np.testing.assert_allclose(np.asarray(on.variance), six, rtol=0)
     np.testing.assert_allclose(np.asarray(on.tau), six, rtol=0)
+
+
+def _bank_reference(tau, factor, rows, shared, ahead):
+    """NumPy: each member's weights run row by row alone (restarting at each flight), its
+    state after every row kept; row i scored by the state after row i − ahead (the prior
+    where the flight has fewer rows), relaxed to row i."""
+    t, start, psi, prior, resid, gain_noise, held, noise = (np.asarray(a) for a in rows)
+    n, k, m = len(t), len(factor), psi.shape[-1]
+    out = np.zeros((n, k, 6))
+    for j in range(k):
+        tj, c = np.broadcast_to(tau[j], (6, m)), np.asarray(factor[j])[:, None]
+        fresh = (np.zeros((6, m)), np.stack([np.eye(m)] * 6))
+        after, flight0, mean, cov, t_prev = [], 0, *fresh, t[0]
+
+        def relax(mean, cov, dt, tj=tj):
+            a = np.exp(-dt / tj)
+            cov = a[:, :, None] * cov * a[:, None, :] + (1 - a**2)[:, :, None] * np.eye(m)
+            return a * mean, cov
+
+        for i in range(n):
+            if start[i]:
+                flight0, (mean, cov), t_prev = i, fresh, t[i]
+            mean, cov = relax(mean, cov, t[i] - t_prev)
+            back = i - ahead
+            lm, lc, tl = (*after[back][:2], after[back][2]) if back >= flight0 else (*fresh, t[i])
+            lm, lc = relax(lm, lc, t[i] - tl)
+            p = np.sqrt(c) * psi[i]
+            sp = np.einsum("jmn,jn->jm", lc, p)
+            q, err = np.einsum("jm,jm->j", p, sp), resid[i] - np.einsum("jm,jm->j", p, lm)
+            b = np.maximum(held[i] - factor[j] * prior[i], 0) if shared else held[i]
+            s = b + q + noise[i]
+            out[i, j] = -0.5 * (np.log(2 * np.pi * s) + err**2 / s)
+            sp = np.einsum("jmn,jn->jm", cov, p)
+            q, err = np.einsum("jm,jm->j", p, sp), resid[i] - np.einsum("jm,jm->j", p, mean)
+            g = sp / (q + gain_noise[i])[:, None]
+            mean, cov = mean + g * err[:, None], cov - g[:, :, None] * sp[:, None, :]
+            after.append((mean, cov, t[i]))
+            t_prev = t[i]
+    return out
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("ahead", [1, 3])
+def test_bank_rows_and_mixture_match_numpy(shared, ahead):
+    """fit_bank's members' scores (each row under each member ``ahead`` rows behind, two
+    flights) against a NumPy run of each member alone; the mixture's score against a NumPy
+    loop of the decayed weights. Sums of a few hundred O(1) terms in another order: 1e-11."""
+    rng = np.random.default_rng(7)
+    n, m = 40, 3
+    psi = rng.normal(size=(n, 6, m)) / np.sqrt(m)
+    rows = (np.cumsum(rng.uniform(0.05, 0.3, n)), np.arange(n) % 23 == 0, psi,
+            np.sum(psi * psi, -1), rng.normal(size=(n, 6)), rng.uniform(0.05, 0.2, (n, 6)),
+            rng.uniform(1.0, 2.0, (n, 6)), rng.uniform(0.02, 0.1, (n, 6)))  # fmt: skip
+    tau = np.stack([np.full((6, m), 0.7), np.broadcast_to(np.geomspace(1, 50, 6)[:, None], (6, m))])
+    factor = np.stack([np.full(6, 0.3), np.linspace(0.5, 2.0, 6)])
+    rows_j = tuple(map(jnp.asarray, rows))
+    got = np.asarray(fg._bank_rows_loglik(jnp.asarray(tau), jnp.asarray(factor), rows_j,
+                                          shared, ahead))  # fmt: skip
+    ref = _bank_reference(tau, factor, rows, shared, ahead)
+    np.testing.assert_allclose(got, ref, rtol=1e-11, atol=1e-12)
+    tw = 0.8
+    lw, total = np.zeros((2, 6)), 0.0
+    t, start = rows[0], rows[1]
+    for i in range(n):
+        lw = np.zeros((2, 6)) if start[i] else lw * np.exp(-(t[i] - t[i - 1]) / tw)
+        w = np.exp(lw - lw.max(0))
+        w /= w.sum(0)
+        total += np.sum(np.log(np.sum(w * np.exp(ref[i]), 0)))
+        lw += ref[i]
+    mix = float(
+        fg._mixture_neg_loglik(
+            jnp.log(jnp.asarray([tw])), (jnp.asarray(got), jnp.asarray(t), jnp.asarray(start))
+        )
+    )
+    np.testing.assert_allclose(mix, -total / n, rtol=1e-11)
+
+
+def test_fit_bank_on_flights(corrected, flights):  # noqa: F811
+    """fit_bank on held-out flights: τ_w inside its range and at least as likely as its grid;
+    each member's own score is the mixture's at one member (a bank of one is its member)."""
+    members = [(0.5, 0.05), (30.0, None)]
+    f = fg.fit_bank(corrected, flights, members, ahead=3, inducing=M, max_steps=10)
+    lo, hi = fg.WEIGHT_TAU_RANGE
+    assert lo * (1 - 1e-12) <= f.weight_tau <= hi * (1 + 1e-12)
+    assert f.log_likelihood >= max(ll for _, ll in f.grid) - 1e-12
+    assert f.labels == N_LABELS and f.ahead == 3 and len(f.members) == 2
+    one = fg.fit_bank(corrected, flights, members[1:], ahead=3, inducing=M, max_steps=2)
+    np.testing.assert_allclose(one.log_likelihood, one.members[0], rtol=1e-12)
+    np.testing.assert_allclose(one.members[0], f.members[1], rtol=1e-12)

@@ -183,6 +183,11 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
         "inducing_fitted_shared_per_output_ahead10",
     ):
         assert all(r[f"stream_{m}_mse"] > 0 for r in ad["tests"])
+    # the three fitted memories flown as one bank, mixed by predictions made ten samples
+    # ahead: scored on both streams, its update fixed in memory
+    assert all(r["stream_bank_mse"] > 0 and 0 <= r["stream_bank_coverage95"] <= 1
+               for r in ad["tests"])  # fmt: skip
+    assert ad["bank_update"]["bytes_start"] == ad["bank_update"]["bytes_end"]
     sweep = {s["model"]: s["held_out_log_likelihood"] for s in ad["spread_sweep"]}
     uniform = [f"tracked_spread_{s:g}" for s in cfg["track"]["spread_sweep"]]
     assert set(sweep) == {*uniform, "tracked", "tracked_one_spread"}

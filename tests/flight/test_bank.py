@@ -1,0 +1,181 @@
+"""gpg.flight.bank: online terms of different memories mixed by their predictions made ahead,
+against each member run alone and a NumPy loop of the delayed scores written here."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg.flight import bank as bk
+from gpg.flight import correction as fc
+from gpg.flight import tracking as tk
+from tests.flight.test_correction import corrected, flights  # noqa: F401  (fixtures)
+
+M = 8  # inducing inputs: the algebra is the same at 48
+# a short memory with a narrow prior; longer ones, one per load output, with each δ's prior
+MEMBERS = ((0.4, 0.05), ((20.0, 5.0, 60.0, 1.0, 2.0, 30.0), None))
+
+
+def _offline_rows(sur, lab):
+    """Each label's normalised input, residual against the offline model, noise and the
+    offline model's band of the loads (what a bank's member is scored under)."""
+    off = dataclasses.replace(sur, model=fc.offline_model(sur.model))
+
+    @jax.jit
+    def one(*row):
+        x, y, r = fc.gp_rows(off, *row)
+        mean, var = off.model.mean_var_one(x)
+        return x, y - mean[:6], r, off.model.predictive_variance(var)[:6]
+
+    out = [one(*(jnp.asarray(c[i]) for c in lab.columns()[1:])) for i in range(len(lab))]
+    return tuple(np.stack([np.asarray(o[k]) for o in out]) for k in range(4))
+
+
+def test_one_member_is_the_term_adapt_builds(corrected, flights):  # noqa: F811
+    """A bank of one member predicts, band included, what :func:`gpg.flight.adapt`'s term
+    with its memory predicts, label by label, and ends in the same state."""
+    lab = flights.take(slice(0, 25))
+    tau, var = 3.0, (0.1, 0.2, 0.3, 0.05, 0.05, 0.05)
+    one = bk.adapt_bank(corrected, [(tau, var)], ahead=3, inducing=M, t0=lab.t[0])
+    plain = fc.adapt(corrected, inducing=M, tau=tau, variance=var, t0=lab.t[0], band="shared")
+    a, b = tk.prequential(one, lab), tk.prequential(plain, lab)
+    # the same products in the same order, but the bank's weight (exactly one) multiplies
+    # the mean and the band: rounding at a few ulp of the loads
+    np.testing.assert_allclose(a.force, b.force, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.variance, b.variance, rtol=1e-12, atol=1e-15)
+    end = fc.online_state(a.final).members
+    np.testing.assert_allclose(end.mean[0], fc.online_state(b.final).mean, rtol=1e-12,
+                               atol=1e-15)  # fmt: skip
+
+
+@pytest.mark.parametrize("ahead", [1, 3])
+def test_weights_score_each_member_ahead(corrected, flights, ahead):  # noqa: F811
+    """The bank's log weights are, per load output, the sum of each label's log density under
+    the member as it was ``ahead`` labels before (decayed by e^{−Δt/τ_w} between labels),
+    written here from each member run alone; its mean and band are the mixture's moments."""
+    lab = flights.take(slice(0, 18))
+    tw = 0.7
+    sur = bk.adapt_bank(corrected, MEMBERS, ahead=ahead, weight_tau=tw, inducing=M,
+                        t0=lab.t[0])  # fmt: skip
+    pre = tk.prequential(sur, lab)
+    X, resid, r, band = _offline_rows(corrected, lab)
+    n = len(lab)
+    # each member alone: its state before each label (the state "ahead" labels behind)
+    alone = [fc.adapt(corrected, inducing=M, tau=t, variance=v, t0=lab.t[0], band="shared")
+             for t, v in MEMBERS]  # fmt: skip
+    states = []
+    for sur_k in alone:
+        st, seq = fc.online_state(sur_k), []
+        for i in range(n):
+            seq.append(st)
+            st = fc.update(fc.with_online(sur_k, st), *(c[i] for c in lab.columns())).model.online
+        states.append(seq + [st])
+    log_w = np.zeros((2, 6))
+    for i in range(n):
+        if i:
+            log_w *= np.exp(-(lab.t[i] - lab.t[i - 1]) / tw)
+        for k in range(2):
+            # the member with the labels up to i - ahead: its state before label i - ahead + 1
+            o = states[k][max(i - ahead + 1, 0)].relaxed(lab.t[i])
+            mu, q, q0 = (np.asarray(a) for a in o.moments(o.features(jnp.asarray(X[i]))))
+            s = np.maximum(band[i] - q0, 0.0) + q + r[i]
+            log_w[k] += -0.5 * (np.log(2 * np.pi * s) + (resid[i] - mu) ** 2 / s)
+    final = fc.online_state(pre.final)
+    w_ref = np.exp(log_w - log_w.max(0))
+    w_ref /= w_ref.sum(0)
+    # a sum of n log densities of size ~10: rounding ~n·10·1e-16 relative to the weights
+    np.testing.assert_allclose(np.asarray(final.weights()), w_ref, rtol=1e-9, atol=1e-12)
+    for k in range(2):  # the members themselves run as they run alone
+        np.testing.assert_allclose(final.members.mean[k], states[k][-1].mean, rtol=1e-10,
+                                   atol=1e-13)  # fmt: skip
+    # the mixture at a new state: Σ w η̄, and Σ w band_k + spread, per output (normalised)
+    x = jnp.asarray(X[3])
+    off = fc.offline_model(corrected.model)
+    b = np.asarray(off.predictive_variance(off.mean_var_one(x)[1])[:6])
+    w = np.asarray(final.weights())
+    mus, bands = [], []
+    for k in range(2):
+        mu, q, q0 = (np.asarray(a) for a in states[k][-1].moments(states[k][-1].features(x)))
+        mus.append(mu)
+        bands.append(np.maximum(b - q0, 0.0) + q)
+    mus, bands = np.stack(mus), np.stack(bands)
+    mix = np.sum(w * mus, 0)
+    want = np.sum(w * (bands + mus**2), 0) - mix**2
+    m = fc.with_online(corrected, final).model
+    mean, var = m.mean_var_one(x)
+    np.testing.assert_allclose(np.asarray(mean)[:6] - np.asarray(off.mean_var_one(x)[0])[:6],
+                               mix, rtol=1e-9, atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(m.predictive_variance(var))[:6], want, rtol=1e-9)
+
+
+def test_identical_members_keep_equal_weights_and_the_scan_is_the_loop(corrected, flights):  # noqa: F811
+    """Two copies of one memory score alike: their weights stay one half, and the bank
+    predicts as one member. ``online_step`` once a step from Python ends where
+    ``prequential``'s scan ends."""
+    lab = flights.take(slice(0, 12))
+    sur = bk.adapt_bank(corrected, [(2.0, None), (2.0, None)], ahead=2, inducing=M,
+                        t0=lab.t[0])  # fmt: skip
+    pre = tk.prequential(sur, lab)
+    np.testing.assert_allclose(fc.online_state(pre.final).weights(), 0.5, rtol=1e-12)
+    single = tk.prequential(bk.adapt_bank(corrected, [(2.0, None)], ahead=2, inducing=M,
+                                          t0=lab.t[0]), lab)  # fmt: skip
+    np.testing.assert_allclose(pre.force, single.force, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(pre.variance, single.variance, rtol=1e-12, atol=1e-15)
+    step, st = fc.online_step(sur), fc.online_state(sur)
+    for i in range(len(lab)):
+        st = step(st, *(c[i] for c in lab.columns()))
+    end = fc.online_state(pre.final)
+    for a, b in zip(jax.tree.leaves(st), jax.tree.leaves(end), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-13)
+
+
+def test_bank_predict_is_a_jax_function(corrected, flights, tmp_path):  # noqa: F811
+    """jit, vmap and both derivatives of a bank model's prediction (after some labels, the
+    weights unequal); the derivative matches central differences; a checkpoint keeps the
+    bank (its state and weights: the same predictions)."""
+    from gpg import checkpoint
+
+    lab = flights.take(slice(0, 10))
+    sur = tk.prequential(bk.adapt_bank(corrected, MEMBERS, ahead=2, inducing=M,
+                                       t0=lab.t[0]), lab).final  # fmt: skip
+    rpm, euler, v = (jnp.asarray(a[10:14]) for a in (flights.rpm, flights.euler, flights.v_air))
+    batch = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    np.testing.assert_allclose(batch.force, sur.predict_batch(rpm, euler, v).force, rtol=1e-12)
+
+    def f(vv):
+        p = sur.predict(rpm[0], euler[0], vv)
+        return jnp.sum(p.force) + jnp.sum(p.variance[:3])
+
+    g = jax.grad(f)(v[0])
+    jv = jax.jvp(f, (v[0],), (jnp.ones(3),))[1]
+    h = 1e-5
+    fd = np.array([(f(v[0] + h * e) - f(v[0] - h * e)) / (2 * h) for e in np.eye(3)])
+    # central differences of a smooth function of size ~10 at h: h² terms and 1e-16/h rounding
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(jv, np.sum(g), rtol=1e-10)
+    checkpoint.save(tmp_path / "ckpt", sur)
+    back = checkpoint.load(tmp_path / "ckpt")
+    assert isinstance(fc.online_state(back), bk.Bank)
+    again = back.predict_batch(rpm, euler, v)
+    np.testing.assert_array_equal(again.force, batch.force)
+    np.testing.assert_array_equal(again.variance, batch.variance)
+
+
+def test_adapt_bank_refuses_bad_input(corrected, flights, tmp_path):  # noqa: F811
+    with pytest.raises(ValueError, match="members is empty"):
+        bk.adapt_bank(corrected, [])
+    with pytest.raises(ValueError, match=r"members\[1\] must be"):
+        bk.adapt_bank(corrected, [(1.0, None), 3.0])
+    with pytest.raises(ValueError, match="ahead must be a whole number"):
+        bk.adapt_bank(corrected, [(1.0, None)], ahead=0)
+    with pytest.raises(ValueError, match="weight_tau must be a positive"):
+        bk.adapt_bank(corrected, [(1.0, None)], weight_tau=0.0)
+    with pytest.raises(ValueError, match="tau"):
+        bk.adapt_bank(corrected, [(-1.0, None)])
+    sur = bk.adapt_bank(corrected, MEMBERS, inducing=M)
+    from gpg.export import to_c
+
+    with pytest.raises(ValueError, match="bank"):
+        to_c(sur, tmp_path, name="model")
