@@ -478,7 +478,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         t2 = time.perf_counter()
         bank_fit = fit_bank(models["identified"], by_wind_id, members,
                             ahead=int(cfg["adapt"]["bank_ahead"]),
-                            inducing=int(cfg["adapt"]["inducing"]), max_labels=n_fit,
+                            inducing=members[0].inducing, max_labels=n_fit,
                             read=_by_wind(train, id_train_streams))  # fmt: skip
         banks["bank_fitted"] = bank_fit.weight_tau
         stages["fit_bank_s"] = time.perf_counter() - t2

@@ -275,7 +275,9 @@ def adapt_bank(
         A :class:`~gpg.Surrogate` whose corrected model carries the bank as its online term.
 
     Raises:
-        ValueError: no member, a member neither a ``Forgetting`` nor a pair, ``ahead`` not a
+        ValueError: no member, a member neither a ``Forgetting`` nor a pair, a
+            ``Forgetting`` fitted for another ``band`` or number of inducing inputs (as
+            placed: ``inducing``, or fewer on few data), ``ahead`` not a
             whole number >= 1, ``weight_tau`` not positive, or what :func:`gpg.flight.adapt`
             refuses (a bad ``tau``, ``variance``, ``inducing`` or ``band``).
     """
@@ -283,12 +285,16 @@ def adapt_bank(
         raise ValueError(f"adapt_bank: ahead must be a whole number >= 1, got {ahead!r}")
     if not (np.isfinite(weight_tau) and weight_tau > 0):
         raise ValueError(f"adapt_bank: weight_tau must be a positive time (s), got {weight_tau}")
-    pairs = [_pair(mb, i) for i, mb in enumerate(members)]
+    pairs = [_pair(mb, i, band) for i, mb in enumerate(members)]
     if not pairs:
         raise ValueError("adapt_bank: members is empty; give at least one (tau, variance)")
     terms = [fc.adapt(sur, inducing=inducing, tau=tau, variance=var, t0=t0, seed=seed,
                       band=band) for tau, var in pairs]  # fmt: skip
     ons = [a.model.online for a in terms]
+    for i, mb in enumerate(members):  # a fit's τ and prior are for its own inducing inputs
+        if hasattr(mb, "inducing") and mb.inducing != ons[0].Z.shape[0]:
+            raise ValueError(f"adapt_bank: members[{i}] was fitted with {mb.inducing} inducing "
+                             f"inputs, the bank places {ons[0].Z.shape[0]}")  # fmt: skip
     # τ may be one number or six per member: stack them at one shape, one per weight
     ons = [eqx.tree_at(lambda o: o.tau, o, o.tau_per_weight()) for o in ons]
     stack = jax.tree.map(lambda *a: jnp.stack(a), *ons)
@@ -310,9 +316,13 @@ def adapt_bank(
     return fc.with_online(terms[0], bank)
 
 
-def _pair(member, i: int):
-    """``(tau, variance)`` of :func:`adapt_bank`'s member ``i``."""
+def _pair(member, i: int, band: str):
+    """``(tau, variance)`` of :func:`adapt_bank`'s member ``i``; a fit for another band is
+    refused (its ``τ`` and prior are that band's term's)."""
     if hasattr(member, "tau") and hasattr(member, "variance"):  # a Forgetting
+        if member.band != band:
+            raise ValueError(f"adapt_bank: members[{i}] was fitted with band={member.band!r}, "
+                             f"the bank runs band={band!r}")  # fmt: skip
         return member.tau, member.variance
     if isinstance(member, tuple | list) and len(member) == 2:
         return member[0], member[1]

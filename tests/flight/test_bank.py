@@ -33,6 +33,13 @@ def _offline_rows(sur, lab):
     return tuple(np.stack([np.asarray(o[k]) for o in out]) for k in range(4))
 
 
+@jax.jit
+def _moments(o, t, x):
+    """A term relaxed to ``t``: its mean, ``ψᵀΣψ`` and ``ψᵀψ`` at ``x``."""
+    o = o.relaxed(t)
+    return o.moments(o.features(x))
+
+
 def test_one_member_is_the_term_adapt_builds(corrected, flights):  # noqa: F811
     """A bank of one member predicts, band included, what :func:`gpg.flight.adapt`'s term
     with its memory predicts, label by label, and ends in the same state."""
@@ -70,7 +77,8 @@ def test_weights_score_each_member_ahead(corrected, flights, ahead):  # noqa: F8
         st, seq = fc.online_state(sur_k), []
         for i in range(n):
             seq.append(st)
-            st = fc.update(fc.with_online(sur_k, st), *(c[i] for c in lab.columns())).model.online
+            row = (c[i] for c in lab.columns())
+            st = fc.update_jit(fc.with_online(sur_k, st), *row).model.online
         states.append(seq + [st])
     log_w = np.zeros((2, 6))
     for i in range(n):
@@ -78,8 +86,8 @@ def test_weights_score_each_member_ahead(corrected, flights, ahead):  # noqa: F8
             log_w *= np.exp(-(lab.t[i] - lab.t[i - 1]) / tw)
         for k in range(2):
             # the member with the labels up to i - ahead: its state before label i - ahead + 1
-            o = states[k][max(i - ahead + 1, 0)].relaxed(lab.t[i])
-            mu, q, q0 = (np.asarray(a) for a in o.moments(o.features(jnp.asarray(X[i]))))
+            o = states[k][max(i - ahead + 1, 0)]
+            mu, q, q0 = (np.asarray(a) for a in _moments(o, lab.t[i], jnp.asarray(X[i])))
             s = np.maximum(band[i] - q0, 0.0) + q + r[i]
             log_w[k] += -0.5 * (np.log(2 * np.pi * s) + (resid[i] - mu) ** 2 / s)
     final = fc.online_state(pre.final)
@@ -148,8 +156,9 @@ def test_bank_predict_is_a_jax_function(corrected, flights, tmp_path):  # noqa: 
         p = sur.predict(rpm[0], euler[0], vv)
         return jnp.sum(p.force) + jnp.sum(p.variance[:3])
 
-    g = jax.grad(f)(v[0])
-    jv = jax.jvp(f, (v[0],), (jnp.ones(3),))[1]
+    f = jax.jit(f)
+    g = jax.jit(jax.grad(f))(v[0])
+    jv = jax.jit(lambda a: jax.jvp(f, (a,), (jnp.ones(3),))[1])(v[0])
     h = 1e-5
     fd = np.array([(f(v[0] + h * e) - f(v[0] - h * e)) / (2 * h) for e in np.eye(3)])
     # central differences of a smooth function of size ~10 at h: h² terms and 1e-16/h rounding
@@ -174,6 +183,15 @@ def test_adapt_bank_refuses_bad_input(corrected, flights, tmp_path):  # noqa: F8
         bk.adapt_bank(corrected, [(1.0, None)], weight_tau=0.0)
     with pytest.raises(ValueError, match="tau"):
         bk.adapt_bank(corrected, [(-1.0, None)])
+    from gpg.flight.forgetting import Forgetting
+
+    fo = Forgetting(tau=3.0, factor=1.0, variance=(0.1,) * 6, inducing=M, band="added",
+                    log_likelihood=0.0, grid=(), labels=1)  # fmt: skip
+    with pytest.raises(ValueError, match=r"members\[0\] was fitted with band='added'"):
+        bk.adapt_bank(corrected, [fo], inducing=M)
+    with pytest.raises(ValueError, match="fitted with 8 inducing inputs, the bank places 4"):
+        bk.adapt_bank(corrected, [fo], inducing=4, band="added")
+    assert bk.adapt_bank(corrected, [fo], inducing=M, band="added").model.online.size == 1
     sur = bk.adapt_bank(corrected, MEMBERS, inducing=M)
     from gpg.export import to_c
 
