@@ -167,17 +167,13 @@ def fit_bank(
     Raises:
         ValueError: what :func:`gpg.flight.adapt_bank` or :func:`fit_forgetting` refuse.
     """
-    parts = tk._parts(sur, labels, "fit_bank")
-    stream = tk._checked_read(parts, read, "fit_bank")
+    # the members first: a bad one is refused before the held-out rows are computed
     offline = dataclasses.replace(sur, model=fc.offline_model(sur.model))
     bank = adapt_bank(offline, members, ahead=ahead, inducing=inducing, seed=seed, band=band)
     on = bank.model.online.members
-    template = fc.adapt(offline, inducing=inducing, seed=seed, band=band).model.online
-    data, _, (X, held) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
-    t, start, _, resid, noise, *_ = data
-    psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
-    prior = jnp.sum(psi * psi, -1)
-    rows = (t, start, psi, prior, resid, noise + template.noise, held, noise)
+    _, template, rows = _held_out_rows(sur, labels, read, inducing, max_labels, seed, band,
+                                       "fit_bank")  # fmt: skip
+    t, start = rows[:2]
     factor = on.variance / template.variance  # each member's c per output
     ll = _bank_rows_loglik(on.tau, factor, rows, template.shared, int(ahead))
     scored = [(w, -float(_mixture_neg_loglik(jnp.log(w), (ll, t, start))))
@@ -325,15 +321,9 @@ def fit_forgetting(
         raise ValueError(f"fit_forgetting: inducing must be >= 1, got {inducing}")
     if isinstance(ahead, bool) or int(ahead) != ahead or ahead < 1:
         raise ValueError(f"fit_forgetting: ahead must be a whole number >= 1, got {ahead!r}")
-    parts = tk._parts(sur, labels, "fit_forgetting")
-    stream = tk._checked_read(parts, read, "fit_forgetting")
-    offline = dataclasses.replace(sur, model=fc.offline_model(sur.model))
-    template = fc.adapt(offline, inducing=inducing, seed=seed, band=band).model.online
-    data, _, (X, held) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
-    t, start, _, resid, noise, *_ = data
-    psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
-    prior = jnp.sum(psi * psi, -1)  # ψᵀψ at c = 1: the share of the band η's prior takes
-    rows = (t, start, psi, prior, resid, noise + template.noise, held, noise)
+    _, template, rows = _held_out_rows(sur, labels, read, inducing, max_labels, seed, band,
+                                       "fit_forgetting")  # fmt: skip
+    t = rows[0]
     if per_output:
         fits = [_search((*_output(rows, j), template.shared, int(ahead)), max_steps)
                 for j in range(N_LOADS)]  # fmt: skip
@@ -356,6 +346,22 @@ def fit_forgetting(
         labels=int(t.shape[0]),
         ahead=int(ahead),
     )
+
+
+def _held_out_rows(sur, labels, read, inducing: int, max_labels: int, seed: int, band: str,
+                   who: str):  # fmt: skip
+    """The offline model, the term :func:`gpg.flight.adapt` builds on it (``c = 1``) and
+    :func:`_rows_neg_loglik`'s rows: each training part predicted by a model that did not
+    see it (``read``'s rows where given), the term's features at each."""
+    parts = tk._parts(sur, labels, who)
+    stream = tk._checked_read(parts, read, who)
+    offline = dataclasses.replace(sur, model=fc.offline_model(sur.model))
+    template = fc.adapt(offline, inducing=inducing, seed=seed, band=band).model.online
+    data, _, (X, held) = tk._held_out_sequences(offline, parts, max_labels, stream, inputs=True)
+    t, start, _, resid, noise, *_ = data
+    psi = jax.jit(jax.vmap(template.features))(jnp.asarray(X))
+    prior = jnp.sum(psi * psi, -1)  # ψᵀψ at c = 1: the share of the band η's prior takes
+    return offline, template, (t, start, psi, prior, resid, noise + template.noise, held, noise)
 
 
 def _search(args, max_steps: int) -> tuple[Float[Array, " 2"], float, list]:
