@@ -377,9 +377,13 @@ class Corrected(Predictor):
         return self._pad(out)
 
     def _explicit_variance(
-        self, x: Float[Array, " D"], prior_mean: Float[Array, " M"]
+        self,
+        x: Float[Array, " D"],
+        prior_mean: Float[Array, " M"],
+        k: Float[Array, "6 N"] | None = None,
     ) -> Float[Array, " 6"]:
-        """The coefficients' share of the variance per load output (:mod:`gpg.flight.basis`)."""
+        """The coefficients' share of the variance per load output (:mod:`gpg.flight.basis`);
+        ``k`` each ``δ``'s kernel row at ``x`` where the caller has them (a stacked view)."""
         e = self.explicit
         cols = []
         if e.with_prior:
@@ -387,9 +391,48 @@ class Corrected(Predictor):
         if e.with_simple:
             cols.append(self.basis(x)[:, None])
         h = jnp.concatenate([*cols, e.physics(x)], 1)
-        k = jnp.stack([_cross(x[None], d.X, d.hyper.variance, d.hyper.lengthscale)[0]
-                       for d in self.delta])  # fmt: skip
+        if k is None:
+            k = jnp.stack([_cross(x[None], d.X, d.hyper.variance, d.hyper.lengthscale)[0]
+                           for d in self.delta])  # fmt: skip
         return e.variance(h, k)
+
+    def offline_moments(
+        self, x: Float[Array, " D"]
+    ) -> tuple[Float[Array, " M"], Float[Array, " 6"]]:
+        """The offline model's mean and loads' band at one query: what
+        :meth:`mean_var_one` and :meth:`predictive_variance` give a model without online parts,
+        read in one pass where ``δ`` is a :class:`~gpg.gp.inducing.StackedInducing` view
+        (:meth:`stacked`; each kernel row once, for ``δ``'s mean, its variance and the
+        coefficients'). For a :class:`gpg.flight.Bank`'s scores at each label.
+
+        Args:
+            x: (D,) a normalised input.
+
+        Returns:
+            The (M,) mean and the (6,) loads' predictive variance (normalised units).
+
+        Raises:
+            ValueError: ``δ`` stacked without its variance (a :meth:`mean_view`'s stack).
+        """
+        d0 = self.delta[0] if self.delta else None
+        if (
+            not isinstance(d0, StackedInducing)
+            or self.online is not None
+            or self.tracker is not None
+        ):
+            mean, var = self.mean_var_one(x)
+            return mean, self.predictive_variance(var)[:N_LOADS]
+        if not d0.tri:
+            raise ValueError("offline_moments: the stacked discrepancies carry no variance "
+                             "(a mean_view's stack); stack variance_views() instead")  # fmt: skip
+        prior_mean, prior_var = self.prior.mean_var_one(x)
+        k, dmean, latent = d0.evaluate(x)
+        mean = self.scale * prior_mean + self._mean_terms(x) + self._pad(dmean)
+        band = (jnp.maximum(prior_var, 0.0) * self.prior.output_scale * self.scale**2)[:N_LOADS]
+        band = band + (jnp.maximum(latent, 0.0) + d0.noise) * d0.output_scale
+        if self.explicit is not None:
+            band = band + jnp.maximum(self._explicit_variance(x, prior_mean, k), 0.0)
+        return mean, band
 
     @property
     def output_scale(self) -> Float[Array, " M"]:
@@ -1481,9 +1524,7 @@ def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_va
     if getattr(state, "needs_band", False):  # a gpg.flight.Bank: its members are scored
         # under the offline band at the label
         x, y, r = gp_rows(sur, rpm, euler, v_air, *label)
-        off = offline_model(m)
-        mean, var = off.mean_var_one(x)
-        band = off.predictive_variance(var)[:N_LOADS]
+        mean, band = offline_model(m).offline_moments(x)
         return state.measured(x, y - mean[:N_LOADS], r, band)
 
     def columns(st, x, prior_mean):
@@ -1572,8 +1613,8 @@ def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online |
         view = view.variance_views()  # variance in one triangle each
     else:
         view = view.mean_view(wind)
-        if stack:  # six kernel rows in one program, not six: fewer, larger operations a step
-            view = view.stacked()
+    if stack:  # six kernel rows in one program, not six: fewer, larger operations a step
+        view = view.stacked()
     offline = eqx.tree_at(lambda s: s.model, sur, view)
     leaves, treedef = jax.tree_util.tree_flatten(offline)
     leaves = tuple(leaves)

@@ -285,6 +285,7 @@ class StackedInducing(eqx.Module):
             non-zero (as :class:`gpg.linalg.tri.BlockTriangular`), so a query reads about
             half of the dense ``(S, m, m)``; empty: means only.
         output_scale: (S,) each GP's output scale.
+        noise: (S,) each GP's value noise ``ν²`` (its predictive variance adds it).
     """
 
     scaled: Float[Array, "S m D"]
@@ -294,6 +295,7 @@ class StackedInducing(eqx.Module):
     weights: Float[Array, "S m"]
     tri: tuple[Float[Array, "S b c"], ...]
     output_scale: Float[Array, " S"]
+    noise: Float[Array, " S"]
 
     @classmethod
     def of(cls, gps: Sequence[InducingGP], variance: bool) -> StackedInducing | None:
@@ -329,6 +331,7 @@ class StackedInducing(eqx.Module):
             weights=jnp.stack([g.weights[:, 0] for g in gps]),
             tri=tri,
             output_scale=jnp.stack([g.output_scale[0] for g in gps]),
+            noise=jnp.stack([jnp.reshape(g.noise, ()) for g in gps]),
         )
 
     @highest
@@ -368,7 +371,25 @@ class StackedInducing(eqx.Module):
         Returns:
             (S,) the variances (a stack built without them has ``tri`` empty: ``σ``).
         """
+        return self._latents(self.rows(x))
+
+    @highest
+    def evaluate(
+        self, x: Float[Array, " D"]
+    ) -> tuple[Float[Array, "S m"], Float[Array, " S"], Float[Array, " S"]]:
+        """:meth:`rows`, :meth:`means` and :meth:`latents` from one evaluation of the rows.
+
+        Args:
+            x: (D,) the normalised query.
+
+        Returns:
+            The (S, m) kernel rows, the (S,) means and the (S,) latent variances (not
+            clipped).
+        """
         k = self.rows(x)
+        return k, jnp.einsum("sm,sm->s", k, self.weights), self._latents(k)
+
+    def _latents(self, k: Float[Array, "S m"]) -> Float[Array, " S"]:
         q = jnp.zeros_like(self.variance)
         for band in self.tri:  # each band its own array: no slice of a larger buffer
             t = jnp.einsum("sij,sj->si", band, k[:, : band.shape[2]])

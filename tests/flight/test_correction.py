@@ -861,6 +861,7 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
         np.testing.assert_allclose(vf, v, rtol=0, atol=bound)
         assert v.max() > 100 * bound  # the variance told apart from that rounding
     _stacked_as_one_by_one(few, corrected, X, flights)
+    _offline_moments_stacked(every, flights)
     back = checkpoint.load(checkpoint.save(tmp_path / "few", few))
     assert jax.tree.structure(back.model) == jax.tree.structure(few.model)
     for a, b in zip(jax.tree.leaves(few.model), jax.tree.leaves(back.model), strict=True):
@@ -869,6 +870,85 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
     _exports_equal_predict(few, flights, tmp_path / "c", "float", n_casadi=4, onnx=False)
     with pytest.raises(ValueError, match="inducing must be >= 1"):
         fc.correct(synthetic_surrogate, flights, inducing=0)
+
+
+def _row_tolerances(d, x, k):
+    """How far a :class:`StackedInducing` row ``k`` of ``δ`` ``d`` at ``x`` and the mean and
+    latent variance read from it may lie from ``d``'s own, by rounding alone: the two sum
+    ``r² = ‖a‖² + ‖b‖² − 2 a·b`` in other orders, ``|Δr²| ≤ 4 D ε (‖a‖² + ‖b‖²)`` for each row,
+    so ``|Δk| ≤ k |Δr²| / 2``; the mean's error is at most ``Σ |k w| |Δr²| / 2``, the
+    variance's ``‖T Δk‖ (2 ‖T k‖ + ‖T Δk‖) ≤ 3 ‖T‖₂² ‖k‖ ‖Δk‖``."""
+    eps = np.finfo(float).eps
+    ls = np.asarray(d.hyper.lengthscale)
+    a, B = np.asarray(x) / ls, np.asarray(d.X) / ls
+    dr2 = 4 * B.shape[1] * eps * (a @ a + np.sum(B * B, 1))
+    w = np.asarray(d.weights)[:, 0]
+    dk = k * dr2 / 2 + 4 * eps * k
+    mean_tol = np.sum(np.abs(k * w) * dr2) + 4 * k.size * eps * np.sum(np.abs(k * w))
+    T = np.asarray(d.whiten)
+    var_tol = 3 * np.linalg.norm(T, 2) ** 2 * np.linalg.norm(k) * np.linalg.norm(dk)
+    var_tol += 4 * k.size * eps * np.linalg.norm(T @ k) ** 2
+    return dk, mean_tol, var_tol
+
+
+def _offline_moments_stacked(every, flights):
+    """A bank scores each label under the offline band (:meth:`Corrected.offline_moments`):
+    through the stack each kernel row is read once, for ``δ``'s mean, its variance and the
+    physical coefficients', and gives what ``mean_var_one`` and ``predictive_variance`` give
+    one ``δ`` at a time; a bank's ``online_step`` through the stack is the one that reads them
+    one by one."""
+    from gpg.flight.bank import adapt_bank
+    from gpg.gp.inducing import StackedInducing
+
+    folded = fc.offline_model(every.model).variance_views()
+    one_pass = folded.stacked()
+    (stack,) = one_pass.delta
+    assert isinstance(stack, StackedInducing) and folded.explicit is not None
+    np.testing.assert_array_equal(stack.noise, [float(d.noise) for d in folded.delta])
+    X = jnp.asarray(fc.training_rows(every, flights)[0][:4])
+
+    @jax.jit
+    @jax.vmap
+    def read(x):
+        mean, band = one_pass.offline_moments(x)
+        ref_mean, var = folded.mean_var_one(x)
+        k, means, latents = stack.evaluate(x)
+        return (mean, band, ref_mean, folded.predictive_variance(var)[:6], k, means, latents,
+                stack.rows(x), stack.means(x), stack.latents(x))  # fmt: skip
+
+    got = [np.asarray(a) for a in read(X)]
+    mean, band, ref_mean, ref_band, k = got[:5]
+    for a, b in zip(got[5:7], got[8:], strict=True):  # evaluate: the same program's values
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(k, got[7])
+    e, eps = folded.explicit, np.finfo(float).eps
+    C, G = np.asarray(e.cov_chol), np.asarray(e.G)
+    for i, x in enumerate(np.asarray(X)):
+        for j, d in enumerate(folded.delta):
+            dk, mean_tol, var_tol = _row_tolerances(d, x, k[i, j])
+            sc = float(d.output_scale[0])
+            np.testing.assert_allclose(mean[i, j], ref_mean[i, j], rtol=0, atol=sc * mean_tol
+                                       + 8 * eps * abs(ref_mean[i, j]))  # fmt: skip
+            # the coefficients' share ‖Cᵀ(h − Gᵀk)‖²: Δk moves it by at most
+            # ‖C‖ ‖G‖ ‖Δk‖ (2 ‖u‖ + ‖C‖ ‖G‖ ‖Δk‖), u = Cᵀ(h − Gᵀk)
+            cg = np.linalg.norm(C[j], 2) * np.linalg.norm(G[j], 2) * np.linalg.norm(dk)
+            u = np.sqrt(max(ref_band[i, j], 0.0))
+            tol = sc * var_tol + cg * (2 * u + cg) + 16 * eps * ref_band[i, j]
+            np.testing.assert_allclose(band[i, j], ref_band[i, j], rtol=0, atol=tol)
+    with pytest.raises(ValueError, match="carry no variance"):
+        fc.offline_model(every.model).mean_view().stacked().offline_moments(X[0])
+    # the bank's step through the stack and one δ at a time (update's reading)
+    bank = adapt_bank(every, [(1.0, 0.1), (30.0, None)], ahead=2, inducing=8, t0=0.0)
+    cols = flights.columns()
+    a = b = fc.online_state(bank)
+    stacked_step, one_by_one = fc.online_step(bank), fc.online_step(bank, stack=False)
+    for i in range(5):
+        args = [c[i] for c in cols]
+        a, b = stacked_step(a, *args), one_by_one(b, *args)
+    # the bands above differ by rounding; five steps of small filters amplify it far less than
+    # 1e3, and the log weights are sums of a few log densities of order one
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-13 * max(float(np.abs(y).max()), 1))
 
 
 def _stacked_as_one_by_one(few, corrected, X, flights):
@@ -896,21 +976,9 @@ def _stacked_as_one_by_one(few, corrected, X, flights):
 
     xs = X[:4]
     got = {k: np.asarray(v) for k, v in read(xs).items()}
-    eps = np.finfo(float).eps
     for i, x in enumerate(np.asarray(xs)):
         for j, d in enumerate(view.delta):
-            # the two sum r² = ‖a‖² + ‖b‖² − 2 a·b in other orders: |Δr²| ≤ 4 D ε (‖a‖² + ‖b‖²)
-            # for each row, so |Δk| ≤ k |Δr²| / 2; the mean's error at most Σ |k w| |Δr²| / 2,
-            # the variance's ‖T Δk‖ (2 ‖T k‖ + ‖T Δk‖) ≤ 3 ‖T‖₂² ‖k‖ ‖Δk‖.
-            ls = np.asarray(d.hyper.lengthscale)
-            a, B = x / ls, np.asarray(d.X) / ls
-            dr2 = 4 * B.shape[1] * eps * (a @ a + np.sum(B * B, 1))
-            k, w = got["rows"][i, j], np.asarray(d.weights)[:, 0]
-            dk = k * dr2 / 2 + 4 * eps * k
-            mean_tol = np.sum(np.abs(k * w) * dr2) + 4 * k.size * eps * np.sum(np.abs(k * w))
-            T = np.asarray(d.whiten)
-            var_tol = 3 * np.linalg.norm(T, 2) ** 2 * np.linalg.norm(k) * np.linalg.norm(dk)
-            var_tol += 4 * k.size * eps * np.linalg.norm(T @ k) ** 2
+            _, mean_tol, var_tol = _row_tolerances(d, x, got["rows"][i, j])
             close = lambda u, v, tol: np.testing.assert_allclose(u, v, rtol=0, atol=tol)  # noqa: E731
             close(got["mean"][i, j], got["mean_1"][i, j], mean_tol)
             close(got["var"][i, j], got["var_1"][i, j], var_tol)
