@@ -317,10 +317,11 @@ def _update(cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
-    """The tracked step (and with a wind state) on a correction whose discrepancies are
-    inducing-point GPs, its six ``δ`` read through one stack (``online_step(stack=True)``)
-    and one by one, alternated ``rounds`` times: each form's per-round medians and the ratio
-    of the two per round (one by one over stacked)."""
+    """The tracked step (and with a wind state, and a bank of inducing-point terms where
+    ``bank`` is set) on a correction whose discrepancies are inducing-point GPs, its six ``δ``
+    read through one stack (``online_step(stack=True)``) and one by one, alternated
+    ``rounds`` times: each form's per-round medians and the ratio of the two per round (one
+    by one over stacked)."""
     from gpg import flight
 
     n = int(cfg["labels"])
@@ -331,6 +332,12 @@ def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
     models = {"tracked": flight.track(corrected, drift, t0=0.0),
               "wind_state": flight.track(corrected, flight.gusts(drift), t0=0.0)}  # fmt: skip
     out: dict[str, Any] = {"labels": n, "inducing": int(cfg["inducing"])}
+    bank = cfg.get("bank")
+    if bank:  # scored under the offline band at each label: δ's variance read at every step
+        members = [(float(tau), None) for tau in bank["taus"]]
+        models["bank"] = flight.adapt_bank(corrected, members, ahead=int(bank["ahead"]),
+                                           inducing=int(bank["inducing"]), t0=0.0)  # fmt: skip
+        out["bank"] = {k: bank[k] for k in ("taus", "inducing", "ahead")}
     for name, sur in models.items():
         med: dict[str, list[float]] = {"stacked": [], "one_by_one": []}
         for _ in range(int(cfg["rounds"])):
@@ -338,7 +345,7 @@ def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
                 u = _updates(sur, labels, int(cfg["updates"]), stack=stack)
                 med[form].append(u["update_s"]["median_s"])
         ratio = np.asarray(med["one_by_one"]) / np.asarray(med["stacked"])
-        out[name] = {**{f"{k}_median_s": v for k, v in med.items()},
+        out[name] = {**out.get(name, {}), **{f"{k}_median_s": v for k, v in med.items()},
                      "ratio": ratio.tolist(), "ratio_median": float(np.median(ratio))}  # fmt: skip
     return out
 
@@ -360,7 +367,7 @@ def _updates(sur, labels, updates: int, stack: bool = True) -> dict[str, Any]:
         args[0] = args[0] + (k // n) * n / 10.0
         t0 = time.perf_counter()
         state = step(state, *args)
-        jax.block_until_ready(state.mean)
+        jax.block_until_ready(state)
         seconds.append(time.perf_counter() - t0)
     after = sum(x.nbytes for x in jax.tree.leaves(state))
     return {
@@ -397,7 +404,9 @@ def flight_table(res: dict[str, Any]) -> str:
                                  f"{u['online_bytes']['after']} bytes"})  # fmt: skip
     if "stacked" in res.get("update", {}):
         st = res["update"]["stacked"]
-        for name in ("tracked", "wind_state"):
+        for name in ("tracked", "wind_state", "bank"):
+            if "ratio" not in st.get(name, {}):
+                continue
             r = st[name]
             rows.append({"what": f"online update, {name}, {st['labels']} labels, "
                                  f"{st['inducing']}-inducing δ stacked",

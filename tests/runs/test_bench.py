@@ -129,6 +129,7 @@ def test_bench_flight_suite(tmp_path):
                  "flight.update.labels=60", "flight.update.inducing=6", "flight.update.updates=20",
                  "flight.update.stacked.labels=80", "flight.update.stacked.inducing=16",
                  "flight.update.stacked.updates=20", "flight.update.stacked.rounds=2",
+                 "flight.update.stacked.bank.inducing=4",
                  "flight.parallel=null", "flight.c.n_points=40", "flight.c.labels=60",
                  "flight.c.inducing=12", "flight.c.online=6", "flight.c.c_calls=50",
                  "flight.every_label.n_points=40", "flight.every_label.hours=[0.01]",
@@ -143,8 +144,9 @@ def test_bench_flight_suite(tmp_path):
             t = res["c"][dtype][key]
             assert t["n"] == 50 and 0 < t["median_us"] <= t["p95_us"], (dtype, key)
     assert res["every_label"]["runs"][0]["labels"] == 360
-    for name in ("tracked", "wind_state"):  # the two forms alternated, a ratio per round
+    for name in ("tracked", "wind_state", "bank"):  # the two forms alternated, a ratio a round
         assert len(res["update"]["stacked"][name]["ratio"]) == 2
+    assert res["update"]["stacked"]["bank"]["inducing"] == 4
 
 
 @pytest.mark.slow  # a whole bench suite, like the others (its parts: tests/gp/test_binned.py,
