@@ -1026,7 +1026,9 @@ def _report(res) -> str:
             f"training flights' streams ({bf['labels']} rows, scored {bf['ahead']} ahead: "
             f"{bf['log_likelihood']:.4g} nats a row, the members alone "
             + " / ".join(f"{v:.4g}" for v in bf["members"])
-            + ")"
+            + "); its 95 % band held "
+            + " / ".join(f"{v:.3f}" for v in bf.get("coverage95", ()))
+            + " of those rows' labels (Fx Fy Fz Mx My Mz, the labels' noise in the band)"
         )
     if "stream_hindsight_tracked_mse" in ad["tests"][0]:
         lines.append(

@@ -115,6 +115,10 @@ class BankFit:
         members: each member alone, scored the same way (nats per label).
         grid: ``((τ_w, log likelihood), ...)``: the grid the search started from.
         labels: the rows the likelihood summed over.
+        coverage95: per load output, the share of those rows' labels inside the bank's
+            95-percent band at the fitted ``τ_w`` (``Z95`` standard deviations of the
+            mixture's moments of the members' predictions made at each row, as the bank
+            predicts, the label's own noise added).
     """
 
     weight_tau: float
@@ -123,6 +127,7 @@ class BankFit:
     members: tuple[float, ...]
     grid: tuple[tuple[float, float], ...]
     labels: int
+    coverage95: tuple[float, ...] = ()
 
 
 @float64
@@ -175,7 +180,7 @@ def fit_bank(
                                        "fit_bank")  # fmt: skip
     t, start = rows[:2]
     factor = on.variance / template.variance  # each member's c per output
-    ll = _bank_rows_loglik(on.tau, factor, rows, template.shared, int(ahead))
+    ll, err, var = _bank_rows_loglik(on.tau, factor, rows, template.shared, int(ahead))
     scored = [(w, -float(_mixture_neg_loglik(jnp.log(w), (ll, t, start))))
               for w in _WEIGHT_TAU_GRID]  # fmt: skip
     w0, best = max(scored, key=lambda s: s[1])
@@ -185,6 +190,8 @@ def fit_bank(
     found = -float(_mixture_neg_loglik(sol.value, (ll, t, start)))
     if found > best:
         w0, best = float(_weight_tau(sol.value[0])), found
+    mean, band = _mixture_moments(jnp.log(jnp.asarray(w0)), ll, err, var, t, start)
+    inside = np.asarray(mean) ** 2 <= fc.Z95**2 * np.asarray(band)
     return BankFit(
         weight_tau=float(w0),
         ahead=int(ahead),
@@ -192,6 +199,7 @@ def fit_bank(
         members=tuple(float(v) for v in jnp.mean(jnp.sum(ll, -1), 0)),
         grid=tuple(scored),
         labels=int(t.shape[0]),
+        coverage95=tuple(float(v) for v in inside.mean(0)),
     )
 
 
@@ -200,23 +208,39 @@ def _weight_tau(log_tau: Float[Array, ""]) -> Float[Array, ""]:
     return jnp.exp(jnp.clip(log_tau, lo, hi))
 
 
+def _log_weights(ll, t, start, tw):
+    """The members' normalised log weights before each row, (N, K, 6), from each row's log
+    densities ``ll`` (N, K, 6): each row's added after it, all decayed by ``e^{−Δt/τ_w}``
+    between rows, reset where a flight starts."""
+
+    def body(carry, row):
+        lw, t_prev = carry
+        lr, ti, st = row
+        lw = jnp.where(st, 0.0, lw * jnp.exp(-jnp.maximum(ti - t_prev, 0.0) / tw))
+        return (lw + lr, ti), lw - jax.nn.logsumexp(lw, axis=0)
+
+    return jax.lax.scan(body, (jnp.zeros(ll.shape[1:], ll.dtype), t[0]), (ll, t, start))[1]
+
+
 @jax.jit
 def _mixture_neg_loglik(log_tau, args):
     """Minus the mean log density per row of the mixture with ``τ_w = e^{log_tau}`` from each
     row's members' log densities ``ll`` (N, K, 6), the weights before the row (reset where a
     flight starts)."""
     ll, t, start = args
-    tw = _weight_tau(jnp.reshape(log_tau, ()))
+    logw = _log_weights(ll, t, start, _weight_tau(jnp.reshape(log_tau, ())))
+    return -jnp.mean(jnp.sum(jax.nn.logsumexp(logw + ll, axis=1), -1))
 
-    def body(carry, row):
-        lw, t_prev = carry
-        lr, ti, st = row
-        lw = jnp.where(st, 0.0, lw * jnp.exp(-jnp.maximum(ti - t_prev, 0.0) / tw))
-        logw = lw - jax.nn.logsumexp(lw, axis=0)
-        return (lw + lr, ti), jnp.sum(jax.nn.logsumexp(logw + lr, axis=0))
 
-    _, out = jax.lax.scan(body, (jnp.zeros(ll.shape[1:], ll.dtype), t[0]), (ll, t, start))
-    return -jnp.mean(out)
+@jax.jit
+def _mixture_moments(log_tau, ll, err, var, t, start):
+    """Each row's mixture of the members' predictions at it, weighted as :func:`fit_bank`'s
+    score weighs them with ``τ_w = e^{log_tau}``: the (N, 6) mean of the residual's errors
+    ``Σ w_k e_k`` and the variance ``Σ w_k (v_k + e_k²) − (Σ w_k e_k)²`` (``e``, ``v`` (N, K,
+    6) each member's error and band with the label's noise)."""
+    w = jnp.exp(_log_weights(ll, t, start, _weight_tau(jnp.reshape(log_tau, ()))))
+    mean = jnp.sum(w * err, 1)
+    return mean, jnp.sum(w * (var + err**2), 1) - mean**2
 
 
 @partial(jax.jit, static_argnums=(3, 4))
@@ -225,7 +249,9 @@ def _bank_rows_loglik(tau, factor, rows, shared: bool, ahead: int):
     """Each row's log density under each member ``ahead`` rows behind, (N, K, 6): the members'
     weights (``τ`` (K, 6, m), factors ``c`` (K, 6)) as :class:`gpg.flight.bank.Bank` runs
     them, on :func:`_rows_neg_loglik`'s rows. The members behind take each waiting row
-    relaxed to its own time, as the bank does; a flight's start empties the ring."""
+    relaxed to its own time, as the bank does; a flight's start empties the ring. Also each
+    member's own prediction at the row (from the rows before it): its error and its band
+    with the label's noise, (N, K, 6) each."""
     t, start, psi, prior, resid, gain_noise, held, noise = rows
     k, m = factor.shape[0], psi.shape[-1]
     eye = jnp.eye(m, dtype=psi.dtype)
@@ -258,13 +284,13 @@ def _bank_rows_loglik(tau, factor, rows, shared: bool, ahead: int):
         t_lag = jnp.where(live[j], rt[j], t_lag)
         p = root * p0
         _, q, err = per_member(_predicted, relax(lag, jnp.maximum(ti - t_lag, 0.0)), p, e)
-        s = (jnp.maximum(b - factor * q0, 0.0) if shared else b) + q + n
-        ll = -0.5 * (jnp.log(2 * jnp.pi * s) + err**2 / s)
+        offline = (jnp.maximum(b - factor * q0, 0.0) if shared else b) + n
+        ll = -0.5 * (jnp.log(2 * jnp.pi * (offline + q)) + err**2 / (offline + q))
         Sp, q1, err1 = per_member(_predicted, cur, p, e)
         cur = jax.vmap(_updated, in_axes=(0, 0, 0, 0, 0, None))(*cur, Sp, q1, err1, r)
         ring = (rp.at[j].set(p0), re.at[j].set(e), rr.at[j].set(r), live.at[j].set(True),
                 rt.at[j].set(ti))  # fmt: skip
-        return (cur, lag, ti, t_lag, ring, i + 1), ll
+        return (cur, lag, ti, t_lag, ring, i + 1), (ll, err1, offline + q1)
 
     init = (fresh, fresh, t[0], t[0], ring0, 0)
     return jax.lax.scan(body, init, rows)[1]

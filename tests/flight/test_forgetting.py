@@ -225,10 +225,11 @@ def test_fit_forgetting_and_adapt_refuse_bad_input(synthetic_surrogate, correcte
 def _bank_reference(tau, factor, rows, shared, ahead):
     """NumPy: each member's weights run row by row alone (restarting at each flight), its
     state after every row kept; row i scored by the state after row i − ahead (the prior
-    where the flight has fewer rows), relaxed to row i."""
+    where the flight has fewer rows), relaxed to row i; and each member's own prediction at
+    row i (its error, its band with the label's noise)."""
     t, start, psi, prior, resid, gain_noise, held, noise = (np.asarray(a) for a in rows)
     n, k, m = len(t), len(factor), psi.shape[-1]
-    out = np.zeros((n, k, 6))
+    out, err1, var1 = np.zeros((n, k, 6)), np.zeros((n, k, 6)), np.zeros((n, k, 6))
     for j in range(k):
         tj, c = np.broadcast_to(tau[j], (6, m)), np.asarray(factor[j])[:, None]
         fresh = (np.zeros((6, m)), np.stack([np.eye(m)] * 6))
@@ -254,11 +255,12 @@ def _bank_reference(tau, factor, rows, shared, ahead):
             out[i, j] = -0.5 * (np.log(2 * np.pi * s) + err**2 / s)
             sp = np.einsum("jmn,jn->jm", cov, p)
             q, err = np.einsum("jm,jm->j", p, sp), resid[i] - np.einsum("jm,jm->j", p, mean)
+            err1[i, j], var1[i, j] = err, b + q + noise[i]
             g = sp / (q + gain_noise[i])[:, None]
             mean, cov = mean + g * err[:, None], cov - g[:, :, None] * sp[:, None, :]
             after.append((mean, cov, t[i]))
             t_prev = t[i]
-    return out
+    return out, err1, var1
 
 
 @pytest.mark.parametrize("shared", [False, True])
@@ -276,25 +278,31 @@ def test_bank_rows_and_mixture_match_numpy(shared, ahead):
     tau = np.stack([np.full((6, m), 0.7), np.broadcast_to(np.geomspace(1, 50, 6)[:, None], (6, m))])
     factor = np.stack([np.full(6, 0.3), np.linspace(0.5, 2.0, 6)])
     rows_j = tuple(map(jnp.asarray, rows))
-    got = np.asarray(fg._bank_rows_loglik(jnp.asarray(tau), jnp.asarray(factor), rows_j,
-                                          shared, ahead))  # fmt: skip
-    ref = _bank_reference(tau, factor, rows, shared, ahead)
-    np.testing.assert_allclose(got, ref, rtol=1e-11, atol=1e-12)
+    got = [np.asarray(a) for a in fg._bank_rows_loglik(jnp.asarray(tau), jnp.asarray(factor),
+                                                       rows_j, shared, ahead)]  # fmt: skip
+    ref, err1, var1 = _bank_reference(tau, factor, rows, shared, ahead)
+    for a, b in zip(got, (ref, err1, var1), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12)
     tw = 0.8
     lw, total = np.zeros((2, 6)), 0.0
+    mean, band = np.zeros((n, 6)), np.zeros((n, 6))
     t, start = rows[0], rows[1]
     for i in range(n):
         lw = np.zeros((2, 6)) if start[i] else lw * np.exp(-(t[i] - t[i - 1]) / tw)
         w = np.exp(lw - lw.max(0))
         w /= w.sum(0)
         total += np.sum(np.log(np.sum(w * np.exp(ref[i]), 0)))
+        mean[i] = np.sum(w * err1[i], 0)
+        band[i] = np.sum(w * (var1[i] + err1[i] ** 2), 0) - mean[i] ** 2
         lw += ref[i]
-    mix = float(
-        fg._mixture_neg_loglik(
-            jnp.log(jnp.asarray([tw])), (jnp.asarray(got), jnp.asarray(t), jnp.asarray(start))
-        )
-    )
+    args = [jnp.asarray(a) for a in (got[0], t, start)]
+    mix = float(fg._mixture_neg_loglik(jnp.log(jnp.asarray([tw])), tuple(args)))
     np.testing.assert_allclose(mix, -total / n, rtol=1e-11)
+    # the bank's band at each row: its mixture's moments of the members' own predictions
+    moments = fg._mixture_moments(jnp.log(jnp.asarray(tw)), *map(jnp.asarray, got), *args[1:])
+    np.testing.assert_allclose(moments[0], mean, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(moments[1], band, rtol=1e-11, atol=1e-12)
+    assert np.all(band > np.min(var1, 1) * (1 - 1e-12))  # never below its narrowest member
 
 
 def test_fit_bank_on_flights(corrected, flights):  # noqa: F811
@@ -306,6 +314,8 @@ def test_fit_bank_on_flights(corrected, flights):  # noqa: F811
     assert lo * (1 - 1e-12) <= f.weight_tau <= hi * (1 + 1e-12)
     assert f.log_likelihood >= max(ll for _, ll in f.grid) - 1e-12
     assert f.labels == N_LABELS and f.ahead == 3 and len(f.members) == 2
+    assert len(f.coverage95) == 6 and all(0.0 <= c <= 1.0 for c in f.coverage95)
+    assert max(f.coverage95) > 0.5  # labels from the model's own family: inside, mostly
     one = fg.fit_bank(corrected, flights, members[1:], ahead=3, inducing=M, max_steps=2)
     np.testing.assert_allclose(one.log_likelihood, one.members[0], rtol=1e-12)
     np.testing.assert_allclose(one.members[0], f.members[1], rtol=1e-12)

@@ -188,6 +188,9 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     assert all(r["stream_bank_mse"] > 0 and 0 <= r["stream_bank_coverage95"] <= 1
                for r in ad["tests"])  # fmt: skip
     assert ad["bank_update"]["bytes_start"] == ad["bank_update"]["bytes_end"]
+    # its weights' forgetting fitted on the training streams, with what its band held there
+    cover = ad["bank_fit"]["coverage95"]
+    assert len(cover) == 6 and all(0 < c <= 1 for c in cover)
     sweep = {s["model"]: s["held_out_log_likelihood"] for s in ad["spread_sweep"]}
     uniform = [f"tracked_spread_{s:g}" for s in cfg["track"]["spread_sweep"]]
     assert set(sweep) == {*uniform, "tracked", "tracked_one_spread"}
