@@ -396,6 +396,7 @@ class Corrected(Predictor):
                            for d in self.delta])  # fmt: skip
         return e.variance(h, k)
 
+    @highest
     def offline_moments(
         self, x: Float[Array, " D"]
     ) -> tuple[Float[Array, " M"], Float[Array, " 6"]]:
