@@ -25,7 +25,7 @@ int main(int argc, char **argv) {
   char line[4096];
   double c[N_COLS], force[3], torque[3], levels[MODEL_N_LEVELS + 1];
   double variance[6 + MODEL_N_LEVELS];
-  model_online state;
+  static model_online state; /* static: a bank's state is hundreds of kB */
   long n = 0;
   int i, ok, used;
   if (argc != 2) {

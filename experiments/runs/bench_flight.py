@@ -17,7 +17,9 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   With ``stacked``: the tracked step, and the step with a wind state, on a correction of
   ``stacked.labels`` labels whose discrepancies are inducing-point GPs of
   ``stacked.inducing`` inputs, read through one stack and one by one
-  (``online_step(stack=...)``), alternated ``rounds`` times: the ratio within each round.
+  (``online_step(stack=...)``), and stacked with each new state written over the last
+  (``online_step(donate=True)``), the three taking each label in turn, in ``rounds``
+  rounds: the median of the ratios paired by label, per round.
 * ``parallel``: :func:`gpg.flight.label_logs` of a directory of ``logs`` CSV logs of
   ``seconds`` s each (``distinct`` flights of the nominal vehicle flown by
   :func:`gpg.flight.synthetic.fly` through the default sensors, 200 Hz with rotor speeds and an
@@ -31,8 +33,9 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   synthetic labels: the cost depends on the sizes only), the online term's update and
   prediction (``online`` inducing inputs), and the same two calls of the corrected model
   tracked (:func:`gpg.flight.track`, the default drift with a second, one-second bias
-  member: a bank of two filters) and tracked with a wind state (:func:`gpg.flight.gusts`,
-  ``wind_*``), in double and in float.
+  member: a bank of two filters), tracked with a wind state (:func:`gpg.flight.gusts`,
+  ``wind_*``) and adapted by a bank of online terms (:func:`gpg.flight.adapt_bank`, ``bank``:
+  its members' forgetting times and ``ahead``; ``bank_*``), in double and in float.
 * ``every_label``: :func:`gpg.flight.correct` (the physical basis, discrepancies through
   ``inducing`` inducing inputs) on ``hours`` of labels at 10 Hz (36 000 an hour; synthetic
   labels of a vehicle 10 % stronger than the prior, drawn in its box: the cost depends on the
@@ -159,6 +162,10 @@ def _c(cfg: dict[str, Any]) -> dict[str, Any]:
     drift = dataclasses.replace(flight.default_drift(corrected), fast=(1.0,))
     tracked = {"tracked": flight.track(corrected, drift),
                "wind": flight.track(corrected, flight.gusts(drift))}  # fmt: skip
+    if cfg.get("bank"):  # its members scored under the offline band at each label
+        members = [(float(tau), None) for tau in cfg["bank"]["taus"]]
+        tracked["bank"] = flight.adapt_bank(corrected, members, ahead=int(cfg["bank"]["ahead"]),
+                                            inducing=int(cfg["online"]), t0=0.0)  # fmt: skip
     calls = (("mean", "quad_mean(rpm, e, v, f, tq, lv)"),
              ("predict", "quad_predict(rpm, e, v, f, tq, lv, var)"))  # fmt: skip
     out: dict[str, Any] = {"cc": cc, "flags": cfg["flags"], "n_points": int(cfg["n_points"]),
@@ -175,7 +182,7 @@ def _c(cfg: dict[str, Any]) -> dict[str, Any]:
                 (where / "driver.c").write_text(c_driver(header, call))
                 sources = [where / "driver.c", info["c"]]
                 row[key] = compile_and_time(cc, cfg["flags"], where, sources, int(cfg["c_calls"]))
-            for kind, model in tracked.items():  # the tracked filter, and with a wind state
+            for kind, model in tracked.items():  # the tracked filter, with a wind state, a bank
                 where = Path(tmp) / f"{dtype}_{kind}"
                 info = to_c(model, where, name="quad", dtype=dtype)
                 (where / "online_bench.h").write_text(ONLINE_HEADER)
@@ -319,9 +326,10 @@ def _update(cfg: dict[str, Any]) -> dict[str, Any]:
 def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
     """The tracked step (and with a wind state, and a bank of inducing-point terms where
     ``bank`` is set) on a correction whose discrepancies are inducing-point GPs, its six ``δ``
-    read through one stack (``online_step(stack=True)``) and one by one, alternated
-    ``rounds`` times: each form's per-round medians and the ratio of the two per round (one
-    by one over stacked)."""
+    read through one stack (``online_step(stack=True)``), one by one, and stacked with the
+    state donated (``donate=True``), the forms interleaved label by label (:func:`_interleaved`)
+    in each of ``rounds`` rounds: each form's per-round medians and, per round, the median of
+    the ratios paired by label (one by one over stacked, stacked over donated)."""
     from gpg import flight
 
     n = int(cfg["labels"])
@@ -338,25 +346,55 @@ def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
         models["bank"] = flight.adapt_bank(corrected, members, ahead=int(bank["ahead"]),
                                            inducing=int(bank["inducing"]), t0=0.0)  # fmt: skip
         out["bank"] = {k: bank[k] for k in ("taus", "inducing", "ahead")}
+    forms = {"stacked": {"stack": True}, "one_by_one": {"stack": False},
+             "donated": {"stack": True, "donate": True}}  # fmt: skip
     for name, sur in models.items():
-        med: dict[str, list[float]] = {"stacked": [], "one_by_one": []}
+        med: dict[str, list[float]] = {form: [] for form in forms}
+        ratio, donated = [], []
         for _ in range(int(cfg["rounds"])):
-            for form, stack in (("stacked", True), ("one_by_one", False)):
-                u = _updates(sur, labels, int(cfg["updates"]), stack=stack)
-                med[form].append(u["update_s"]["median_s"])
-        ratio = np.asarray(med["one_by_one"]) / np.asarray(med["stacked"])
+            sec = _interleaved(sur, labels, int(cfg["updates"]), forms)
+            for form in forms:
+                med[form].append(float(np.median(sec[form])))
+            ratio.append(float(np.median(sec["one_by_one"] / sec["stacked"])))
+            donated.append(float(np.median(sec["stacked"] / sec["donated"])))
         out[name] = {**out.get(name, {}), **{f"{k}_median_s": v for k, v in med.items()},
-                     "ratio": ratio.tolist(), "ratio_median": float(np.median(ratio))}  # fmt: skip
+                     "ratio": ratio, "ratio_median": float(np.median(ratio)),
+                     "donated_ratio": donated,
+                     "donated_ratio_median": float(np.median(donated))}  # fmt: skip
     return out
 
 
-def _updates(sur, labels, updates: int, stack: bool = True) -> dict[str, Any]:
+def _interleaved(sur, labels, updates: int, forms: dict[str, dict]) -> dict[str, np.ndarray]:
+    """Each form of the compiled step (``forms``: its ``online_step`` options) over the same
+    ``updates`` labels, each with its own state, the forms taking each label in turn (their
+    order reversed every label): seconds per call and form, paired by label, so that a
+    machine whose speed drifts within a run moves every form alike."""
+    from gpg import flight
+
+    n = len(labels)
+    steps = {form: flight.online_step(sur, **kw) for form, kw in forms.items()}
+    states = {form: flight.online_state(sur) for form in forms}
+    cols = labels.columns()
+    seconds: dict[str, list[float]] = {form: [] for form in forms}
+    for k in range(updates + 10):
+        i = k % n
+        args = [c[i] for c in cols]
+        args[0] = args[0] + (k // n) * n / 10.0
+        for form in list(forms)[:: 1 if k % 2 else -1]:
+            t0 = time.perf_counter()
+            states[form] = steps[form](states[form], *args)
+            jax.block_until_ready(states[form])
+            seconds[form].append(time.perf_counter() - t0)
+    return {form: np.asarray(v[10:]) for form, v in seconds.items()}  # the first calls compile
+
+
+def _updates(sur, labels, updates: int) -> dict[str, Any]:
     """``updates`` calls of the compiled step, once a label from Python (the labels replayed,
     time moving on), and the state's bytes before and after."""
     from gpg import flight
 
     n = len(labels)
-    step = flight.online_step(sur, stack=stack)
+    step = flight.online_step(sur)
     state = flight.online_state(sur)
     cols = labels.columns()
     before = sum(x.nbytes for x in jax.tree.leaves(state))
@@ -414,6 +452,12 @@ def flight_table(res: dict[str, Any]) -> str:
                          "note": f"one by one {np.median(r['one_by_one_median_s']) * 1e3:.3f} "
                                  f"ms; ratio {r['ratio_median']:.2f} (rounds "
                                  f"{', '.join(f'{v:.2f}' for v in r['ratio'])})"})  # fmt: skip
+            if "donated_median_s" in r:
+                rounds = ", ".join(f"{v:.2f}" for v in r["donated_ratio"])
+                rows.append({"what": f"online update, {name}, stacked, donate=True",
+                             "median": float(np.median(r["donated_median_s"])) * 1e3,
+                             "note": f"stacked over donated {r['donated_ratio_median']:.2f} "
+                                     f"(rounds {rounds})"})  # fmt: skip
     if "parallel" in res:
         pa = res["parallel"]
         for w, st in pa["wall_s"].items():
@@ -433,7 +477,8 @@ def flight_table(res: dict[str, Any]) -> str:
         c = res["c"]
         for dtype in ("double", "float"):
             keys = ("mean", "predict", "online_update", "online_predict", "tracked_update",
-                    "tracked_predict", "wind_update", "wind_predict")  # fmt: skip
+                    "tracked_predict", "wind_update", "wind_predict", "bank_update",
+                    "bank_predict")  # fmt: skip
             for key in (k for k in keys if k in c[dtype]):
                 t = c[dtype][key]
                 what = f"C {dtype}: corrected model's {key}, {c['inducing']} inducing"

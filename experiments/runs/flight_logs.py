@@ -485,10 +485,11 @@ def update_cost(adapted, lab: Labels, seconds: float, progress: bool = False) ->
     """Updates once a step from Python (:func:`gpg.flight.online_step`) over ``seconds`` of
     labels (the flight's replayed, time moving on): their cost in ms (median, 10th and 90th
     percentiles, the first ten calls left out: they compile), and the online state's bytes
-    before and after."""
+    before and after. The loop keeps only the newest state, as a flight's does, so each new
+    state is written over the last (``donate=True``)."""
     rate = 1.0 / float(np.median(np.diff(lab.t)))
     n = int(round(seconds * rate))
-    step = fc.online_step(adapted)
+    step = fc.online_step(adapted, donate=True)
     cols = lab.columns()
     state = fc.online_state(adapted)
     nbytes0 = sum(x.nbytes for x in jax.tree.leaves(state))

@@ -72,7 +72,10 @@ def to_c(
     So does a tracked model (:func:`gpg.flight.track`), its state the filters' and, with a wind
     state (:func:`gpg.flight.gusts`; ``variance`` needed), the wind's: its update and
     prediction take the model's derivative in the air velocity by fourth-order central
-    differences (:data:`WIND_FD_STEP`) where the library's is ``jax.jacfwd``.
+    differences (:data:`WIND_FD_STEP`) where the library's is ``jax.jacfwd``. So does a
+    model adapted by a bank of online terms (:func:`gpg.flight.adapt_bank`; ``variance``
+    needed: its update scores the members under the offline band), its state the members',
+    their lagged copies', the ring of waiting labels and the weights.
 
     Units rpm, rad (yaw, pitch, roll: ``R_WB = Rz Ry Rx``), m/s, N, N·m, dB; world frame x
     forward, y right, z down; the same call for a surrogate of either frame. The header
@@ -191,6 +194,9 @@ def _online_header(name: str, s: Layout, c_type: str) -> str:
                 "diag(J P_g J^T)")  # fmt: skip
     band = ("the loads' band is the filter's, as gpg's predict of a tracked model"
             if s.correction.tracked is not None else "added")  # fmt: skip
+    if s.correction.bank is not None:
+        band = ("the members' mixture: their means weighted per load output, the band each "
+                "member's with the offline one, plus the spread of their means")  # fmt: skip
     return (
         state
         + f"""
@@ -220,6 +226,8 @@ int {name}_online_predict(const {name}_online *st, const double rpm[4], const do
 def _online_state(name: str, s: Layout, c_type: str) -> tuple[str, str]:
     """The online state's struct (C) and how it relaxes (words), for :func:`_online_header`."""
     o = _online(s)
+    if s.correction.bank is not None:
+        return _bank_state(name, s.correction.bank, c_type)
     if s.correction.tracked is not None:
         k, p = o.mean.shape[0], o.mean.shape[2]
         wind = "" if o.wind_mean is None else (
@@ -269,6 +277,39 @@ typedef struct {{
             f"{v:.6g}" for v in o.tau[:, 0]
         ) + " s"
     return state, f"forgetting time constants {o.tau.min():.6g}-{o.tau.max():.6g} s, one per weight"
+
+
+def _bank_state(name: str, b: Any, c_type: str) -> tuple[str, str]:
+    """A bank's state struct (C) and how it relaxes (words), for :func:`_online_state`."""
+    k, (m, d), ahead = len(b.members), b.members[0].Z.shape, b.ahead
+    state = f"""
+/* The bank of online terms of the model (gpg.flight.adapt_bank): {k} terms of {m} inducing
+ * inputs per load output, mixed by their predictions {ahead} labels ahead. The state is the
+ * caller's (fixed size; nothing is allocated), one state per vehicle. {name}_mean and
+ * {name}_predict above are the model without it (offline). */
+#define {name.upper()}_N_MEMBERS {k}
+#define {name.upper()}_N_INDUCING {m}
+#define {name.upper()}_AHEAD {ahead}
+typedef struct {{
+  {c_type} mean[{k}][6][{m}];          /* each member's whitened weights' mean, per load output */
+  {c_type} cov[{k}][6][{m}][{m}];      /* and their covariance */
+  {c_type} lag_mean[{k}][6][{m}];      /* the same terms {ahead} labels late: what scores them */
+  {c_type} lag_cov[{k}][6][{m}][{m}];
+  double lag_t[{k}];               /* s, the lagged terms' times */
+  double ring_x[{ahead}][{d}];           /* the last labels (normalised inputs), waiting for them */
+  double ring_y[{ahead}][6];           /* their residuals against the offline mean */
+  double ring_r[{ahead}][6];           /* their noise variances */
+  double ring_t[{ahead}];              /* s, their times */
+  int ring_live[{ahead}];              /* which slots hold a label */
+  long count;                   /* the labels seen */
+  double log_weight[{k}][6];       /* each member's log weight per load output */
+  double t;                     /* s, the time of the last update */
+}} {name}_online;
+"""
+    taus = ", ".join(f"{o.tau.min():.6g}-{o.tau.max():.6g}" if o.tau.min() != o.tau.max()
+                     else f"{o.tau.min():.6g}" for o in b.members)  # fmt: skip
+    return state, (f"the members' forgetting time constants {taus} s, their weights' "
+                   f"{b.weight_tau:.6g} s")  # fmt: skip
 
 
 def _header(name: str, s: Layout, record: dict[str, Any], dtype: str) -> str:
@@ -443,6 +484,7 @@ def _source(name: str, dtype: str, s: Layout, record: dict[str, Any]) -> str:
         "HAS_CORR": s.correction is not None,
         "HAS_ONLINE": _online(s) is not None,
         "HAS_TRACKER": s.correction is not None and s.correction.tracked is not None,
+        "IS_BANK": s.correction is not None and s.correction.bank is not None,
     }
     defs = [f"#define {k} {int(v)}" for k, v in flags.items()]
     defs.append(f"#define ONLINE_T {name}_online")
@@ -478,16 +520,26 @@ int {name}_predict(const double rpm[4], const double euler[3], const double v_ai
         corr = "\n".join(_correction_constants(s, dtype)) + "\n" + fragment("correction.c")
     if _online(s) is not None:
         corr += fragment("tracker.c" if s.correction.tracked is not None else "online.c")
+    if s.correction is not None and s.correction.bank is not None:
+        corr += fragment("bank.c")
     # the correction's code reads the body's helpers (the vector clones' switch among them)
     body = fragment("body.c").replace("/*@CORRECTION@*/", corr)
     return head + consts + "\n" + fragment("frames.c") + sums + body + public
 
 
 def _online(s: Layout):
-    """The online state's term: an adapted model's ``η`` or a tracked model's filter."""
+    """The online state's term: an adapted model's ``η``, a tracked model's filter or a
+    bank of online terms."""
     if s.correction is None:
         return None
-    return s.correction.online if s.correction.online is not None else s.correction.tracked
+    c = s.correction
+    return next((o for o in (c.online, c.tracked, c.bank) if o is not None), None)
+
+
+def _online_t(s: Layout) -> float:
+    """The online state's time when exported."""
+    o = _online(s)
+    return o.members[0].t if hasattr(o, "members") else o.t
 
 
 # Long by design: the three calls as one C template, read as C.
@@ -514,6 +566,33 @@ void {name}_online_init({name}_online *st) {{
     for (q = 0; q < 3; q++) st->wind_cov[p][q] = WIND_COV0[p * 3 + q];
   }}
 #endif
+#elif IS_BANK
+  int k;
+  for (k = 0; k < ONLINE_K; k++) {{
+    st->lag_t[k] = BANK_LAGGED_T0[k];
+    for (j = 0; j < 6; j++) {{
+      st->log_weight[k][j] = BANK_LOG_WEIGHT0[k * 6 + j];
+      for (p = 0; p < N_IND; p++) {{
+        long at = ((long)k * 6 + j) * N_IND + p;
+        st->mean[k][j][p] = (real)ONLINE_MEAN0[at];
+        st->lag_mean[k][j][p] = (real)BANK_LAGGED_MEAN0[at];
+        for (q = 0; q < N_IND; q++) {{
+          st->cov[k][j][p][q] = (real)ONLINE_COV0[at * N_IND + q];
+          st->lag_cov[k][j][p][q] = (real)BANK_LAGGED_COV0[at * N_IND + q];
+        }}
+      }}
+    }}
+  }}
+  for (k = 0; k < BANK_L; k++) {{
+    for (p = 0; p < D_IN; p++) st->ring_x[k][p] = BANK_RING_X0[k * D_IN + p];
+    for (j = 0; j < 6; j++) {{
+      st->ring_y[k][j] = BANK_RING_Y0[k * 6 + j];
+      st->ring_r[k][j] = BANK_RING_R0[k * 6 + j];
+    }}
+    st->ring_t[k] = BANK_RING_T0[k];
+    st->ring_live[k] = RING_LIVE0[k];
+  }}
+  st->count = BANK_COUNT0;
 #else
   for (j = 0; j < 6; j++)
     for (p = 0; p < N_IND; p++) {{
@@ -522,18 +601,20 @@ void {name}_online_init({name}_online *st) {{
         st->cov[j][p][q] = (real)ONLINE_COV0[((long)j * N_IND + p) * N_IND + q];
     }}
 #endif
-  st->t = {_online(s).t!r};
+  st->t = {_online_t(s)!r};
 }}
 
 /* the label's residual y against the offline mean and its noise variance r (normalised, GP
  * frame) at the air velocity v_air; x, xn the GP's input, prior the prior's normalised mean
  * (the tracked columns read it); dl (when not null) each delta's latent variance there,
- * scaled (zeros without them) */
+ * scaled (zeros without them); band (when not null) the offline model's band of the loads
+ * there (normalised, the prior's latent variance in it: a bank's members are scored under
+ * it) */
 static void label_rows(const double rpm[4], const double euler[3], const double v_air[3],
                        const double force[3], const double torque[3], const double force_var[3],
                        const double torque_var[3], double x[D_IN], double xn[D_IN],
-                       double prior[N_OUT], double y[6], double r[6], double *dl) {{
-  double rwh[3][3], yn[N_OUT], f[3], tq[3];
+                       double prior[N_OUT], double y[6], double r[6], double *dl, double *band) {{
+  double rwh[3][3], yn[N_OUT], f[3], tq[3], latent = 0.0;
   int i, k;
   gp_input(rpm, euler, v_air, x, rwh);
   for (i = 0; i < D_IN; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
@@ -549,11 +630,18 @@ static void label_rows(const double rpm[4], const double euler[3], const double 
   if (dl) for (i = 0; i < 6; i++) dl[i] = 0.0;
 #if HAS_VAR
   {{
-    double pvn[N_OUT]; /* the offline band, computed beside delta's variance and not read */
-    corrected(x, xn, yn, 0.0, dl ? pvn : 0, dl);
+    double pvn[N_OUT]; /* the offline band, beside delta's variance */
+    if (band) {{ /* its prior's part too */
+      real kb[MAX_ROWS];
+      int bb = lookup(xn), nb = kernel_row(xn, bb, kb);
+      latent = latent_variance(kb, bb, nb);
+    }}
+    corrected(x, xn, yn, latent, dl || band ? pvn : 0, dl);
+    if (band) for (i = 0; i < 6; i++) band[i] = pvn[i];
   }}
 #else
   corrected(x, xn, yn, 0.0, 0, 0);
+  (void)band; (void)latent;
 #endif
   for (i = 0; i < 3; i++) {{ f[i] = force[i]; tq[i] = torque[i]; }}
 #if HAS_ALLOCATION
@@ -597,7 +685,7 @@ static void wind_jacobian(const double rpm[4], const double euler[3], const doub
     for (j = 0; j < 6; j++) J[j][a] = 0.0;
     for (c = 0; c < 4; c++) {{
       for (i = 0; i < 3; i++) v[i] = v_air[i] + (g[i] + (i == a ? FD_AT[c] * WIND_FD_STEP : 0.0));
-      label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
+      label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, y, r, 0, 0);
       for (j = 0; j < 6; j++) J[j][a] += FD_W[c] * y[j];
     }}
     for (j = 0; j < 6; j++) J[j][a] /= 12.0 * WIND_FD_STEP;
@@ -626,23 +714,31 @@ int {name}_online_update({name}_online *st, double t, const double rpm[4],
       * the air velocity it implies (gpg.flight.correction.advance) */
     double v[3], g[3], e[6], n[6], dl[6], mix[6], var[6], J[6][3];
     for (i = 0; i < 3; i++) {{ g[i] = st->wind_mean[i]; v[i] = v_air[i] + g[i]; }}
-    label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, e, r, dl);
+    label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, e, r, dl, 0);
     track_columns(x, prior, h);
     tracker_mix(st, h, mix, var);
     wind_jacobian(rpm, euler, v_air, g, force, torque, force_var, torque_var, J);
     for (i = 0; i < 6; i++) n[i] = r[i] + dl[i] + TRACK_NOISE[i] + var[i];
     wind_kalman(st, e, J, n, mix);
     for (i = 0; i < 3; i++) v[i] = v_air[i] + st->wind_mean[i];
-    label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
+    label_rows(rpm, euler, v, force, torque, force_var, torque_var, x, xn, prior, y, r, 0, 0);
   }}
 #else
-  label_rows(rpm, euler, v_air, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
+  label_rows(rpm, euler, v_air, force, torque, force_var, torque_var, x, xn, prior, y, r, 0, 0);
 #endif
   track_columns(x, prior, h);
   tracker_measure(st, h, y, r);
+#elif IS_BANK
+  {{ /* the members scored under the offline band at the label (gpg.flight.Bank) */
+    double band[6];
+    label_rows(rpm, euler, v_air, force, torque, force_var, torque_var, x, xn, prior, y, r, 0,
+               band);
+    bank_update(st, t, xn, y, r, band);
+  }}
+  (void)prior;
 #else
-  label_rows(rpm, euler, v_air, force, torque, force_var, torque_var, x, xn, prior, y, r, 0);
-  online_kalman(st, t, xn, y, r);
+  label_rows(rpm, euler, v_air, force, torque, force_var, torque_var, x, xn, prior, y, r, 0, 0);
+  online_kalman(0, st->mean, st->cov, &st->t, t, xn, y, r);
   (void)prior;
 #endif
   return 1;
@@ -712,17 +808,27 @@ def _correction_constants(s: Layout, dtype: str = "double") -> list[str]:
         f"#define CORR_RPM_REF {c.rpm_ref!r}",
         f"#define CORR_AIR_DENSITY {c.air_density!r}",
     ]
-    if c.online is not None:
-        o = c.online
-        out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_SHARED {int(o.shared)}"]
-        dbl("ONLINE_TAU", o.tau)  # (6, N_IND): per weight
-        dbl("ONLINE_Z", o.Z)
-        dbl("ONLINE_WHITEN_T", np.swapaxes(o.whiten, 1, 2))  # columns contiguous
-        dbl("ONLINE_VAR", o.variance)
-        dbl("ONLINE_LS", o.lengthscale)
-        dbl("ONLINE_NU", o.noise)
-        dbl("ONLINE_MEAN0", o.mean)
-        dbl("ONLINE_COV0", o.cov)
+    terms = (c.online,) if c.online is not None else ()
+    terms = c.bank.members if c.bank is not None else terms
+    if terms:  # one term, or a bank's members one after the other
+        o = terms[0]
+        out += [f"#define N_IND {o.Z.shape[0]}", f"#define ONLINE_SHARED {int(o.shared)}",
+                f"#define ONLINE_K {len(terms)}"]  # fmt: skip
+        dbl("ONLINE_TAU", np.stack([t.tau for t in terms]))  # (K, 6, N_IND): per weight
+        dbl("ONLINE_Z", np.stack([t.Z for t in terms]))
+        dbl("ONLINE_WHITEN_T", np.stack([np.swapaxes(t.whiten, 1, 2) for t in terms]))
+        for key, attr in (("VAR", "variance"), ("LS", "lengthscale"), ("NU", "noise"),
+                          ("MEAN0", "mean"), ("COV0", "cov")):  # fmt: skip
+            dbl(f"ONLINE_{key}", np.stack([getattr(t, attr) for t in terms]))
+    if c.bank is not None:
+        bk = c.bank
+        live = _ints(bk.ring_live.astype(int))
+        out += [f"#define BANK_L {bk.ahead}", f"#define BANK_WTAU {bk.weight_tau!r}",
+                f"#define BANK_COUNT0 {bk.count}",
+                f"static const int RING_LIVE0[{bk.ahead}] = {live};"]  # fmt: skip
+        for key in ("lagged_mean", "lagged_cov", "lagged_t", "ring_x", "ring_y", "ring_r",
+                    "ring_t", "log_weight"):  # fmt: skip
+            dbl(f"BANK_{key.upper()}0", getattr(bk, key))
     if c.tracked is not None:
         r = c.tracked
         k, p = r.mean.shape[0], r.mean.shape[2]

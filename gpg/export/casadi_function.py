@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gpg.export.layout import Layout, refuse_wind, spec
+from gpg.export.layout import Layout, refuse_c_only, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -54,7 +54,7 @@ def to_casadi(
     if frame not in ("world", "body"):
         raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
     s = spec(sur, variance=variance)
-    refuse_wind(s, "CasADi")
+    refuse_c_only(s, "CasADi")
     rpm, euler, v = ca.MX.sym("rpm", 4), ca.MX.sym("euler", 3), ca.MX.sym("v_air", 3)
     if s.frame == "body":  # the GP's frame is the body's: no frame of its own, no turn rate
         rwh = _ca_rot(ca, euler[0], euler[1], euler[2])

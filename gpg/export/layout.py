@@ -36,7 +36,7 @@ from gpg.gp.partition import Partition
 from gpg.names import AERO
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
-__all__ = ["Correction", "Discrepancy", "Layout", "OnlineTerm", "TrackedTerm", "spec"]
+__all__ = ["BankTerm", "Correction", "Discrepancy", "Layout", "OnlineTerm", "TrackedTerm", "spec"]
 
 # A C source holds each constant as text (about 3.5 bytes per stored byte): past this many
 # bytes of constants an export is refused unless asked for (the exact GP-G variance at
@@ -182,6 +182,50 @@ class OnlineTerm:
 
 
 @dataclass(frozen=True)
+class BankTerm:
+    """A bank of ``K`` online terms mixed by their predictions ``L`` labels ahead
+    (:class:`gpg.flight.Bank`) with its state when exported. Each member is an
+    :class:`OnlineTerm`; a second copy of each (``lagged``) takes every label ``L`` labels late,
+    from a ring of the last ``L``, and scores the member: its log weight per load output adds
+    the log density of each new label under the lagged copy's band (composed with the offline
+    band at the label, as the member's own) and decays by ``e^{−Δt/τ_w}``. The prediction is
+    the mixture's: mean ``Σ_k w_k η̄_k``, band ``Σ_k w_k band_k`` plus the members' spread.
+
+    Attributes:
+        members: the ``K`` terms (their constants and states when exported; one time).
+        lagged_mean: (K, 6, m) the lagged copies' means.
+        lagged_cov: (K, 6, m, m) their covariances.
+        lagged_t: (K,) s, their times.
+        ring_x: (L, D) the waiting labels' normalised inputs.
+        ring_y: (L, 6) their residuals against the offline mean (normalised, GP frame).
+        ring_r: (L, 6) their noise variances.
+        ring_t: (L,) s, their times.
+        ring_live: (L,) which slots hold a label.
+        count: the labels seen.
+        log_weight: (K, 6) the members' log weights per load output.
+        weight_tau: s, ``τ_w``.
+    """
+
+    members: tuple[OnlineTerm, ...]
+    lagged_mean: np.ndarray
+    lagged_cov: np.ndarray
+    lagged_t: np.ndarray
+    ring_x: np.ndarray
+    ring_y: np.ndarray
+    ring_r: np.ndarray
+    ring_t: np.ndarray
+    ring_live: np.ndarray
+    count: int
+    log_weight: np.ndarray
+    weight_tau: float
+
+    @property
+    def ahead(self) -> int:
+        """``L``, the labels each member is scored ahead."""
+        return int(self.ring_t.shape[0])
+
+
+@dataclass(frozen=True)
 class TrackedTerm:
     """The tracked coefficients of a model prepared by :func:`gpg.flight.track`
     (:class:`gpg.flight.tracking.Tracker`) with their state when exported: a bank of ``K``
@@ -255,6 +299,8 @@ class Correction:
         cov_chol: (6, P, P) ``C``, or None.
         online: the online term of an adapted model, or None.
         tracked: the tracked coefficients of a tracked model, or None.
+        bank: the bank of online terms of a model from :func:`gpg.flight.adapt_bank`, or
+            None (C only).
     """
 
     scale: np.ndarray
@@ -270,6 +316,7 @@ class Correction:
     cov_chol: np.ndarray | None
     online: OnlineTerm | None = None
     tracked: TrackedTerm | None = None
+    bank: BankTerm | None = None
 
     @property
     def has_variance(self) -> bool:
@@ -298,6 +345,10 @@ class Correction:
         if self.tracked is not None:
             r = self.tracked
             n += r.stationary.size + r.mean.size + r.cov.size + 3 * r.bias_tau.size + 16
+        if self.bank is not None:
+            for o in self.bank.members:
+                n += o.Z.size + o.whiten.size + o.lengthscale.size + 2 * (o.mean.size + o.cov.size)
+            n += self.bank.ring_x.size + 3 * self.bank.ring_y.size + 20
         return 8 * n
 
 
@@ -411,7 +462,8 @@ def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None)
             model is not exported) or a model kind without a closed form here (a model
             corrected by flights included), or is an exact model whose factor has rows in a
             non-layout order (a model grown by ``condition``), whose variance's triangle alone
-            is over ``max_bytes``, or whose arrays are not finite.
+            is over ``max_bytes``, or whose arrays are not finite; a bank of online terms
+            (:func:`gpg.flight.adapt_bank`) without its variance.
     """
     if not isinstance(sur, Surrogate):
         raise ValueError(f"export takes a gpg.Surrogate, got {type(sur).__name__}")
@@ -528,8 +580,47 @@ def _correction(sur: Surrogate, m: Any, variance: bool) -> Correction:
         with_simple=bool(e is not None and e.with_simple),
         G=None if e is None or not variance else [g for g in _f64(e.G)],
         cov_chol=None if e is None or not variance else _f64(e.cov_chol),
-        online=None if m.online is None else _online(m.online, d_in),
+        online=None if m.online is None or _is_bank(m.online) else _online(m.online, d_in),
         tracked=None if m.tracker is None else _tracked(m.tracker),
+        bank=_bank(m.online, d_in, variance) if _is_bank(m.online) else None,
+    )
+
+
+def _is_bank(o: Any) -> bool:
+    return o is not None and hasattr(o, "lagged")
+
+
+def _bank(b: Any, d_in: int, variance: bool) -> BankTerm:
+    """A :class:`gpg.flight.Bank` laid out: its members one by one, the lagged copies'
+    states, the ring and the weights."""
+    if not variance:
+        raise ValueError(
+            "a bank of online terms (gpg.flight.adapt_bank) scores its members under the "
+            "offline band at each label: it exports with variance=True only"
+        )
+    o = b.members
+    members = tuple(
+        OnlineTerm(Z=_f64(o.Z[i]), whiten=_f64(o.whiten[i]), variance=_f64(o.variance[i]),
+                   lengthscale=np.broadcast_to(_f64(o.lengthscale[i]), (6, d_in)).copy(),
+                   noise=_f64(o.noise[i]),
+                   tau=np.broadcast_to(_f64(o.tau[i]), o.mean.shape[1:]).copy(),
+                   mean=_f64(o.mean[i]), cov=_f64(o.cov[i]), t=float(np.asarray(o.t[i])),
+                   shared=bool(o.shared))
+        for i in range(int(b.log_weight.shape[0]))
+    )  # fmt: skip
+    return BankTerm(
+        members=members,
+        lagged_mean=_f64(b.lagged.mean),
+        lagged_cov=_f64(b.lagged.cov),
+        lagged_t=_f64(b.lagged.t),
+        ring_x=_f64(b.ring_x),
+        ring_y=_f64(b.ring_y),
+        ring_r=_f64(b.ring_r),
+        ring_t=_f64(b.ring_t),
+        ring_live=np.asarray(b.ring_live, bool),
+        count=int(np.asarray(b.count)),
+        log_weight=_f64(b.log_weight),
+        weight_tau=float(np.asarray(b.weight_tau)),
     )
 
 
@@ -553,17 +644,24 @@ def _tracked(r: Any) -> TrackedTerm:
     )  # fmt: skip
 
 
-def refuse_wind(s: Layout, fmt: str) -> None:
-    """Refuse, by name, a tracked model with a wind state in an export that does not write it.
+def refuse_c_only(s: Layout, fmt: str) -> None:
+    """Refuse, by name, what only the C export writes: a tracked model with a wind state, or
+    a bank of online terms.
 
     Args:
         s: the layout.
         fmt: the export's name, for the message.
 
     Raises:
-        ValueError: ``s`` tracks a wind state.
+        ValueError: ``s`` tracks a wind state or carries a bank.
     """
     c = s.correction
+    if c is not None and c.bank is not None:
+        raise ValueError(
+            f"model {s.model!r} carries a bank of online terms (gpg.flight.adapt_bank), which "
+            f"{fmt} does not write (the C export does); export one member as gpg.flight.adapt "
+            "builds it, or the offline model"
+        )
     if c is not None and c.tracked is not None and c.tracked.wind_mean is not None:
         raise ValueError(
             f"model {s.model!r} tracks a wind state (gpg.flight.gusts): its prediction "
@@ -574,11 +672,6 @@ def refuse_wind(s: Layout, fmt: str) -> None:
 
 
 def _online(o: Any, d_in: int) -> OnlineTerm:
-    if not hasattr(o, "Z"):  # a gpg.flight.bank.Bank: K terms and their weights
-        raise ValueError(
-            "export: a bank of online terms (gpg.flight.adapt_bank) is not exported; export "
-            "the offline model, or one member as gpg.flight.adapt builds it"
-        )
     return OnlineTerm(
         Z=_f64(o.Z),
         whiten=_f64(o.whiten),
@@ -591,6 +684,18 @@ def _online(o: Any, d_in: int) -> OnlineTerm:
         t=float(np.asarray(o.t)),
         shared=bool(getattr(o, "shared", False)),
     )
+
+
+def _bank_arrays(bk: BankTerm):
+    """A bank's arrays by name, for the record's hash."""
+    for i, o in enumerate(bk.members):
+        for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
+            yield f"bank{i}_{key}", getattr(o, key)
+        yield f"bank{i}_tau_t", np.r_[o.tau.ravel(), o.t]
+    for key in ("lagged_mean", "lagged_cov", "lagged_t", "ring_x", "ring_y", "ring_r", "ring_t",
+                "log_weight"):  # fmt: skip
+        yield f"bank_{key}", getattr(bk, key)
+    yield "bank_scalars", np.r_[bk.ring_live.astype(float), bk.count, bk.weight_tau]
 
 
 def _global(mean: GlobalMean) -> dict[str, np.ndarray]:
@@ -721,6 +826,8 @@ def _arrays(s: Layout):
             for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
                 yield f"online_{key}", getattr(o, key)
             yield "online_tau_t", np.r_[o.tau.ravel(), o.t]
+        if c.bank is not None:
+            yield from _bank_arrays(c.bank)
         if c.tracked is not None:
             r = c.tracked
             for key in ("stationary", "bias_tau", "noise", "bias", "mean", "cov", "log_weight",

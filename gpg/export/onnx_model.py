@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.export.layout import MAX_BYTES, Layout, refuse_wind, spec
+from gpg.export.layout import MAX_BYTES, Layout, refuse_c_only, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -70,7 +70,7 @@ def to_onnx(
     import onnx
 
     s = spec(sur, variance=variance, max_bytes=max_bytes)
-    refuse_wind(s, "ONNX")
+    refuse_c_only(s, "ONNX")
     n_const = s.constant_bytes(8, variance=s.has_variance)  # float64 but the float32 factors
     if n_const > max_bytes:
         raise ValueError(

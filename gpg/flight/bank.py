@@ -207,7 +207,11 @@ class Bank(eqx.Module):
         def apply(o):  # the waiting label, to the members that are L behind
             done = o.relaxed(self.ring_t[j]).measured(self.ring_x[j], self.ring_y[j],
                                                       self.ring_r[j])  # fmt: skip
-            return jax.tree.map(lambda a, b: jnp.where(live, a, b), done, o)
+            # only what an update moves: the rest stays the same array (online_step then
+            # passes it in and leaves it out of what the step returns)
+            new, old = (done.mean, done.cov, done.t), (o.mean, o.cov, o.t)
+            moved = tuple(jnp.where(live, a, b) for a, b in zip(new, old, strict=True))
+            return eqx.tree_at(lambda u: (u.mean, u.cov, u.t), o, moved)
 
         lagged = jax.vmap(apply)(self.lagged)
 

@@ -1581,7 +1581,9 @@ def with_online(sur: Surrogate, online: Online | eqx.Module) -> Surrogate:
     return eqx.tree_at(lambda s: s.model.tracker, sur, online, is_leaf=none)
 
 
-def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online | eqx.Module]:
+def online_step(
+    sur: Surrogate, *, stack: bool = True, donate: bool = False
+) -> Callable[..., Online | eqx.Module]:
     """A compiled step for loops that update once a step from Python.
 
     ``step(state, t, rpm, euler, v_air, force, torque, force_var, torque_var) -> state`` is
@@ -1590,7 +1592,10 @@ def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online |
     discrepancies' variance where the state has a wind, the whole band for a
     :class:`gpg.flight.Bank`), not at every call, and only the
     small online state goes in and out; :func:`with_online` puts a state back
-    into the surrogate for predictions.
+    into the surrogate for predictions. Of the state, only the arrays an update moves come
+    back from the compiled program (a filter's weights and covariance, not its inducing
+    inputs or their factor, which the new state shares with the old): found by tracing the
+    step once, at its first call.
 
     Args:
         sur: a surrogate prepared by :func:`adapt` or :func:`gpg.flight.track` (its online
@@ -1599,12 +1604,18 @@ def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online |
             :class:`~gpg.gp.inducing.StackedInducing` (:meth:`Corrected.stacked`), where
             they can be; False reads them one by one, as :func:`update` does. The same step
             to rounding.
+        donate: write each new state over the arrays of the one this step returned before
+            (JAX's buffer donation), not into new ones: a state this step returned is then
+            used up when passed back in, so keep only the newest. A state from elsewhere
+            (:func:`online_state`, a checkpoint) is copied before its first step, never
+            used up. For a large state (a bank's), in loops that keep no earlier states.
 
     Returns:
         The step function.
 
     Raises:
-        ValueError: ``sur`` carries no online state.
+        ValueError: ``sur`` carries no online state; at a call, a ``state`` of another
+            structure than ``sur``'s.
     """
     state = online_state(sur, "online_step")
     # A wind state's update reads the discrepancies' variance at the label (advance)
@@ -1619,23 +1630,67 @@ def online_step(sur: Surrogate, *, stack: bool = True) -> Callable[..., Online |
     offline = eqx.tree_at(lambda s: s.model, sur, view)
     leaves, treedef = jax.tree_util.tree_flatten(offline)
     leaves = tuple(leaves)
-    fn = _online_step_fn(treedef)
+    kind = jax.tree_util.tree_structure(state)
+    built: dict[str, Any] = {}  # the moving leaves and their program, at the first call
 
     def step(online, t, rpm, euler, v_air, force, torque, force_var, torque_var):
-        return fn(leaves, online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
+        label = (t, rpm, euler, v_air, force, torque, force_var, torque_var)
+        flat, got = jax.tree_util.tree_flatten(online)
+        if got != kind:
+            raise ValueError("online_step: the state passed to the step is not of the "
+                             f"structure of {type(state).__name__}, which the surrogate "
+                             "carries")  # fmt: skip
+        if not built:
+            built["moving"] = _moving_leaves(treedef, leaves, kind, flat, label)
+            built["fn"] = _online_step_fn(treedef, kind, built["moving"], donate)
+            built["last"] = ()
+        moving = built["moving"]
+        fixed = tuple(a for i, a in enumerate(flat) if i not in moving)
+        dyn = tuple(flat[i] for i in moving)
+        if donate and not _same_arrays(dyn, built["last"]):  # not this step's: copy
+            dyn = tuple(jnp.array(a, copy=True) for a in dyn)
+        new = built["fn"](leaves, fixed, dyn, *label)
+        built["last"] = new if donate else ()
+        out = list(flat)
+        for i, a in zip(moving, new, strict=True):
+            out[i] = a
+        return jax.tree_util.tree_unflatten(kind, out)
 
     return step
 
 
-@lru_cache(maxsize=16)
-def _online_step_fn(treedef):
-    @jax.jit
-    @highest
-    def fn(leaves, online, t, rpm, euler, v_air, force, torque, force_var, torque_var):
-        sur = jax.tree_util.tree_unflatten(treedef, leaves)
-        return advance(sur, online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
+def _same_arrays(a: tuple, b: tuple) -> bool:
+    return len(a) == len(b) and all(x is y for x, y in zip(a, b, strict=True))
 
-    return fn
+
+def _moving_leaves(treedef, leaves, kind, flat, label) -> tuple[int, ...]:
+    """The positions of the state's leaves that :func:`advance` does not hand back as they
+    came in (traced once, not compiled)."""
+
+    def full(leaves, flat, *label):
+        sur = jax.tree_util.tree_unflatten(treedef, leaves)
+        online = jax.tree_util.tree_unflatten(kind, flat)
+        return jax.tree_util.tree_leaves(highest(advance)(sur, online, *label))
+
+    jaxpr = jax.make_jaxpr(full)(leaves, flat, *label).jaxpr
+    ins = jaxpr.invars[len(leaves) : len(leaves) + len(flat)]
+    outs = jaxpr.outvars
+    return tuple(i for i in range(len(flat)) if outs[i] is not ins[i])
+
+
+@lru_cache(maxsize=16)
+def _online_step_fn(treedef, kind, moving: tuple[int, ...], donate: bool):
+    def fn(leaves, fixed, dyn, t, rpm, euler, v_air, force, torque, force_var, torque_var):
+        sur = jax.tree_util.tree_unflatten(treedef, leaves)
+        flat, f, d = [], iter(fixed), iter(dyn)
+        for i in range(kind.num_leaves):
+            flat.append(next(d) if i in moving else next(f))
+        online = jax.tree_util.tree_unflatten(kind, flat)
+        new = advance(sur, online, t, rpm, euler, v_air, force, torque, force_var, torque_var)
+        out = jax.tree_util.tree_leaves(new)
+        return tuple(out[i] for i in moving)
+
+    return jax.jit(highest(fn), donate_argnums=(2,) if donate else ())
 
 
 def _one_or_six(values, name: str) -> np.ndarray:

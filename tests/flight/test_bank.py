@@ -139,6 +139,41 @@ def test_identical_members_keep_equal_weights_and_the_scan_is_the_loop(corrected
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-13)
 
 
+def test_online_step_returns_only_what_moves_and_donates_only_its_own(corrected, flights):  # noqa: F811
+    """The step hands back the arrays an update moves (weights, covariances, the ring, the
+    log weights) and shares the rest with the state passed in (inducing inputs, factors,
+    forgetting times). With ``donate`` it ends where the plain step does, the start state and
+    an earlier state stay readable, and only the state it returned last is used up when
+    passed back in. A state of another structure is refused by name."""
+    lab = flights.take(slice(0, 6))
+    sur = bk.adapt_bank(corrected, MEMBERS, ahead=2, inducing=M, t0=lab.t[0])
+    rows = [tuple(c[i] for c in lab.columns()) for i in range(len(lab))]
+    plain, donated = fc.online_step(sur), fc.online_step(sur, donate=True)
+    start = fc.online_state(sur)
+    a = plain(start, *rows[0])
+    for name in ("Z", "whiten", "tau", "lengthscale"):
+        for part in ("members", "lagged"):
+            assert getattr(getattr(a, part), name) is getattr(getattr(start, part), name)
+    assert a.members.cov is not start.members.cov and a.ring_x is not start.ring_x
+    b = donated(start, *rows[0])
+    first = b
+    b = donated(b, *rows[1])
+    assert first.members.cov.is_deleted() and not start.members.cov.is_deleted()
+    for row in rows[2:]:
+        b = donated(b, *row)
+    for row in rows[1:]:
+        a = plain(a, *row)
+    # the same updates, but XLA fuses a program that writes over its inputs otherwise: the
+    # rounding of six rank-one updates, held as the scan against the loop above
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-10, atol=1e-13)
+    again = donated(start, *rows[0])  # a state from elsewhere is copied, not used up
+    assert not start.members.cov.is_deleted() and not again.members.cov.is_deleted()
+    tracked = fc.online_state(tk.track(corrected, tk.default_drift(corrected), t0=lab.t[0]))
+    with pytest.raises(ValueError, match="not of the structure of Bank"):
+        plain(tracked, *rows[0])
+
+
 def test_bank_predict_is_a_jax_function(corrected, flights, tmp_path):  # noqa: F811
     """jit, vmap and both derivatives of a bank model's prediction (after some labels, the
     weights unequal); the derivative matches central differences; a checkpoint keeps the
@@ -172,7 +207,7 @@ def test_bank_predict_is_a_jax_function(corrected, flights, tmp_path):  # noqa: 
     np.testing.assert_array_equal(again.variance, batch.variance)
 
 
-def test_adapt_bank_refuses_bad_input(corrected, flights, tmp_path):  # noqa: F811
+def test_adapt_bank_refuses_bad_input(corrected, flights):  # noqa: F811
     with pytest.raises(ValueError, match="members is empty"):
         bk.adapt_bank(corrected, [])
     with pytest.raises(ValueError, match=r"members\[1\] must be"):
@@ -192,8 +227,83 @@ def test_adapt_bank_refuses_bad_input(corrected, flights, tmp_path):  # noqa: F8
     with pytest.raises(ValueError, match="fitted with 8 inducing inputs, the bank places 4"):
         bk.adapt_bank(corrected, [fo], inducing=4, band="added")
     assert bk.adapt_bank(corrected, [fo], inducing=M, band="added").model.online.size == 1
-    sur = bk.adapt_bank(corrected, MEMBERS, inducing=M)
-    from gpg.export import to_c
 
-    with pytest.raises(ValueError, match="bank"):
-        to_c(sur, tmp_path, name="model")
+
+def test_bank_in_c_equals_the_scan(corrected, flights, tmp_path):  # noqa: F811
+    """The bank's C (``gpg.export.to_c``): after 60 labels (the flights' replayed, 0.1 s
+    apart, a 3 s gap in the middle so that every filter and weight relaxes), its state, the
+    members, their lagged copies, the ring and the log weights, equals ``lax.scan`` of
+    :func:`fc.update` (double: the same float64 Kalman steps, summed in another order: to
+    1e-9), and its ``online_predict`` then equals ``predict`` of the updated model, band
+    included. A bank is refused by name without the variance, and by ONNX."""
+    import ctypes
+
+    from gpg.export import to_onnx
+    from tests.export.test_c_source import compiled
+    from tests.flight.test_correction import _export_states, assert_c_predicts
+
+    L, n = 3, 60
+    sur = bk.adapt_bank(corrected, MEMBERS, ahead=L, inducing=M, t0=0.0)
+    idx = np.arange(n) % len(flights)
+    cols = [np.asarray(c, float)[idx] for c in flights.columns()]
+    cols[0] = np.arange(n) * 0.1 + np.where(np.arange(n) >= n // 2, 3.0, 0.0)
+    final, _ = jax.jit(lambda s, xs: jax.lax.scan(lambda c, r: (fc.update(c, *r), None), s, xs))(
+        sur, tuple(jnp.asarray(c) for c in cols)
+    )
+    want = fc.online_state(final)
+    pairs = {"mean": want.members.mean, "cov": want.members.cov, "lag_mean": want.lagged.mean,
+             "lag_cov": want.lagged.cov, "lag_t": want.lagged.t, "ring_x": want.ring_x,
+             "ring_y": want.ring_y, "ring_r": want.ring_r, "ring_t": want.ring_t,
+             "log_weight": want.log_weight}  # fmt: skip
+    assert np.ptp(np.asarray(want.weights()), axis=0).max() > 0.05  # the members told apart
+    # float: the same steps with the filters' state stored in float, rounded at each of the
+    # 60 labels (6e-8 each, amplified by the whitened weights' conditioning: 2e-5 of the
+    # means' scale here); 1e-3 of each array's scale, which a step left out exceeds
+    for dtype, tol in (("float", 1e-3), ("double", 1e-9)):
+        lib, st = _c_bank(sur, tmp_path / dtype, dtype, len(MEMBERS), L, corrected.model.n_inputs)
+        rows = np.column_stack([c.reshape(n, -1) for c in cols])
+        P = ctypes.POINTER(ctypes.c_double)
+        for r in rows:
+            spans = ((1, 5), (5, 8), (8, 11), (11, 14), (14, 17), (17, 20), (20, 23))
+            args = [np.ascontiguousarray(r[i:j]).ctypes.data_as(P) for i, j in spans]
+            assert lib.quad_online_update(ctypes.byref(st), ctypes.c_double(r[0]), *args) == 1
+        for key, w in pairs.items():
+            w = np.asarray(w)
+            got = np.ctypeslib.as_array(getattr(st, key)).reshape(w.shape)
+            np.testing.assert_allclose(got, w, rtol=0, err_msg=f"{dtype} {key}",
+                                       atol=tol * max(1.0, float(np.abs(w).max())))  # fmt: skip
+        assert np.array_equal(np.ctypeslib.as_array(st.ring_live).astype(bool),
+                              np.asarray(want.ring_live))  # fmt: skip
+        assert st.count == n and st.t == float(want.t)
+    rpm, euler, v = _export_states(flights, 8)
+    ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
+    assert_c_predicts(lib.quad_online_predict, st, ref, rpm, euler, v, 1e-7)
+    with pytest.raises(ValueError, match="exports with variance=True only"):
+        compiled(sur, tmp_path, "double", variance=False)
+    with pytest.raises(ValueError, match="bank of online terms"):
+        to_onnx(sur, tmp_path / "bank.onnx")
+
+
+def _c_bank(sur, directory, dtype: str, k: int, ahead: int, d: int):
+    """The bank's C compiled in ``dtype`` (``to_c``), and a state from its ``online_init``:
+    the struct the header declares, in ctypes."""
+    import ctypes
+
+    from tests.export.test_c_source import compiled
+
+    directory.mkdir()
+    compiled(sur, directory, dtype)
+    lib = ctypes.CDLL(str(directory / "quad.so"))
+    f, g = ctypes.c_double, ctypes.c_float if dtype == "float" else ctypes.c_double
+
+    class State(ctypes.Structure):
+        _fields_ = [("mean", g * (k * 6 * M)), ("cov", g * (k * 6 * M * M)),
+                    ("lag_mean", g * (k * 6 * M)), ("lag_cov", g * (k * 6 * M * M)),
+                    ("lag_t", f * k), ("ring_x", f * (ahead * d)), ("ring_y", f * (ahead * 6)),
+                    ("ring_r", f * (ahead * 6)), ("ring_t", f * ahead),
+                    ("ring_live", ctypes.c_int * ahead), ("count", ctypes.c_long),
+                    ("log_weight", f * (k * 6)), ("t", f)]  # fmt: skip
+
+    st = State()
+    lib.quad_online_init(ctypes.byref(st))
+    return lib, st

@@ -138,14 +138,16 @@ def test_bench_flight_suite(tmp_path):
     res = json.loads((tmp_path / "bench.json").read_text())["flight"]
     assert finite_numbers(res) and set(res) == {"log", "update", "c", "every_label"}
     calls = ("mean", "predict", "online_update", "online_predict", "tracked_update",
-             "tracked_predict", "wind_update", "wind_predict")  # fmt: skip
+             "tracked_predict", "wind_update", "wind_predict", "bank_update",
+             "bank_predict")  # fmt: skip
     for dtype in ("double", "float"):
         for key in calls:
             t = res["c"][dtype][key]
             assert t["n"] == 50 and 0 < t["median_us"] <= t["p95_us"], (dtype, key)
     assert res["every_label"]["runs"][0]["labels"] == 360
-    for name in ("tracked", "wind_state", "bank"):  # the two forms alternated, a ratio a round
-        assert len(res["update"]["stacked"][name]["ratio"]) == 2
+    for name in ("tracked", "wind_state", "bank"):  # three forms interleaved, ratios a round
+        st = res["update"]["stacked"][name]
+        assert len(st["ratio"]) == 2 == len(st["donated_ratio"]) == len(st["donated_median_s"])
     assert res["update"]["stacked"]["bank"]["inducing"] == 4
 
 
