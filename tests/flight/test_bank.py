@@ -230,8 +230,8 @@ def test_adapt_bank_refuses_bad_input(corrected, flights):  # noqa: F811
 
 
 def test_bank_in_c_equals_the_scan(corrected, flights, tmp_path):  # noqa: F811
-    """The bank's C (``gpg.export.to_c``): after 60 labels (the flights' replayed, 0.1 s
-    apart, a 3 s gap in the middle so that every filter and weight relaxes), its state, the
+    """The bank's C (``gpg.export.to_c``): after a minute of labels (the flights' replayed,
+    0.1 s apart, a 3 s gap in the middle so that every filter and weight relaxes), its state, the
     members, their lagged copies, the ring and the log weights, equals ``lax.scan`` of
     :func:`fc.update` (double: the same float64 Kalman steps, summed in another order: to
     1e-9), and its ``online_predict`` then equals ``predict`` of the updated model, band
@@ -242,7 +242,7 @@ def test_bank_in_c_equals_the_scan(corrected, flights, tmp_path):  # noqa: F811
     from tests.export.test_c_source import compiled
     from tests.flight.test_correction import _export_states, assert_c_predicts
 
-    L, n = 3, 60
+    L, n = 3, 600
     sur = bk.adapt_bank(corrected, MEMBERS, ahead=L, inducing=M, t0=0.0)
     idx = np.arange(n) % len(flights)
     cols = [np.asarray(c, float)[idx] for c in flights.columns()]
@@ -256,9 +256,9 @@ def test_bank_in_c_equals_the_scan(corrected, flights, tmp_path):  # noqa: F811
              "ring_y": want.ring_y, "ring_r": want.ring_r, "ring_t": want.ring_t,
              "log_weight": want.log_weight}  # fmt: skip
     assert np.ptp(np.asarray(want.weights()), axis=0).max() > 0.05  # the members told apart
-    # float: the same steps with the filters' state stored in float, rounded at each of the
-    # 60 labels (6e-8 each, amplified by the whitened weights' conditioning: 2e-5 of the
-    # means' scale here); 1e-3 of each array's scale, which a step left out exceeds
+    # float: the same steps with the filters' state stored in float, rounded at each label
+    # (6e-8 each, amplified by the whitened weights' conditioning, and forgotten over the
+    # members' memories); 1e-3 of each array's scale, which a step left out exceeds
     for dtype, tol in (("float", 1e-3), ("double", 1e-9)):
         lib, st = _c_bank(sur, tmp_path / dtype, dtype, len(MEMBERS), L, corrected.model.n_inputs)
         rows = np.column_stack([c.reshape(n, -1) for c in cols])
