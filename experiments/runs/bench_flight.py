@@ -18,8 +18,8 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   ``stacked.labels`` labels whose discrepancies are inducing-point GPs of
   ``stacked.inducing`` inputs, read through one stack and one by one
   (``online_step(stack=...)``), and stacked with each new state written over the last
-  (``online_step(donate=True)``), the three taking each label in turn, in ``rounds``
-  rounds: the median of the ratios paired by label, per round.
+  (``online_step(donate=True)``), the three taking the same ``block`` labels in turn, in
+  ``rounds`` rounds: the median of the ratios paired by block, per round.
 * ``parallel``: :func:`gpg.flight.label_logs` of a directory of ``logs`` CSV logs of
   ``seconds`` s each (``distinct`` flights of the nominal vehicle flown by
   :func:`gpg.flight.synthetic.fly` through the default sensors, 200 Hz with rotor speeds and an
@@ -327,9 +327,10 @@ def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
     """The tracked step (and with a wind state, and a bank of inducing-point terms where
     ``bank`` is set) on a correction whose discrepancies are inducing-point GPs, its six ``δ``
     read through one stack (``online_step(stack=True)``), one by one, and stacked with the
-    state donated (``donate=True``), the forms interleaved label by label (:func:`_interleaved`)
-    in each of ``rounds`` rounds: each form's per-round medians and, per round, the median of
-    the ratios paired by label (one by one over stacked, stacked over donated)."""
+    state donated (``donate=True``), the forms interleaved in blocks of ``block`` labels
+    (:func:`_interleaved`) in each of ``rounds`` rounds: each form's per-round median of its
+    blocks' medians and, per round, the median of the ratios paired by block (one by one over
+    stacked, stacked over donated)."""
     from gpg import flight
 
     n = int(cfg["labels"])
@@ -352,7 +353,7 @@ def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
         med: dict[str, list[float]] = {form: [] for form in forms}
         ratio, donated = [], []
         for _ in range(int(cfg["rounds"])):
-            sec = _interleaved(sur, labels, int(cfg["updates"]), forms)
+            sec = _interleaved(sur, labels, int(cfg["updates"]), forms, int(cfg["block"]))
             for form in forms:
                 med[form].append(float(np.median(sec[form])))
             ratio.append(float(np.median(sec["one_by_one"] / sec["stacked"])))
@@ -364,28 +365,34 @@ def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _interleaved(sur, labels, updates: int, forms: dict[str, dict]) -> dict[str, np.ndarray]:
+def _interleaved(sur, labels, updates: int, forms: dict[str, dict], block: int) -> dict:
     """Each form of the compiled step (``forms``: its ``online_step`` options) over the same
-    ``updates`` labels, each with its own state, the forms taking each label in turn (their
-    order reversed every label): seconds per call and form, paired by label, so that a
-    machine whose speed drifts within a run moves every form alike."""
+    ``updates`` labels, each with its own state, in blocks: each form takes ``block`` labels
+    in a row, then the next form the same ones (the forms' order reversed every block).
+    Returns each form's median seconds a call per block (its first calls in a block left out:
+    they find the cache the form before left), paired by block, so that a machine whose
+    speed drifts within a run moves every form alike, and each form runs from its own warm
+    cache as a loop of one form does."""
     from gpg import flight
 
-    n = len(labels)
+    n, skip = len(labels), min(5, block // 4)
     steps = {form: flight.online_step(sur, **kw) for form, kw in forms.items()}
     states = {form: flight.online_state(sur) for form in forms}
     cols = labels.columns()
-    seconds: dict[str, list[float]] = {form: [] for form in forms}
-    for k in range(updates + 10):
-        i = k % n
-        args = [c[i] for c in cols]
-        args[0] = args[0] + (k // n) * n / 10.0
-        for form in list(forms)[:: 1 if k % 2 else -1]:
-            t0 = time.perf_counter()
-            states[form] = steps[form](states[form], *args)
-            jax.block_until_ready(states[form])
-            seconds[form].append(time.perf_counter() - t0)
-    return {form: np.asarray(v[10:]) for form, v in seconds.items()}  # the first calls compile
+    out: dict[str, list[float]] = {form: [] for form in forms}
+    for b in range(-1, updates // block):  # block -1 compiles, not timed
+        for form in list(forms)[:: 1 if b % 2 else -1]:
+            seconds = []
+            for k in range(max(b, 0) * block, (max(b, 0) + 1) * block):
+                args = [c[k % n] for c in cols]
+                args[0] = args[0] + (k // n) * n / 10.0
+                t0 = time.perf_counter()
+                states[form] = steps[form](states[form], *args)
+                jax.block_until_ready(states[form])
+                seconds.append(time.perf_counter() - t0)
+            if b >= 0:
+                out[form].append(float(np.median(seconds[skip:])))
+    return {form: np.asarray(v) for form, v in out.items()}
 
 
 def _updates(sur, labels, updates: int) -> dict[str, Any]:

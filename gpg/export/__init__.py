@@ -14,9 +14,10 @@ docs/measurements.md), so it passes only under ``max_bytes`` (small models); a s
 exported), as is an exact model grown by ``condition`` when its variance is asked for.
 A model corrected by flights (:func:`gpg.flight.correct`) exports with its correction over its
 prior's closed form (:class:`gpg.export.layout.Correction`), an adapted one
-(:func:`gpg.flight.adapt`) or tracked one (:func:`gpg.flight.track`, of the physical basis)
-with its online term as well (in C with its update, on a state the caller holds; CasADi and
-ONNX at the exported state); a tracked model with a wind state (:func:`gpg.flight.gusts`)
+(:func:`gpg.flight.adapt`, or a bank of such terms from :func:`gpg.flight.adapt_bank`, with
+its variance) or tracked one (:func:`gpg.flight.track`, of the physical basis) with its
+online term as well (in C with its update, on a state the caller holds; CasADi and ONNX at
+the exported state); a tracked model with a wind state (:func:`gpg.flight.gusts`)
 exports to C only (its update and prediction differentiate the model in the air velocity by
 central differences there), with its variance; CasADi and ONNX refuse it.
 """

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from gpg.export.layout import Layout, refuse_c_only, spec
+from gpg.export.layout import Layout, refuse_wind, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -54,7 +54,7 @@ def to_casadi(
     if frame not in ("world", "body"):
         raise ValueError(f"frame must be 'world' or 'body', got {frame!r}")
     s = spec(sur, variance=variance)
-    refuse_c_only(s, "CasADi")
+    refuse_wind(s, "CasADi")
     rpm, euler, v = ca.MX.sym("rpm", 4), ca.MX.sym("euler", 3), ca.MX.sym("v_air", 3)
     if s.frame == "body":  # the GP's frame is the body's: no frame of its own, no turn rate
         rwh = _ca_rot(ca, euler[0], euler[1], euler[2])
@@ -163,6 +163,7 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
             e = e + ca.sumsqr(ca.mtimes(ca.DM(c.cov_chol[j]).T, r))
         extra[j] = e
     shared = [] if c.online is None else _ca_online(ca, c.online, xn, loads, extra)
+    bank = None if c.bank is None else _ca_bank(ca, c.bank, xn, loads)
     if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
         r, w = c.tracked, np.exp(c.tracked.log_weight)
         for j in range(6):
@@ -183,24 +184,60 @@ def _ca_correction(ca, s: Layout, x, xn, yn, latent):
         if shared:  # after every offline part (Corrected.predictive_variance)
             band = [ca.fmax(var[j] - q0, 0) + post for j, (post, q0) in enumerate(shared)]
             var = ca.vertcat(*band, var[6:])
+        if bank is not None:  # the mixture's band, from the complete offline one
+            band = [bank(j, var[j]) for j in range(6)]
+            var = ca.vertcat(*band, var[6:])
     return mean, var
+
+
+def _ca_moments(ca, o, xn, j: int):
+    """One online term's (:class:`gpg.export.layout.OnlineTerm`) mean, ``max(ψᵀΣψ, 0)`` and
+    ``ψᵀψ`` for load output ``j`` at ``xn``, at its exported state."""
+    m = o.Z.shape[0]
+    diff = (ca.repmat(xn.T, m, 1) - ca.DM(o.Z)) / ca.repmat(ca.DM(o.lengthscale[j]).T, m, 1)
+    psi = ca.mtimes(ca.DM(o.whiten[j]), o.variance[j] * ca.exp(-0.5 * ca.sum2(diff**2)))
+    post = ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
+    return ca.dot(psi, ca.DM(o.mean[j])), post, ca.dot(psi, psi)
 
 
 def _ca_online(ca, o, xn, loads: list, extra: list) -> list:
     """``η`` at the exported state (:class:`gpg.export.layout.OnlineTerm`): its mean added to
     ``loads``, its ``ψᵀΣψ`` to ``extra`` (in place); with a shared band, ``(ψᵀΣψ, ψᵀψ)`` per
     load output returned instead, to be applied after every offline part."""
-    m, shared = o.Z.shape[0], []
+    shared = []
     for j in range(6):
-        diff = (ca.repmat(xn.T, m, 1) - ca.DM(o.Z)) / ca.repmat(ca.DM(o.lengthscale[j]).T, m, 1)
-        psi = ca.mtimes(ca.DM(o.whiten[j]), o.variance[j] * ca.exp(-0.5 * ca.sum2(diff**2)))
-        loads[j] = loads[j] + ca.dot(psi, ca.DM(o.mean[j]))
-        post = ca.fmax(ca.dot(psi, ca.mtimes(ca.DM(o.cov[j]), psi)), 0)
+        mean, post, q0 = _ca_moments(ca, o, xn, j)
+        loads[j] = loads[j] + mean
         if o.shared:
-            shared.append((post, ca.dot(psi, psi)))
+            shared.append((post, q0))
         else:
             extra[j] = extra[j] + post
     return shared
+
+
+def _ca_bank(ca, b, xn, loads: list):
+    """A bank (:class:`gpg.export.layout.BankTerm`) at its exported state: the mixture's mean
+    ``Σ_k w_k η̄_k`` added to ``loads`` (in place, the weights fixed at their exported
+    values); returns ``band(j, offline)``, load output ``j``'s band from the complete offline
+    one: ``Σ_k w_k band_k`` plus the spread of the members' means (``gpg.flight.Bank.band``)."""
+    lw = b.log_weight - b.log_weight.max(0)
+    w = np.exp(lw) / np.exp(lw).sum(0)  # (K, 6)
+    parts = []
+    for j in range(6):
+        mk, post, q0 = zip(*(_ca_moments(ca, o, xn, j) for o in b.members), strict=True)
+        mix = sum(w[k, j] * mk[k] for k in range(len(mk)))
+        spread = ca.fmax(sum(w[k, j] * mk[k] ** 2 for k in range(len(mk))) - mix**2, 0)
+        loads[j] = loads[j] + mix
+        parts.append((post, q0, spread))
+    shared = b.members[0].shared
+
+    def band(j, offline):
+        post, q0, spread = parts[j]
+        each = [(ca.fmax(offline - q0[k], 0) if shared else offline) + post[k]
+                for k in range(len(post))]  # fmt: skip
+        return sum(w[k, j] * each[k] for k in range(len(each))) + spread
+
+    return band
 
 
 def _ca_simple(ca, s: Layout, x):

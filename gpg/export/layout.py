@@ -300,7 +300,7 @@ class Correction:
         online: the online term of an adapted model, or None.
         tracked: the tracked coefficients of a tracked model, or None.
         bank: the bank of online terms of a model from :func:`gpg.flight.adapt_bank`, or
-            None (C only).
+            None (C writes it with its update, CasADi and ONNX at its exported state).
     """
 
     scale: np.ndarray
@@ -644,24 +644,17 @@ def _tracked(r: Any) -> TrackedTerm:
     )  # fmt: skip
 
 
-def refuse_c_only(s: Layout, fmt: str) -> None:
-    """Refuse, by name, what only the C export writes: a tracked model with a wind state, or
-    a bank of online terms.
+def refuse_wind(s: Layout, fmt: str) -> None:
+    """Refuse, by name, a tracked model with a wind state in an export that does not write it.
 
     Args:
         s: the layout.
         fmt: the export's name, for the message.
 
     Raises:
-        ValueError: ``s`` tracks a wind state or carries a bank.
+        ValueError: ``s`` tracks a wind state.
     """
     c = s.correction
-    if c is not None and c.bank is not None:
-        raise ValueError(
-            f"model {s.model!r} carries a bank of online terms (gpg.flight.adapt_bank), which "
-            f"{fmt} does not write (the C export does); export one member as gpg.flight.adapt "
-            "builds it, or the offline model"
-        )
     if c is not None and c.tracked is not None and c.tracked.wind_mean is not None:
         raise ValueError(
             f"model {s.model!r} tracks a wind state (gpg.flight.gusts): its prediction "

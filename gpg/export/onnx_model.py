@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from gpg._io import atomic_write
-from gpg.export.layout import MAX_BYTES, Layout, refuse_c_only, spec
+from gpg.export.layout import MAX_BYTES, Layout, refuse_wind, spec
 from gpg.quadrotor.frames import TINY_SPEED
 from gpg.surrogate import MAX_FRAME_RATE, Surrogate
 
@@ -70,7 +70,7 @@ def to_onnx(
     import onnx
 
     s = spec(sur, variance=variance, max_bytes=max_bytes)
-    refuse_c_only(s, "ONNX")
+    refuse_wind(s, "ONNX")
     n_const = s.constant_bytes(8, variance=s.has_variance)  # float64 but the float32 factors
     if n_const > max_bytes:
         raise ValueError(
@@ -546,24 +546,18 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
             e = g.add(e, sq_norm(g.op("MatMul", r, g.const(c.cov_chol[j], "C", f64))))
         extra.append(e)
     q0s = []  # ψᵀψ per load output where η's prior is a share of the band
+    x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
     if c.online is not None:  # η at the exported state (gpg.export.layout.OnlineTerm)
         o = c.online
-        x3 = g.op("Unsqueeze", xn, g.const([1], "ax", np.int64))
-        etas, evs = [], []
-        for j in range(6):
-            diff = g.div(g.sub(x3, g.const(o.Z, "pts", f64)), g.const(o.lengthscale[j], "ls", f64))
-            r2 = g.op("ReduceSum", g.sq(diff), g.const([2], "ax", np.int64), keepdims=0)
-            k = g.mul(k64(o.variance[j]), g.op("Exp", g.mul(k64(-0.5), r2)))
-            psi = g.op("MatMul", k, g.const(o.whiten[j].T, "W", f64))  # (N, m)
-            etas.append(g.op("MatMul", psi, g.const(o.mean[j][:, None], "mu", f64)))
-            q = g.mul(psi, g.op("MatMul", psi, g.const(o.cov[j], "S", f64)))
-            q = g.op("ReduceSum", q, g.const([1], "ax", np.int64), keepdims=1)
-            evs.append(g.op("Max", q, k64(0.0)))
-            if o.shared:
-                q0s.append(g.op("ReduceSum", g.sq(psi), g.const([1], "ax", np.int64), keepdims=1))
+        etas, evs, q = zip(*(_onnx_moments(g, o, x3, j, k64) for j in range(6)), strict=True)
+        q0s = list(q) if o.shared else []
         loads = [eta if not loads else g.add(loads[j], eta) for j, eta in enumerate(etas)]
         if var is not None and not o.shared:
             extra = [ev if not extra else g.add(extra[j], ev) for j, ev in enumerate(evs)]
+    bank = None
+    if c.bank is not None:  # the mixture at its exported state (gpg.export.layout.BankTerm)
+        mixes, bank = _onnx_bank(g, c.bank, x3, k64)
+        loads = [mx if not loads else g.add(loads[j], mx) for j, mx in enumerate(mixes)]
     if c.tracked is not None:  # the tracked drift at the exported state (TrackedTerm)
         loads, extra = _onnx_tracked(g, c, prior, ms, h, loads, k64, dl)
     if loads:
@@ -576,7 +570,56 @@ def _correction(g: _Graph, s: Layout, x64, xn, yn, latent):
         band = [g.add(g.op("Max", g.sub(g.col(var, j), q0), k64(0.0)), evs[j])
                 for j, q0 in enumerate(q0s)]  # fmt: skip
         var = g.cat(band + [g.col(var, i) for i in range(6, m_out)])
+    if var is not None and bank is not None:  # the mixture's band, from the complete offline one
+        var = g.cat([bank(j, g.col(var, j)) for j in range(6)] +
+                    [g.col(var, i) for i in range(6, m_out)])  # fmt: skip
     return mean, var
+
+
+def _onnx_moments(g: _Graph, o, x3, j: int, k64):
+    """One online term's (:class:`gpg.export.layout.OnlineTerm`) mean, ``max(ψᵀΣψ, 0)`` and
+    ``ψᵀψ`` (None unless its band is shared) for load output ``j`` at the queries ``x3``
+    (N, 1, D), at its exported state: (N, 1) columns."""
+    f64 = np.float64
+    diff = g.div(g.sub(x3, g.const(o.Z, "pts", f64)), g.const(o.lengthscale[j], "ls", f64))
+    r2 = g.op("ReduceSum", g.sq(diff), g.const([2], "ax", np.int64), keepdims=0)
+    k = g.mul(k64(o.variance[j]), g.op("Exp", g.mul(k64(-0.5), r2)))
+    psi = g.op("MatMul", k, g.const(o.whiten[j].T, "W", f64))  # (N, m)
+    eta = g.op("MatMul", psi, g.const(o.mean[j][:, None], "mu", f64))
+    q = g.mul(psi, g.op("MatMul", psi, g.const(o.cov[j], "S", f64)))
+    q = g.op("ReduceSum", q, g.const([1], "ax", np.int64), keepdims=1)
+    q0 = None  # read only where η's prior is a share of the band
+    if o.shared:
+        q0 = g.op("ReduceSum", g.sq(psi), g.const([1], "ax", np.int64), keepdims=1)
+    return eta, g.op("Max", q, k64(0.0)), q0
+
+
+def _onnx_bank(g: _Graph, b, x3, k64):
+    """A bank (:class:`gpg.export.layout.BankTerm`) at its exported state: the mixture's mean
+    per load output (six (N, 1) columns, the weights fixed at their exported values) and
+    ``band(j, offline)``, output ``j``'s band from the complete offline one: ``Σ_k w_k
+    band_k`` plus the spread of the members' means (``gpg.flight.Bank.band``)."""
+    lw = b.log_weight - b.log_weight.max(0)
+    w = np.exp(lw) / np.exp(lw).sum(0)  # (K, 6)
+    parts, mixes = [], []
+    for j in range(6):
+        mk, post, q0 = zip(*(_onnx_moments(g, o, x3, j, k64) for o in b.members), strict=True)
+        mix = second = None
+        for k in range(len(mk)):
+            a, s2 = g.mul(mk[k], k64(w[k, j])), g.mul(g.sq(mk[k]), k64(w[k, j]))
+            mix, second = (a, s2) if mix is None else (g.add(mix, a), g.add(second, s2))
+        mixes.append(mix)
+        parts.append((post, q0, g.op("Max", g.sub(second, g.sq(mix)), k64(0.0))))
+    shared = b.members[0].shared
+
+    def band(j, offline):
+        post, q0, out = parts[j]
+        for k in range(len(post)):
+            each = g.op("Max", g.sub(offline, q0[k]), k64(0.0)) if shared else offline
+            out = g.add(out, g.mul(g.add(each, post[k]), k64(w[k, j])))
+        return out
+
+    return mixes, band
 
 
 def _onnx_tracked(g: _Graph, c, prior, ms, h, loads, k64, dl):

@@ -235,10 +235,11 @@ def test_bank_in_c_equals_the_scan(corrected, flights, tmp_path):  # noqa: F811
     members, their lagged copies, the ring and the log weights, equals ``lax.scan`` of
     :func:`fc.update` (double: the same float64 Kalman steps, summed in another order: to
     1e-9), and its ``online_predict`` then equals ``predict`` of the updated model, band
-    included. A bank is refused by name without the variance, and by ONNX."""
+    included, as CasADi's and ONNX's exports of it do at that state. A bank is refused by
+    name without the variance."""
     import ctypes
 
-    from gpg.export import to_onnx
+    from gpg.export import to_casadi, to_onnx
     from tests.export.test_c_source import compiled
     from tests.flight.test_correction import _export_states, assert_c_predicts
 
@@ -280,8 +281,31 @@ def test_bank_in_c_equals_the_scan(corrected, flights, tmp_path):  # noqa: F811
     assert_c_predicts(lib.quad_online_predict, st, ref, rpm, euler, v, 1e-7)
     with pytest.raises(ValueError, match="exports with variance=True only"):
         compiled(sur, tmp_path, "double", variance=False)
-    with pytest.raises(ValueError, match="bank of online terms"):
-        to_onnx(sur, tmp_path / "bank.onnx")
+    # CasADi (double) and ONNX (the prior in float32, the correction in double) at the updated
+    # state: the means to 1e-10 and 1e-5 of their scale, the band to the prior's variance
+    # bound of each, relative to the band plus the offline one (the shared band takes each
+    # member's prior out of it: the difference cancels, its error is the terms')
+    from tests.flight.test_correction import onnx_outputs
+    from tests.helpers import variance_rtol
+
+    rpm, euler, v = (np.asarray(a, np.float32).astype(float) for a in (rpm, euler, v))
+    ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
+    offline = jax.vmap(corrected.predict)(rpm, euler, v)
+    scale = np.asarray(ref.variance) + np.asarray(offline.variance)
+    loads = np.abs(np.concatenate([ref.force, ref.torque], 1)).max()
+    pytest.importorskip("casadi")
+    f = to_casadi(final)
+    vtol = variance_rtol(fc.base(final), rpm, euler, v, None)
+    for i in range(len(rpm)):
+        res = [np.asarray(a).ravel() for a in f(rpm[i], euler[i], v[i])]
+        want = np.concatenate([ref.force[i], ref.torque[i]])
+        assert np.abs(np.concatenate(res[:2]) - want).max() <= 1e-10 * max(1.0, loads), i
+        assert np.all(np.abs(res[3] - ref.variance[i]) <= (vtol[i] + 1e-9) * scale[i]), i
+    got = onnx_outputs(to_onnx(final, tmp_path / "bank.onnx")["onnx"], rpm, euler, v)
+    for key in ("force", "torque"):
+        np.testing.assert_allclose(got[key], getattr(ref, key), atol=1e-5 * max(1.0, loads))
+    v32 = variance_rtol(fc.base(final), rpm, euler, v, 2.0**-24)
+    assert np.all(np.abs(got["variance"] - ref.variance) <= (v32[:, None] + 16 * 2.0**-24) * scale)
 
 
 def _c_bank(sur, directory, dtype: str, k: int, ahead: int, d: int):
