@@ -3,8 +3,8 @@
 The Markdown pages stay what GitHub shows (``docs/*.md``, the README at the root); these hooks
 make the same files a site:
 
-- the README becomes the landing page and ``examples/c_flight`` a guide, their links rewritten
-  from the repository's layout to the site's;
+- the README becomes the landing page and ``examples/c_flight`` and ``examples/c_adapt``
+  guides, their links rewritten from the repository's layout to the site's;
 - the notebooks are executed (top to bottom, from the repository root, as a user runs them)
   and added with their outputs; an executed copy is kept under ``build/docs/`` keyed by the
   notebook's bytes and gpg's version, so a rebuild does not run them again;
@@ -30,7 +30,7 @@ from mkdocs.structure.files import File, Files
 
 ROOT = Path(__file__).resolve().parents[2]
 CACHE = ROOT / "build" / "docs"
-CARRIED = ("examples/c_flight", "notebooks")  # repository folders the site carries (not .ipynb)
+CARRIED = ("examples/c_flight", "examples/c_adapt", "notebooks")  # folders the site carries
 log = logging.getLogger("mkdocs.plugins.gpg")
 
 # Top-level modules with a reference page of their own; the other top-level modules share
