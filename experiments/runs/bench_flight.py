@@ -375,6 +375,9 @@ def _interleaved(sur, labels, updates: int, forms: dict[str, dict], block: int) 
     cache as a loop of one form does."""
     from gpg import flight
 
+    if not 0 < block <= updates:
+        raise ValueError(f"flight.update.stacked: block ({block}) must be from 1 to updates "
+                         f"({updates})")  # fmt: skip
     n, skip = len(labels), min(5, block // 4)
     steps = {form: flight.online_step(sur, **kw) for form, kw in forms.items()}
     states = {form: flight.online_state(sur) for form in forms}

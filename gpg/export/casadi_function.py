@@ -220,8 +220,7 @@ def _ca_bank(ca, b, xn, loads: list):
     ``Σ_k w_k η̄_k`` added to ``loads`` (in place, the weights fixed at their exported
     values); returns ``band(j, offline)``, load output ``j``'s band from the complete offline
     one: ``Σ_k w_k band_k`` plus the spread of the members' means (``gpg.flight.Bank.band``)."""
-    lw = b.log_weight - b.log_weight.max(0)
-    w = np.exp(lw) / np.exp(lw).sum(0)  # (K, 6)
+    w = b.weights  # (K, 6)
     parts = []
     for j in range(6):
         mk, post, q0 = zip(*(_ca_moments(ca, o, xn, j) for o in b.members), strict=True)

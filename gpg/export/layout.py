@@ -24,6 +24,7 @@ import hashlib
 from dataclasses import dataclass, field
 from typing import Any
 
+import jax
 import numpy as np
 
 from gpg._version import __version__
@@ -223,6 +224,13 @@ class BankTerm:
     def ahead(self) -> int:
         """``L``, the labels each member is scored ahead."""
         return int(self.ring_t.shape[0])
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(K, 6) the members' weights per load output (each column sums to one), as
+        :meth:`gpg.flight.Bank.weights` gives them at the exported state."""
+        w = np.exp(self.log_weight - self.log_weight.max(0))
+        return w / w.sum(0)
 
 
 @dataclass(frozen=True)
@@ -598,18 +606,11 @@ def _bank(b: Any, d_in: int, variance: bool) -> BankTerm:
             "a bank of online terms (gpg.flight.adapt_bank) scores its members under the "
             "offline band at each label: it exports with variance=True only"
         )
-    o = b.members
-    members = tuple(
-        OnlineTerm(Z=_f64(o.Z[i]), whiten=_f64(o.whiten[i]), variance=_f64(o.variance[i]),
-                   lengthscale=np.broadcast_to(_f64(o.lengthscale[i]), (6, d_in)).copy(),
-                   noise=_f64(o.noise[i]),
-                   tau=np.broadcast_to(_f64(o.tau[i]), o.mean.shape[1:]).copy(),
-                   mean=_f64(o.mean[i]), cov=_f64(o.cov[i]), t=float(np.asarray(o.t[i])),
-                   shared=bool(o.shared))
-        for i in range(int(b.log_weight.shape[0]))
-    )  # fmt: skip
+    k = int(b.log_weight.shape[0])
     return BankTerm(
-        members=members,
+        members=tuple(
+            _online(jax.tree.map(lambda a, i=i: a[i], b.members), d_in) for i in range(k)
+        ),  # fmt: skip
         lagged_mean=_f64(b.lagged.mean),
         lagged_cov=_f64(b.lagged.cov),
         lagged_t=_f64(b.lagged.t),

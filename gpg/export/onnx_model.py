@@ -599,8 +599,7 @@ def _onnx_bank(g: _Graph, b, x3, k64):
     per load output (six (N, 1) columns, the weights fixed at their exported values) and
     ``band(j, offline)``, output ``j``'s band from the complete offline one: ``Σ_k w_k
     band_k`` plus the spread of the members' means (``gpg.flight.Bank.band``)."""
-    lw = b.log_weight - b.log_weight.max(0)
-    w = np.exp(lw) / np.exp(lw).sum(0)  # (K, 6)
+    w = b.weights  # (K, 6)
     parts, mixes = [], []
     for j in range(6):
         mk, post, q0 = zip(*(_onnx_moments(g, o, x3, j, k64) for o in b.members), strict=True)
