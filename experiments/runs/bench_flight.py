@@ -35,7 +35,10 @@ and what one adaptation update costs (:mod:`gpg.flight`).
   tracked (:func:`gpg.flight.track`, the default drift with a second, one-second bias
   member: a bank of two filters), tracked with a wind state (:func:`gpg.flight.gusts`,
   ``wind_*``) and adapted by a bank of online terms (:func:`gpg.flight.adapt_bank`, ``bank``:
-  its members' forgetting times and ``ahead``; ``bank_*``), in double and in float.
+  its members' forgetting times and ``ahead``; ``bank_*``), in double and in float. With
+  ``python_calls``: the tracked, wind and bank models' update and prediction called
+  from Python through :func:`gpg.export.to_native` (``<kind>_python``), one label per call
+  cycling through the synthetic labels, the foreign call included: what a user's loop pays.
 * ``every_label``: :func:`gpg.flight.correct` (the physical basis, discrepancies through
   ``inducing`` inducing inputs) on ``hours`` of labels at 10 Hz (36 000 an hour; synthetic
   labels of a vehicle 10 % stronger than the prior, drawn in its box: the cost depends on the
@@ -184,6 +187,10 @@ def _c(cfg: dict[str, Any]) -> dict[str, Any]:
                 row[key] = compile_and_time(cc, cfg["flags"], where, sources, int(cfg["c_calls"]))
             for kind, model in tracked.items():  # the tracked filter, with a wind state, a bank
                 where = Path(tmp) / f"{dtype}_{kind}"
+                if cfg.get("python_calls"):
+                    row[f"{kind}_python"] = _from_python(
+                        model, Path(tmp) / f"{dtype}_{kind}_py", dtype, cc, cfg, labels
+                    )
                 info = to_c(model, where, name="quad", dtype=dtype)
                 (where / "online_bench.h").write_text(ONLINE_HEADER)
                 for key, call in ONLINE_CALLS:
@@ -193,6 +200,31 @@ def _c(cfg: dict[str, Any]) -> dict[str, Any]:
                         cc, cfg["flags"], where, sources, int(cfg["c_calls"])
                     )
             out[dtype] = row
+    return out
+
+
+def _from_python(model, where, dtype: str, cc: str, cfg: dict[str, Any], labels):
+    """``model``'s online update and prediction in C, called from Python
+    (:func:`gpg.export.to_native`): ``python_calls`` labels, each timed alone, after five
+    untimed (median, 5th and 95th percentile, µs)."""
+    from gpg.export import to_native
+
+    nat = to_native(model, where, name="quad", dtype=dtype, cc=cc, flags=tuple(cfg["flags"]))
+    cols = [np.asarray(c, float) for c in labels.columns()]
+    n, calls = len(cols[0]), int(cfg["python_calls"])
+    times = np.empty((2, calls + 5))
+    for i in range(calls + 5):
+        row = [c[i % n] for c in cols]
+        t0 = time.perf_counter()
+        nat.update(i * 0.1, *row[1:])
+        t1 = time.perf_counter()
+        nat.predict(*row[1:4])
+        times[:, i] = t1 - t0, time.perf_counter() - t1
+    out = {}
+    for key, t in zip(("update", "predict"), times[:, 5:], strict=True):
+        st = stats(t)
+        out[key] = {"median_us": st["median_s"] * 1e6, "p05_us": st["p05_s"] * 1e6,
+                    "p95_us": st["p95_s"] * 1e6, "n": st["n"]}  # fmt: skip
     return out
 
 

@@ -20,15 +20,28 @@ online term as well (in C with its update, on a state the caller holds; CasADi a
 the exported state); a tracked model with a wind state (:func:`gpg.flight.gusts`)
 exports to C only (its update and prediction differentiate the model in the air velocity by
 central differences there), with its variance; CasADi and ONNX refuse it.
+
+:func:`to_native` builds the C with the system's compiler and loads it with ctypes: the
+prediction and the online update called from Python at the C's cost (:class:`Native`).
 """
 
 from gpg._deprecated import deprecated
 from gpg.export.c_source import to_c
 from gpg.export.casadi_function import to_casadi
 from gpg.export.layout import Layout, spec
+from gpg.export.native import Native, NativePrediction, to_native
 from gpg.export.onnx_model import to_onnx
 
-__all__ = ["Layout", "spec", "to_c", "to_casadi", "to_onnx"]
+__all__ = [
+    "Layout",
+    "Native",
+    "NativePrediction",
+    "spec",
+    "to_c",
+    "to_casadi",
+    "to_native",
+    "to_onnx",
+]
 
 
 def __getattr__(name: str):

@@ -133,6 +133,7 @@ def test_bench_flight_suite(tmp_path):
                  "flight.update.stacked.bank.inducing=4",
                  "flight.parallel=null", "flight.c.n_points=40", "flight.c.labels=60",
                  "flight.c.inducing=12", "flight.c.online=6", "flight.c.c_calls=50",
+                 "flight.c.python_calls=30",
                  "flight.every_label.n_points=40", "flight.every_label.hours=[0.01]",
                  "flight.every_label.inducing=12", "flight.every_label.warmup=60"]  # fmt: skip
     bench.run(compose_plain("bench", overrides), tmp_path)
@@ -145,6 +146,10 @@ def test_bench_flight_suite(tmp_path):
         for key in calls:
             t = res["c"][dtype][key]
             assert t["n"] == 50 and 0 < t["median_us"] <= t["p95_us"], (dtype, key)
+        for kind in ("tracked", "wind", "bank"):  # from Python, through gpg.export.to_native
+            for key in ("update", "predict"):
+                t = res["c"][dtype][f"{kind}_python"][key]
+                assert t["n"] == 30 and 0 < t["median_us"] <= t["p95_us"], (dtype, kind, key)
     assert res["every_label"]["runs"][0]["labels"] == 360
     for name in ("tracked", "wind_state", "bank"):  # three forms interleaved, ratios a round
         st = res["update"]["stacked"][name]
