@@ -8,6 +8,8 @@ C export against the library in the user's own process."""
 from __future__ import annotations
 
 import ctypes
+import hashlib
+import os
 import shutil
 import subprocess
 import tempfile
@@ -195,8 +197,9 @@ def to_native(
 
     Args:
         sur: the fitted surrogate (any model :func:`to_c` exports).
-        directory: where to write the source and the library; None: a temporary directory,
-            removed with the returned object.
+        directory: where to write the source and the library (``<name>-<digest>.so``, one
+            per content: a library already built from the same source is loaded again, not
+            rebuilt); None: a temporary directory, removed with the returned object.
         name: the C identifier of the export.
         dtype: ``"double"`` or ``"float"``, as :func:`to_c`.
         variance: whether to export the variance (a bank needs it).
@@ -224,14 +227,24 @@ def to_native(
         if "_online_init" in info["h"].read_text()
         else "typedef int gpg_native_empty;\n"
     )
-    so = where / f"{name}.so"
-    built = subprocess.run(
-        [exe, *flags, "-shared", "-fPIC", "-I", str(where), "-o", str(so), str(info["c"]),
-         str(shim), "-lm"],
-        capture_output=True, text=True,
-    )  # fmt: skip
-    if built.returncode != 0:
-        raise RuntimeError(f"{cc} failed on {info['c']}: {built.stderr[-3000:]}")
+    # dlopen hands back a library already loaded from the same path, whatever the file holds
+    # now: one file per content, so that another model written under this name loads its own
+    # (and the same content is not built twice)
+    digest = hashlib.sha256("\0".join((exe, *flags)).encode())
+    for path in (info["c"], info["h"], shim):
+        digest.update(path.read_bytes())
+    so = where / f"{name}-{digest.hexdigest()[:16]}.so"
+    if not so.exists():
+        part = so.with_suffix(f".{os.getpid()}.part")
+        built = subprocess.run(
+            [exe, *flags, "-shared", "-fPIC", "-I", str(where), "-o", str(part), str(info["c"]),
+             str(shim), "-lm"],
+            capture_output=True, text=True,
+        )  # fmt: skip
+        if built.returncode != 0:
+            part.unlink(missing_ok=True)
+            raise RuntimeError(f"{cc} failed on {info['c']}: {built.stderr[-3000:]}")
+        os.replace(part, so)  # whole or not at all
     n_levels = len(sur.output_names) - 6
     out = Native(ctypes.CDLL(str(so)), name, where, n_levels, info["variance"])
     if owned:

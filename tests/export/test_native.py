@@ -24,7 +24,7 @@ def test_native_predicts_as_predict(synthetic_surrogate, tmp_path):
     sur = synthetic_surrogate
     nat = to_native(sur, tmp_path, name="quad")
     assert isinstance(nat, Native) and not nat.online and nat.state is None
-    assert (tmp_path / "quad.so").exists() and (tmp_path / "quad.h").exists()
+    assert len(list(tmp_path.glob("quad-*.so"))) == 1 and (tmp_path / "quad.h").exists()
     rpm, euler, v = states(12, 3)
     ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
     vtol = variance_rtol(sur, rpm, euler, v, None)
@@ -43,6 +43,16 @@ def test_native_predicts_as_predict(synthetic_surrogate, tmp_path):
         nat.reset()
     with pytest.raises(ValueError, match=r"euler must have shape \(3,\), got \(4,\)"):
         nat.predict(rpm[0], rpm[0], v[0])
+    # another export under the same name and directory loads its own library (dlopen of a
+    # path already loaded would hand back the first): float's arrays round differently
+    f32 = to_native(sur, tmp_path, name="quad", dtype="float")
+    a, b = f32.predict(rpm[1], euler[1], v[1]), nat.predict(rpm[1], euler[1], v[1])
+    assert not np.array_equal(a.force, b.force) and rel_err(a.force, b.force) <= 1e-5
+    assert len(list(tmp_path.glob("quad-*.so"))) == 2
+    again = to_native(sur, tmp_path, name="quad")  # the same source: the same library
+    assert len(list(tmp_path.glob("quad-*.so"))) == 2
+    q = (rpm[2], euler[2], v[2])
+    np.testing.assert_array_equal(again.predict(*q).force, nat.predict(*q).force)
 
 
 def test_native_without_variance_a_temporary_build_and_bad_compilers(synthetic_surrogate):
