@@ -207,6 +207,7 @@ def _from_python(model, where, dtype: str, cc: str, cfg: dict[str, Any], labels)
     """``model``'s online update and prediction in C, called from Python
     (:func:`gpg.export.to_native`): ``python_calls`` labels, each timed alone, after five
     untimed (median, 5th and 95th percentile, µs)."""
+    from experiments.runs.export import _us
     from gpg.export import to_native
 
     nat = to_native(model, where, name="quad", dtype=dtype, cc=cc, flags=tuple(cfg["flags"]))
@@ -220,12 +221,8 @@ def _from_python(model, where, dtype: str, cc: str, cfg: dict[str, Any], labels)
         t1 = time.perf_counter()
         nat.predict(*row[1:4])
         times[:, i] = t1 - t0, time.perf_counter() - t1
-    out = {}
-    for key, t in zip(("update", "predict"), times[:, 5:], strict=True):
-        st = stats(t)
-        out[key] = {"median_us": st["median_s"] * 1e6, "p05_us": st["p05_s"] * 1e6,
-                    "p95_us": st["p95_s"] * 1e6, "n": st["n"]}  # fmt: skip
-    return out
+    return {key: {**_us(stats(t)), "n": t.size}
+            for key, t in zip(("update", "predict"), times[:, 5:], strict=True)}  # fmt: skip
 
 
 def _parallel(cfg: dict[str, Any]) -> dict[str, Any]:

@@ -680,12 +680,17 @@ def _online(o: Any, d_in: int) -> OnlineTerm:
     )
 
 
+def _online_arrays(o: OnlineTerm, prefix: str):
+    """An online term's arrays by name, for the record's hash."""
+    for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
+        yield f"{prefix}_{key}", getattr(o, key)
+    yield f"{prefix}_tau_t", np.r_[o.tau.ravel(), o.t]
+
+
 def _bank_arrays(bk: BankTerm):
     """A bank's arrays by name, for the record's hash."""
     for i, o in enumerate(bk.members):
-        for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
-            yield f"bank{i}_{key}", getattr(o, key)
-        yield f"bank{i}_tau_t", np.r_[o.tau.ravel(), o.t]
+        yield from _online_arrays(o, f"bank{i}")
     for key in ("lagged_mean", "lagged_cov", "lagged_t", "ring_x", "ring_y", "ring_r", "ring_t",
                 "log_weight"):  # fmt: skip
         yield f"bank_{key}", getattr(bk, key)
@@ -816,10 +821,7 @@ def _arrays(s: Layout):
                 yield f"corr_{key}", getattr(c, key)
         yield "corr_hubs", c.hubs
         if c.online is not None:
-            o = c.online
-            for key in ("Z", "whiten", "variance", "lengthscale", "noise", "mean", "cov"):
-                yield f"online_{key}", getattr(o, key)
-            yield "online_tau_t", np.r_[o.tau.ravel(), o.t]
+            yield from _online_arrays(c.online, "online")
         if c.bank is not None:
             yield from _bank_arrays(c.bank)
         if c.tracked is not None:

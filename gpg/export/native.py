@@ -27,11 +27,18 @@ __all__ = ["FLAGS", "Native", "NativePrediction", "to_native"]
 # What the project's own timing and tests build with (one core, the C99 the source is in).
 FLAGS = ("-O2", "-std=c99")
 
-# The online update's arguments after t, in the order of its C declaration (and of
-# gpg.flight.Labels.columns): name and length.
-_UPDATE = (("rpm", 4), ("euler", 3), ("v_air", 3), ("force", 3), ("torque", 3),
-           ("force_var", 3), ("torque_var", 3))  # fmt: skip
-_STATE = (("rpm", 4), ("euler", 3), ("v_air", 3))
+
+def _packed(*args: tuple[str, int]) -> tuple[tuple[str, int, int], ...]:
+    """Arguments laid one after another in one buffer: name, length and first index."""
+    starts = np.cumsum([0] + [n for _, n in args])
+    return tuple((key, n, int(at)) for (key, n), at in zip(args, starts, strict=False))
+
+
+# A state's arguments, and the online update's after t, in the order of their C declarations
+# (and of gpg.flight.Labels.columns).
+_STATE = _packed(("rpm", 4), ("euler", 3), ("v_air", 3))
+_UPDATE = _packed(*((key, n) for key, n, _ in _STATE), ("force", 3), ("torque", 3),
+                  ("force_var", 3), ("torque_var", 3))  # fmt: skip
 
 
 class NativePrediction(NamedTuple):
@@ -65,15 +72,13 @@ class Native:
         self.lib, self.name, self.directory = lib, name, directory
         self.n_levels, self.has_variance = int(n_levels), bool(has_variance)
         vp = ctypes.c_void_p
-        self._in = np.zeros(10)  # rpm, euler, v_air
+        self._in = np.zeros(sum(n for _, n, _ in _STATE))
+        self._row = np.zeros(sum(n for _, n, _ in _UPDATE))
         self._out = np.zeros(12 + 2 * self.n_levels + 1)  # force, torque, levels, variance
-        self._row = np.zeros(sum(n for _, n in _UPDATE))
-        base, off = self._in.ctypes.data, np.cumsum([0, 4, 3]) * 8
-        self._in_p = tuple(int(base + o) for o in off)
-        base, k = self._out.ctypes.data, self.n_levels
-        self._out_p = tuple(int(base + 8 * o) for o in (0, 3, 6, 6 + max(k, 1)))
-        base, off = self._row.ctypes.data, np.cumsum([0] + [n for _, n in _UPDATE[:-1]]) * 8
-        self._row_p = tuple(int(base + o) for o in off)
+        self._in_p = tuple(self._in.ctypes.data + 8 * at for _, _, at in _STATE)
+        self._row_p = tuple(self._row.ctypes.data + 8 * at for _, _, at in _UPDATE)
+        k = self.n_levels
+        self._out_p = tuple(self._out.ctypes.data + 8 * at for at in (0, 3, 6, 6 + max(k, 1)))
         call = getattr(lib, f"{name}_predict" if has_variance else f"{name}_mean")
         call.argtypes, call.restype = [vp] * (7 if has_variance else 6), ctypes.c_int
         self._predict = call
@@ -115,7 +120,7 @@ class Native:
         Raises:
             ValueError: an input of another length.
         """
-        for (key, n), a, at in zip(_STATE, (rpm, euler, v_air), (0, 4, 7), strict=True):
+        for (key, n, at), a in zip(_STATE, (rpm, euler, v_air), strict=True):
             self._in[at : at + n] = _vector(a, n, key)
         out, k = self._out, self.n_levels
         out[:] = 0.0
@@ -159,11 +164,9 @@ class Native:
             ValueError: for a model without an online term, or an argument of another length.
         """
         self._need_online("update")
-        at = 0
-        for (key, n), a in zip(_UPDATE, (rpm, euler, v_air, force, torque, force_var,
-                                         torque_var), strict=True):  # fmt: skip
+        args = (rpm, euler, v_air, force, torque, force_var, torque_var)
+        for (key, n, at), a in zip(_UPDATE, args, strict=True):
             self._row[at : at + n] = _vector(a, n, key)
-            at += n
         return bool(self._update(self._state_p, float(t), *self._row_p))
 
     def _need_online(self, what: str) -> None:
