@@ -52,11 +52,10 @@ from typing import TYPE_CHECKING, Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
 
-from gpg import models
+from gpg import _host, models
 from gpg._io import atomic_write, require_writable
 from gpg._version import __version__
 
@@ -140,7 +139,7 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
         a = arrays[desc["__array__"]]
         # As saved: a float64 array stays float64 even where x64 is off (see module docstring).
         with jax.enable_x64(a.dtype.itemsize > 4):
-            return jnp.asarray(a)
+            return _host.asarray(a)
     if isinstance(desc, dict) and "__tuple__" in desc:
         return tuple(_rebuild(v, arrays) for v in desc["__tuple__"])
     if isinstance(desc, dict) and "__class__" in desc:

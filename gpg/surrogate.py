@@ -46,7 +46,7 @@ import numpy as np
 from jax.typing import DTypeLike
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from gpg import models, parallel
+from gpg import _host, models, parallel
 from gpg._checks import no_hash
 from gpg._deprecated import deprecated
 from gpg._dtype import float64
@@ -581,7 +581,7 @@ def _batch_array(name: str, a):
     not copied to the host to be checked), anything else is converted on the host."""
     if isinstance(a, jax.Array) and jnp.issubdtype(a.dtype, jnp.floating):
         return a
-    return jnp.asarray(_as_float(name, a))
+    return _host.asarray(_as_float(name, a))
 
 
 # Queries per vmapped block of predict_batch, per JAX backend, for the mean alone and with

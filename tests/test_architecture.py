@@ -18,6 +18,7 @@ RANKS = {
     "gpg._interrupt": 0,
     "gpg._version": 0,
     "gpg._dtype": 0,
+    "gpg._host": 0,
     "gpg._precision": 0,
     "gpg._identity": 0,
     "gpg._deprecated": 0,

@@ -81,6 +81,7 @@ class Normalizer(eqx.Module):
     def half_range(self) -> Float[Array, " D"]:
         return 0.5 * (self.x_hi - self.x_lo)
 
+    @eqx.filter_jit
     def x(self, x: Float[ArrayLike, "... D"]) -> Float[Array, "... D"]:
         """Inputs normalised to the box [−1, 1] (Eq. normalize_x).
 
@@ -92,6 +93,7 @@ class Normalizer(eqx.Module):
         """
         return (jnp.asarray(x) - self.x_lo) / self.half_range - 1.0
 
+    @eqx.filter_jit
     def x_inv(self, xn: Float[ArrayLike, "... D"]) -> Float[Array, "... D"]:
         """Normalised inputs back in dataset units, the inverse of :meth:`x`.
 
@@ -103,6 +105,7 @@ class Normalizer(eqx.Module):
         """
         return (jnp.asarray(xn) + 1.0) * self.half_range + self.x_lo
 
+    @eqx.filter_jit
     def y(self, y: Float[ArrayLike, "... M"]) -> Float[Array, "... M"]:
         """Outputs z-scored (Eq. normalize_y).
 
@@ -114,6 +117,7 @@ class Normalizer(eqx.Module):
         """
         return (jnp.asarray(y) - self.y_mean) / self.y_std
 
+    @eqx.filter_jit
     def y_inv(self, yn: Float[ArrayLike, "... M"]) -> Float[Array, "... M"]:
         """Normalised outputs back in physical units, the inverse of :meth:`y`.
 
@@ -133,6 +137,7 @@ class Normalizer(eqx.Module):
         """
         return self.half_range[jnp.asarray(self.grad_dims)][None, :] / self.y_std[:, None]
 
+    @eqx.filter_jit
     def grad(self, J: Float[ArrayLike, "... M G"]) -> Float[Array, "... M G"]:
         """Gradients along the input dims normalised (Eq. normalize_g, :meth:`grad_scale`).
 
@@ -144,6 +149,7 @@ class Normalizer(eqx.Module):
         """
         return jnp.asarray(J) * self.grad_scale()
 
+    @eqx.filter_jit
     def grad_inv(self, Jn: Float[ArrayLike, "... M G"]) -> Float[Array, "... M G"]:
         """Normalised gradients back in dataset units, the inverse of :meth:`grad`.
 
@@ -220,6 +226,7 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
     coeffs = ds.meta.get("simple_model")
     if coeffs is not None:
         return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
+
     from gpg.quadrotor.frames import R_WB  # local: only this fallback needs it
 
     R = np.asarray(jax.vmap(R_WB)(jnp.asarray(_m_inputs(ds.frame, ds.x)[:, 4:7])))

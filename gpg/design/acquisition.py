@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from gpg import _host
 from gpg._dtype import float64
 from gpg.gp import kernels
 from gpg.gp.exact import ExactGP
@@ -101,7 +102,7 @@ def _whitened(gp: ExactGP, Xq: np.ndarray, dims: tuple[int, ...], chunk: int = 5
         q = Xc.shape[0]
         rows = np.arange(q * (1 + len(dims)))
         K = rows_gram(Xc, rows, X, order, gp.hyper, gp.grad_dims, bases2=bases)
-        V = gp.chol_inv.rmatmul(jnp.asarray(K))
+        V = gp.chol_inv.rmatmul(_host.asarray(K))
         # dimension-major rows of this chunk -> point-major
         out.append(
             np.asarray(V)

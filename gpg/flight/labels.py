@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage, optimize
 from scipy.interpolate import make_smoothing_spline
@@ -64,6 +63,11 @@ EDGE_S = 0.1  # s dropped at each end of a segment, where the spline has one sid
 MAX_DELAY_S = 0.5  # s: a rotor-speed channel's lag is tens of ms; more is a unit mistake
 # Above this share of vanishing second differences a signal is an interpolation, not samples.
 INTERPOLATED_SHARE = 0.5
+
+
+# One compiled program for every batch of angles: vmapped op by op, each new batch size
+# compiled a program for every operation of the rotation.
+_euler_batch = jax.jit(jax.vmap(euler_from_R))
 
 
 @dataclass(frozen=True)
@@ -778,7 +782,7 @@ def _labels(log, rows, Rk, rpm, loads, reference, simple, drop, lag, src) -> Lab
     """The labels at ``rows``: the body-frame loads and variances rotated into the world, the
     state, the reference model there."""
     F_B, F_var_B, tau_B, tau_var_B = loads
-    euler = np.asarray(jax.vmap(euler_from_R)(jnp.asarray(Rk)))
+    euler = np.asarray(_euler_batch(Rk))
     wind = np.zeros((rows.size, 3)) if log.wind is None else log.wind[rows]
     v_air = log.velocity[rows] - wind
     model_force, model_torque = _reference(reference, simple, rpm, euler, v_air)

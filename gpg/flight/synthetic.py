@@ -57,6 +57,11 @@ __all__ = [
 ]
 
 
+# One compiled program for every batch of angles: vmapped op by op, each new batch size
+# compiled a program for every operation of the rotation.
+_euler_batch = jax.jit(jax.vmap(euler_from_R))
+
+
 class BEMTAero(AeroModel):
     """The blade-element-momentum physics as a flight simulator's aerodynamics (the truth of a
     synthetic flight): rotor loads with body-rate hub velocities, wake interference, airframe
@@ -398,7 +403,7 @@ def fly(
         voltage=volt[k],
         name=name,
     )
-    euler = np.asarray(jax.vmap(euler_from_R)(jnp.asarray(R[k])))
+    euler = np.asarray(_euler_batch(R[k]))
     return Flight(log, wr.force[k], wr.torque[k], st.rpm[k], euler, (st.v - v_wind)[k])
 
 

@@ -73,6 +73,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg import _host
 from gpg._dtype import float64
 from gpg._precision import highest
 from gpg.flight import correction as fc
@@ -990,7 +991,7 @@ def prequential(sur: Surrogate, labels: Labels) -> Prequential:
                            np.asarray(p.variance)[:, :6], sur)  # fmt: skip
     state = fc.online_state(sur)
     offline = dataclasses.replace(sur, model=fc.offline_model(m))
-    cols = tuple(jnp.asarray(c) for c in labels.columns())
+    cols = tuple(_host.asarray(c) for c in labels.columns())
     state, (f, tq, var) = _prequential_scan(offline, state, cols)
     return Prequential(np.asarray(f), np.asarray(tq), np.asarray(var)[:, :6],
                        fc.with_online(sur, state))  # fmt: skip

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from gpg import _host
 from gpg._precision import highest
 from gpg.gp import kernels
 from gpg.gp.hyper import Hyper
@@ -76,7 +77,7 @@ def assemble_gram(
     if bases is not None:
         return assemble_rows_gram(np.asarray(X), np.arange(r), hyper, grad_dims, out=out,
                                   bases=bases)  # fmt: skip
-    X = jnp.asarray(X)
+    X = _host.asarray(X)
     if out is None:
         out = np.empty((r, r))
     elif out.shape != (r, r):
@@ -138,12 +139,12 @@ def rows_gram(
     if out is None:
         out = np.empty((r1, p2.shape[0]))
     step = min(chunk, max(r1, 1))
-    right = (jnp.asarray(X2[p2]), *(jnp.asarray(a) for a in right))
+    right = (_host.asarray(X2[p2]), *(_host.asarray(a) for a in right))
     for start in range(0, r1, step):
         stop = min(start + step, r1)
         sel = np.arange(start, start + step).clip(max=r1 - 1)  # padded with the last row
         block = kernel(
-            jnp.asarray(X1[p1[sel]]), *(jnp.asarray(a[sel]) for a in left), *right,
+            _host.asarray(X1[p1[sel]]), *(_host.asarray(a[sel]) for a in left), *right,
             hyper.variance, hyper.lengthscale,
         )  # fmt: skip
         out[start:stop] = np.asarray(block)[: stop - start]
@@ -275,7 +276,7 @@ def device_gram(
     block = int(max(1, min(r, chunk_bytes // per_row)))
     noise = np.asarray(hyper.noise_diagonal(n, g))[index]
     return _device_gram(
-        jnp.asarray(X[p]), tuple(jnp.asarray(a) for a in what), jnp.asarray(noise),
+        _host.asarray(X[p]), tuple(_host.asarray(a) for a in what), _host.asarray(noise),
         hyper.variance, hyper.lengthscale, kernel=kernel, block=block,
     )  # fmt: skip
 

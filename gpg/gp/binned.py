@@ -22,6 +22,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from gpg import _host
 from gpg._precision import highest
 from gpg.gp import kernels, partition
 from gpg.gp.gram import to_bases
@@ -617,8 +618,8 @@ def pack_points(
     return BinnedGP(
         partition=part,
         shared=None if shared is None else jnp.asarray(shared),
-        Xn=jnp.asarray(Xn),
-        coef=jnp.asarray(np.stack(coefs)),
+        Xn=_host.asarray(Xn),
+        coef=_host.asarray(np.stack(coefs)),
         factor=tuple(bands),
         variance=hyper.variance,
         lengthscale=hyper.lengthscale,

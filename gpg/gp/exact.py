@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from gpg import _host
 from gpg._dtype import float64, in_model_dtype
 from gpg._precision import highest
 from gpg.gp import kernels, predictor
@@ -139,7 +140,7 @@ class ExactGP(Predictor):
         data = check_training_data(X, Y, dY, grad_dims, observed)
         bases = check_bases(bases, data.X.shape[0], data.grad_dims)
         hyper = (Hyper() if hyper is None else hyper).validate(data.X.shape[1], len(data.grad_dims))
-        Xj = jnp.asarray(data.X)
+        Xj = _host.asarray(data.X)
         Ybar, rows = data.targets(), data.rows
         # Cases without some gradients: only the rows they observed enter K̄ and its factor,
         # whose rows ``order`` names in the layout (a values-only case is one row, not 1 + G).
@@ -156,7 +157,7 @@ class ExactGP(Predictor):
         coord = alpha if bases is None else from_bases(alpha, bases, data.X.shape[0])
         return cls(
             X=Xj,
-            alpha=jnp.asarray(alpha),
+            alpha=_host.asarray(alpha),
             chol_inv=bands,
             hyper=hyper,
             mean=GlobalMean.from_alpha(

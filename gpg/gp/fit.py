@@ -20,6 +20,7 @@ import optimistix as optx
 from jaxtyping import ArrayLike, Bool, Float
 from tqdm.auto import tqdm
 
+from gpg import _host
 from gpg._deprecated import deprecated
 from gpg._dtype import float64
 from gpg.gp import slq
@@ -491,7 +492,7 @@ def fit_hyperparameters(
     sub = Checked(data.X[subset], data.Y[subset], next(pick), data.grad_dims, next(pick))
     rows = sub.rows
     sub_bases = None if bases is None else bases[subset]
-    Ybar = jnp.asarray(sub.targets())
+    Ybar = _host.asarray(sub.targets())
     scale = float(Ybar.size if rows is None else rows.sum() * Ybar.shape[1])
     params, grad_var = _initial_params(
         data, init, fit_grad_noise, fit_noise, noise_init, noise_floor

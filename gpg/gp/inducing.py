@@ -32,6 +32,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg import _host
 from gpg._dtype import float64
 from gpg._precision import highest
 from gpg.gp.hyper import Hyper
@@ -321,7 +322,7 @@ class StackedInducing(eqx.Module):
         if variance:
             T = np.stack([np.asarray(g.variance_view().whiten) for g in gps])
             edges = np.linspace(0, m, min(TRI_BANDS, m) + 1).astype(int)
-            tri = tuple(jnp.asarray(np.ascontiguousarray(T[:, a:b, :b]))
+            tri = tuple(_host.asarray(np.ascontiguousarray(T[:, a:b, :b]))
                         for a, b in zip(edges[:-1], edges[1:], strict=True))  # fmt: skip
         return cls(
             scaled=scaled,
@@ -463,7 +464,7 @@ def project(
     # Padded cases get weight 0: they add nothing to B, A u or uᵀu.
     sw = np.where(real, 1.0 / np.sqrt(np.where(real, noise, 1.0)), 0.0)
     ls = np.broadcast_to(np.asarray(hyper.lengthscale, float), (Z.shape[1],))
-    return _project(jnp.asarray(Xp), jnp.asarray(Vp), jnp.asarray(sw), jnp.asarray(Z),
+    return _project(_host.asarray(Xp), _host.asarray(Vp), _host.asarray(sw), _host.asarray(Z),
                     jnp.asarray(hyper.variance, float), jnp.asarray(ls))  # fmt: skip
 
 

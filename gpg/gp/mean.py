@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg import _host
 from gpg._precision import highest
 from gpg.gp import kernels
 
@@ -86,7 +87,7 @@ class GlobalMean(eqx.Module):
         coef = np.concatenate([a0, *blocks[1:]], axis=1)
         return cls(
             Xs=jnp.asarray(X / ls),
-            coef=jnp.asarray(coef),
+            coef=_host.asarray(coef),
             inv_ls=jnp.asarray(1.0 / ls),
             variance=jnp.asarray(variance, dtype=float),
             grad_dims=tuple(grad_dims),

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from gpg import _host
 from gpg.gp import kernels
 
 __all__ = [
@@ -423,7 +424,7 @@ def near_sets(
         corr = np.empty(n)
         for s in range(0, n, chunk):
             corr[s : s + chunk] = np.asarray(
-                _max_correlation(jnp.asarray(X[s : s + chunk]), jnp.asarray(X[a]), ls)
+                _max_correlation(_host.asarray(X[s : s + chunk]), _host.asarray(X[a]), ls)
             )
         corr[a] = np.inf  # anchors first, whatever the rounding
         if epsilon is not None:

@@ -24,6 +24,7 @@ import numpy as np
 from equinox import AbstractVar
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg import _host
 from gpg._checks import no_hash
 from gpg._dtype import in_model_dtype
 from gpg._precision import highest
@@ -149,7 +150,7 @@ class Predictor(eqx.Module):
         Returns:
             The mean (Q, M) and the unclipped latent variance (Q,).
         """
-        return in_model_dtype(self, lambda: _batch(self, jnp.asarray(Xq), True), Xq)
+        return in_model_dtype(self, lambda: _batch(self, _host.asarray(Xq), True), Xq)
 
     def predict_mean(self, Xq: Float[ArrayLike, "Q D"]) -> Float[Array, "Q M"]:
         """Mean only: the fast path (no variance is formed).

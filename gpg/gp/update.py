@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
+from gpg import _host
 from gpg.gp.assembly import assemble_rows_gram, rows_gram
 from gpg.gp.directions import check_bases, from_bases
 from gpg.gp.mean import GlobalMean, output_scale
@@ -122,7 +123,9 @@ def bordered(model, X, Y, dY, observed, bases=None):
         (
             jnp.asarray(X_all),
             jnp.asarray(alpha),
-            BorderedTriangular(model.chol_inv, jnp.asarray(coupling), jnp.asarray(L2inv), Rf + r),
+            BorderedTriangular(
+                model.chol_inv, _host.asarray(coupling), _host.asarray(L2inv), Rf + r
+            ),
             GlobalMean.from_alpha(X_all, coord, h.variance, h.lengthscale, dims),
             jnp.asarray(scale),
             jnp.asarray(lml),

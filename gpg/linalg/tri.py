@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg import _host
 from gpg._precision import highest
 from gpg.linalg.memory import SquareBuffer
 
@@ -67,7 +68,7 @@ class BlockTriangular(eqx.Module):
         blocks = []
         for a, b in zip(edges[:-1], edges[1:], strict=True):
             band = F[a:b, :b] if lower else F[a:b, a:]
-            blocks.append(jnp.asarray(np.ascontiguousarray(band)))
+            blocks.append(_host.asarray(np.ascontiguousarray(band)))
         return cls(blocks=tuple(blocks), n=n, lower=lower)
 
     @classmethod
@@ -96,10 +97,11 @@ class BlockTriangular(eqx.Module):
         edges = np.linspace(0, n, min(n_blocks, max(n, 1)) + 1).astype(int)
         blocks = []
         for a, b in zip(edges[:-1], edges[1:], strict=True):
-            # A copy owned by JAX, made before the rows are given back: ``jnp.array`` may copy
-            # the host rows asynchronously, and rows released under a pending copy read as
-            # zeros (seen in practice: the last band came back partly zeroed under load).
-            blocks.append(jnp.array(F[a:b, :b]).block_until_ready())
+            # A copy owned by JAX, made before the rows are given back (``_host.asarray``
+            # copies on the host before the transfer): rows released under a pending copy
+            # read as zeros (seen in practice: the last band came back partly zeroed under
+            # load, and every band when the device buffer was the buffer's own rows).
+            blocks.append(_host.asarray(F[a:b, :b]))
             buf.release_rows(a, b)
         return cls(blocks=tuple(blocks), n=n, lower=True)
 
@@ -135,6 +137,7 @@ class BlockTriangular(eqx.Module):
         """The storage dtype of the bands (the products' dtype)."""
         return self.blocks[0].dtype
 
+    @eqx.filter_jit
     @highest
     def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
         """``F k`` for one vector, band by band.
@@ -154,6 +157,7 @@ class BlockTriangular(eqx.Module):
             parts.append(blk @ (k[: blk.shape[1]] if self.lower else k[self.n - blk.shape[1] :]))
         return jnp.concatenate(parts)
 
+    @eqx.filter_jit
     @highest
     def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``K Fᵀ`` for a batch of rows ``K``: each row's ``F k``.
@@ -184,6 +188,7 @@ class BlockTriangular(eqx.Module):
         """
         return self.lmatmul(v[None])[0]
 
+    @eqx.filter_jit
     @highest
     def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``V F`` for a batch of rows ``V``: each row's ``Fᵀ v``.
@@ -291,6 +296,7 @@ class BorderedTriangular(eqx.Module):
         m = self.base.n
         return (A[:m], A[m:]) if axis == 0 else (A[:, :m], A[:, m:])
 
+    @eqx.filter_jit
     @highest
     def matvec(self, k: Float[Array, " n"]) -> Float[Array, " n"]:
         """``F k`` for one vector: ``[v; L₂⁻¹ k₂ − M v]`` with ``v = L⁻¹ k₁``.
@@ -305,6 +311,7 @@ class BorderedTriangular(eqx.Module):
         v = self.base.matvec(k1)
         return jnp.concatenate([v, self.corner @ k2 - self.coupling @ v])
 
+    @eqx.filter_jit
     @highest
     def rmatmul(self, K: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``K Fᵀ`` for a batch of rows, the base's part first, then the border's.
@@ -331,6 +338,7 @@ class BorderedTriangular(eqx.Module):
         """
         return self.lmatmul(v[None])[0]
 
+    @eqx.filter_jit
     @highest
     def lmatmul(self, V: Float[Array, "q n"]) -> Float[Array, "q n"]:
         """``V F`` for a batch of rows: ``[(V₁ − V₂ M) L⁻¹, V₂ L₂⁻¹]``.

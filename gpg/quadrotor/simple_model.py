@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg import _host
 from gpg._dtype import float64, in_model_dtype
 from gpg.quadrotor import bemt
 from gpg.quadrotor.frames import R_WB, matvec
@@ -176,8 +177,18 @@ def in_chunks(fn, model, X: ArrayLike):
         n = block.shape[0]
         if n < CHUNK:
             block = np.concatenate([block, np.repeat(block[-1:], CHUNK - n, axis=0)])
-        outs.append(jax.tree.map(lambda a, n=n: a[:n], fn(model, jnp.asarray(block))))
-    return jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
+        # the padding cut and the chunks joined on the host: op by op on the device, each new
+        # ``n`` and each new total compiled a slice and a concatenation of its own
+        outs.append(jax.tree.map(lambda a, n=n: np.asarray(a)[:n], fn(model, _host.asarray(block))))
+    return jax.tree.map(_joined, *outs)
+
+
+def _joined(*parts: np.ndarray) -> Array:
+    """The chunks' rows as one JAX array of their own dtype (float64 stays float64 in a
+    float32 program, as the device's concatenation kept it)."""
+    a = np.concatenate(parts)
+    with jax.enable_x64(a.dtype.itemsize > 4):
+        return _host.asarray(a)
 
 
 @eqx.filter_jit

@@ -1,0 +1,61 @@
+"""gpg._host.asarray: jnp.asarray's array, put on the device without a compiled program."""
+
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpg import _host
+
+
+def _same(a, b):
+    assert type(a) is type(b)
+    assert (a.dtype, a.shape, a.weak_type) == (b.dtype, b.shape, b.weak_type)
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("x64", [True, False])
+def test_the_array_jnp_asarray_gives(rng, x64):
+    """Floats, integers and booleans of several shapes, a view with strides, in a float64 and
+    a float32 program (where float64 host data becomes float32, as jnp.asarray makes it)."""
+    host = [rng.normal(size=(7, 3)), rng.normal(size=5).astype(np.float32),
+            rng.integers(0, 9, (2, 2, 2)), rng.normal(size=4) > 0, rng.normal(size=(9, 9))[::2, 1:],
+            np.float64(2.5) * np.ones(())]  # fmt: skip
+    with jax.enable_x64(x64):
+        for x in host:
+            _same(_host.asarray(x), jnp.asarray(x))
+        # anything but a NumPy array is jnp.asarray's: Python scalars stay weakly typed
+        for x in (2.5, [1.0, 2.0], jnp.arange(3)):
+            _same(_host.asarray(x), jnp.asarray(x))
+        y = jnp.ones(3)
+        assert _host.asarray(y) is y
+
+
+def test_no_program_compiled_and_the_host_bytes_copied(rng, caplog):
+    """A new shape compiles nothing (jnp.asarray compiles a staged identity for each in this
+    JAX); the device array does not share the host's memory; inside a trace the values are
+    jnp.asarray's."""
+    shapes = [(11, 13), (17,), (3, 19, 2)]
+    with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
+        for s in shapes:
+            _host.asarray(rng.normal(size=s)).block_until_ready()
+    assert not [r for r in caplog.records if "ompil" in r.getMessage()]
+    x = np.zeros((64, 64))
+    a = _host.asarray(x).block_until_ready()
+    x[0, 0] = 7.0
+    assert float(np.asarray(a)[0, 0]) == 0.0
+    for _ in range(20):  # the device buffer is not the host's, whatever its alignment
+        x = rng.normal(size=(int(rng.integers(1, 300)), 8))
+        a, want = _host.asarray(x).block_until_ready(), x.copy()
+        x[:] = 0.0
+        np.testing.assert_array_equal(np.asarray(a), want)
+    c = rng.normal(size=(4, 2))
+    got = jax.jit(lambda t: t + _host.asarray(c))(1.0)
+    np.testing.assert_array_equal(got, jax.jit(lambda t: t + jnp.asarray(c))(1.0))
+    # the check itself can fail: a program of a new shape is seen compiling
+    caplog.clear()
+    with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
+        jax.jit(lambda v: v + 1.0)(rng.normal(size=(23, 29))).block_until_ready()
+    assert [r for r in caplog.records if "ompil" in r.getMessage()]
