@@ -27,3 +27,10 @@ def asarray(x: Any) -> jax.Array:
     if type(x) is np.ndarray:
         return jax.device_put(np.array(x, order="C"))
     return jnp.asarray(x)
+
+
+def as_stored(a: np.ndarray) -> jax.Array:
+    """:func:`asarray` of ``a`` in its own dtype: a float64 array stays float64 even where
+    JAX's x64 is off (a checkpoint's arrays, rows computed in float64 for a float32 program)."""
+    with jax.enable_x64(a.dtype.itemsize > 4):
+        return asarray(a)

@@ -138,8 +138,7 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
     if isinstance(desc, dict) and "__array__" in desc:
         a = arrays[desc["__array__"]]
         # As saved: a float64 array stays float64 even where x64 is off (see module docstring).
-        with jax.enable_x64(a.dtype.itemsize > 4):
-            return _host.asarray(a)
+        return _host.as_stored(a)
     if isinstance(desc, dict) and "__tuple__" in desc:
         return tuple(_rebuild(v, arrays) for v in desc["__tuple__"])
     if isinstance(desc, dict) and "__class__" in desc:

@@ -59,3 +59,17 @@ def test_no_program_compiled_and_the_host_bytes_copied(rng, caplog):
     with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
         jax.jit(lambda v: v + 1.0)(rng.normal(size=(23, 29))).block_until_ready()
     assert [r for r in caplog.records if "ompil" in r.getMessage()]
+
+
+def test_as_stored_keeps_the_dtype(rng):
+    """A float64 array stays float64 in a float32 program (asarray would make it float32), and
+    a float32 one float32 in a float64 program; the values are the host's, bit for bit."""
+    x, y = rng.normal(size=(5, 3)), rng.normal(size=4).astype(np.float32)
+    for x64 in (False, True):
+        with jax.enable_x64(x64):
+            for a in (x, y):
+                got = _host.as_stored(a)
+                assert got.dtype == a.dtype
+                np.testing.assert_array_equal(np.asarray(got), a)
+    with jax.enable_x64(False):
+        assert _host.asarray(x).dtype == np.float32  # what as_stored is for

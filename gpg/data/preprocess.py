@@ -226,7 +226,6 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
     coeffs = ds.meta.get("simple_model")
     if coeffs is not None:
         return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
-
     from gpg.quadrotor.frames import R_WB  # local: only this fallback needs it
 
     R = np.asarray(jax.vmap(R_WB)(jnp.asarray(_m_inputs(ds.frame, ds.x)[:, 4:7])))

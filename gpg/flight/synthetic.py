@@ -27,7 +27,7 @@ from jaxtyping import Array, Float
 
 from gpg._dtype import float64
 from gpg._precision import highest
-from gpg.flight.labels import MotorCurve
+from gpg.flight.labels import MotorCurve, _euler_batch
 from gpg.flight.log import FlightLog, matrix_to_quat, quat_to_matrix
 from gpg.quadrotor import bemt
 from gpg.quadrotor.control import GeometricController, Reference, WaypointPlan
@@ -41,7 +41,6 @@ from gpg.quadrotor.dynamics import (
     Wind,
     Wrench,
 )
-from gpg.quadrotor.frames import euler_from_R
 from gpg.quadrotor.vehicle import Vehicle, vehicle_config
 
 __all__ = [
@@ -55,11 +54,6 @@ __all__ = [
     "perturbed_config",
     "random_plan",
 ]
-
-
-# One compiled program for every batch of angles: vmapped op by op, each new batch size
-# compiled a program for every operation of the rotation.
-_euler_batch = jax.jit(jax.vmap(euler_from_R))
 
 
 class BEMTAero(AeroModel):

@@ -322,7 +322,7 @@ class StackedInducing(eqx.Module):
         if variance:
             T = np.stack([np.asarray(g.variance_view().whiten) for g in gps])
             edges = np.linspace(0, m, min(TRI_BANDS, m) + 1).astype(int)
-            tri = tuple(_host.asarray(np.ascontiguousarray(T[:, a:b, :b]))
+            tri = tuple(_host.asarray(T[:, a:b, :b])
                         for a, b in zip(edges[:-1], edges[1:], strict=True))  # fmt: skip
         return cls(
             scaled=scaled,

@@ -68,7 +68,7 @@ class BlockTriangular(eqx.Module):
         blocks = []
         for a, b in zip(edges[:-1], edges[1:], strict=True):
             band = F[a:b, :b] if lower else F[a:b, a:]
-            blocks.append(_host.asarray(np.ascontiguousarray(band)))
+            blocks.append(_host.asarray(band))
         return cls(blocks=tuple(blocks), n=n, lower=lower)
 
     @classmethod

@@ -180,15 +180,9 @@ def in_chunks(fn, model, X: ArrayLike):
         # the padding cut and the chunks joined on the host: op by op on the device, each new
         # ``n`` and each new total compiled a slice and a concatenation of its own
         outs.append(jax.tree.map(lambda a, n=n: np.asarray(a)[:n], fn(model, _host.asarray(block))))
-    return jax.tree.map(_joined, *outs)
-
-
-def _joined(*parts: np.ndarray) -> Array:
-    """The chunks' rows as one JAX array of their own dtype (float64 stays float64 in a
-    float32 program, as the device's concatenation kept it)."""
-    a = np.concatenate(parts)
-    with jax.enable_x64(a.dtype.itemsize > 4):
-        return _host.asarray(a)
+    # in the chunks' own dtype: float64 stays float64 in a float32 program, as the device's
+    # concatenation kept it
+    return jax.tree.map(lambda *a: _host.as_stored(np.concatenate(a)), *outs)
 
 
 @eqx.filter_jit
