@@ -29,6 +29,7 @@ Suites:
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -122,9 +123,24 @@ def bench_exact_gp(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _surrogate_latency(sur, states, n: int) -> dict[str, Any]:
-    """The full pipeline: the realtime closures, and the plain method for comparison."""
+def _compile_seconds(sur, state, repeats: int = 3) -> dict[str, float]:
+    """Seconds to trace, lower and compile one query's prediction with its variance, a new
+    ``jit`` each time: what the first call of every program built around ``predict`` costs
+    (a controller's, a rollout's)."""
+    out = np.empty(repeats)
+    for i in range(repeats):
+        f = jax.jit(lambda s, r, e, v: s.predict(r, e, v))
+        t0 = time.perf_counter()
+        f.lower(sur, *state).compile()
+        out[i] = time.perf_counter() - t0
+    return stats(out)
+
+
+def _surrogate_latency(sur, states, n: int, compiles: int) -> dict[str, Any]:
+    """The full pipeline: the realtime closures, and the plain method for comparison; the
+    prediction's compile time, ``compiles`` times."""
     return {
+        "surrogate_compile": _compile_seconds(sur, states[0], compiles),
         "surrogate_predict_1": latency(sur.realtime(with_var=True), states, n),
         "surrogate_predict_mean_1": latency(sur.realtime(with_var=False), states, n),
         "surrogate_predict_mean_1_method": latency(sur.predict_mean, states, n),
@@ -203,7 +219,7 @@ def bench_models(cfg: dict[str, Any]) -> dict[str, Any]:
         res["mean_batch_per_s"] = batch.shape[0] / float(np.median(tb))
         sur = Surrogate.assemble(model, training, train, name, mcfg)
         states = world_states(test.x, cfg["n_queries"])
-        res.update(_surrogate_latency(sur, states, cfg["n_queries"]))
+        res.update(_surrogate_latency(sur, states, cfg["n_queries"], cfg["compile_repeats"]))
         res["float32"] = _float32_check(sur, test, states, cfg["n_queries"])
         out["models"][name] = res
     ref = out["models"].get("gpg")
@@ -555,6 +571,7 @@ def _models_table(res: dict[str, Any]) -> str:
                 "m": r["mean_1"]["median_s"] * 1e6,
                 "thr": r["mean_batch_per_s"],
                 "smv": r["surrogate_predict_1"]["median_s"] * 1e3,
+                "jit": r["surrogate_compile"]["median_s"],
                 "sm": r["surrogate_predict_mean_1"]["median_s"] * 1e6,
                 "smm": r["surrogate_predict_mean_1_method"]["median_s"] * 1e6,
                 "mb": r["model_bytes"] / 2**20,
@@ -571,6 +588,7 @@ def _models_table(res: dict[str, Any]) -> str:
         ("m", "mean µs", ".1f"),
         ("thr", "batch mean /s", ",.0f"),
         ("smv", "Surrogate.predict ms", ".3f"),
+        ("jit", "its compile s", ".2f"),
         ("sm", "predict_mean µs", ".1f"),
         ("smm", "(method) µs", ".1f"),
         ("mb", "MiB", ".1f"),

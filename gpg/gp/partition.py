@@ -85,6 +85,7 @@ class Partition(eqx.Module):
             node = jnp.where(node >= 0, child, node)
         return (-node - 1).astype(jnp.int32)
 
+    @eqx.filter_jit  # one program, not one per operation of the walk (callers run it eagerly)
     def lookup_batch(self, X: Float[ArrayLike, "Q D"]) -> Int[Array, " Q"]:
         """Bins of a batch of queries.
 
@@ -414,7 +415,7 @@ def near_sets(
         raise ValueError(f"points must be a positive integer, got {points!r}")
     X = np.asarray(X, dtype=float)
     n = X.shape[0]
-    bins = np.asarray(partition.lookup_batch(jnp.asarray(X)))
+    bins = np.asarray(partition.lookup_batch(X))
     ls = jnp.asarray(lengthscale, dtype=float)
     anchors, near, frac, eps = [], [], [], []
     for b in range(partition.n_bins):
@@ -529,7 +530,7 @@ def boundary_pairs(
     if not inside:
         return np.zeros((0, d)), np.zeros((0, d))
     A, C = np.concatenate(inside), np.concatenate(outside)
-    ba = np.asarray(partition.lookup_batch(jnp.asarray(A)))
-    bc = np.asarray(partition.lookup_batch(jnp.asarray(C)))
+    ba = np.asarray(partition.lookup_batch(A))
+    bc = np.asarray(partition.lookup_batch(C))
     keep = ba != bc  # both members in one bin would not test a boundary
     return A[keep], C[keep]

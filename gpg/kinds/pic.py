@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import jax.numpy as jnp
 import numpy as np
 
 from gpg.config import ModelConfig
@@ -54,7 +53,7 @@ class Pic(Kind):
         t0 = time.perf_counter()
         ic = cfg.inducing
         Z = pic.inducing_inputs(X, ic.points, seed=ic.seed)
-        bins = np.asarray(part.lookup_batch(jnp.asarray(X)))
+        bins = np.asarray(part.lookup_batch(X))
         blocks = [np.flatnonzero(bins == b) for b in range(part.n_bins)]
         if any(b.size == 0 for b in blocks):
             raise ValueError("a PIC bin holds no training point; use fewer bins")

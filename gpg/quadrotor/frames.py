@@ -304,16 +304,23 @@ def airflow_frame_rate(
     euler_W: Float[ArrayLike, "3"], v_air_W: Float[ArrayLike, "3"], hover_speed: float = 0.0
 ) -> Float[Array, ""]:
     """How fast the query's airflow-frame coordinates turn with the air velocity, in rad per
-    m/s: the larger of ``‖∂euler_H/∂v_air‖_F`` and ``‖∂R_WH/∂v_air‖_F / √2`` (forward-mode
-    autodiff of :func:`to_airflow_frame`; no gradient flows back through it).
+    m/s: the larger of ``‖∂euler_H/∂v_air‖_F`` and ``‖∂R_WH/∂v_air‖_F / √2`` (the derivatives
+    of :func:`to_airflow_frame`, in closed form; no gradient flows back through it).
 
     Away from the frame's singular sets it is about ``1/‖v_air‖`` (``1/hover_speed`` in the
     hover blend); it grows without bound near them (vertical airflow with pure wind axes, the
     rear-airflow ring of :func:`airflow_frame`, the Euler angles' gimbal lock). There a
     millimetre per second of air turns ``H``, and with it the prediction, by a finite amount:
     a surrogate is out of domain where this exceeds :data:`gpg.surrogate.MAX_FRAME_RATE`.
-    The one point where the construction's guards hide the singularity from autodiff (pure
-    wind axes, ``hover_speed = 0``, with no horizontal airspeed) gives ``inf``.
+    Where the frame or the angles are not differentiable at all (no horizontal airspeed with
+    pure wind axes, a vanishing axis of the blend, ``cos pitch_H = 0``) it is ``inf``.
+
+    Written out rather than taken by ``jax.jacfwd`` because every prediction evaluates it: the
+    forward-mode program of the whole frame was over half of a surrogate's compiled
+    prediction. ``H``'s turn per unit of ``v_j`` is an angular velocity ``w_j`` (in ``H``,
+    ``∂R_WH/∂v_j = R_WH [w_j]×``, so ``‖∂R_WH/∂v_j‖_F = √2 ‖w_j‖``), read off the axes'
+    derivatives; ``R_HB = R_WHᵀ R_WB`` turns at ``−w_j``, and the Euler angles' rates follow
+    from it by the ZYX kinematics.
 
     Args:
         euler_W: (3,) attitude ``(yaw, pitch, roll)`` in the world frame (rad).
@@ -321,17 +328,69 @@ def airflow_frame_rate(
         hover_speed: the hover blend's speed (m/s, static), as in :func:`to_airflow_frame`.
 
     Returns:
-        The rate (rad per m/s, a scalar, ``inf`` at that one point).
+        The rate (rad per m/s, a scalar, ``inf`` where the frame is not differentiable).
     """
-    euler_W = jax.lax.stop_gradient(jnp.asarray(euler_W))
-    v = jax.lax.stop_gradient(jnp.asarray(v_air_W))
-
-    def coords(v):
-        euler_h, _, rwh = to_airflow_frame(euler_W, v, hover_speed)
-        return euler_h, rwh
-
-    d_euler, d_frame = jax.jacfwd(coords)(v)
-    rate = jnp.maximum(jnp.sqrt(jnp.sum(d_euler**2)), jnp.sqrt(jnp.sum(d_frame**2) / 2.0))
+    v = jnp.asarray(v_air_W)
+    v = jax.lax.stop_gradient(v.astype(jnp.result_type(v, float)))
+    euler_W = jax.lax.stop_gradient(jnp.asarray(euler_W).astype(v.dtype))
+    d, J_d, y_ref, J_y = _blend_derivatives(v, euler_W[0], hover_speed)
+    dd = jnp.sum(d * d)
+    bad = dd <= 0.0
+    x = d / jnp.sqrt(jnp.where(bad, 1.0, dd))
+    J_x = (J_d - x[:, None] * _vm(x, J_d)[None, :]) / jnp.sqrt(jnp.where(bad, 1.0, dd))
+    y_perp = y_ref - jnp.sum(y_ref * x) * x
+    yy = jnp.sum(y_perp * y_perp)
+    bad = bad | (yy <= 0.0)
+    y = y_perp / jnp.sqrt(jnp.where(bad, 1.0, yy))
+    z = jnp.cross(x, y)
+    # w_j in H: (z·∂y, −z·∂x, y·∂x); z·∂y = (z·∂y_ref − (y_ref·x) z·∂x) / ‖y_perp‖ as z ⊥ x, y
+    zx = _vm(z, J_x)
+    w = jnp.stack(
+        [(_vm(z, J_y) - jnp.sum(y_ref * x) * zx) / jnp.sqrt(jnp.where(bad, 1.0, yy)), -zx,
+         _vm(y, J_x)]
+    )  # fmt: skip
+    frame_rate = jnp.sqrt(jnp.sum(w * w))
+    # R_HB's first column (yaw and pitch of H's angles) without the angles themselves
+    b = R_WB(euler_W)[:, 0]
+    r0 = jnp.stack([jnp.sum(x * b), jnp.sum(y * b), jnp.sum(z * b)])
+    cp2 = r0[0] * r0[0] + r0[1] * r0[1]  # cos² pitch_H
+    locked = cp2 <= 0.0
+    cp2 = jnp.where(locked, 1.0, cp2)
+    om = -w  # R_HB's angular velocity per unit v_j, in H
+    roll = (om[0] * r0[0] + om[1] * r0[1]) / cp2
+    pitch = (om[1] * r0[0] - om[0] * r0[1]) / jnp.sqrt(cp2)
+    yaw = om[2] - roll * r0[2]  # + roll · sin pitch_H, sin pitch_H = −R_HB[2, 0]
+    euler_rate = jnp.sqrt(jnp.sum(roll * roll + pitch * pitch + yaw * yaw))
+    rate = jnp.where(bad | locked, jnp.inf, jnp.maximum(euler_rate, frame_rate))
     if hover_speed <= 0.0:
         rate = jnp.where(v[0] ** 2 + v[1] ** 2 <= TINY_SPEED**2, jnp.inf, rate)
     return rate
+
+
+def _vm(u: Array, J: Array) -> Array:
+    """``uᵀ J`` as a broadcast multiply-add (fusible, see :func:`matvec`)."""
+    return jnp.sum(u[:, None] * J, axis=0)
+
+
+def _turn(a: Array) -> Array:
+    """``z_W × a`` for a vector, or for each column of a (3, 3) matrix: ``(−a_y, a_x, 0)``."""
+    return jnp.stack([-a[1], a[0], jnp.zeros_like(a[0])])
+
+
+def _blend_derivatives(v: Array, yaw: Array, hover_speed: float):
+    """:func:`airflow_frame`'s direction ``d`` and unnormalised ``y_ref`` with their
+    Jacobians in ``v`` (both blends' weights ``h (1 − s²/h²)²₊`` differentiated by hand)."""
+    eye = jnp.eye(3, dtype=v.dtype)
+    if hover_speed <= 0.0:
+        return v, eye, _turn(v), _turn(eye)
+    h = float(hover_speed)
+    zero = jnp.zeros_like(yaw)
+    nose = jnp.stack([jnp.cos(yaw), jnp.sin(yaw), zero])
+    right = jnp.stack([-jnp.sin(yaw), jnp.cos(yaw), zero])
+    s = jnp.maximum(1.0 - jnp.sum(v * v) / h**2, 0.0)
+    d = v + h * s * s * nose
+    J_d = eye + nose[:, None] * (-4.0 * s / h * v)[None, :]
+    s2 = jnp.maximum(1.0 - (d[0] * d[0] + d[1] * d[1]) / h**2, 0.0)
+    y_ref = _turn(d) + h * s2 * s2 * right
+    dc2 = -4.0 * s2 / h * (d[0] * J_d[0] + d[1] * J_d[1])
+    return d, J_d, y_ref, _turn(J_d) + right[:, None] * dc2[None, :]

@@ -203,3 +203,77 @@ def test_vertical_airflow_is_continuous_and_differentiable():
     for w in (0.5 - 1e-7, 0.5 + 1e-7):
         v = jnp.array([w * 0.6, w * 0.8, 2.0])
         np.testing.assert_allclose(frame(v), frames.R_WH(v), atol=1e-6)
+
+
+def _autodiff_rate(euler_W, v, h):
+    """The rate's definition taken literally: forward-mode derivatives of the whole frame."""
+
+    def coords(v):
+        euler_h, _, R = frames.to_airflow_frame(euler_W, v, h)
+        return euler_h, R
+
+    d_euler, d_frame = jax.jacfwd(coords)(v)
+    return jnp.maximum(jnp.sqrt(jnp.sum(d_euler**2)), jnp.sqrt(jnp.sum(d_frame**2) / 2.0))
+
+
+@pytest.mark.parametrize("h", [0.0, 0.5, 2.0])
+def test_airflow_frame_rate_is_the_frames_derivative(rng, h):
+    """The closed-form rate is ``max(‖∂euler_H/∂v‖, ‖∂R_WH/∂v‖/√2)`` by autodiff of
+    :func:`to_airflow_frame`, over attitudes, hover, the blend, fast flight and nearly
+    vertical airflow (where it reaches thousands of rad per m/s)."""
+    n = 3000
+    E = random_euler(rng, n)
+    V = rng.normal(size=(n, 3)) * rng.choice([0.01, 0.1, 0.3, 1.0, 5.0], (n, 1))
+    V[:300, :2] *= 1e-4  # nearly vertical airflow
+    new = np.asarray(jax.jit(jax.vmap(lambda e, v: frames.airflow_frame_rate(e, v, h)))(E, V))
+    ref = np.asarray(jax.jit(jax.vmap(lambda e, v: _autodiff_rate(e, v, h)))(E, V))
+    assert np.all(np.isfinite(new)) and np.all(new > 0)
+    # Two float64 evaluations of the same derivative in different orders: a few hundred
+    # roundings (ε ≈ 2e-16), amplified by the cancellations near the singular sets, at most
+    # about rate x speed here (≤ 1e4): 1e-9 relative.
+    np.testing.assert_allclose(new, ref, rtol=1e-9)
+    # Central differences of the frame at regular states: an independent check of both.
+    for e, v in zip(E[300:305], V[300:305], strict=True):
+        step = 1e-6 * max(np.linalg.norm(v), 1.0)
+        cols_e, cols_R = [], []
+        for k in range(3):
+            dv = step * np.eye(3)[k]
+            ep, _, Rp = frames.to_airflow_frame(e, v + dv, h)
+            em, _, Rm = frames.to_airflow_frame(e, v - dv, h)
+            cols_e.append((np.asarray(ep) - np.asarray(em)) / (2 * step))
+            cols_R.append((np.asarray(Rp) - np.asarray(Rm)).ravel() / (2 * step))
+        fd = max(np.linalg.norm(cols_e), np.linalg.norm(cols_R) / np.sqrt(2.0))
+        rate = float(frames.airflow_frame_rate(e, v, h))
+        np.testing.assert_allclose(rate, fd, rtol=1e-5)  # O(step²) truncation, O(ε/step) noise
+
+
+def test_airflow_frame_rate_at_the_singular_sets():
+    """``inf`` where the frame is not differentiable, unbounded toward the other singular
+    sets: no horizontal airspeed with pure wind axes, the Euler angles' gimbal lock in ``H``,
+    the blend's rear-airflow ring (where ``y_H`` vanishes)."""
+    from scipy.optimize import brentq
+
+    rate = jax.jit(frames.airflow_frame_rate, static_argnums=2)
+    e = jnp.array([0.0, 0.1, 0.2])
+    for v in ([0.0, 0.0, 0.0], [0.0, 0.0, -3.0], [0.0, 1e-10, 2.0]):
+        assert float(rate(e, jnp.asarray(v), 0.0)) == np.inf
+    # at rest with the blend, H = Rz(yaw) and d = h e_x: x_H turns by 1/h per m/s along y and
+    # z, y_H does not turn about x_H, so √2/h (the Euler angles' rates, level body, the same)
+    assert float(rate(e, jnp.zeros(3), 0.5)) == pytest.approx(np.sqrt(2.0) / 0.5, rel=1e-14)
+    # pitch_H = 90° (H = W for airflow along +x): the roll and yaw rates divide by cos pitch_H
+    assert float(rate(jnp.array([0.3, np.pi / 2, 0.0]), jnp.array([5.0, 0.0, 0.0]), 0.0)) > 1e12
+    # airflow from straight behind at the speed where y_ref's two terms cancel (yaw 0, h 0.5):
+    # y_ref = (−v_y, k, 0) turns by 1/|k| per m/s of v_y around its zero
+    h = 0.5
+
+    def k(s):  # y_ref along the body's right: (c − s) + c₂, c = h(1 − s²/h²)², d = (c − s) e_x
+        c = h * (1 - s**2 / h**2) ** 2
+        return (c - s) + h * max(1 - (c - s) ** 2 / h**2, 0.0) ** 2
+
+    s = brentq(k, 0.3, 0.49, xtol=1e-15)
+    v = jnp.array([-s, 1e-6, 0.0])
+    near = float(rate(jnp.zeros(3), v, h))
+    assert near > 1e5
+    # y_perp ≈ 1e-6 m/s: float64 rounding of ≈ 1e-16 m/s in it, 1e-10 of the rate; 1e-6 asked
+    np.testing.assert_allclose(near, float(_autodiff_rate(jnp.zeros(3), v, h)), rtol=1e-6)
+    assert float(rate(jnp.zeros(3), jnp.array([-(s + 1e-3), 1e-6, 0.0]), h)) < 1e3

@@ -23,6 +23,7 @@ def test_bench_run(smoke_cache, tmp_path):
         "models.n_queries=3",
         "models.batch=8",
         "models.batch_repeats=2",
+        "models.compile_repeats=1",
         "+models.model.hyper.fit=false",
         "+models.model.partition.bins=2",
         "suites=[exact_gp,models,solver]",
@@ -37,6 +38,7 @@ def test_bench_run(smoke_cache, tmp_path):
     assert saved["exact_gp"]["rows"] == 20 * 8
     hyb = saved["models"]["models"]["gps_1x"]
     assert hyb["mean_batch_per_s"] > 0 and hyb["surrogate_predict_1"]["n"] == 3
+    assert hyb["surrogate_compile"]["median_s"] > 0
     f32 = hyb["float32"]
     assert f32["dtype"] == "float32" and 0 <= f32["mean_error_over_std_max"] < 1e-2
     assert np.isfinite(f32["variance_error_over_var_max"])
