@@ -1,6 +1,7 @@
 """The conventions boundary: conversions round-trip, agree with each other, and a z-up
 simulator sees gpg's wrench in its own frames."""
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -42,7 +43,8 @@ def test_zup_wrench_is_gpgs_wrench_in_zup_frames(which, vehicle, synthetic_surro
     q = quat_from_euler(jnp.asarray(euler))
     rpm = np.array([3500.0, 3600.0, 3550.0, 3620.0])
     v_w, wind_w = np.array([4.0, 1.0, -0.5]), np.array([-2.0, 0.5, 0.0])  # gpg world
-    out = zup.wrench(cv.rpm_to_rad_s(rpm), cv.quat_to_zup(q), cv.flip(v_w), cv.flip(wind_w))
+    wrench = eqx.filter_jit(zup.wrench)  # one program: op by op it compiled a hundred
+    out = wrench(cv.rpm_to_rad_s(rpm), cv.quat_to_zup(q), cv.flip(v_w), cv.flip(wind_w))
     if which == "M":
         want_f, want_t = (np.asarray(x) for x in simple(np.concatenate([rpm, euler])).reshape(2, 3))
         var = None
@@ -57,6 +59,6 @@ def test_zup_wrench_is_gpgs_wrench_in_zup_frames(which, vehicle, synthetic_surro
     if var is not None:  # a rotation keeps the trace of a variance
         np.testing.assert_allclose(np.sum(out.variance_body[:3]), np.sum(var[:3]), rtol=1e-9)
     # In hover M's thrust points up in the z-up world.
-    level = zup.wrench(cv.rpm_to_rad_s(np.full(4, 3500.0)), np.array([0, 0, 0, 1.0]), np.zeros(3))
+    level = wrench(cv.rpm_to_rad_s(np.full(4, 3500.0)), np.array([0, 0, 0, 1.0]), np.zeros(3))
     if which == "M":
         assert float(level.force_world[2]) > 0 and abs(float(level.force_world[0])) < 1e-9

@@ -59,7 +59,7 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
     Variance: within the bound of ``variance_rtol`` (the stored factor's dtype, or float for
     a float export, and the conditioning of ``σ − ‖F k‖²``). ``in_domain`` equal wherever the
     frame rate is not within 1e-6 of its threshold (the C code takes central differences, the
-    library autodiff)."""
+    library its closed form)."""
     sur = fitted(kind)
     out, call = compiled(sur, tmp_path, dtype)
     rpm, euler, v = states(50, 1, body=sur.frame == "body")
@@ -67,7 +67,7 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
     if sur.frame == "body":  # no frame rate: in_domain is the rotor box and the ball
         rate = np.zeros(len(rpm))
     else:
-        rate = np.asarray(jax.vmap(lambda e, w: airflow_frame_rate(e, w, sur.hover_speed))(
+        rate = np.asarray(jax.jit(jax.vmap(lambda e, w: airflow_frame_rate(e, w, sur.hover_speed)))(
             jnp.asarray(euler), jnp.asarray(v)))  # fmt: skip
     rtol = 1e-10 if dtype == "double" else 1e-5
     vtol = variance_rtol(sur, rpm, euler, v, None if dtype == "double" else 2.0**-24)

@@ -105,6 +105,7 @@ def assert_equals_predict(sur, got, rpm, euler, v):
         (q, c, got["variance"][q, c], want_var[q, c], tol[q, c]) for q, c in bad[:5]
     ]
 
+    @jax.jit  # one program: op by op it compiled dozens
     @jax.vmap
     def margins(r, e, w):
         if sur.frame == "body":  # the rotor box and the ball's surface; no frame rate

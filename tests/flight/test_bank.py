@@ -40,6 +40,19 @@ def _moments(o, t, x):
     return o.moments(o.features(x))
 
 
+@jax.jit
+def _moments_now(o, x):
+    """A term's moments at ``x`` as it stands."""
+    return o.moments(o.features(x))
+
+
+@jax.jit  # one program each: op by op these compiled hundreds
+def _mean_band(m, x):
+    """A model's mean and predictive variance at ``x``."""
+    mean, var = m.mean_var_one(x)
+    return mean, m.predictive_variance(var)
+
+
 def test_one_member_is_the_term_adapt_builds(corrected, flights):  # noqa: F811
     """A bank of one member predicts, band included, what :func:`gpg.flight.adapt`'s term
     with its memory predicts, label by label, and ends in the same state."""
@@ -101,21 +114,21 @@ def test_weights_score_each_member_ahead(corrected, flights, ahead):  # noqa: F8
     # the mixture at a new state: Σ w η̄, and Σ w band_k + spread, per output (normalised)
     x = jnp.asarray(X[3])
     off = fc.offline_model(corrected.model)
-    b = np.asarray(off.predictive_variance(off.mean_var_one(x)[1])[:6])
+    b = np.asarray(_mean_band(off, x)[1][:6])
     w = np.asarray(final.weights())
     mus, bands = [], []
     for k in range(2):
-        mu, q, q0 = (np.asarray(a) for a in states[k][-1].moments(states[k][-1].features(x)))
+        mu, q, q0 = (np.asarray(a) for a in _moments_now(states[k][-1], x))
         mus.append(mu)
         bands.append(np.maximum(b - q0, 0.0) + q)
     mus, bands = np.stack(mus), np.stack(bands)
     mix = np.sum(w * mus, 0)
     want = np.sum(w * (bands + mus**2), 0) - mix**2
     m = fc.with_online(corrected, final).model
-    mean, var = m.mean_var_one(x)
-    np.testing.assert_allclose(np.asarray(mean)[:6] - np.asarray(off.mean_var_one(x)[0])[:6],
+    mean, band = _mean_band(m, x)
+    np.testing.assert_allclose(np.asarray(mean)[:6] - np.asarray(_mean_band(off, x)[0])[:6],
                                mix, rtol=1e-9, atol=1e-12)  # fmt: skip
-    np.testing.assert_allclose(np.asarray(m.predictive_variance(var))[:6], want, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(band)[:6], want, rtol=1e-9)
 
 
 def test_identical_members_keep_equal_weights_and_the_scan_is_the_loop(corrected, flights):  # noqa: F811

@@ -69,6 +69,11 @@ def test_fit_scores_the_term_adapt_builds(corrected, flights, band, per_output):
     np.testing.assert_allclose(total / len(t), f.log_likelihood, rtol=1e-10)
 
 
+@jax.jit  # one program: op by op it compiled hundreds
+def _bands(model, X):
+    return jax.vmap(lambda x: model.predictive_variance(model.mean_var_one(x)[1]))(X)
+
+
 def test_held_out_band_is_the_calibrated_held_out_variance(corrected, flights):  # noqa: F811
     """The band the fit scores η beside: each part's held-out variance (``δ``'s latent, its
     ``ν²`` and the coefficients'), times the calibration factor ``δ`` carries; for a part the
@@ -79,8 +84,7 @@ def test_held_out_band_is_the_calibrated_held_out_variance(corrected, flights): 
     _, _, (X2, band2) = tk._held_out_sequences(corrected, [flights[0], other], 1500, inputs=True)
     own = corrected.model
     Xo = fc.training_rows(corrected, other)[0]
-    var = jax.vmap(lambda x: own.mean_var_one(x)[1])(jnp.asarray(Xo))
-    expect = np.asarray(own.predictive_variance(var))[:, :6]
+    expect = np.asarray(_bands(own, jnp.asarray(Xo)))[:, :6]
     np.testing.assert_allclose(band2[-len(other) :], expect, rtol=1e-12)
     np.testing.assert_allclose(X2[-len(other) :], Xo, rtol=1e-12)
     # the first part, held out either way, has the same band in both

@@ -65,6 +65,11 @@ def _mean_var(model, x):  # compiled: op by op it took seconds
     return model.mean_var_one(x)
 
 
+@eqx.filter_jit  # compiled, as _mean_var
+def _offline_means(model, X):
+    return jax.vmap(lambda x: model.offline_mean(x, model.prior.mean_one(x)))(X)
+
+
 @jax.jit
 def _rows_jit(sur, *row):
     m = sur.model
@@ -269,12 +274,10 @@ def test_fit_drift_from_held_out_flights(synthetic_surrogate, corrected, flights
     seq, _ = tk._held_out_sequences(corrected, [flights[0], other], 1500)
     X, Y, V = fc.training_rows(corrected, other)
     own = corrected.model
-    expect = (
-        Y - np.asarray(jax.vmap(lambda x: own.offline_mean(x, own.prior.mean_one(x)))(X))[:, :6]
-    )
+    expect = Y - np.asarray(_offline_means(own, jnp.asarray(X)))[:, :6]
     np.testing.assert_allclose(seq[3][-len(flights[1]) :], expect, rtol=1e-9, atol=1e-12)
     # its labels' noise, and the model's δ latent variances there (in the band's density)
-    parts = np.stack([np.asarray(_mean_var(own, jnp.asarray(x))[1]) for x in X])
+    parts = np.asarray(jax.vmap(_mean_var, in_axes=(None, 0))(own, jnp.asarray(X))[1])
     latent = parts[:, 1:7] * np.array([float(d.output_scale[0]) for d in own.delta])
     np.testing.assert_allclose(seq[4][-len(flights[1]) :], V, rtol=1e-12)
     np.testing.assert_allclose(seq[7][-len(flights[1]) :], latent, rtol=1e-9)

@@ -6,6 +6,7 @@ size, empty bins, one bin holding every query, float32 factors, and through ``vm
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,6 +14,9 @@ import pytest
 
 from gpg.gp.binned import binned_quadratic_form, by_bin, default_method, tile_rows
 from gpg.linalg.tri import BlockTriangular
+
+# compiled once per configuration: op by op each call compiled dozens of small programs
+by_bin_jit = eqx.filter_jit(by_bin)
 
 N_BINS, WIDTH = 5, 24
 EPS64 = np.finfo(np.float64).eps
@@ -62,13 +66,13 @@ def test_by_bin_equals_per_query_reference(rng, bins_kind, tile, method):
     }[bins_kind]
     K = rng.normal(size=(q, WIDTH))
     args = (bands, jnp.asarray(bins), jnp.asarray(K))
-    quad, grad = by_bin(*args, with_grad=True, tile=tile, method=method)
+    quad, grad = by_bin_jit(*args, with_grad=True, tile=tile, method=method)
     ref_q, ref_g = _reference(dense, bins, K)
     bound = _bound(dense, K, EPS64)
     np.testing.assert_array_less(np.abs(np.asarray(quad) - ref_q), bound)
     np.testing.assert_array_less(np.abs(np.asarray(grad) - ref_g).max(axis=1), bound)
     if tile is None:  # the value alone: the same tiles without the gradient's products
-        (quad_only,) = by_bin(*args, with_grad=False, tile=tile, method=method)
+        (quad_only,) = by_bin_jit(*args, with_grad=False, tile=tile, method=method)
         np.testing.assert_array_less(np.abs(np.asarray(quad_only) - ref_q), bound)
 
 
@@ -77,7 +81,7 @@ def test_float32_factors_within_their_rounding(rng, method):  # "every": the loo
     dense, bands = _factors(rng, "float32")
     bins = rng.integers(0, N_BINS, 50)
     K = rng.normal(size=(50, WIDTH)).astype(np.float32)
-    (quad,) = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False, method=method)
+    (quad,) = by_bin_jit(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=False, method=method)
     dense64 = [np.asarray(b.to_dense()) for b in bands]  # the stored float32 values, exactly
     ref, _ = _reference(dense64, bins, K.astype(np.float64))
     assert quad.dtype == jnp.float32
@@ -113,7 +117,7 @@ def test_upper_factors_with_a_dense_block(rng):
     K = rng.normal(size=(20, WIDTH))
     ref_q, ref_g = _reference(dense, bins, K)
     for method in ("loop", "gather"):
-        q, g = by_bin(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=True, method=method)
+        q, g = by_bin_jit(bands, jnp.asarray(bins), jnp.asarray(K), with_grad=True, method=method)
         bound = _bound(dense, K, EPS64)
         np.testing.assert_array_less(np.abs(np.asarray(q) - ref_q), bound)
         np.testing.assert_array_less(np.abs(np.asarray(g) - ref_g).max(axis=1), bound)

@@ -1,5 +1,6 @@
 """gpg.gp.kernels against the closed forms of paper Eq. (kernel_gradient), isotropic and ARD."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -7,6 +8,10 @@ import pytest
 from gpg.gp import kernels
 
 RTOL = 1e-12
+
+# compiled: op by op (autodiff's included) each call compiled dozens of small programs
+_blocks = jax.jit(kernels.gradient_blocks)
+_query_rows = jax.jit(kernels.query_rows, static_argnums=4)
 
 
 def closed_form(x, xp, variance, lengthscale):
@@ -25,7 +30,7 @@ def closed_form(x, xp, variance, lengthscale):
 def test_blocks_match_closed_form(rng, lengthscale, same):
     x = rng.uniform(-1, 1, 4)
     xp = x.copy() if same else rng.uniform(-1, 1, 4)
-    b = kernels.gradient_blocks(x, xp, 1.7, lengthscale)
+    b = _blocks(x, xp, 1.7, lengthscale)
     k, k0m, kn0, knm = closed_form(x, xp, 1.7, lengthscale)
     np.testing.assert_allclose(b.k00, k, rtol=RTOL)
     np.testing.assert_allclose(b.k0m, k0m, rtol=RTOL, atol=1e-15)
@@ -40,7 +45,7 @@ def test_blocks_match_closed_form(rng, lengthscale, same):
 def test_isotropic_paper_form(rng):
     """The paper's isotropic expressions verbatim: (l² - d_n²)/l⁴ k and -d_n d_m/l⁴ k."""
     x, xp, ell = rng.uniform(-1, 1, 3), rng.uniform(-1, 1, 3), 0.8
-    b = kernels.gradient_blocks(x, xp, 1.0, ell)
+    b = _blocks(x, xp, 1.0, ell)
     d = x - xp
     k = np.exp(-np.sum(d**2) / (2 * ell**2))
     for n in range(3):
@@ -108,7 +113,7 @@ def test_query_rows_match_autodiff_gram(rng, dims, lengthscale):
     Xq, X = rng.uniform(-1, 1, (6, 4)), rng.uniform(-1, 1, (9, 4))
     X[0] = Xq[0]  # a coincident pair: r² rounds to about zero, k must equal σ
     want = kernels.gram(jnp.asarray(Xq), jnp.asarray(X), 1.3, lengthscale, (), dims)
-    got = kernels.query_rows(jnp.asarray(Xq), jnp.asarray(X), 1.3, lengthscale, dims)
+    got = _query_rows(jnp.asarray(Xq), jnp.asarray(X), 1.3, lengthscale, dims)
     assert got.shape == want.shape == (6, 9 * (1 + len(dims)))
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
     assert float(got[0, 0]) == pytest.approx(1.3, rel=1e-14)

@@ -64,16 +64,18 @@ def test_value_and_gradient_match_the_dense_likelihood():
         out = slq.stochastic_log_marginal_likelihood(X, Ybar, h, DIMS, Z, probes, tol=1e-8)
         return out.value, out
 
-    (value, out), grad = jax.value_and_grad(f, has_aux=True)(hyper)
+    # compiled: op by op (CG's loops aside) each evaluation compiled hundreds of programs
+    (value, out), grad = jax.jit(jax.value_and_grad(f, has_aux=True))(hyper)
     assert bool(out.converged) and int(out.steps) < 60
-    ref, ref_grad = jax.value_and_grad(lambda h: log_marginal_likelihood(X, Ybar, h, DIMS))(hyper)
+    dense = jax.value_and_grad(lambda h: log_marginal_likelihood(X, Ybar, h, DIMS))
+    ref, ref_grad = jax.jit(dense)(hyper)
     assert abs(float(value - ref)) <= 5e-5 * abs(float(ref))
     sign, logdet = np.linalg.slogdet(np.asarray(noisy_gram(X, hyper, DIMS)))
     assert sign > 0 and abs(float(out.log_det) - logdet) <= 5e-4 * abs(logdet)
     for got, want in zip(jax.tree.leaves(grad), jax.tree.leaves(ref_grad), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-2)
     tangent = jax.tree.map(jnp.ones_like, hyper)
-    forward = jax.jvp(lambda h: f(h)[0], (hyper,), (tangent,))[1]
+    forward = jax.jit(lambda h, t: jax.jvp(lambda h: f(h)[0], (h,), (t,))[1])(hyper, tangent)
     reverse = sum(float(jnp.sum(g)) for g in jax.tree.leaves(grad))
     assert float(forward) == pytest.approx(reverse, rel=1e-10)
 
@@ -94,7 +96,8 @@ def test_loose_probe_solves_change_the_likelihood_by_far_less_than_the_probes_do
     # has_aux: the value, the log-determinant and the flag come from the same evaluation
     # as the gradient, not from three more.
     for_tol = {
-        t: jax.value_and_grad(lambda h, t=t: f(h, t), has_aux=True)(hyper) for t in (None, 1e-3)
+        t: jax.jit(jax.value_and_grad(lambda h, t=t: f(h, t), has_aux=True))(hyper)
+        for t in (None, 1e-3)
     }
     ((v0, out0), g0), ((v1, out1), g1) = for_tol[None], for_tol[1e-3]
     assert abs(float(out1.log_det - out0.log_det)) <= 1e-2
