@@ -526,14 +526,16 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
         offline_cov=jnp.asarray(c0),
         mean=jnp.zeros((k, N_LOADS, p)),
         cov=jnp.broadcast_to(jnp.asarray(stat), (k, N_LOADS, p, p)),
-        log_weight=jnp.full(k, -math.log(k)),
-        t=jnp.asarray(float(t0)),
-        tau=jnp.asarray(float(drift.tau)),
+        # every scalar with its dtype (not weak): a step's output must type as its input,
+        # or the first call of a compiled step compiles a second program
+        log_weight=jnp.full(k, -math.log(k), float),
+        t=jnp.asarray(t0, float),
+        tau=jnp.asarray(drift.tau, float),
         spread=jnp.asarray(spread),
         bias_tau=jnp.asarray(drift.bias_taus),
-        bias_sd=jnp.asarray(float(drift.bias_sd)),
+        bias_sd=jnp.asarray(drift.bias_sd, float),
         noise=jnp.asarray(noise),
-        share=jnp.asarray(float(drift.share)),
+        share=jnp.asarray(drift.share, float),
         offset=offset,
         with_simple=m.basis is not None,
     )
@@ -542,7 +544,7 @@ def track(sur: Surrogate, drift: Drift | None = None, *, t0: float = 0.0) -> Sur
             lambda o: (o.wind_mean, o.wind_cov, o.wind_tau, o.wind_sd),
             tracker,
             (jnp.zeros(3), jnp.diag(jnp.asarray(wind_sd**2)),
-             jnp.asarray(float(drift.wind_tau)), jnp.asarray(wind_sd)),
+             jnp.asarray(drift.wind_tau, float), jnp.asarray(wind_sd)),
             is_leaf=lambda a: a is None,
         )  # fmt: skip
     m = eqx.tree_at(lambda c: c.tracker, m, tracker, is_leaf=lambda a: a is None)

@@ -164,6 +164,8 @@ def test_online_step_returns_only_what_moves_and_donates_only_its_own(corrected,
     plain, donated = fc.online_step(sur), fc.online_step(sur, donate=True)
     start = fc.online_state(sur)
     a = plain(start, *rows[0])
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(start), strict=True):
+        assert jax.typeof(x) == jax.typeof(y) and x.weak_type == y.weak_type  # one program
     for name in ("Z", "whiten", "tau", "lengthscale"):
         for part in ("members", "lagged"):
             assert getattr(getattr(a, part), name) is getattr(getattr(start, part), name)

@@ -395,9 +395,10 @@ def test_online_filter_is_the_batch_posterior(corrected, flights):
     for i in range(n):
         on = step(on, *(c[i] for c in cols))
     np.testing.assert_allclose(on.mean, scanned.model.online.mean, rtol=1e-10, atol=1e-12)
-    # fixed memory: the state's arrays keep their shapes
+    # fixed memory: the state's arrays keep their shapes; and their types, weak or not (else
+    # the second call of the compiled step compiles a second program)
     for a, b in zip(jax.tree.leaves(on), jax.tree.leaves(adapted.model.online), strict=True):
-        assert a.shape == b.shape and a.dtype == b.dtype
+        assert jax.typeof(a) == jax.typeof(b) and a.weak_type == b.weak_type
     # the adapted surrogate predicts with the online term
     p0 = corrected.predict(flights.rpm[0], flights.euler[0], flights.v_air[0])
     p1 = fc.with_online(adapted, on).predict(flights.rpm[0], flights.euler[0], flights.v_air[0])

@@ -114,7 +114,8 @@ def test_filter_is_the_batch_posterior(corrected, flights):
         st = step(st, *(c[i] for c in cols))
     np.testing.assert_allclose(st.mean, tr.mean, rtol=1e-10, atol=1e-12)
     for a, b in zip(jax.tree.leaves(st), jax.tree.leaves(fc.online_state(sur)), strict=True):
-        assert a.shape == b.shape and a.dtype == b.dtype  # fixed memory
+        # fixed memory, and one compiled program: the same types, weak or not
+        assert jax.typeof(a) == jax.typeof(b) and a.weak_type == b.weak_type
     # the prediction: the offline model's plus the drift's share, in mean and variance
     q = [np.asarray(a[0]) for a in (lab.rpm, lab.euler, lab.v_air)]
     tracked = fc.with_online(sur, st)
@@ -649,6 +650,8 @@ def test_wind_state_is_the_linearised_kalman_step(corrected, flights):
     np.testing.assert_allclose(new.wind_cov, P - gain @ H @ P, rtol=1e-6, atol=1e-9)
     # once a step from Python: the offline model's mean view keeps δ's variance for the wind
     once = fc.online_step(sur)(fc.online_state(sur), *_shifted(lab, 0, 0.0))
+    for u, w in zip(jax.tree.leaves(once), jax.tree.leaves(fc.online_state(sur)), strict=True):
+        assert jax.typeof(u) == jax.typeof(w) and u.weak_type == w.weak_type  # one program
     # two compiled programs of the same float64 step: rounding apart, as the scan's check
     np.testing.assert_allclose(once.wind_mean, new.wind_mean, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(once.mean, new.mean, rtol=1e-10, atol=1e-12)
