@@ -123,7 +123,7 @@ def bench_exact_gp(cfg: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _compile_seconds(sur, state, repeats: int = 3) -> dict[str, float]:
+def _compile_seconds(sur, state, repeats: int) -> dict[str, float]:
     """Seconds to trace, lower and compile one query's prediction with its variance, a new
     ``jit`` each time: what the first call of every program built around ``predict`` costs
     (a controller's, a rollout's)."""

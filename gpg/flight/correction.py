@@ -1428,7 +1428,7 @@ def adapt(
         noise=jnp.asarray(nu),
         mean=jnp.zeros((N_LOADS, k)),
         cov=jnp.broadcast_to(jnp.eye(k), (N_LOADS, k, k)),
-        t=jnp.asarray(t0, float),  # strong: a weak type here made a step's first call compile twice
+        t=jnp.asarray(t0, float),  # not weak: else a step's second call compiles it again
         tau=jnp.asarray(tau, float),
         shared=band == "shared",
     )

@@ -336,19 +336,18 @@ def airflow_frame_rate(
     d, J_d, y_ref, J_y = _blend_derivatives(v, euler_W[0], hover_speed)
     dd = jnp.sum(d * d)
     bad = dd <= 0.0
-    x = d / jnp.sqrt(jnp.where(bad, 1.0, dd))
-    J_x = (J_d - x[:, None] * _vm(x, J_d)[None, :]) / jnp.sqrt(jnp.where(bad, 1.0, dd))
+    norm_d = jnp.sqrt(jnp.where(bad, 1.0, dd))
+    x = d / norm_d
+    J_x = (J_d - x[:, None] * _vm(x, J_d)[None, :]) / norm_d
     y_perp = y_ref - jnp.sum(y_ref * x) * x
     yy = jnp.sum(y_perp * y_perp)
     bad = bad | (yy <= 0.0)
-    y = y_perp / jnp.sqrt(jnp.where(bad, 1.0, yy))
+    norm_y = jnp.sqrt(jnp.where(bad, 1.0, yy))
+    y = y_perp / norm_y
     z = jnp.cross(x, y)
     # w_j in H: (z·∂y, −z·∂x, y·∂x); z·∂y = (z·∂y_ref − (y_ref·x) z·∂x) / ‖y_perp‖ as z ⊥ x, y
     zx = _vm(z, J_x)
-    w = jnp.stack(
-        [(_vm(z, J_y) - jnp.sum(y_ref * x) * zx) / jnp.sqrt(jnp.where(bad, 1.0, yy)), -zx,
-         _vm(y, J_x)]
-    )  # fmt: skip
+    w = jnp.stack([(_vm(z, J_y) - jnp.sum(y_ref * x) * zx) / norm_y, -zx, _vm(y, J_x)])
     frame_rate = jnp.sqrt(jnp.sum(w * w))
     # R_HB's first column (yaw and pitch of H's angles) without the angles themselves
     b = R_WB(euler_W)[:, 0]

@@ -34,16 +34,15 @@ def _offline_rows(sur, lab):
 
 
 @jax.jit
-def _moments(o, t, x):
-    """A term relaxed to ``t``: its mean, ``ψᵀΣψ`` and ``ψᵀψ`` at ``x``."""
-    o = o.relaxed(t)
+def _moments_now(o, x):
+    """A term's mean, ``ψᵀΣψ`` and ``ψᵀψ`` at ``x``, as it stands."""
     return o.moments(o.features(x))
 
 
 @jax.jit
-def _moments_now(o, x):
-    """A term's moments at ``x`` as it stands."""
-    return o.moments(o.features(x))
+def _moments(o, t, x):
+    """The same of the term relaxed to ``t``."""
+    return _moments_now(o.relaxed(t), x)
 
 
 @jax.jit  # one program each: op by op these compiled hundreds

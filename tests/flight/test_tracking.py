@@ -65,7 +65,7 @@ def _mean_var(model, x):  # compiled: op by op it took seconds
     return model.mean_var_one(x)
 
 
-@eqx.filter_jit  # compiled, as _mean_var
+@jax.jit  # compiled, as _mean_var
 def _offline_means(model, X):
     return jax.vmap(lambda x: model.offline_mean(x, model.prior.mean_one(x)))(X)
 

@@ -258,7 +258,7 @@ def test_airflow_frame_rate_at_the_singular_sets():
     for v in ([0.0, 0.0, 0.0], [0.0, 0.0, -3.0], [0.0, 1e-10, 2.0]):
         assert float(rate(e, jnp.asarray(v), 0.0)) == np.inf
     # at rest with the blend, H = Rz(yaw) and d = h e_x: x_H turns by 1/h per m/s along y and
-    # z, y_H does not turn about x_H, so √2/h (the Euler angles' rates, level body, the same)
+    # z, y_H does not turn about x_H, so √2/h (the Euler angles' rates give the same norm here)
     assert float(rate(e, jnp.zeros(3), 0.5)) == pytest.approx(np.sqrt(2.0) / 0.5, rel=1e-14)
     # pitch_H = 90° (H = W for airflow along +x): the roll and yaw rates divide by cos pitch_H
     assert float(rate(jnp.array([0.3, np.pi / 2, 0.0]), jnp.array([5.0, 0.0, 0.0]), 0.0)) > 1e12
