@@ -1,4 +1,4 @@
-"""Host arrays onto JAX's device without compiling anything.
+"""Host arrays onto JAX's device without compiling anything, and host loops compiled once.
 
 ``jnp.asarray`` of a NumPy array, outside a trace, lifts it through a staged identity
 (``lax.stage``) in this JAX: a program compiled for every new shape and dtype. Building a model
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,3 +35,17 @@ def as_stored(a: np.ndarray) -> jax.Array:
     JAX's x64 is off (a checkpoint's arrays, rows computed in float64 for a float32 program)."""
     with jax.enable_x64(a.dtype.itemsize > 4):
         return asarray(a)
+
+
+@eqx.filter_jit
+def _each_row(fn, X):
+    return jax.vmap(fn)(X)
+
+
+def each_row(fn: Any, X: Any) -> Any:
+    """``fn`` at every row of ``X`` in one compiled program, as NumPy arrays: ``jax.vmap``
+    outside a trace runs op by op, and each operation compiles on its own for every new
+    shape (a few milliseconds each, for a model's columns at a part of flights a few hundred
+    of them). ``fn`` an equinox Module (its arrays traced, its program kept for its structure
+    and ``X``'s shape) or a function."""
+    return jax.tree.map(np.asarray, _each_row(fn, asarray(np.asarray(X))))

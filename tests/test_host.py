@@ -1,7 +1,9 @@
-"""gpg._host.asarray: jnp.asarray's array, put on the device without a compiled program."""
+"""gpg._host.asarray: jnp.asarray's array, put on the device without a compiled program;
+gpg._host.each_row: a module at every row in one compiled program."""
 
 import logging
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -73,3 +75,44 @@ def test_as_stored_keeps_the_dtype(rng):
                 np.testing.assert_array_equal(np.asarray(got), a)
     with jax.enable_x64(False):
         assert _host.asarray(x).dtype == np.float32  # what as_stored is for
+
+
+class _Affine(eqx.Module):
+    """A module with arrays and a static field, as the flight bases are."""
+
+    A: jax.Array
+    b: jax.Array
+    square: bool = eqx.field(static=True, default=False)
+
+    def __call__(self, x):
+        y = self.A @ x + self.b
+        return (y * y if self.square else y), jnp.sum(x)
+
+
+def test_each_row_is_vmap_in_one_program(rng, caplog):
+    """The eager vmap's values (to the rounding of one fused program against op by op), as
+    NumPy arrays, tuples kept; one compilation for a module's structure and the rows' shape,
+    none for new arrays of the same shapes, one for a new static field; the count itself can
+    fail: eager vmap compiles its operations one by one."""
+    X = rng.normal(size=(9, 3))
+    f = _Affine(jnp.asarray(rng.normal(size=(4, 3))), jnp.asarray(rng.normal(size=4)))
+    got = _host.each_row(f, X)
+    want = jax.vmap(f)(jnp.asarray(X))
+    assert isinstance(got, tuple) and all(type(g) is np.ndarray for g in got)
+    for g, w in zip(got, want, strict=True):
+        # a sum of three products of O(1) terms, rounded in another order
+        np.testing.assert_allclose(g, w, rtol=0, atol=8 * np.finfo(float).eps * 10)
+
+    def compiles(fn):
+        caplog.clear()
+        with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
+            fn()
+        return len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
+
+    X2 = rng.normal(size=(13, 3))
+    assert compiles(lambda: _host.each_row(f, X2)) == 1
+    g = _Affine(jnp.asarray(rng.normal(size=(4, 3))), jnp.asarray(rng.normal(size=4)))
+    assert compiles(lambda: _host.each_row(g, X2)) == 0
+    assert compiles(lambda: _host.each_row(_Affine(g.A, g.b, square=True), X2)) == 1
+    X3 = jnp.asarray(rng.normal(size=(17, 3)))
+    assert compiles(lambda: jax.vmap(g)(X3)) > 1

@@ -151,7 +151,18 @@ class Explicit(eqx.Module):
         Returns:
             (6,) the term per load output.
         """
-        return jnp.sum(self.physics(xn) * self.beta, 1)
+        return self.mean_of(self.physics(xn))
+
+    def mean_of(self, h: Float[Array, "6 T"]) -> Float[Array, " 6"]:
+        """:meth:`mean` from the physical columns at the input, where the caller has them.
+
+        Args:
+            h: (6, T) :attr:`physics` at the input.
+
+        Returns:
+            (6,) the term per load output.
+        """
+        return jnp.sum(h * self.beta, 1)
 
     @highest
     def variance(self, h: Float[Array, "6 P"], k: Float[Array, "6 N"]) -> Float[Array, " 6"]:

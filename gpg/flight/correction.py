@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from gpg import _host
 from gpg._dtype import float64
 from gpg._precision import highest
 from gpg.data.preprocess import Normalizer
@@ -366,14 +367,26 @@ class Corrected(Predictor):
     # gpg.flight.tracking.Tracker (that module builds on this one: no import back)
     tracker: eqx.Module | None = None
 
-    def _mean_terms(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
+    def _columns(self, x: Float[Array, " D"]) -> tuple[Array | None, Array | None]:
+        """``M``'s loads ``m(x)`` (6,) and the physical columns (6, T) at one query, each None
+        where the model lacks it: evaluated once a query, for the mean, the coefficients'
+        variance and the tracked columns alike (each is a frame rotation and a few hundred
+        operations more in every program that predicts)."""
+        simple = None if self.basis is None else self.basis(x)
+        physics = None if self.explicit is None else self.explicit.physics(x)
+        return simple, physics
+
+    def _mean_terms(
+        self, x: Float[Array, " D"], cols: tuple[Array | None, Array | None] | None = None
+    ) -> Float[Array, " M"]:
         """``κ ⊙ m(x)`` and the physical columns' ``hᵀβ̄``, padded to the outputs (zeros
-        without a basis)."""
+        without a basis); ``cols`` :meth:`_columns` at ``x`` where the caller has them."""
+        simple, physics = self._columns(x) if cols is None else cols
         out = jnp.zeros(N_LOADS, x.dtype)
-        if self.basis is not None:
-            out = out + self.kappa * self.basis(x)
-        if self.explicit is not None:
-            out = out + self.explicit.mean(x)
+        if simple is not None:
+            out = out + self.kappa * simple
+        if physics is not None:
+            out = out + self.explicit.mean_of(physics)
         return self._pad(out)
 
     def _explicit_variance(
@@ -381,16 +394,19 @@ class Corrected(Predictor):
         x: Float[Array, " D"],
         prior_mean: Float[Array, " M"],
         k: Float[Array, "6 N"] | None = None,
+        cols: tuple[Array | None, Array | None] | None = None,
     ) -> Float[Array, " 6"]:
         """The coefficients' share of the variance per load output (:mod:`gpg.flight.basis`);
-        ``k`` each ``δ``'s kernel row at ``x`` where the caller has them (a stacked view)."""
+        ``k`` each ``δ``'s kernel row at ``x`` and ``cols`` :meth:`_columns` at ``x`` where
+        the caller has them."""
         e = self.explicit
-        cols = []
+        simple, physics = self._columns(x) if cols is None else cols
+        h = []
         if e.with_prior:
-            cols.append(prior_mean[:N_LOADS, None])
+            h.append(prior_mean[:N_LOADS, None])
         if e.with_simple:
-            cols.append(self.basis(x)[:, None])
-        h = jnp.concatenate([*cols, e.physics(x)], 1)
+            h.append(simple[:, None])
+        h = jnp.concatenate([*h, physics], 1)
         if k is None:
             k = jnp.stack([_cross(x[None], d.X, d.hyper.variance, d.hyper.lengthscale)[0]
                            for d in self.delta])  # fmt: skip
@@ -428,11 +444,12 @@ class Corrected(Predictor):
                              "(a mean_view's stack); stack variance_views() instead")  # fmt: skip
         prior_mean, prior_var = self.prior.mean_var_one(x)
         k, dmean, latent = d0.evaluate(x)
-        mean = self.scale * prior_mean + self._mean_terms(x) + self._pad(dmean)
+        cols = self._columns(x)
+        mean = self.scale * prior_mean + self._mean_terms(x, cols) + self._pad(dmean)
         band = (jnp.maximum(prior_var, 0.0) * self.prior.output_scale * self.scale**2)[:N_LOADS]
         band = band + (jnp.maximum(latent, 0.0) + d0.noise) * d0.output_scale
         if self.explicit is not None:
-            band = band + jnp.maximum(self._explicit_variance(x, prior_mean, k), 0.0)
+            band = band + jnp.maximum(self._explicit_variance(x, prior_mean, k, cols), 0.0)
         return mean, band
 
     @property
@@ -543,11 +560,13 @@ class Corrected(Predictor):
             only, the levels keep ``ρ = 1``.
         """
         prior_mean = self.prior.mean_one(x)
-        out = self.offline_mean(x, prior_mean)
+        cols = self._columns(x)
+        out = self._offline_mean(x, prior_mean, cols)
         if self.online is not None:
             out = out + self._pad(self.online.latent(x)[0])
         if self.tracker is not None:
-            out = out + self._pad(self.tracker.mean_var(self.tracker_columns(x, prior_mean))[0])
+            h = self._tracker_columns(x, prior_mean, cols)
+            out = out + self._pad(self.tracker.mean_var(h)[0])
         return out
 
     def offline_mean(
@@ -563,7 +582,11 @@ class Corrected(Predictor):
         Returns:
             (M,) the offline mean (normalised units).
         """
-        out = self.scale * prior_mean + self._mean_terms(x)
+        return self._offline_mean(x, prior_mean, self._columns(x))
+
+    def _offline_mean(self, x, prior_mean, cols) -> Float[Array, " M"]:
+        """:meth:`offline_mean` with :meth:`_columns` at ``x`` given."""
+        out = self.scale * prior_mean + self._mean_terms(x, cols)
         if self.delta:
             d0 = self.delta[0]
             if isinstance(d0, StackedInducing):  # online_step's view
@@ -589,11 +612,17 @@ class Corrected(Predictor):
         """
         if self.tracker is None:
             raise ValueError("tracker_columns needs a model prepared by gpg.flight.track")
-        cols = [prior_mean[:N_LOADS, None]]
+        return self._tracker_columns(x, prior_mean, self._columns(x))
+
+    def _tracker_columns(self, x, prior_mean, cols) -> Float[Array, "6 P"]:
+        """:meth:`tracker_columns` with :meth:`_columns` at ``x`` given. The tracker's physical
+        columns are the model's own where it has them (``track`` takes them from there)."""
+        simple, physics = cols
+        h = [prior_mean[:N_LOADS, None]]
         if self.tracker.with_simple:
-            cols.append(self.basis(x)[:, None])
-        cols += [self.tracker.physics(x), self.tracker.bias_column()]
-        return jnp.concatenate(cols, 1)
+            h.append(simple[:, None])
+        h += [self.tracker.physics(x) if physics is None else physics, self.tracker.bias_column()]
+        return jnp.concatenate(h, 1)
 
     def mean_var_one(self, x: Float[Array, " D"]) -> tuple[Float[Array, " M"], Float[Array, " V"]]:
         """The corrected mean and the latent variance's parts at one query.
@@ -607,7 +636,8 @@ class Corrected(Predictor):
             where the model has them (:meth:`predictive_variance` combines them).
         """
         prior_mean, var = self.prior.mean_var_one(x)
-        mean = self.scale * prior_mean + self._mean_terms(x)
+        cols = self._columns(x)
+        mean = self.scale * prior_mean + self._mean_terms(x, cols)
         parts = [jnp.reshape(var, (1,))]
         for d in self.delta:
             m, v = d.mean_var_one(x)
@@ -618,9 +648,9 @@ class Corrected(Predictor):
             mean = mean + self._pad(m)
             parts.append(v)
         if self.explicit is not None and self.tracker is None:
-            parts.append(self._explicit_variance(x, prior_mean))
+            parts.append(self._explicit_variance(x, prior_mean, cols=cols))
         if self.tracker is not None:
-            m, v = self.tracker.mean_var(self.tracker_columns(x, prior_mean))
+            m, v = self.tracker.mean_var(self._tracker_columns(x, prior_mean, cols))
             mean = mean + self._pad(m)
             parts.append(v)
         return mean, jnp.concatenate(parts)
@@ -976,7 +1006,7 @@ def correct(
     simple = None
     if simple_term and prior.simple is not None:
         simple = SimpleBasis(prior.simple, prior.normalizer, prior.frame)
-    m = None if simple is None else np.asarray(jax.vmap(simple)(jnp.asarray(X)))
+    m = None if simple is None else _host.each_row(simple, X)
     rho = np.ones(prior.model.n_outputs)  # the levels keep ρ = 1
     explicit = None
     fit = (subset_size, max_steps, seed)
@@ -1180,7 +1210,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     (two or more), the physical terms' prior is the one of ``basis_prior``'s candidates
     under which the worst-predicted group held out is predicted best; returned last: the
     candidates, the factor chosen per output and the candidates' held-out scores."""
-    phys = np.asarray(jax.vmap(physics)(jnp.asarray(X)))  # (N, 6, T)
+    phys = _host.each_row(physics, X)  # (N, 6, T)
     n_out = N_LOADS
     rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
     kappa = np.zeros(n_out)
@@ -1516,8 +1546,8 @@ def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_va
 
     def rows(g):
         x, y, r = gp_rows(sur, rpm, euler, v_air + g, *label)
-        prior_mean = m.prior.mean_one(x)
-        return x, prior_mean, y - m.offline_mean(x, prior_mean)[:N_LOADS], r
+        prior_mean, cols = m.prior.mean_one(x), m._columns(x)
+        return x, (prior_mean, cols), y - m._offline_mean(x, prior_mean, cols)[:N_LOADS], r
 
     if isinstance(state, Online):
         x, _, resid, r = rows(0.0)
@@ -1528,24 +1558,24 @@ def advance(sur: Surrogate, state, t, rpm, euler, v_air, force, torque, force_va
         mean, band = offline_model(m).offline_moments(x)
         return state.measured(x, y - mean[:N_LOADS], r, band)
 
-    def columns(st, x, prior_mean):
+    def columns(st, x, at):  # at: the prior's mean and the basis's columns at x (rows)
         with_state = eqx.tree_at(lambda c: c.tracker, m, st, is_leaf=lambda a: a is None)
-        return with_state.tracker_columns(x, prior_mean)
+        return with_state._tracker_columns(x, *at)
 
     def wind_rows(g):
-        x, prior_mean, resid, r = rows(g)
+        x, at, resid, r = rows(g)
         # The wind's innovation counts what δ does not know at the label (the tracked band
         # has it): without it the wind state takes δ's errors for wind. The coefficients'
         # gain leaves it out, as their drift was fitted.
-        return resid, r + m._delta_latent_at(x), columns(state, x, prior_mean)
+        return resid, r + m._delta_latent_at(x), columns(state, x, at)
 
     g = 0.0
     if getattr(state, "wind_mean", None) is not None:
         # The wind first, its residual's band the coefficients' own; then the coefficients
         # at the air velocity it implies.
         state, g = state.wind_measured(wind_rows)
-    x, prior_mean, resid, r = rows(g)
-    return state.measured(columns(state, x, prior_mean), resid, r)
+    x, at, resid, r = rows(g)
+    return state.measured(columns(state, x, at), resid, r)
 
 
 def offline_model(m: Corrected) -> Corrected:

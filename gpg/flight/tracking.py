@@ -822,15 +822,22 @@ def _own_rows(own: fc.Corrected, X: np.ndarray, band: bool):
     """The offline model's own mean, its discrepancies' latent variance (not the prior's) and,
     with ``band``, its band on the loads (zeros without), at the normalised rows ``X``."""
 
-    def mean_latent(x):  # one program for both
-        return own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS], own._delta_latent_at(x)
+    mean, latent, out = _own_moments(own, _host.asarray(np.asarray(X)), band)
+    return np.asarray(mean), np.asarray(latent), np.asarray(out)
 
-    mean, latent = jax.vmap(mean_latent)(jnp.asarray(X))
-    out = np.zeros((len(X), N_LOADS))
-    if band:
-        var = jax.vmap(lambda x: own.mean_var_one(x)[1])(jnp.asarray(X))
-        out = np.asarray(own.predictive_variance(var))[:, :N_LOADS]
-    return np.asarray(mean), np.asarray(latent), out
+
+@eqx.filter_jit
+def _own_moments(own: fc.Corrected, X, band: bool):
+    """:func:`_own_rows` in one program (op by op, each operation compiled for each shape)."""
+
+    def one(x):
+        mean = own.offline_mean(x, own.prior.mean_one(x))[:N_LOADS]
+        if not band:
+            return mean, own._delta_latent_at(x), jnp.zeros(N_LOADS, x.dtype)
+        return (mean, own._delta_latent_at(x),
+                own.predictive_variance(own.mean_var_one(x)[1])[:N_LOADS])  # fmt: skip
+
+    return jax.vmap(one)(X)
 
 
 def _kept(parts: list[Labels], read: list[Labels] | None, max_labels: int):
@@ -851,8 +858,8 @@ def _columns(prior: Surrogate, X: np.ndarray) -> tuple[np.ndarray, bool]:
     ms = None
     if prior.simple is not None:
         simple = fc.SimpleBasis(prior.simple, prior.normalizer, prior.frame)
-        ms = np.asarray(jax.vmap(simple)(jnp.asarray(X)))
-    phys = np.asarray(jax.vmap(fc._physics(prior))(jnp.asarray(X)))
+        ms = _host.each_row(simple, X)
+    phys = _host.each_row(fc._physics(prior), X)
     H = np.stack([fc._basis_columns(mu, ms, phys, j) for j in range(N_LOADS)], 1)
     return H, ms is not None
 

@@ -349,8 +349,10 @@ def airflow_frame_rate(
     zx = _vm(z, J_x)
     w = jnp.stack([(_vm(z, J_y) - jnp.sum(y_ref * x) * zx) / norm_y, -zx, _vm(y, J_x)])
     frame_rate = jnp.sqrt(jnp.sum(w * w))
-    # R_HB's first column (yaw and pitch of H's angles) without the angles themselves
-    b = R_WB(euler_W)[:, 0]
+    # R_HB's first column (yaw and pitch of H's angles) without the angles themselves, from
+    # R_WB's first column (R_WB's own products, only the three that column needs)
+    cp = jnp.cos(euler_W[1])
+    b = jnp.stack([jnp.cos(euler_W[0]) * cp, jnp.sin(euler_W[0]) * cp, -jnp.sin(euler_W[1])])
     r0 = jnp.stack([jnp.sum(x * b), jnp.sum(y * b), jnp.sum(z * b)])
     cp2 = r0[0] * r0[0] + r0[1] * r0[1]  # cos² pitch_H
     locked = cp2 <= 0.0

@@ -615,6 +615,40 @@ def test_simple_term_recovers_a_thrust_coefficient(synthetic_surrogate, flights)
     np.testing.assert_allclose(c.model.basis(jnp.asarray(X[0])), expect, rtol=1e-12)
 
 
+def test_the_basis_columns_evaluated_once_a_query(corrected, flights, monkeypatch):
+    """``M``'s column and the physical columns are evaluated once per query by the mean, the
+    mean with its variance and a tracked model's (whose columns are the model's own), each
+    a frame rotation and hundreds of operations in every program that predicts; counted while
+    tracing, and the count can fail: the columns read twice by hand are counted twice."""
+    from gpg.flight import basis as fb
+    from gpg.flight import tracking as tk
+
+    calls = {"simple": 0, "physics": 0}
+
+    def counted(cls, key):
+        inner = cls.__call__
+
+        def call(self, x):
+            calls[key] += 1
+            return inner(self, x)
+
+        monkeypatch.setattr(cls, "__call__", call)
+
+    counted(fc.SimpleBasis, "simple")
+    counted(fb.PhysicalBasis, "physics")
+    tracked = tk.track(corrected, tk.default_drift(corrected)).model
+    x = jnp.asarray(fc.training_rows(corrected, flights)[0][0])
+    for fn in (corrected.model.mean_one, corrected.model.mean_var_one, tracked.mean_one,
+               tracked.mean_var_one):  # fmt: skip
+        calls.update(simple=0, physics=0)
+        jax.make_jaxpr(fn)(x)
+        assert calls == {"simple": 1, "physics": 1}, fn
+    calls.update(simple=0, physics=0)
+    m = corrected.model
+    jax.make_jaxpr(lambda x: (m.basis(x), m.basis(x), m.explicit.mean(x)))(x)
+    assert calls == {"simple": 2, "physics": 1}
+
+
 def test_physical_basis_integrated_out(corrected, flights):
     """The physical basis with its coefficients integrated out (Rasmussen and Williams 2.7),
     against NumPy written here: ``β̄ = A⁻¹(Hᵀ K⁻¹ y + B⁻¹ b)``, the mean
