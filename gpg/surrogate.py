@@ -720,6 +720,10 @@ def _as_float(name: str, a):
         raise ValueError(f"{name} must be real numbers: {exc}") from None
 
 
+# One program per shape (op by op, the check compiled two)
+_all_finite = jax.jit(lambda a: jnp.all(jnp.isfinite(a)))
+
+
 def _require_finite(name: str, a) -> None:
     """The NaN/inf policy: a call from Python with a non-finite input raises ``ValueError``
     naming it; under the caller's own ``jit``/``vmap``/``scan`` (a tracer, nothing to inspect)
@@ -728,7 +732,7 @@ def _require_finite(name: str, a) -> None:
         return
     if isinstance(a, jax.Array):
         with jax.ensure_compile_time_eval():  # a concrete array, also while a caller traces
-            if bool(jnp.all(jnp.isfinite(a))):
+            if bool(_all_finite(a)):
                 return  # checked where it lives; only a failing input comes to the host
     v = np.asarray(a)
     if np.isfinite(v).all():

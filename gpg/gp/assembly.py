@@ -91,7 +91,7 @@ def assemble_gram(
         width = stop - start
         for blk in range(1 + g):
             out[blk * n + start : blk * n + stop] = rows[blk * width : (blk + 1) * width]
-    out.flat[:: r + 1] += np.asarray(hyper.noise_diagonal(n, g))
+    out.flat[:: r + 1] += _noise_diagonal(hyper, n, g)
     return out
 
 
@@ -182,7 +182,7 @@ def assemble_rows_gram(
         X, index, X, index, hyper, grad_dims, out=out, chunk=256, bases1=bases, bases2=bases
     )
     n, g = np.asarray(X).shape[0], len(grad_dims)
-    out.flat[:: out.shape[0] + 1] += np.asarray(hyper.noise_diagonal(n, g))[np.asarray(index)]
+    out.flat[:: out.shape[0] + 1] += _noise_diagonal(hyper, n, g)[np.asarray(index)]
     return out
 
 
@@ -274,7 +274,7 @@ def device_gram(
     # The row kernels hold a few (block x r) temporaries, (block x r x D) for directions.
     per_row = 8 * r * (4 + (X.shape[1] if bases is not None else 0))
     block = int(max(1, min(r, chunk_bytes // per_row)))
-    noise = np.asarray(hyper.noise_diagonal(n, g))[index]
+    noise = _noise_diagonal(hyper, n, g)[index]
     return _device_gram(
         _host.asarray(X[p]), tuple(_host.asarray(a) for a in what), _host.asarray(noise),
         hyper.variance, hyper.lengthscale, kernel=kernel, block=block,
@@ -306,3 +306,14 @@ def _device_gram(
     K = jax.lax.fori_loop(0, n_blocks, fill, jnp.zeros((r, r), Xr.dtype))
     diag = jnp.arange(r)
     return K.at[diag, diag].add(noise)  # in place: no second r x r array
+
+
+def _noise_diagonal(hyper: Hyper, n: int, g: int) -> np.ndarray:
+    """:meth:`Hyper.noise_diagonal` on the host, for the Grams assembled there: the same values
+    (copies, no arithmetic), without the four small programs the eager one compiled for every
+    ``n``."""
+    noise = np.asarray(hyper.noise)
+    if g == 0:
+        return np.full(n, noise)
+    per_block = np.concatenate([noise[None], np.broadcast_to(np.asarray(hyper.grad_noise), (g,))])
+    return np.repeat(per_block, n)
