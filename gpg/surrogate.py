@@ -488,12 +488,16 @@ class Surrogate(eqx.Module):
         if not jnp.issubdtype(dtype, jnp.floating):
             raise ValueError(f"dtype must be a floating type, got {dtype}")
 
-        def cast(x):
-            if isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating):
-                return jnp.asarray(x, dtype=dtype)
-            return x
-
-        return jax.tree.map(cast, self)
+        leaves, treedef = jax.tree.flatten(self)
+        # the float arrays not already in dtype, converted in one program (op by op, one
+        # compiled for every leaf's shape); the others kept, as jnp.asarray keeps them
+        moved = [i for i, x in enumerate(leaves)
+                 if isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating)
+                 and not (isinstance(x, jax.Array) and x.dtype == dtype)]  # fmt: skip
+        if moved:
+            for i, x in zip(moved, _cast(tuple(leaves[i] for i in moved), dtype), strict=True):
+                leaves[i] = x
+        return jax.tree.unflatten(treedef, leaves)
 
 
 class Replicated:
@@ -718,6 +722,12 @@ def _as_float(name: str, a):
         return np.asarray(a, float)
     except (TypeError, ValueError, OverflowError) as exc:
         raise ValueError(f"{name} must be real numbers: {exc}") from None
+
+
+@partial(jax.jit, static_argnums=(1,))
+def _cast(arrays: tuple, dtype) -> tuple:
+    """:meth:`Surrogate.astype`'s conversions, one program for a model's leaves."""
+    return tuple(jnp.asarray(a, dtype=dtype) for a in arrays)
 
 
 # One program per shape (op by op, the check compiled two)

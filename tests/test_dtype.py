@@ -112,6 +112,37 @@ def test_astype_in_a_float64_process_computes_in_float32():
     np.testing.assert_allclose(p32.force, p64.force, rtol=1e-3, atol=1e-3)
 
 
+def test_astype_casts_every_float_leaf_in_one_program(caplog):
+    """Every float array rounded once to float32 (bit for bit NumPy's rounding), every other
+    leaf the same object, float32 already there kept as it is; the conversions compiled as one
+    program for the model (op by op, one for each leaf's shape), none the second time."""
+    import logging
+
+    data = synthetic_dataset(50, seed=3)[0]
+    sur = Surrogate.fit(data, "gpgs_hybrid", FIXED)
+    floats = sum(jnp.issubdtype(x.dtype, jnp.floating) for x in jax.tree.leaves(sur))
+    assert floats > 10  # enough leaves of enough shapes that op by op would show
+
+    def compiles(fn):
+        caplog.clear()
+        with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
+            out = fn()
+        return out, len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
+
+    sur32, n = compiles(lambda: sur.astype(jnp.float32))
+    assert n <= 1
+    for a, b in zip(jax.tree.leaves(sur), jax.tree.leaves(sur32), strict=True):
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            assert b.dtype == jnp.float32
+            np.testing.assert_array_equal(np.asarray(b), np.asarray(a).astype(np.float32))
+        else:
+            assert b is a
+    again, n = compiles(lambda: sur.astype(jnp.float32))
+    assert n == 0
+    same = sur32.astype(jnp.float32)  # nothing to convert: the same arrays
+    assert all(a is b for a, b in zip(jax.tree.leaves(sur32), jax.tree.leaves(same), strict=True))
+
+
 def test_float64_wrapper_keeps_plain_containers_as_they_are():
     """Only arrays and modules are rebuilt: a config dict keeps its key order."""
 
