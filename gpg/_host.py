@@ -48,4 +48,4 @@ def each_row(fn: Any, X: Any) -> Any:
     shape (a few milliseconds each, for a model's columns at a part of flights a few hundred
     of them). ``fn`` an equinox Module (its arrays traced, its program kept for its structure
     and ``X``'s shape) or a function."""
-    return jax.tree.map(np.asarray, _each_row(fn, asarray(np.asarray(X))))
+    return jax.tree.map(np.asarray, _each_row(fn, np.asarray(X)))

@@ -30,7 +30,6 @@ import jax
 import numpy as np
 from jaxtyping import Float
 
-from gpg import _host
 from gpg._dtype import float64
 from gpg.data.dataset import Dataset
 from gpg.quadrotor.frames import R_WB
@@ -43,7 +42,7 @@ RANK_TOL = 1e-9  # a direction shorter than this times the airspeed moves nothin
 # One compiled program for every batch of angles: vmapped op by op, each new batch size
 # compiled a program for every operation of the rotation.
 _R_batch = jax.jit(jax.vmap(R_WB))
-_dR_batch = jax.jit(jax.vmap(jax.jacfwd(R_WB)))  # one program (op by op: one for each operation)
+_dR_batch = jax.jit(jax.vmap(jax.jacfwd(R_WB)))  # likewise its derivatives
 
 
 @float64
@@ -76,7 +75,7 @@ def _angle_rows(
     plane's rows when the angle gradients were not run). ``R`` is ``R_WB(θ)`` of the cases.
     See the module docstring."""
     n = x_air.shape[0]
-    dR = np.asarray(_dR_batch(_host.asarray(x_air[:, 4:7])))  # k last
+    dR = np.asarray(_dR_batch(x_air[:, 4:7]))  # k last
     V = x_air[:, 7]
     Rt, dRt = np.swapaxes(R, 1, 2), np.swapaxes(dR, 1, 2)  # dRt[n, i, j, k] = ∂R[j, i]/∂θ_k
     d = dR[:, 0, :, :] * V[:, None, None]  # d[n, :, k] = ∂(Rᵀ V e_x)/∂θ_k: R's first row

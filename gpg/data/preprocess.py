@@ -17,15 +17,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from gpg import _host
+from gpg.data.convert import _R_batch
 from gpg.data.dataset import Dataset
 from gpg.names import GRAD_DIMS
-from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.simple_model import SimpleModel
 from gpg.quadrotor.simple_noise import SimpleNoise
 from gpg.quadrotor.vehicle import Vehicle
@@ -206,9 +204,6 @@ class FittedCoefficientsWarning(UserWarning):
     gave them. The message holds the values."""
 
 
-_R_batch = jax.jit(jax.vmap(R_WB))  # one program (op by op: one for each operation)
-
-
 def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
     """The simplified model ``M`` for a dataset and its vehicle.
 
@@ -231,7 +226,7 @@ def simple_model_for(ds: Dataset, vehicle: Vehicle) -> SimpleModel:
     coeffs = ds.meta.get("simple_model")
     if coeffs is not None:
         return SimpleModel.from_vehicle(vehicle, coeffs["P_F"], coeffs["T_z"])
-    R = np.asarray(_R_batch(_host.asarray(_m_inputs(ds.frame, ds.x)[:, 4:7])))
+    R = np.asarray(_R_batch(_m_inputs(ds.frame, ds.x)[:, 4:7]))
     F_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, :3])
     tau_B = np.einsum("nji,nj->ni", R, ds.y_aero[:, 3:])
     r2 = ds.x[:, :4] ** 2

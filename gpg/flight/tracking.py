@@ -822,7 +822,7 @@ def _own_rows(own: fc.Corrected, X: np.ndarray, band: bool):
     """The offline model's own mean, its discrepancies' latent variance (not the prior's) and,
     with ``band``, its band on the loads (zeros without), at the normalised rows ``X``."""
 
-    mean, latent, out = _own_moments(own, _host.asarray(np.asarray(X)), band)
+    mean, latent, out = _own_moments(own, np.asarray(X), band)
     return np.asarray(mean), np.asarray(latent), np.asarray(out)
 
 
