@@ -7,16 +7,33 @@ import os
 
 # The fast suite is bound by XLA compilation, not by running what it compiles. Two switches
 # cut that: JAX's own for this case (little optimisation: a fifth off the suite's CPU time) and
-# XLA CPU's older fusion emitters (the MLIR ones compile slower: a third off what is left). The
-# result is a second compiler configuration beside the users' default one, which
-# `make test-xla` runs (GPG_FAST_COMPILE=0, with another instruction set and without YNNPACK):
-# tolerances follow from the numerics, not from one configuration's bits, so both pass. Set
-# before JAX is imported, in the environment, so that the tests' subprocesses inherit it.
+# XLA CPU's older fusion emitters (the MLIR ones compile slower: a third off what is left).
+# XLA's threads and the workers' cores are set below. The result is a second configuration
+# beside the users' default one (multi-threaded, every core), which `make test-xla` runs
+# (GPG_FAST_COMPILE=0, with another instruction set and without YNNPACK): tolerances follow
+# from the numerics, not from one configuration's bits, so both pass. Set before JAX is
+# imported, in the environment, so that the tests' subprocesses inherit it.
 if os.environ.get("GPG_FAST_COMPILE", "1") != "0":
     os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_use_fusion_emitters" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_cpu_use_fusion_emitters=false".strip()
+    # The workers already fill the cores, so XLA's own threads (a program's LLVM module cut
+    # into 32 parts compiled on a pool, Eigen's products on several threads) have none to
+    # gain: one part and one-thread Eigen took a few percent off the suite (docs/install.md).
+    for flag in ("xla_cpu_use_fusion_emitters=false", "xla_cpu_parallel_codegen_split_count=1",
+                 "xla_cpu_multi_thread_eigen=false"):  # fmt: skip
+        if flag.split("=")[0] not in flags:
+            flags = f"{flags} --{flag}".strip()
+    os.environ["XLA_FLAGS"] = flags
+    # Each pytest-xdist worker on its own share of the cores (one each on two), before JAX
+    # sizes its thread pools from the cores it may use: on two cores, two workers each with
+    # pools of two threads took a tenth more of the suite's CPU time than one worker a core
+    # (docs/install.md). The tests' subprocesses inherit the share.
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if worker and workers and hasattr(os, "sched_setaffinity"):
+        cpus = sorted(os.sched_getaffinity(0))
+        if len(cpus) >= int(workers):
+            os.sched_setaffinity(0, set(cpus[int(worker.removeprefix("gw")) :: int(workers)]))
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
