@@ -26,7 +26,7 @@ if os.environ.get("GPG_FAST_COMPILE", "1") != "0":
     os.environ["XLA_FLAGS"] = flags
     # Each pytest-xdist worker on its own share of the cores (one each on two), before JAX
     # sizes its thread pools from the cores it may use: on two cores, two workers each with
-    # pools of two threads took a tenth more of the suite's CPU time than one worker a core
+    # pools of two threads took an eighth to a sixth more CPU time than one worker a core
     # (docs/install.md). The tests' subprocesses inherit the share.
     worker = os.environ.get("PYTEST_XDIST_WORKER")
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
