@@ -391,7 +391,34 @@ def _stacked(prior, cfg: dict[str, Any]) -> dict[str, Any]:
                      "ratio": ratio, "ratio_median": float(np.median(ratio)),
                      "donated_ratio": donated,
                      "donated_ratio_median": float(np.median(donated))}  # fmt: skip
+    if "bank" in models:  # what of the bank's step is the offline band it scores under
+        band = _band_alone(models["bank"], labels, int(cfg["updates"]))
+        step = float(np.median(out["bank"]["stacked_median_s"]))
+        band["share_of_stacked"] = band["update_s"]["median_s"] / step
+        out["bank"]["offline_band"] = band
     return out
+
+
+def _band_alone(sur, labels, updates: int) -> dict[str, Any]:
+    """The offline model's mean and band at each label (``Corrected.offline_moments`` on the
+    view :func:`gpg.flight.online_step` reads for a bank: δ folded and stacked), compiled once
+    and called once a label from Python over the step's labels (each label's normalised input
+    formed beforehand, untimed; the first 10 calls left out), with the bytes of the arrays
+    that call reads."""
+    from gpg.flight import correction as fc
+
+    view = fc.offline_model(sur.model).variance_views().stacked()
+    rows = jax.jit(lambda s, *a: fc.gp_rows(s, *a)[0])
+    cols = labels.columns()
+    xs = [rows(sur, *(c[k % len(labels)] for c in cols[1:])) for k in range(updates + 10)]
+    band = jax.jit(lambda m, x: m.offline_moments(x))
+    seconds = []
+    for x in xs:
+        t0 = time.perf_counter()
+        jax.block_until_ready(band(view, x))
+        seconds.append(time.perf_counter() - t0)
+    return {"update_s": stats(np.asarray(seconds[10:])),
+            "view_bytes": int(sum(a.nbytes for a in jax.tree.leaves(view)))}  # fmt: skip
 
 
 def _interleaved(sur, labels, updates: int, forms: dict[str, dict], block: int) -> dict:
@@ -491,6 +518,12 @@ def flight_table(res: dict[str, Any]) -> str:
                          "note": f"one by one {np.median(r['one_by_one_median_s']) * 1e3:.3f} "
                                  f"ms; ratio {r['ratio_median']:.2f} (rounds "
                                  f"{', '.join(f'{v:.2f}' for v in r['ratio'])})"})  # fmt: skip
+            if "offline_band" in r:
+                b = r["offline_band"]
+                note = (f"{100 * b['share_of_stacked']:.0f} % of the stacked step; the view's "
+                        f"arrays {b['view_bytes'] / 1e6:.1f} MB")  # fmt: skip
+                rows.append({"what": f"online update, {name}: the offline band at the label",
+                             "median": b["update_s"]["median_s"] * 1e3, "note": note})  # fmt: skip
             if "donated_median_s" in r:
                 rounds = ", ".join(f"{v:.2f}" for v in r["donated_ratio"])
                 rows.append({"what": f"online update, {name}, stacked, donate=True",

@@ -157,6 +157,8 @@ def test_bench_flight_suite(tmp_path):
         st = res["update"]["stacked"][name]
         assert len(st["ratio"]) == 2 == len(st["donated_ratio"]) == len(st["donated_median_s"])
     assert res["update"]["stacked"]["bank"]["inducing"] == 4
+    band = res["update"]["stacked"]["bank"]["offline_band"]  # the bank's step's band alone
+    assert band["update_s"]["n"] == 20 and band["share_of_stacked"] > 0 and band["view_bytes"] > 0
 
 
 @pytest.mark.slow  # a whole bench suite, like the others (its parts: tests/gp/test_binned.py,
