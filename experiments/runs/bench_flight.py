@@ -403,8 +403,8 @@ def _band_alone(sur, labels, updates: int) -> dict[str, Any]:
     """The offline model's mean and band at each label (``Corrected.offline_moments`` on the
     view :func:`gpg.flight.online_step` reads for a bank: δ folded and stacked), compiled once
     and called once a label from Python over the step's labels (each label's normalised input
-    formed beforehand, untimed; the first 10 calls left out), with the bytes of the arrays
-    that call reads."""
+    formed beforehand, untimed; the first 10 calls left out), and the bytes of the view's
+    arrays (a call reads some of them: one bin of the prior's factor, δ's triangles)."""
     from gpg.flight import correction as fc
 
     view = fc.offline_model(sur.model).variance_views().stacked()
