@@ -202,7 +202,8 @@ def to_native(
         sur: the fitted surrogate (any model :func:`to_c` exports).
         directory: where to write the source and the library (``<name>-<digest>.so``, one
             per content: a library already built from the same source is loaded again, not
-            rebuilt); None: a temporary directory, removed with the returned object.
+            rebuilt); None: a temporary directory, removed with the returned object, or at
+            once where the build fails.
         name: the C identifier of the export.
         dtype: ``"double"`` or ``"float"``, as :func:`to_c`.
         variance: whether to export the variance (a bank needs it).
@@ -221,6 +222,20 @@ def to_native(
         raise ValueError(f"cc: no C compiler {cc!r} on PATH")
     owned = directory is None
     where = Path(tempfile.mkdtemp(prefix="gpg_native_") if owned else directory)
+    try:
+        out = _build(sur, where, exe, name, dtype, variance, cc, flags)
+    except BaseException:
+        # a temporary directory is the caller's only if the build hands back its library
+        if owned:
+            shutil.rmtree(where, ignore_errors=True)
+        raise
+    if owned:
+        weakref.finalize(out, shutil.rmtree, where, ignore_errors=True)
+    return out
+
+
+def _build(sur, where: Path, exe: str, name, dtype, variance, cc, flags) -> Native:
+    """:func:`to_native`'s source, library and load, in ``where``."""
     info = to_c(sur, where, name=name, dtype=dtype, variance=variance)
     # the state's size from the compiler, not from Python's idea of the struct's padding
     shim = where / f"{name}_native.c"
@@ -249,7 +264,4 @@ def to_native(
             raise RuntimeError(f"{cc} failed on {info['c']}: {built.stderr[-3000:]}")
         os.replace(part, so)  # whole or not at all
     n_levels = len(sur.output_names) - 6
-    out = Native(ctypes.CDLL(str(so)), name, where, n_levels, info["variance"])
-    if owned:
-        weakref.finalize(out, shutil.rmtree, where, ignore_errors=True)
-    return out
+    return Native(ctypes.CDLL(str(so)), name, where, n_levels, info["variance"])

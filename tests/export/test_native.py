@@ -4,6 +4,7 @@ tests/flight/test_bank.py, which drives the bank through it)."""
 
 import gc
 import shutil
+import tempfile
 
 import jax
 import numpy as np
@@ -55,10 +56,12 @@ def test_native_predicts_as_predict(synthetic_surrogate, tmp_path):
     np.testing.assert_array_equal(again.predict(*q).force, nat.predict(*q).force)
 
 
-def test_native_without_variance_a_temporary_build_and_bad_compilers(synthetic_surrogate):
+def test_native_without_variance_a_temporary_build_and_bad_compilers(
+    synthetic_surrogate, tmp_path, monkeypatch
+):
     """``variance=False`` calls ``<name>_mean`` (the same loads, no variance); without a
     directory the build lives in a temporary one, removed with the object; a compiler that is
-    not there is named, one that fails says so with its message."""
+    not there is named, one that fails says so with its message and leaves no directory."""
     sur = synthetic_surrogate
     nat = to_native(sur, variance=False)
     where = nat.directory
@@ -71,5 +74,8 @@ def test_native_without_variance_a_temporary_build_and_bad_compilers(synthetic_s
     assert not where.exists()
     with pytest.raises(ValueError, match="no C compiler 'no-such-cc'"):
         to_native(sur, cc="no-such-cc")
+    # a failed build leaves no temporary directory behind
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     with pytest.raises(RuntimeError, match="cc failed on"):
         to_native(sur, flags=("-std=c99", "-DGPG_NATIVE_TEST", "-include", "/nonexistent.h"))
+    assert list(tmp_path.iterdir()) == []
