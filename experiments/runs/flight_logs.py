@@ -141,7 +141,8 @@ class _Bench:
         opts = {"max_labels": None if c["max_labels"] is None else int(c["max_labels"]),
                 "exact_labels": int(c["exact_labels"]), "inducing": int(c["inducing"]),
                 "subset_size": int(c["subset_size"]), "hyperparameters": c["hyperparameters"],
-                "basis_prior": basis_prior(c["basis_prior"])}  # fmt: skip
+                "basis_prior": basis_prior(c["basis_prior"]),
+                "calibrate": bool(c.get("calibrate", True))}  # fmt: skip
         return fc.correct(self.prior, labels, **{**opts, **kw})
 
     @property

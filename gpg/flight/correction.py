@@ -950,7 +950,9 @@ def correct(
             flight, held out and predicted from the others, is covered as the band says (the
             mean of ``e² / (c v + n)`` is 1 over their labels, ``v`` the latent variance and
             ``n`` the labels' noise; only widened, never narrowed): a band honest for a
-            flight in conditions the others did not have, not only within them.
+            flight in conditions the others did not have, not only within them. False: the
+            discrepancies' own band (``basis_prior`` chooses as with True: its candidates
+            are scored under the held-out factor either way).
         basis_prior: with ``basis="physical"``, the prior of the physical terms'
             coefficients: a factor on :data:`~gpg.flight.basis.PRIORS`'s standard deviations;
             ``"auto"``: ``"held_out"`` where the prior's physics is taken as it is
@@ -1020,7 +1022,7 @@ def correct(
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
         rho6, kappa, deltas, explicit, choice = _fit_explicit(
             X, Y, V, mu, m, _physics(prior), fixed_rho, *fit,
-            groups=groups if calibrate else None, Z=Z, cal=cal, Zh=Zh, basis_prior=basis_prior,
+            groups=groups, Z=Z, cal=cal, Zh=Zh, basis_prior=basis_prior, calibrate=calibrate,
         )  # fmt: skip
     rho[:N_LOADS] = rho6
     model = Corrected(
@@ -1062,19 +1064,20 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
 
 
 def _held_out_scale(
-    X, H, y, noise, hyper: Hyper, b, sd, groups
+    X, H, y, noise, hyper: Hyper, b, sd, groups, widen: bool = True
 ) -> tuple[float, float, list[float]]:
     """The factor ``c`` on the latent variance that makes each flight, predicted from the
     others (:func:`_held_out`), covered as the band says: the mean of ``e² / (c v + n)`` over
     the held-out labels is 1 (``e`` the error, ``v`` the latent variance, ``n`` the label's
     noise), at least 1; under ``c``, the largest over the flights of a held-out flight's
     mean negative log predictive density (nats per label: what the basis's prior is chosen
-    by); and each held-out flight's share of labels inside the band of ``Z95²(c v + n)`` (one
-    pooled ``c`` can cover one flight loosely and another tightly: the spread says how far
-    the band's width carries from one condition to the next). ``c`` scales ``v`` only, so it
-    is solved for with ``n`` beside it: the mean of ``e² / (v + n)`` taken as ``c`` leaves a
-    band too narrow by about ``n / v`` where the labels' noise outweighs the latent
-    variance."""
+    by); and each held-out flight's share of labels inside the band of ``Z95²(c v + n)``
+    (``widen`` False: of ``Z95²(v + n)``, the band without ``c``; one pooled ``c`` can cover
+    one flight loosely and another tightly: the spread says how far the band's width carries
+    from one condition to the next). ``c``
+    scales ``v`` only, so it is solved for with ``n`` beside it: the mean of ``e² / (v + n)``
+    taken as ``c`` leaves a band too narrow by about ``n / v`` where the labels' noise
+    outweighs the latent variance."""
     from scipy.optimize import brentq
 
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
@@ -1099,7 +1102,7 @@ def _held_out_scale(
         s2 = c * var + noise[te]
         e2g = (y[te] - mean) ** 2
         worst = max(worst, float(np.mean(0.5 * np.log(2.0 * np.pi * s2) + 0.5 * e2g / s2)))
-        coverage.append(float(np.mean(e2g <= Z95**2 * s2)))
+        coverage.append(float(np.mean(e2g <= Z95**2 * (s2 if widen else var + noise[te]))))
     return c, worst, coverage
 
 
@@ -1199,7 +1202,7 @@ def _cases(d: ExactGP | InducingGP) -> int:
 # the prior, the calibration and the assembly of the result.
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
                   seed, *, groups=None, Z=None, cal=None, Zh=None,
-                  basis_prior="held_out"):  # fmt: skip
+                  basis_prior="held_out", calibrate=True):  # fmt: skip
     """The physical basis with integrated coefficients (:mod:`gpg.flight.basis`), per load
     output: ``β`` first by weighted least squares under its prior with the labels' noise, the
     discrepancy's hyperparameters on what is left, then ``β``'s posterior given that GP and
@@ -1208,8 +1211,9 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     the discrepancy is an inducing-point GP on every row, and the calibration reads the rows
     ``cal``; ``Zh``: the hyperparameters refined on every row through it. With ``groups``
     (two or more), the physical terms' prior is the one of ``basis_prior``'s candidates
-    under which the worst-predicted group held out is predicted best; returned last: the
-    candidates, the factor chosen per output and the candidates' held-out scores."""
+    under which the worst-predicted group held out is predicted best, and (``calibrate``)
+    the band widened by the held-out factor; returned last: the candidates, the factor
+    chosen per output and the candidates' held-out scores."""
     phys = _host.each_row(physics, X)  # (N, 6, T)
     n_out = N_LOADS
     rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
@@ -1218,8 +1222,9 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     b, sd0 = _coefficient_prior(fixed_rho is None, m is not None)
     held = groups is not None and np.unique(groups).size >= 2
     grid = _prior_grid(basis_prior, held)
+    held = held and (calibrate or len(grid) > 1)  # flights held out only for what reads them
     kc = np.arange(X.shape[0]) if cal is None else cal
-    factors, scores = np.ones(n_out), np.zeros((n_out, len(grid)))
+    factors, scores, widths = np.ones(n_out), np.zeros((n_out, len(grid))), np.ones(n_out)
     coverage: list[list[float]] = []
     for j in range(n_out):
         H = _basis_columns(mu if fixed_rho is None else None, m, phys, j)
@@ -1236,7 +1241,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
             c, nlpd, cover = (1.0, 0.0, [])
             if held:
                 c, nlpd, cover = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b, sd,
-                                                 groups[kc])  # fmt: skip
+                                                 groups[kc], calibrate)  # fmt: skip
             scores[j, i] = nlpd
             if best is None or nlpd < best[0]:
                 best = (nlpd, f, sd, hyper, c, cover)
@@ -1258,6 +1263,8 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
                             whiten=p.whiten, post=p.post, hyper=hyper,
                             output_scale=jnp.ones(1), n_cases=int(X.shape[0]))  # fmt: skip
             G = pw[:, :P]
+        widths[j] = c
+        c = c if calibrate else 1.0  # the choice above scored under c all the same
         deltas.append(gp.with_output_scale(jnp.full(1, c)))
         chol = chol * np.sqrt(c)
         k = 0
@@ -1280,6 +1287,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     if held:
         choice["held_out_nlpd"] = scores.tolist()
         choice["held_out_coverage95"] = coverage
+        choice["held_out_factor"] = widths.tolist()  # c per output, applied or not
     return rho, kappa, tuple(deltas), explicit, choice
 
 

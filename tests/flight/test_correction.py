@@ -778,7 +778,8 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     of 1, the labels' noise unscaled beside ``c`` times the latent variance; the physical
     terms' prior the candidate under which the worse-predicted held-out flight is predicted
     best. Both
-    written out here in NumPy for the most widened component; calibrate=False keeps 1."""
+    written out here in NumPy for the most widened component; calibrate=False keeps 1 and
+    chooses the terms' prior as before."""
     from gpg.flight.basis import PRIORS, TERMS
 
     # two candidates keep the test's fits few; the rule is the same for any grid
@@ -855,6 +856,22 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     np.testing.assert_allclose(
         np.asarray(m.explicit.cov_chol[j]), np.asarray(raw.model.explicit.cov_chol[j]) * np.sqrt(c),
         rtol=1e-6, atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(choice["held_out_factor"][j], c, rtol=1e-6)
+    # calibrate=False leaves the band as the discrepancies give it; the terms' prior is chosen
+    # as before (the candidates scored under c), and the held-out shares are of that band
+    own = fc.correct(synthetic_surrogate, [a, b_], basis="physical", scale=False,
+                     calibrate=False, **FIT)  # fmt: skip
+    mine = own.config["flight_correction"]["basis_prior"]
+    assert mine["factors"] == choice["factors"] and mine["held_out_nlpd"] == choice["held_out_nlpd"]
+    assert mine["held_out_factor"] == choice["held_out_factor"]
+    assert all(float(d.output_scale[0]) == 1.0 for d in own.model.delta)
+    np.testing.assert_allclose(
+        np.asarray(m.explicit.cov_chol[j]), np.asarray(own.model.explicit.cov_chol[j]) * np.sqrt(c),
+        rtol=1e-6, atol=1e-12)  # fmt: skip
+    inside1 = e2 <= 1.959964**2 * (v + n)
+    assert not np.any(np.abs(e2 / (1.959964**2 * (v + n)) - 1) < 1e-6)
+    want = [inside1[:half].mean(), inside1[half:].mean()]
+    np.testing.assert_allclose(mine["held_out_coverage95"][j], want, rtol=0, atol=1e-12)
 
 
 def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, flights, tmp_path):
