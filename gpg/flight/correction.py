@@ -1074,10 +1074,9 @@ def _held_out_scale(
     by); and each held-out flight's share of labels inside the band of ``Z95²(c v + n)``
     (``widen`` False: of ``Z95²(v + n)``, the band without ``c``; one pooled ``c`` can cover
     one flight loosely and another tightly: the spread says how far the band's width carries
-    from one condition to the next). ``c``
-    scales ``v`` only, so it is solved for with ``n`` beside it: the mean of ``e² / (v + n)``
-    taken as ``c`` leaves a band too narrow by about ``n / v`` where the labels' noise
-    outweighs the latent variance."""
+    from one condition to the next). ``c`` scales ``v`` only, so it is solved for with ``n``
+    beside it: the mean of ``e² / (v + n)`` taken as ``c`` leaves a band too narrow by about
+    ``n / v`` where the labels' noise outweighs the latent variance."""
     from scipy.optimize import brentq
 
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
