@@ -142,7 +142,7 @@ class _Bench:
                 "exact_labels": int(c["exact_labels"]), "inducing": int(c["inducing"]),
                 "subset_size": int(c["subset_size"]), "hyperparameters": c["hyperparameters"],
                 "basis_prior": basis_prior(c["basis_prior"]),
-                "calibrate": bool(c.get("calibrate", True))}  # fmt: skip
+                "calibrate": bool(c["calibrate"])}  # fmt: skip
         return fc.correct(self.prior, labels, **{**opts, **kw})
 
     @property

@@ -862,8 +862,10 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     own = fc.correct(synthetic_surrogate, [a, b_], basis="physical", scale=False,
                      calibrate=False, **FIT)  # fmt: skip
     mine = own.config["flight_correction"]["basis_prior"]
-    assert mine["factors"] == choice["factors"] and mine["held_out_nlpd"] == choice["held_out_nlpd"]
-    assert mine["held_out_factor"] == choice["held_out_factor"]
+    # the same fits run again: equal to the rounding of a refit, not bit for bit
+    assert mine["factors"] == choice["factors"]
+    np.testing.assert_allclose(mine["held_out_nlpd"], choice["held_out_nlpd"], rtol=1e-9)
+    np.testing.assert_allclose(mine["held_out_factor"], choice["held_out_factor"], rtol=1e-9)
     assert all(float(d.output_scale[0]) == 1.0 for d in own.model.delta)
     np.testing.assert_allclose(
         np.asarray(m.explicit.cov_chol[j]), np.asarray(own.model.explicit.cov_chol[j]) * np.sqrt(c),
