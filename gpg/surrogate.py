@@ -416,6 +416,35 @@ class Surrogate(eqx.Module):
         chunk = default_chunk(not mean_only) if chunk is None else int(chunk)
         return _predict_batch(self, rpm, euler, v_air, not mean_only, chunk)
 
+    def variance_parts(
+        self,
+        rpm: Float[ArrayLike, "N 4"],
+        euler: Float[ArrayLike, "N 3"],
+        v_air: Float[ArrayLike, "N 3"],
+    ) -> dict[str, Float[Array, "N M"]]:
+        """Where the band's width comes from: :meth:`predict_batch`'s ``variance`` split into
+        the model's terms (:meth:`gpg.gp.predictor.Predictor.variance_parts`; for a flight
+        correction the prior's, the discrepancies', their noise and the physical
+        coefficients'), each in the world frame as ``variance`` is.
+
+        Args:
+            rpm: (N, 4) rotor speeds.
+            euler: (N, 3) attitudes (yaw, pitch, roll), rad.
+            v_air: (N, 3) world-frame air velocities, m/s.
+
+        Returns:
+            Each term's (N, M) variance; they sum to ``predict_batch(...).variance``.
+
+        Raises:
+            ValueError: a bad input, as :meth:`predict_batch` names it, or a model whose band
+                is not a sum of terms (an adapted flight correction).
+        """
+        rpm, euler, v_air = _check_batch(rpm, euler, v_air, None)
+        chunk = default_chunk(True)
+        parts = [_variance_parts(self, *(a[i : i + chunk] for a in (rpm, euler, v_air)))
+                 for i in range(0, max(rpm.shape[0], 1), chunk)]  # fmt: skip
+        return {k: jnp.concatenate([p[k] for p in parts]) for k in parts[0]}
+
     def replicate(self, devices: parallel.Devices = None) -> Replicated:
         """This surrogate copied onto several JAX devices, for batched prediction spread over them.
 
@@ -786,28 +815,7 @@ def predict_state(
     rpm, euler, v_air = (jnp.asarray(a).astype(dt) for a in (rpm, euler, v_air))
     if (wind := getattr(sur.model, "wind_state", lambda: None)()) is not None:
         return _predict_in_wind(sur, wind, rpm, euler, v_air, with_var, body)
-    finite = (
-        jnp.all(jnp.isfinite(rpm)) & jnp.all(jnp.isfinite(euler)) & jnp.all(jnp.isfinite(v_air))
-    )
-    span = sur.box_hi - sur.box_lo
-    tol = 1e-9 * jnp.maximum(span, 1.0)
-    if sur.frame == "body":
-        R_WH = R_WB(euler)  # the GP's frame is the body's
-        x_h = jnp.concatenate([rpm, matvec(R_WH.T, v_air)])
-        inside = jnp.all(
-            (x_h[:4] >= sur.box_lo[:4] - tol[:4]) & (x_h[:4] <= sur.box_hi[:4] + tol[:4])
-        )
-        inside = inside & (jnp.sum(x_h[4:] ** 2) <= (sur.ball_radius * (1.0 + 1e-9)) ** 2)
-        steady = jnp.asarray(True)  # no coordinate singularity to stay away from
-    else:
-        euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
-        x_h = jnp.concatenate([rpm, euler_h, speed[None]])
-        inside = jnp.all((x_h >= sur.box_lo - tol) & (x_h <= sur.box_hi + tol))
-        # Near the airflow frame's singular sets the data's coordinates of the query swing
-        # with millimetres per second of air, and a prediction with them: not in domain there.
-        steady = airflow_frame_rate(euler, v_air, sur.hover_speed) <= MAX_FRAME_RATE
-    in_domain = finite & jnp.all(rpm >= 0) & inside & steady
-
+    x_h, R_WH, in_domain = _inputs(sur, rpm, euler, v_air)
     xn = sur.normalizer.x(x_h)
     if with_var:
         mean_n, var_n = sur.model.mean_var_one(xn)
@@ -829,14 +837,46 @@ def predict_state(
     if with_var:
         # An observation's predictive variance per output, H frame: c_m (latent + ν²) std_m².
         v = sur.model.predictive_variance(var_n) * sur.normalizer.y_std**2
-        rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_out, d, R_out)  # diag(R diag(d) Rᵀ)  # noqa: E731
-        variance = jnp.concatenate([rot_var(v[:3]), rot_var(v[3:6]), v[6:]])
+        variance = _rotated_variance(R_out, v)
     # A prediction that is not finite is never "in domain" (the flag to check under jit).
     outs = [force, torque, levels] + ([] if variance is None else [variance])
     in_domain = in_domain & jnp.all(jnp.stack([jnp.all(jnp.isfinite(o)) for o in outs]))
     return Prediction(
         force=force, torque=torque, levels=levels, variance=variance, in_domain=in_domain
     )
+
+
+def _inputs(sur: Surrogate, rpm, euler, v_air):
+    """The GP's input ``x_h`` at a state, ``R_WH`` (world from the GP's frame) and whether
+    the state is in the data's domain, as far as the inputs tell."""
+    finite = (
+        jnp.all(jnp.isfinite(rpm)) & jnp.all(jnp.isfinite(euler)) & jnp.all(jnp.isfinite(v_air))
+    )
+    span = sur.box_hi - sur.box_lo
+    tol = 1e-9 * jnp.maximum(span, 1.0)
+    if sur.frame == "body":
+        R_WH = R_WB(euler)  # the GP's frame is the body's
+        x_h = jnp.concatenate([rpm, matvec(R_WH.T, v_air)])
+        inside = jnp.all(
+            (x_h[:4] >= sur.box_lo[:4] - tol[:4]) & (x_h[:4] <= sur.box_hi[:4] + tol[:4])
+        )
+        inside = inside & (jnp.sum(x_h[4:] ** 2) <= (sur.ball_radius * (1.0 + 1e-9)) ** 2)
+        steady = jnp.asarray(True)  # no coordinate singularity to stay away from
+    else:
+        euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
+        x_h = jnp.concatenate([rpm, euler_h, speed[None]])
+        inside = jnp.all((x_h >= sur.box_lo - tol) & (x_h <= sur.box_hi + tol))
+        # Near the airflow frame's singular sets the data's coordinates of the query swing
+        # with millimetres per second of air, and a prediction with them: not in domain there.
+        steady = airflow_frame_rate(euler, v_air, sur.hover_speed) <= MAX_FRAME_RATE
+    return x_h, R_WH, finite & jnp.all(rpm >= 0) & inside & steady
+
+
+def _rotated_variance(R_out, v):
+    """Per-output variances ``v`` of the GP's frame in the output frame: ``diag(R diag(d)
+    Rᵀ)`` of the force's and the torque's (independent components), the levels' as they are."""
+    rot_var = lambda d: jnp.einsum("ij,j,ij->i", R_out, d, R_out)  # noqa: E731
+    return jnp.concatenate([rot_var(v[:3]), rot_var(v[3:6]), v[6:]])
 
 
 @highest
@@ -904,6 +944,22 @@ def _predict(sur: Surrogate, rpm, euler, v_air, with_var: bool) -> Prediction:
 @partial(jax.jit, static_argnums=(4,))
 def _predict_body(sur: Surrogate, rpm, R, v_b, with_var: bool) -> Prediction:
     return predict_state(sur, rpm, euler_from_R(R), matvec(R, v_b), with_var, body=True)
+
+
+@jax.jit
+@highest
+def _variance_parts(sur: Surrogate, rpm, euler, v_air) -> dict[str, Array]:
+    dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)
+    if sur.box_lo.dtype != dt:
+        sur = sur.astype(dt)
+
+    def one(r, e, v):
+        x_h, R_WH, _ = _inputs(sur, r, e, v)
+        _, var = sur.model.mean_var_one(sur.normalizer.x(x_h))
+        parts = sur.model.variance_parts(var)
+        return {k: _rotated_variance(R_WH, p * sur.normalizer.y_std**2) for k, p in parts.items()}
+
+    return jax.vmap(one)(*(a.astype(dt) for a in (rpm, euler, v_air)))
 
 
 @partial(jax.jit, static_argnums=(4, 5))

@@ -207,6 +207,29 @@ def _score(sur: Surrogate, test: _Test, *, truth_states: bool = False,
     }
 
 
+def _band_parts(sur: Surrogate, test: _Test) -> dict[str, Any]:
+    """Where :func:`_score`'s band comes from: the mean over the test's labels of each term of
+    the force's variance (:meth:`gpg.Surrogate.variance_parts`; the gust's wind term too), per
+    world component, N²; over every label and over those in the prior's domain (outside it
+    the prior's variance is its kernel's whole), with the coverage there."""
+    lab = test.labels
+    states = (lab.rpm, lab.euler, lab.v_air)
+    parts = {k: np.asarray(v)[:, :3] for k, v in sur.variance_parts(*states).items()}
+    if test.wind_sd is not None:
+        parts["wind"] = np.asarray(wind_variance(sur, *states, test.wind_sd))[:, :3]
+    p = sur.predict_batch(*states)
+    inside = np.asarray(p.in_domain, bool)
+    e2 = (np.asarray(p.force) - test.force) ** 2
+    var = sum(parts.values())
+    out: dict[str, Any] = {"share_in_domain": float(inside.mean())}
+    for where, rows in (("all", np.ones_like(inside)), ("in_domain", inside)):
+        if rows.any():
+            out[where] = {k: np.mean(v[rows], 0).tolist() for k, v in sorted(parts.items())}
+            out[where]["mse"] = np.mean(e2[rows], 0).tolist()
+            out[where]["coverage95"] = np.mean(e2[rows] <= 1.959964**2 * var[rows], 0).tolist()
+    return out
+
+
 def _coefficients(sur: Surrogate) -> dict[str, list[float]]:
     """A physical-basis correction's scale ``ρ`` per load output, its held-out calibration
     factor per output (on the discrepancy's variance and the coefficients'), ``κ`` and the
@@ -535,6 +558,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         # the guide's model with the wind known at every label: what a wind state could reach
         wind_known = _score(models["identified"], id_tests[name], true_air=True)
         row.update({f"identified_true_air_{k}": v for k, v in wind_known.items()})
+        row["identified_band_parts"] = _band_parts(models["identified"], id_tests[name])
         v_ground = test.labels.v_air + tests_raw[name].log.wind[
             np.searchsorted(tests_raw[name].log.t, test.labels.t)]  # fmt: skip
         if name == "gust":
@@ -971,6 +995,13 @@ def _report(res) -> str:
             f"{np.round(r[f'{m}_coverage95_components'], 3).tolist()}, mean squared "
             f"standardised error {np.round(r[f'{m}_z2_components'], 3).tolist()}"
         )
+        bp = r[f"{m}_band_parts"]
+        for where in ("all", "in_domain"):
+            lines.append(
+                f"    its band's terms, {where.replace('_', ' ')} (per force component, N²; "
+                f"{bp['share_in_domain']:.3f} of the labels in the prior's domain): "
+                + "; ".join(f"{k} {np.round(v, 3).tolist()}" for k, v in bp.get(where, {}).items())
+            )
     for w in res["wind"]:
         lines.append(f"  wind {w['flight']}: estimated {np.round(w['estimated_mean'], 2)}, "
                      f"RMS error {w['rms_error']:.3f} m/s")  # fmt: skip

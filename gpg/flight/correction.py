@@ -719,6 +719,46 @@ class Corrected(Predictor):
             out = jnp.concatenate([tracked, out[..., N_LOADS:]], axis=-1)
         return out
 
+    def variance_parts(self, var: Float[ArrayLike, "*Q V"]) -> dict[str, Float[Array, "*Q M"]]:
+        """:meth:`predictive_variance` of an offline correction split into its terms.
+
+        Args:
+            var: (..., V) the latent variance parts of :meth:`mean_var_one`.
+
+        Returns:
+            (..., M) each, normalised units, summing to :meth:`predictive_variance`:
+            ``"prior"`` (``ρ² var_prior``, its output scale), ``"discrepancy"`` (each ``δ``'s
+            latent variance, the held-out factor in it), ``"discrepancy_noise"`` (its
+            ``ν²``) and ``"basis"`` (the coefficients' ``Rᵀ A⁻¹ R``), the last three where
+            the model has them (zeros beyond the loads).
+
+        Raises:
+            ValueError: an adapted model (:func:`adapt`, :func:`gpg.flight.track`), whose
+                band is not a sum of these terms.
+        """
+        if self.online is not None or self.tracker is not None:
+            raise ValueError(
+                "variance_parts: an adapted model's band is not a sum of terms (its filter's "
+                "band takes the offline one's place); split the offline model's"
+            )
+        var = jnp.asarray(var)
+        prior = jnp.maximum(var[..., 0], 0.0)[..., None] * self.prior.output_scale * self.scale**2
+        out = {"prior": prior}
+
+        def padded(v):
+            return jnp.concatenate([v, jnp.zeros((*v.shape[:-1], self.n_outputs - v.shape[-1]),
+                                                 v.dtype)], axis=-1)  # fmt: skip
+
+        nd = len(self.delta)
+        if nd:
+            latent = self._delta_latent(var)
+            total = jnp.stack([d.predictive_variance(var[..., 1 + j])[..., 0]
+                               for j, d in enumerate(self.delta)], axis=-1)  # fmt: skip
+            out["discrepancy"], out["discrepancy_noise"] = padded(latent), padded(total - latent)
+        if self.explicit is not None:
+            out["basis"] = padded(jnp.maximum(var[..., 1 + nd : 1 + nd + N_LOADS], 0.0))
+        return out
+
     def _delta_latent(self, var: Float[ArrayLike, "*Q V"]) -> Float[Array, "*Q 6"]:
         """Each ``δ``'s latent variance times its output scale (no ``ν²``), per load output,
         from the latent parts ``var`` of :meth:`mean_var_one`."""

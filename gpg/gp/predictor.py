@@ -89,6 +89,21 @@ class Predictor(eqx.Module):
         """
         return (jnp.maximum(jnp.asarray(var), 0.0) + self.noise)[..., None] * self.output_scale
 
+    def variance_parts(self, var: Float[ArrayLike, "*Q"]) -> dict[str, Float[Array, "*Q M"]]:
+        """:meth:`predictive_variance` split into the parts it sums: where a band's width
+        comes from (a model that combines more parts names them).
+
+        Args:
+            var: the latent variance at some queries, as :meth:`predictive_variance` takes it.
+
+        Returns:
+            ``"latent"``: ``output_scale · max(var, 0)``; ``"noise"``: ``output_scale · ν²``;
+            each one more axis (M,) than ``var``, their sum :meth:`predictive_variance`'s.
+        """
+        latent = jnp.maximum(jnp.asarray(var), 0.0)[..., None] * self.output_scale
+        return {"latent": latent, "noise": jnp.broadcast_to(self.noise * self.output_scale,
+                                                            latent.shape)}  # fmt: skip
+
     @abc.abstractmethod
     def mean_one(self, x: Float[Array, " D"]) -> Float[Array, " M"]:
         """Posterior mean at one query, written for ``jax.vmap``.

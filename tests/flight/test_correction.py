@@ -120,6 +120,40 @@ def test_corrected_mean_and_variance_compose(regression, flights):
     np.testing.assert_allclose(pv[:, 6:], prior_part[:, 6:], rtol=1e-10)
 
 
+def test_band_split_into_its_terms(synthetic_surrogate, corrected):
+    """``Surrogate.variance_parts``: the band's terms, world frame, summing to
+    ``predict_batch``'s variance. Each taken back to the GP's frame (a diagonal ``d`` there is
+    ``(R_WH ∘ R_WH) d`` in the world, inverted here with ``R_WH`` from ``to_airflow_frame``)
+    is the term as the model forms it: the prior's ``ρ²`` times the prior surrogate's own
+    latent term, each δ's noise ``c ν²`` the same at every state. A plain surrogate's terms
+    are its latent variance and noise; an adapted model is refused by name."""
+    from gpg.quadrotor.frames import to_airflow_frame
+
+    rpm, euler, v = _states(np.random.default_rng(11), 20)
+    parts = {k: np.asarray(a) for k, a in corrected.variance_parts(rpm, euler, v).items()}
+    assert set(parts) == {"prior", "discrepancy", "discrepancy_noise", "basis"}
+    assert all(np.all(a >= 0) for a in parts.values()) and parts["basis"].max() > 0
+    # sums of a few non-negative terms: the order of the sums apart
+    total = np.asarray(corrected.predict_batch(rpm, euler, v).variance)
+    np.testing.assert_allclose(sum(parts.values()), total, rtol=1e-13)
+    base = {k: np.asarray(a) for k, a in synthetic_surrogate.variance_parts(rpm, euler, v).items()}
+    assert set(base) == {"latent", "noise"}
+    want = np.asarray(synthetic_surrogate.predict_batch(rpm, euler, v).variance)
+    np.testing.assert_allclose(base["latent"] + base["noise"], want, rtol=1e-13)
+    m = corrected.model
+    y2 = np.asarray(corrected.normalizer.y_std) ** 2
+    noise = [float(d.hyper.noise * d.output_scale[0]) * y2[j] for j, d in enumerate(m.delta)]
+    for i in range(len(rpm)):
+        S = np.asarray(to_airflow_frame(euler[i], v[i], corrected.hover_speed)[2]) ** 2
+        # |yaw| <= 0.5 rad: det S = cos 2ψ >= 0.54, so a solve loses a few roundings at most
+        h = lambda w: np.r_[np.linalg.solve(S, w[:3]), np.linalg.solve(S, w[3:6]), w[6:]]  # noqa: B023, E731
+        got, ref = h(parts["prior"][i]), np.asarray(m.scale) ** 2 * h(base["latent"][i])
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())
+        np.testing.assert_allclose(h(parts["discrepancy_noise"][i])[:6], noise, rtol=1e-10)
+    with pytest.raises(ValueError, match="an adapted model's band is not a sum"):
+        fc.adapt(corrected, inducing=4, tau=2.0, t0=0.0).variance_parts(rpm, euler, v)
+
+
 def test_correction_fits_the_real_vehicle(synthetic_surrogate, corrected, flights):
     """At the labels' states the corrected model is much closer
     to the 'real' loads than the prior, and its 95 % band covers them."""

@@ -137,6 +137,14 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
                 "identified_rho", "identified_estimated_wind", "identified_true_air",
                 "oracle"):  # fmt: skip
         assert res["tests"][0][f"{key}_mse"] > 0
+    # the guide's band split into its terms, the gust's wind among them
+    for r, wind in zip(res["tests"], ([], ["wind"]), strict=True):
+        terms = ["basis", "discrepancy", "discrepancy_noise", "prior", *wind]
+        every = r["identified_band_parts"]["all"]
+        assert sorted(every) == sorted([*terms, "mse", "coverage95"])
+        assert all(v >= 0 for p in every.values() for v in p)
+        # the split's band is the score's: the same coverage
+        assert every["coverage95"] == pytest.approx(r["identified_coverage95_components"])
     co = saved["coefficients"]
     assert co["identified"]["rho"] == [1.0] * 6 and co["identified_rho"]["rho"] != [1.0] * 6
     assert all(c >= 1.0 for m in co.values() for c in m["calibration"])  # only widened
