@@ -809,10 +809,7 @@ def predict_state(
     Returns:
         The prediction (``variance`` None without ``with_var``).
     """
-    dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)  # float32 where x64 is off
-    if sur.box_lo.dtype != dt:  # float64 arrays in a float32 program: convert once, explicitly
-        sur = sur.astype(dt)
-    rpm, euler, v_air = (jnp.asarray(a).astype(dt) for a in (rpm, euler, v_air))
+    sur, rpm, euler, v_air = _in_own_dtype(sur, rpm, euler, v_air)
     if (wind := getattr(sur.model, "wind_state", lambda: None)()) is not None:
         return _predict_in_wind(sur, wind, rpm, euler, v_air, with_var, body)
     x_h, R_WH, in_domain = _inputs(sur, rpm, euler, v_air)
@@ -844,6 +841,14 @@ def predict_state(
     return Prediction(
         force=force, torque=torque, levels=levels, variance=variance, in_domain=in_domain
     )
+
+
+def _in_own_dtype(sur: Surrogate, *arrays):
+    """The surrogate and the state's arrays in its float dtype as the program has it."""
+    dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)  # float32 where x64 is off
+    if sur.box_lo.dtype != dt:  # float64 arrays in a float32 program: convert once, explicitly
+        sur = sur.astype(dt)
+    return (sur, *(jnp.asarray(a).astype(dt) for a in arrays))
 
 
 def _inputs(sur: Surrogate, rpm, euler, v_air):
@@ -949,9 +954,7 @@ def _predict_body(sur: Surrogate, rpm, R, v_b, with_var: bool) -> Prediction:
 @jax.jit
 @highest
 def _variance_parts(sur: Surrogate, rpm, euler, v_air) -> dict[str, Array]:
-    dt = jax.dtypes.canonicalize_dtype(sur.box_lo.dtype)
-    if sur.box_lo.dtype != dt:
-        sur = sur.astype(dt)
+    sur, rpm, euler, v_air = _in_own_dtype(sur, rpm, euler, v_air)
 
     def one(r, e, v):
         x_h, R_WH, _ = _inputs(sur, r, e, v)
@@ -959,7 +962,7 @@ def _variance_parts(sur: Surrogate, rpm, euler, v_air) -> dict[str, Array]:
         parts = sur.model.variance_parts(var)
         return {k: _rotated_variance(R_WH, p * sur.normalizer.y_std**2) for k, p in parts.items()}
 
-    return jax.vmap(one)(*(a.astype(dt) for a in (rpm, euler, v_air)))
+    return jax.vmap(one)(rpm, euler, v_air)
 
 
 @partial(jax.jit, static_argnums=(4, 5))

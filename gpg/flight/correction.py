@@ -751,10 +751,10 @@ class Corrected(Predictor):
 
         nd = len(self.delta)
         if nd:
-            latent = self._delta_latent(var)
-            total = jnp.stack([d.predictive_variance(var[..., 1 + j])[..., 0]
-                               for j, d in enumerate(self.delta)], axis=-1)  # fmt: skip
-            out["discrepancy"], out["discrepancy_noise"] = padded(latent), padded(total - latent)
+            # each δ's own split (latent, ν²): the terms its predictive_variance sums
+            dp = [d.variance_parts(var[..., 1 + j]) for j, d in enumerate(self.delta)]
+            for key, name in (("latent", "discrepancy"), ("noise", "discrepancy_noise")):
+                out[name] = padded(jnp.stack([p[key][..., 0] for p in dp], axis=-1))
         if self.explicit is not None:
             out["basis"] = padded(jnp.maximum(var[..., 1 + nd : 1 + nd + N_LOADS], 0.0))
         return out
