@@ -987,12 +987,16 @@ def correct(
         seed: the subsets' seed.
         calibrate: with ``basis="physical"`` and labels of two flights or more, scale each
             component's discrepancy and coefficient variance by the ``c`` under which every
-            flight, held out and predicted from the others, is covered as the band says (the
-            mean of ``e² / (c v + n)`` is 1 over their labels, ``v`` the latent variance and
-            ``n`` the labels' noise; only widened, never narrowed): a band honest for a
-            flight in conditions the others did not have, not only within them. False: the
-            discrepancies' own band (``basis_prior`` chooses as with True: its candidates
-            are scored under the held-out factor either way).
+            flight, held out and predicted from the others, is covered as the band the model
+            predicts says: the mean of ``e² / (c v + p + n)`` is 1 over their labels in the
+            prior's domain (``v`` the latent variance, ``p`` the prior's share ``ρ²
+            var_prior``, which ``c`` does not scale, ``n`` the labels' noise; only widened,
+            never narrowed): a band honest for a flight in conditions the others did not
+            have, not only within them. Outside the prior's domain ``p`` is its kernel's
+            whole variance, which says nothing of the discrepancy's width; with no held-out
+            label inside it, every label counts. False: the discrepancies' own band
+            (``basis_prior`` chooses as with True: its candidates are scored under the
+            discrepancy's own held-out factor either way).
         basis_prior: with ``basis="physical"``, the prior of the physical terms'
             coefficients: a factor on :data:`~gpg.flight.basis.PRIORS`'s standard deviations;
             ``"auto"``: ``"held_out"`` where the prior's physics is taken as it is
@@ -1000,11 +1004,12 @@ def correct(
             physics past the flights, and holding them near zero measured worse); or
             ``"held_out"``: per load output, the factor of :data:`BASIS_PRIOR_GRID` under
             which the flight predicted worst when each is held out and predicted from the
-            others is predicted best (its mean log predictive density, with ``calibrate``'s
-            factor); with labels of one flight, 1. A term that fits the flights' conditions
-            but predicts a held-out one badly (a quadratic in the airspeed fitted on three
-            winds) is held near zero, and the prior's physics carries the model past the
-            flights.
+            others is predicted best (its mean log predictive density under the
+            discrepancy's and the coefficients' band alone, widened by the factor that makes
+            that band cover the held-out flights); with labels of one flight, 1. A term that
+            fits the flights' conditions but predicts a held-out one badly (a quadratic in the
+            airspeed fitted on three winds) is held near zero, and the prior's physics carries
+            the model past the flights.
         hyperparameters: ``"subset"``: each discrepancy's on ``subset_size`` labels drawn at
             random; ``"all"``: that fit refined on every label by the collapsed bound
             (:func:`gpg.gp.inducing.fit_collapsed`) through ``inducing`` k-means inputs
@@ -1060,9 +1065,13 @@ def correct(
         choice = None
     else:
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
+        band = None  # the prior's share of the held-out band, and its domain, where read
+        if use_prior and np.unique(groups).size >= 2:
+            band = _prior_band(prior, parts, max_labels, X[cal], cal)
         rho6, kappa, deltas, explicit, choice = _fit_explicit(
             X, Y, V, mu, m, _physics(prior), fixed_rho, *fit,
             groups=groups, Z=Z, cal=cal, Zh=Zh, basis_prior=basis_prior, calibrate=calibrate,
+            prior_band=band,
         )  # fmt: skip
     rho[:N_LOADS] = rho6
     model = Corrected(
@@ -1096,6 +1105,22 @@ def correct(
     )
 
 
+def _prior_band(prior: Surrogate, parts: list[Labels], max_labels, Xc, cal):
+    """At the calibration rows ``Xc`` (rows ``cal`` of :func:`_label_rows`'s), the prior's
+    latent variance times its output scale per load output (normalised units: its share of
+    the corrected band for ``ρ = 1``), and whether each row's state is in the prior's domain
+    (``in_domain`` of its prediction)."""
+    lab = Labels.concatenate(parts)
+    inside = np.asarray(prior.predict_batch(lab.rpm, lab.euler, lab.v_air, mean_only=True)
+                        .in_domain)  # fmt: skip
+    if max_labels is not None:
+        inside = inside[_thin(inside.size, int(max_labels))]
+    _, var = prior.model.predict(jnp.asarray(Xc))
+    share = np.maximum(np.asarray(var, float), 0.0)[:, None] * np.asarray(
+        prior.model.output_scale, float)[:N_LOADS]  # fmt: skip
+    return share, inside[cal]
+
+
 def _physics(prior: Surrogate) -> PhysicalBasis:
     """The physical columns in the prior's frame and units; without ``M`` the rotors' hubs are
     not known, and the rotor terms' torque columns are zero."""
@@ -1104,45 +1129,63 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
 
 
 def _held_out_scale(
-    X, H, y, noise, hyper: Hyper, b, sd, groups, widen: bool = True
+    X, H, y, noise, hyper: Hyper, b, sd, groups, widen: bool = True, prior=None
 ) -> tuple[float, float, list[float]]:
     """The factor ``c`` on the latent variance that makes each flight, predicted from the
-    others (:func:`_held_out`), covered as the band says: the mean of ``e² / (c v + n)`` over
-    the held-out labels is 1 (``e`` the error, ``v`` the latent variance, ``n`` the label's
-    noise), at least 1; under ``c``, the largest over the flights of a held-out flight's
-    mean negative log predictive density (nats per label: what the basis's prior is chosen
-    by); and each held-out flight's share of labels inside the band of ``Z95²(c v + n)``
-    (``widen`` False: of ``Z95²(v + n)``, the band without ``c``; one pooled ``c`` can cover
-    one flight loosely and another tightly: the spread says how far the band's width carries
-    from one condition to the next). ``c`` scales ``v`` only, so it is solved for with ``n``
-    beside it: the mean of ``e² / (v + n)`` taken as ``c`` leaves a band too narrow by about
-    ``n / v`` where the labels' noise outweighs the latent variance."""
-    from scipy.optimize import brentq
+    others (:func:`_held_out`), covered as the band the model predicts says; the largest
+    over the flights of a held-out flight's mean negative log predictive density (nats per
+    label: what the basis's prior is chosen by); and each held-out flight's share of labels
+    inside the predicted band ``Z95²(c v + p + n)`` (``widen`` False: without ``c``; one
+    pooled ``c`` can cover one flight loosely and another tightly: the spread says how far
+    the band's width carries from one condition to the next).
 
+    ``prior``: ``(p, inside)``, the prior's share of the band at each label (``ρ²
+    var_prior``, which ``c`` does not scale: the prior is not refitted without a flight) and
+    whether the label is in the prior's domain; None: no prior's share. ``c`` is the root of
+    mean ``e² / (c v + p + n)`` = 1 over the held-out labels in the domain (``e`` the error,
+    ``v`` the latent variance, ``n`` the label's noise), at least 1: solved with ``p + n``
+    beside ``c v``, since the mean of ``e² / (v + n)`` taken as ``c`` leaves a band too
+    narrow by about ``n / v`` where the labels' noise outweighs the latent variance, and a
+    ``c`` solved without ``p`` widens the discrepancy for errors the prior's variance
+    already covers. The score is the band of the discrepancy and the coefficients alone,
+    under their own such factor (``p`` = 0): it judges the basis's mean beyond the flights,
+    which ``p``, the same for every candidate, would only dilute."""
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
     if not parts:
         return 1.0, 0.0, []
+    p, inside = (np.zeros(len(y)), np.ones(len(y), bool)) if prior is None else prior
+    te_all = np.concatenate([np.nonzero(te)[0] for te, *_ in parts])
     e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, *_ in parts])
     v = np.concatenate([var for _, _, var, *_ in parts])
-    n = np.concatenate([noise[te] for te, *_ in parts])
-
-    def excess(c: float) -> float:
-        return float(np.mean(e2 / (c * v + n))) - 1.0
-
-    c = 1.0
-    if excess(1.0) > 0.0:
-        # v >= ν > 0: at c = mean(e²) / min(v) every term is at most e² / mean(e²), so the
-        # root is bracketed, and excess falls monotonically in c.
-        c = float(brentq(excess, 1.0, float(np.mean(e2) / np.min(v)), rtol=1e-12))
+    n = noise[te_all]
+    k = inside[te_all] if inside[te_all].any() else np.ones(te_all.size, bool)
+    c = _factor(e2[k], v[k], n[k] + p[te_all][k])
+    own = c if prior is None else _factor(e2, v, n)
     # The worst-predicted flight's score: a prior that predicts the flights within the others'
     # conditions well and the one beyond them badly is the one not to extrapolate with.
     worst, coverage = -np.inf, []
     for te, mean, var, *_ in parts:
-        s2 = c * var + noise[te]
+        s2 = own * var + noise[te]
         e2g = (y[te] - mean) ** 2
         worst = max(worst, float(np.mean(0.5 * np.log(2.0 * np.pi * s2) + 0.5 * e2g / s2)))
-        coverage.append(float(np.mean(e2g <= Z95**2 * (s2 if widen else var + noise[te]))))
+        band = (c if widen else 1.0) * var + noise[te] + p[te]
+        coverage.append(float(np.mean(e2g <= Z95**2 * band)))
     return c, worst, coverage
+
+
+def _factor(e2: np.ndarray, v: np.ndarray, n: np.ndarray) -> float:
+    """The ``c >= 1`` at which the mean of ``e² / (c v + n)`` is 1 (1 where it is under 1 at
+    ``c = 1``)."""
+    from scipy.optimize import brentq
+
+    def excess(c: float) -> float:
+        return float(np.mean(e2 / (c * v + n))) - 1.0
+
+    if excess(1.0) <= 0.0:
+        return 1.0
+    # v >= ν > 0: at c = mean(e²) / min(v) every term is at most e² / mean(e²), so the root
+    # is bracketed, and excess falls monotonically in c.
+    return float(brentq(excess, 1.0, float(np.mean(e2) / np.min(v)), rtol=1e-12))
 
 
 def _prior_grid(basis_prior, held: bool) -> tuple[float, ...]:
@@ -1241,7 +1284,7 @@ def _cases(d: ExactGP | InducingGP) -> int:
 # the prior, the calibration and the assembly of the result.
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
                   seed, *, groups=None, Z=None, cal=None, Zh=None,
-                  basis_prior="held_out", calibrate=True):  # fmt: skip
+                  basis_prior="held_out", calibrate=True, prior_band=None):  # fmt: skip
     """The physical basis with integrated coefficients (:mod:`gpg.flight.basis`), per load
     output: ``β`` first by weighted least squares under its prior with the labels' noise, the
     discrepancy's hyperparameters on what is left, then ``β``'s posterior given that GP and
@@ -1251,8 +1294,9 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     ``cal``; ``Zh``: the hyperparameters refined on every row through it. With ``groups``
     (two or more), the physical terms' prior is the one of ``basis_prior``'s candidates
     under which the worst-predicted group held out is predicted best, and (``calibrate``)
-    the band widened by the held-out factor; returned last: the candidates, the factor
-    chosen per output and the candidates' held-out scores."""
+    the band widened by the held-out factor, solved with the prior's share of the band
+    (``prior_band``: :func:`_prior_band` at the rows ``cal``) beside it; returned last: the
+    candidates, the factor chosen per output and the candidates' held-out scores."""
     phys = _host.each_row(physics, X)  # (N, 6, T)
     n_out = N_LOADS
     rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
@@ -1279,8 +1323,12 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
             hyper = _delta_hyper(X, y - H @ beta0, V[:, j], subset_size, max_steps, seed + j, Zh)
             c, nlpd, cover = (1.0, 0.0, [])
             if held:
+                share = None  # ρ² var_prior, ρ as first estimated, and the prior's domain
+                if prior_band is not None:
+                    r2 = (beta0[0] if fixed_rho is None else float(fixed_rho)) ** 2
+                    share = (r2 * prior_band[0][:, j], prior_band[1])
                 c, nlpd, cover = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b, sd,
-                                                 groups[kc], calibrate)  # fmt: skip
+                                                 groups[kc], calibrate, share)  # fmt: skip
             scores[j, i] = nlpd
             if best is None or nlpd < best[0]:
                 best = (nlpd, f, sd, hyper, c, cover)

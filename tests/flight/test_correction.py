@@ -805,25 +805,48 @@ def test_correct_refuses_an_unknown_basis(synthetic_surrogate, flights):
         fc.correct(synthetic_surrogate, flights, basis="linear")
 
 
+# the second flight's push (N, world), and the fixture prior's band made this much narrower
+# (its output scale: a prior of more data), so that the held-out factor has something to
+# widen with the prior's band beside it
+PUSH = np.array([1.2, -0.9, 0.6])
+CONFIDENT = 0.005
+OUT = 6  # labels of the first flight taken out of the prior's domain
+
+
+def _pushed_flights(synthetic_surrogate, flights):
+    """The fixture's prior made confident (``CONFIDENT``), and its flight cut in two: ``a``,
+    whose first ``OUT`` labels are flown three times faster than the prior's data went (out
+    of its domain, where its band is its kernel's whole variance), and ``b``, pushed by
+    ``PUSH``."""
+    prior = synthetic_surrogate
+    prior = eqx.tree_at(lambda s: s.model.output_scale, prior, prior.model.output_scale * CONFIDENT)
+    half = len(flights) // 2
+    a = dataclasses.replace(flights.take(slice(0, half)), name="a")
+    fast = np.where(np.arange(half)[:, None] < OUT, 3.0, 1.0)
+    a = dataclasses.replace(a, v_air=a.v_air * fast)
+    b_ = flights.take(slice(half, None))
+    b_ = dataclasses.replace(b_, name="b", force=b_.force + PUSH)
+    return prior, a, b_
+
+
 def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monkeypatch):
     """Labels of two flights, the second pushed by a steady force the first did not have:
     each component's discrepancy and coefficient variance scaled by the ``c`` (at least 1)
     under which each flight, predicted from the other, has a mean squared standardised error
-    of 1, the labels' noise unscaled beside ``c`` times the latent variance; the physical
-    terms' prior the candidate under which the worse-predicted held-out flight is predicted
-    best. Both
-    written out here in NumPy for the most widened component; calibrate=False keeps 1 and
-    chooses the terms' prior as before."""
+    of 1 over its labels in the prior's domain, under the band the model predicts: the
+    labels' noise and the prior's share ``ρ² var_prior`` unscaled beside ``c`` times the
+    latent variance; the physical terms' prior the candidate under which the worse-predicted
+    held-out flight is predicted best by the discrepancy's own band (the factor solved
+    without the prior's share). Both written out here in NumPy for the most widened
+    component; calibrate=False keeps 1 and chooses the terms' prior as before."""
     from gpg.flight.basis import PRIORS, TERMS
 
     # two candidates keep the test's fits few; the rule is the same for any grid
     monkeypatch.setattr(fc, "BASIS_PRIOR_GRID", (0.01, 1.0))
-    half = len(flights) // 2
-    a = dataclasses.replace(flights.take(slice(0, half)), name="a")
-    b_ = flights.take(slice(half, None))
-    b_ = dataclasses.replace(b_, name="b", force=b_.force + np.array([0.4, -0.3, 0.2]))
+    prior, a, b_ = _pushed_flights(synthetic_surrogate, flights)
+    half = len(a)
     # ρ = 1 (the identified physics taken as it is): "auto" chooses the terms' prior
-    cal = fc.correct(synthetic_surrogate, [a, b_], basis="physical", scale=False, **FIT)
+    cal = fc.correct(prior, [a, b_], basis="physical", scale=False, **FIT)
     choice = cal.config["flight_correction"]["basis_prior"]
     scores = np.asarray(choice["held_out_nlpd"])
     assert choice["grid"] == [0.01, 1.0] and scores.shape == (6, 2)
@@ -831,7 +854,7 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     m = cal.model
     j = int(np.argmax([float(d.output_scale[0]) for d in m.delta]))
     f = choice["factors"][j]
-    raw = fc.correct(synthetic_surrogate, [a, b_], basis="physical", scale=False,
+    raw = fc.correct(prior, [a, b_], basis="physical", scale=False,
                      calibrate=False, basis_prior=f, **FIT)  # fmt: skip
     assert raw.config["flight_correction"]["basis_prior"]["factors"] == [f] * 6
     X, Y, V = fc.training_rows(cal, Labels.concatenate([a, b_]))
@@ -861,22 +884,36 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
         var += np.einsum("qp,pr,qr->q", R, np.linalg.inv(A), R)
         e2v.append(np.column_stack([(Y[te] - mean) ** 2, var, V[te]]))
     e2, v, n = np.concatenate(e2v).T
-    # c on the latent variance alone: mean(e² / (c v + n)) = 1, by bisection on log c
-    lo, hi = 0.0, 40.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if np.mean(e2 / (np.exp(mid) * v + n)) > 1 else (lo, mid)
-    c = max(1.0, float(np.exp(lo)))
-    assert c > 1.0  # each flight misses the other's push
+    # the prior's share of the band (ρ = 1) and its domain, at the labels (in the rows' order)
+    lab = Labels.concatenate([a, b_])
+    dom = np.asarray(prior.predict_batch(lab.rpm, lab.euler, lab.v_air).in_domain)
+    p = np.asarray(m.prior.predict(Xj)[1]) * float(m.prior.output_scale[j])
+    assert 0 < dom.sum() < dom.size  # both kinds of label, so that the domain is read
+    assert np.median(p / v) > 0.1  # a share the solve must not ignore
+
+    def factor(e2, v, n):  # mean(e² / (c v + n)) = 1, c >= 1, by bisection on log c
+        lo, hi = 0.0, 40.0
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if np.mean(e2 / (np.exp(mid) * v + n)) > 1 else (lo, mid)
+        return max(1.0, float(np.exp(lo)))
+
+    c = factor(e2[dom], v[dom], n[dom] + p[dom])
+    own = factor(e2, v, n)  # without the prior's share: what the candidates are scored under
+    assert 1.0 < c < own  # each flight misses the other's push; the prior's share covers some
+    # the labels out of the domain left out of the solve: with them, another factor
+    assert abs(factor(e2, v, n + p) - c) > 0.02 * c
     np.testing.assert_allclose(float(d.output_scale[0]), c, rtol=1e-6)
     # the chosen candidate's score: the worse of the two held-out flights' mean negative log
-    # Gaussian density under c
-    s2c = c * v + n
-    nlpd = 0.5 * np.log(2 * np.pi * s2c) + 0.5 * e2 / s2c
+    # Gaussian density under the discrepancy's own band
+    s2o = own * v + n
+    nlpd = 0.5 * np.log(2 * np.pi * s2o) + 0.5 * e2 / s2o
     worst = max(nlpd[:half].mean(), nlpd[half:].mean())
     np.testing.assert_allclose(scores[j].min(), worst, rtol=1e-6)
-    # each flight's share inside the 95 % band held out (e² ≤ 1.96² (c v + n)): recorded per
-    # output, compared away from the edge (a label within 1e-6 of it could fall either way)
+    # each flight's share inside the 95 % band held out as predicted (e² ≤ 1.96² (c v + p +
+    # n)): recorded per output, compared away from the edge (a label within 1e-6 of it could
+    # fall either way)
+    s2c = c * v + n + p
     inside = e2 <= 1.959964**2 * s2c
     assert not np.any(np.abs(e2 / (1.959964**2 * s2c) - 1) < 1e-6)
     np.testing.assert_allclose(
@@ -892,8 +929,9 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
         rtol=1e-6, atol=1e-12)  # fmt: skip
     np.testing.assert_allclose(choice["held_out_factor"][j], c, rtol=1e-6)
     # calibrate=False leaves the band as the discrepancies give it; the terms' prior is chosen
-    # as before (the candidates scored under c), and the held-out shares are of that band
-    own = fc.correct(synthetic_surrogate, [a, b_], basis="physical", scale=False,
+    # as before (the candidates scored under their own factor), and the held-out shares are of
+    # that band
+    own = fc.correct(prior, [a, b_], basis="physical", scale=False,
                      calibrate=False, **FIT)  # fmt: skip
     mine = own.config["flight_correction"]["basis_prior"]
     # the same fits run again: equal to the rounding of a refit, not bit for bit
@@ -904,10 +942,35 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     np.testing.assert_allclose(
         np.asarray(m.explicit.cov_chol[j]), np.asarray(own.model.explicit.cov_chol[j]) * np.sqrt(c),
         rtol=1e-6, atol=1e-12)  # fmt: skip
-    inside1 = e2 <= 1.959964**2 * (v + n)
-    assert not np.any(np.abs(e2 / (1.959964**2 * (v + n)) - 1) < 1e-6)
+    inside1 = e2 <= 1.959964**2 * (v + n + p)
+    assert not np.any(np.abs(e2 / (1.959964**2 * (v + n + p)) - 1) < 1e-6)
     want = [inside1[:half].mean(), inside1[half:].mean()]
     np.testing.assert_allclose(mine["held_out_coverage95"][j], want, rtol=0, atol=1e-12)
+
+
+def test_thinned_labels_calibrated_as_the_labels_kept(synthetic_surrogate, flights, monkeypatch):
+    """``max_labels`` thins the labels before the held-out calibration reads them: each
+    kept row's prior domain and band are its own label's, so the model is the one corrected
+    on the kept labels themselves (the same rows, subsets and solves)."""
+    monkeypatch.setattr(fc, "BASIS_PRIOR_GRID", (1.0,))
+    prior, a, b_ = _pushed_flights(synthetic_surrogate, flights)
+    n = len(a) + len(b_)
+    keep = fc._thin(n, n - 9)
+    kept = [a.take(keep[keep < len(a)]), b_.take(keep[keep >= len(a)] - len(a))]
+    assert len(kept[0]) < len(a) and OUT - 1 in keep  # thinned, out-of-domain labels kept
+    fit = {"basis": "physical", "scale": False, **FIT, "max_steps": 5}  # an equivalence: few steps
+    thinned = fc.correct(prior, [a, b_], max_labels=len(keep), **fit)
+    own = fc.correct(prior, kept, **fit)
+    got, want = ([float(d.output_scale[0]) for d in m.model.delta] for m in (thinned, own))
+    got, want = np.array(got), np.array(want)
+    assert got.max() > 1.0  # a factor that the domain and the band move
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    np.testing.assert_allclose(
+        thinned.config["flight_correction"]["basis_prior"]["held_out_coverage95"],
+        own.config["flight_correction"]["basis_prior"]["held_out_coverage95"],
+        rtol=0,
+        atol=0,
+    )
 
 
 def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, flights, tmp_path):
