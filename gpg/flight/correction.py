@@ -1066,7 +1066,7 @@ def correct(
     else:
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
         band = None  # the prior's share of the held-out band, and its domain, where read
-        if use_prior and np.unique(groups).size >= 2:
+        if use_prior and np.unique(groups).size >= 2 and (calibrate or basis_prior == "held_out"):
             band = _prior_band(prior, parts, max_labels, X[cal], cal)
         rho6, kappa, deltas, explicit, choice = _fit_explicit(
             X, Y, V, mu, m, _physics(prior), fixed_rho, *fit,
