@@ -1067,7 +1067,7 @@ def correct(
         fixed_rho = None if (use_prior and scale) else (1.0 if use_prior else 0.0)
         band = None  # the prior's share of the held-out band, and its domain, where read
         if use_prior and np.unique(groups).size >= 2 and (calibrate or basis_prior == "held_out"):
-            band = _prior_band(prior, parts, max_labels, X[cal], cal)
+            band = _prior_band(prior, parts, max_labels, X, cal)
         rho6, kappa, deltas, explicit, choice = _fit_explicit(
             X, Y, V, mu, m, _physics(prior), fixed_rho, *fit,
             groups=groups, Z=Z, cal=cal, Zh=Zh, basis_prior=basis_prior, calibrate=calibrate,
@@ -1105,8 +1105,8 @@ def correct(
     )
 
 
-def _prior_band(prior: Surrogate, parts: list[Labels], max_labels, Xc, cal):
-    """At the calibration rows ``Xc`` (rows ``cal`` of :func:`_label_rows`'s), the prior's
+def _prior_band(prior: Surrogate, parts: list[Labels], max_labels, X, cal):
+    """At the calibration rows ``X[cal]`` (``X`` :func:`_label_rows`'s), the prior's
     latent variance times its output scale per load output (normalised units: its share of
     the corrected band for ``ρ = 1``), and whether each row's state is in the prior's domain
     (``in_domain`` of its prediction)."""
@@ -1115,7 +1115,7 @@ def _prior_band(prior: Surrogate, parts: list[Labels], max_labels, Xc, cal):
                         .in_domain)  # fmt: skip
     if max_labels is not None:
         inside = inside[_thin(inside.size, int(max_labels))]
-    _, var = prior.model.predict(jnp.asarray(Xc))
+    _, var = prior.model.predict(jnp.asarray(X[cal]))
     share = np.maximum(np.asarray(var, float), 0.0)[:, None] * np.asarray(
         prior.model.output_scale, float)[:N_LOADS]  # fmt: skip
     return share, inside[cal]

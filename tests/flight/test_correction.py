@@ -965,11 +965,12 @@ def test_thinned_labels_calibrated_as_the_labels_kept(synthetic_surrogate, fligh
     got, want = np.array(got), np.array(want)
     assert got.max() > 1.0  # a factor that the domain and the band move
     np.testing.assert_allclose(got, want, rtol=1e-9)
+    # shares of labels: a refit's rounding may move one label across its band's edge
     np.testing.assert_allclose(
         thinned.config["flight_correction"]["basis_prior"]["held_out_coverage95"],
         own.config["flight_correction"]["basis_prior"]["held_out_coverage95"],
         rtol=0,
-        atol=0,
+        atol=1.0 / min(len(k) for k in kept) + 1e-12,
     )
 
 
