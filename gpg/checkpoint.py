@@ -65,7 +65,7 @@ if TYPE_CHECKING:
 __all__ = ["FORMAT_VERSION", "CheckpointError", "load", "read_metadata", "save", "version_dir"]
 
 FORMAT = "gpg-surrogate"
-FORMAT_VERSION = 11  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
+FORMAT_VERSION = 12  # 2: noise, output scales, hybrid and PIC models; 3: M_noise;
 # 4: M_noise with unsteady loading (a version-3 M_noise would now predict other levels);
 # 5: versions under CURRENT (atomic overwrite); version 4's flat layout still loads;
 # 6: fields renamed (ν² is ``noise``, M_noise ``noise_model``); 4 and 5 load through RENAMED;
@@ -76,7 +76,9 @@ FORMAT_VERSION = 11  # 2: noise, output scales, hybrid and PIC models; 3: M_nois
 # 10: Surrogate.frame (the body-frame formulation); older files load as the airflow frame
 # 11: ``bases`` of ExactGP, BinnedGP and the hybrid's Record (directional gradient rows of
 #     converted data); older files load them as None
-READABLE_VERSIONS = (4, 5, 6, 7, 8, 9, 10, 11)
+# 12: Surrogate.half_turn (airflow from behind read at the half-turn image); older files load
+#     it as False, and an older gpg refuses a file that has it rather than drop it
+READABLE_VERSIONS = (4, 5, 6, 7, 8, 9, 10, 11, 12)
 # Fields renamed since an older format: (module, class) -> {old field: new field}. Reading one
 # warns (DeprecationWarning): save the surrogate again to write the current format.
 RENAMED = {
@@ -155,7 +157,8 @@ def _rebuild(desc: Any, arrays: dict[str, np.ndarray]) -> Any:
         known = {f.name: f for f in dataclasses.fields(cls)}
         # A field added since the file was written takes its default (format 7 added the
         # exact model's row order and the hybrid's training record, both None before; format
-        # 10 the surrogate's frame, "airflow" before; format 11 the models' bases, None).
+        # 10 the surrogate's frame, "airflow" before; format 11 the models' bases, None;
+        # format 12 the surrogate's half turn, False).
         added = {
             n for n, f in known.items() if n not in fields and f.default is not dataclasses.MISSING
         }

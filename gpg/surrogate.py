@@ -22,6 +22,12 @@ sideways or backwards puts ``ψ_H`` beyond ±90°), or where the airflow frame t
 would move the prediction by a finite step): the prediction is still returned, but it is an
 extrapolation and says so.
 
+``half_turn`` (``fit(half_turn=True)``, for a vehicle that is its own image under a half turn
+about its z axis with r1 ↔ r3 and r2 ↔ r4): a state whose airflow comes from behind
+(``cos ψ_H < 0``) is read at its image (:func:`gpg.quadrotor.frames.half_turn`), the same
+physical state seen with the body frame turned, whose airflow comes from the front where the
+data are. ``M`` stays at the state as given; the world-frame loads are the image's.
+
 NaN and inf: a call from Python (``predict``, ``predict_mean``, the ``realtime`` closures,
 ``predict_batch``) with a non-finite input raises ``ValueError`` naming it. Under the caller's
 own ``jit``/``vmap``/``scan`` nothing can be raised: the outputs are then non-finite and
@@ -61,6 +67,7 @@ from gpg.quadrotor.frames import (
     R_WB,
     airflow_frame_rate,
     euler_from_R,
+    half_turn,
     matmul,
     matvec,
     to_airflow_frame,
@@ -80,6 +87,7 @@ __all__ = [
     "dataset_vehicle",
     "default_chunk",
     "domain_box",
+    "gp_inputs",
     "predict_state",
 ]
 
@@ -136,6 +144,9 @@ class Surrogate(eqx.Module):
     noise_model: SimpleNoise | None = None  # M_noise, added back to the levels (None: not used)
     # "airflow": the paper's inputs x_H; "body": x_B = (rpm, R_WBᵀ v_air) (gpg.names.FRAMES)
     frame: str = eqx.field(static=True, default="airflow")
+    # Airflow from behind read at the state's image under the half turn (frames.half_turn):
+    # set by ``fit(half_turn=True)`` after the vehicle's symmetry is checked.
+    half_turn: bool = eqx.field(static=True, default=False)
 
     @classmethod
     @float64
@@ -150,6 +161,7 @@ class Surrogate(eqx.Module):
         residual: bool = True,
         noise_model: bool = False,
         hover_speed: float = HOVER_SPEED,
+        half_turn: bool = False,
         devices: parallel.Devices = None,
     ) -> Surrogate:
         """Preprocess ``dataset`` and build ``model`` around it: data to a world-frame surrogate.
@@ -177,6 +189,12 @@ class Surrogate(eqx.Module):
                 levels and add it back at prediction; needs ``residual``.
             hover_speed: the airspeed in m/s below which the airflow frame turns toward the
                 body heading (0: pure wind axes).
+            half_turn: read a state whose airflow comes from behind (``cos ψ_H < 0``) at its
+                image under a half turn about the body z axis with the rotors relabelled
+                (:func:`gpg.quadrotor.frames.half_turn`): the same physical state, whose
+                airflow comes from the front, where the data are. The vehicle must be its own
+                image (:meth:`Vehicle.half_turn_asymmetries`, microphones included where the
+                data have levels); airflow frame only.
             devices: a count or a list of JAX devices over which the per-bin precompute of
                 the local models is spread (:mod:`gpg.parallel`); None for one process.
 
@@ -184,7 +202,9 @@ class Surrogate(eqx.Module):
             The fitted surrogate, in float64.
 
         Raises:
-            ValueError: if ``noise_model`` is set without ``residual``; and as
+            ValueError: if ``noise_model`` is set without ``residual``; if ``half_turn`` is set
+                for body-frame data or a vehicle that is not its own image, naming what
+                differs; and as
                 :func:`gpg.models.resolve_config`, :func:`dataset_vehicle` and
                 :func:`gpg.models.build` raise it (bad options, no vehicle, data the model
                 cannot train on).
@@ -194,6 +214,8 @@ class Surrogate(eqx.Module):
         if noise_model and not residual:
             raise ValueError("noise_model=True needs residual=True (M_noise uses M's loads)")
         simple = noise = None  # M and M_noise
+        if half_turn:
+            _check_half_turn(dataset, dataset_vehicle(dataset, vehicle))
         if residual:
             veh = dataset_vehicle(dataset, vehicle)
             simple = simple_model_for(dataset, veh)
@@ -202,9 +224,8 @@ class Surrogate(eqx.Module):
         training, built = models.train(
             model, dataset, simple, cfg, noise_model=noise, devices=devices
         )
-        return cls.assemble(
-            built.model, training, dataset, model, cfg, hover_speed=hover_speed, box=box
-        )
+        return cls.assemble(built.model, training, dataset, model, cfg, hover_speed=hover_speed,
+                            box=box, half_turn=half_turn)  # fmt: skip
 
     @classmethod
     def assemble(
@@ -217,6 +238,7 @@ class Surrogate(eqx.Module):
         *,
         hover_speed: float = HOVER_SPEED,
         box: tuple[np.ndarray, np.ndarray] | None = None,
+        half_turn: bool = False,
     ) -> Surrogate:
         """A surrogate around an already built ``model``.
 
@@ -230,13 +252,21 @@ class Surrogate(eqx.Module):
             hover_speed: the airspeed in m/s below which the airflow frame turns toward the
                 body heading.
             box: (lo, hi) input bounds of ``in_domain``; None takes :func:`domain_box`.
+            half_turn: airflow from behind read at the state's half-turn image (:meth:`fit`,
+                which checks the vehicle; here the caller vouches for it).
 
         Returns:
             The surrogate.
 
         Raises:
-            ValueError: if ``hover_speed`` is negative or not finite.
+            ValueError: if ``hover_speed`` is negative or not finite, or ``half_turn`` is set
+                for body-frame data.
         """
+        if half_turn and dataset.frame != "airflow":
+            raise ValueError(
+                f"half_turn needs airflow-frame data, got frame {dataset.frame!r} (the body "
+                "frame's ball of air velocities is its own image)"
+            )
         hover_speed = float(hover_speed)
         if not np.isfinite(hover_speed) or hover_speed < 0.0:
             raise ValueError(f"hover_speed must be a finite speed >= 0 m/s, got {hover_speed}")
@@ -255,6 +285,7 @@ class Surrogate(eqx.Module):
             ),
             hover_speed=hover_speed,
             frame=dataset.frame,
+            half_turn=bool(half_turn),
         )
 
     def condition(self, dataset: Dataset) -> Surrogate:
@@ -851,6 +882,26 @@ def _in_own_dtype(sur: Surrogate, *arrays):
     return (sur, *(jnp.asarray(a).astype(dt) for a in arrays))
 
 
+def gp_inputs(
+    sur: Surrogate, rpm: Float[Array, "4"], euler: Float[Array, "3"], v_air: Float[Array, "3"]
+) -> tuple[Float[Array, " D"], Float[Array, "3 3"], Bool[Array, ""]]:
+    """The GP's input at a world-frame state, as :func:`predict_state` reads it: the paper's
+    ``x_H = (r1..r4, ψ_H, θ_H, φ_H, ‖v_air‖)`` (the half-turn image's where the surrogate
+    reads airflow from behind there), or ``x_B``; un-jitted, to vmap or jit.
+
+    Args:
+        sur: the surrogate.
+        rpm: (4,) rotor speeds.
+        euler: (3,) world-frame attitude (yaw, pitch, roll), rad.
+        v_air: (3,) world-frame air velocity, m/s.
+
+    Returns:
+        ``x`` in physical units (before the normaliser), ``R_WH`` (world from the frame the
+        GP's loads live in) and whether the inputs are in the data's domain.
+    """
+    return _inputs(sur, rpm, euler, v_air)
+
+
 def _inputs(sur: Surrogate, rpm, euler, v_air):
     """The GP's input ``x_h`` at a state, ``R_WH`` (world from the GP's frame) and whether
     the state is in the data's domain, as far as the inputs tell."""
@@ -869,12 +920,31 @@ def _inputs(sur: Surrogate, rpm, euler, v_air):
         steady = jnp.asarray(True)  # no coordinate singularity to stay away from
     else:
         euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
+        if sur.half_turn:  # from behind: the same state, its body frame turned (fit's doc)
+            rpm_t, euler_t = half_turn(rpm, euler)
+            euler_ht, _, R_WHt = to_airflow_frame(euler_t, v_air, sur.hover_speed)
+            back = jnp.cos(euler_h[0]) < 0.0
+            rpm, euler = jnp.where(back, rpm_t, rpm), jnp.where(back, euler_t, euler)
+            euler_h, R_WH = jnp.where(back, euler_ht, euler_h), jnp.where(back, R_WHt, R_WH)
         x_h = jnp.concatenate([rpm, euler_h, speed[None]])
         inside = jnp.all((x_h >= sur.box_lo - tol) & (x_h <= sur.box_hi + tol))
         # Near the airflow frame's singular sets the data's coordinates of the query swing
         # with millimetres per second of air, and a prediction with them: not in domain there.
         steady = airflow_frame_rate(euler, v_air, sur.hover_speed) <= MAX_FRAME_RATE
     return x_h, R_WH, finite & jnp.all(rpm >= 0) & inside & steady
+
+
+def _check_half_turn(dataset: Dataset, vehicle: Vehicle) -> None:
+    """``fit(half_turn=True)``'s checks: airflow-frame data of a vehicle that is its own image."""
+    if dataset.frame != "airflow":
+        raise ValueError(f"half_turn needs airflow-frame data, got frame {dataset.frame!r}")
+    bad = vehicle.half_turn_asymmetries(levels=dataset.has_noise)
+    hint = " (data without levels need no microphones: generate them with noise: false)"
+    if bad:
+        raise ValueError(
+            f"half_turn: vehicle {vehicle.name!r} is not its own image under a half turn about "
+            f"its z axis: {'; '.join(bad)}" + (hint if any("microphone" in b for b in bad) else "")
+        )
 
 
 def _rotated_variance(R_out, v):

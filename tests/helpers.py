@@ -108,7 +108,7 @@ def variance_rtol(sur, rpm, euler, v_air, unit_roundoff: float | None = None) ->
     import jax
     import jax.numpy as jnp
 
-    from gpg.quadrotor.frames import R_WB, to_airflow_frame
+    from gpg.surrogate import gp_inputs
 
     model = getattr(sur.model, "local", sur.model)  # the hybrid's near-set part
     exact = hasattr(model, "chol_inv")  # exact GP-G: one factor of every observed row
@@ -116,11 +116,7 @@ def variance_rtol(sur, rpm, euler, v_air, unit_roundoff: float | None = None) ->
     @jax.jit
     @jax.vmap
     def rows(r, e, v):
-        if sur.frame == "body":
-            xn = sur.normalizer.x(jnp.concatenate([r, R_WB(e).T @ v]))
-        else:
-            eh, speed, _ = to_airflow_frame(e, v, sur.hover_speed)
-            xn = sur.normalizer.x(jnp.concatenate([r, eh, speed[None]]))
+        xn = sur.normalizer.x(gp_inputs(sur, r, e, v)[0])  # the half-turn image's, where read
         if exact:
             return _exact_row(model, xn), 0
         b = model.partition.lookup(xn)

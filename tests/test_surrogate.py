@@ -439,3 +439,60 @@ def test_jit_of_a_bound_predict_says_what_to_call(synthetic_surrogate):
     for got in (jax.jit(Surrogate.predict)(sur, *state), eqx.filter_jit(sur.predict)(*state)):
         np.testing.assert_allclose(got.force, want.force, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(got.variance, want.variance, rtol=1e-12, atol=1e-15)
+
+
+def test_half_turn_reads_airflow_from_behind_at_its_image(data, rng, tmp_path):
+    """``half_turn``: a state whose airflow comes from behind is predicted as the plain
+    surrogate predicts its image (rotors relabelled, body turned about z: the same physical
+    state), to the rounding of ``M`` at the two (1e-12 of each vector's scale); from the front
+    exactly as the plain one. Its derivatives are the image's through the chain rule
+    (``∂image/∂euler = diag(1, −1, −1)``); a checkpoint keeps the setting; ``fit`` refuses
+    data whose microphones are off the axis, the body frame and a vehicle that is not its
+    own image, naming why."""
+    from gpg import checkpoint
+    from gpg.quadrotor.frames import half_turn, to_airflow_frame
+    from gpg.quadrotor.vehicle import Vehicle, vehicle_config
+    from tests.helpers import synthetic_body_dataset
+
+    quiet = data.without("noise")
+    plain = Surrogate.fit(quiet, "gpgs_hybrid", BINNED)
+    sur = Surrogate.fit(quiet, "gpgs_hybrid", BINNED, half_turn=True)
+    assert sur.half_turn and not plain.half_turn
+    n = 40
+    rpm = rng.uniform(2500, 4500, (n, 4))
+    euler = rng.uniform([-np.pi, -0.4, -0.4], [np.pi, 0.4, 0.4], (n, 3))
+    v = np.column_stack([rng.uniform(-8, 8, (n, 2)), rng.uniform(-1, 1, n)])
+    v[:, 0] += 2.0 * np.sign(v[:, 0])  # above the hover blend
+    image = tuple(np.asarray(a) for a in jax.vmap(half_turn)(rpm, euler))
+    eh = np.asarray(jax.vmap(lambda e, w: to_airflow_frame(e, w, plain.hover_speed)[0])(euler, v))
+    back = np.cos(eh[:, 0]) < 0
+    assert 5 < back.sum() < n - 5
+    p, q = sur.predict_batch(rpm, euler, v), plain.predict_batch(rpm, euler, v)
+    r = plain.predict_batch(*image, v)
+    for key in ("force", "torque", "variance", "in_domain"):
+        got, front, img = (np.asarray(getattr(o, key)) for o in (p, q, r))
+        np.testing.assert_array_equal(got[~back], front[~back])
+        scale = np.maximum(np.abs(img[back]).max(axis=-1, keepdims=True), 1.0)
+        np.testing.assert_allclose(got[back], img[back], rtol=0, atol=1e-12 * scale.max())
+    inside = np.asarray(p.in_domain)
+    assert inside[back].sum() > np.asarray(q.in_domain)[back].sum()  # the plain one: outside
+    i = int(np.flatnonzero(back & inside)[0])
+
+    def force(s, r_, e, w):
+        return s.predict(r_, e, w).force
+
+    J = jax.jacrev(force, argnums=(2, 3))(sur, rpm[i], euler[i], v[i])
+    Ji = jax.jacrev(force, argnums=(2, 3))(plain, image[0][i], image[1][i], v[i])
+    np.testing.assert_allclose(J[1], Ji[1], rtol=1e-9, atol=1e-12 * np.abs(Ji[1]).max())
+    turn = np.diag([1.0, -1.0, -1.0])
+    np.testing.assert_allclose(J[0], Ji[0] @ turn, rtol=1e-9, atol=1e-12 * np.abs(Ji[0]).max())
+    checkpoint.save(tmp_path / "ht", sur)
+    assert checkpoint.load(tmp_path / "ht").half_turn
+    with pytest.raises(ValueError, match=r"microphone 0 .* noise: false"):
+        Surrogate.fit(data, "gpgs_hybrid", BINNED, half_turn=True)
+    with pytest.raises(ValueError, match="airflow-frame data"):
+        Surrogate.fit(synthetic_body_dataset(20, seed=1)[0], "gpg", EXACT, half_turn=True)
+    cfg = vehicle_config("sui_endurance")
+    cfg["layout"]["spin"] = [1, -1, -1, 1]
+    with pytest.raises(ValueError, match="r1 and r3 spin opposite ways"):
+        Surrogate.fit(quiet, "gpg", EXACT, vehicle=Vehicle.from_config(cfg), half_turn=True)

@@ -382,6 +382,7 @@ def _constants(name: str, dtype: str, s: Layout) -> list[str]:
         f"#define N_OUT {m}",
         f"#define D_IN {s.dim}",
         f"#define BODY_FRAME {int(s.frame == 'body')}",
+        f"#define HALF_TURN {int(s.half_turn)}",
         # the inputs held to the box: the rotor speeds alone in the body frame (the ball
         # inside the box of u, v, w is in_domain's test there)
         f"#define N_BOX {4 if s.frame == 'body' else s.dim}",
@@ -614,9 +615,9 @@ static void label_rows(const double rpm[4], const double euler[3], const double 
                        const double force[3], const double torque[3], const double force_var[3],
                        const double torque_var[3], double x[D_IN], double xn[D_IN],
                        double prior[N_OUT], double y[6], double r[6], double *dl, double *band) {{
-  double rwh[3][3], yn[N_OUT], f[3], tq[3], latent = 0.0;
+  double rwh[3][3], yn[N_OUT], f[3], tq[3], eg[3], latent = 0.0;
   int i, k;
-  gp_input(rpm, euler, v_air, x, rwh);
+  gp_input(rpm, euler, v_air, x, rwh, eg);
   for (i = 0; i < D_IN; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
 #if HAS_GLOBAL_MEAN
   global_mean(xn, yn);

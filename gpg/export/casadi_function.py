@@ -62,13 +62,13 @@ def to_casadi(
         steady = ca.sumsqr(x[4:7]) <= (s.ball_radius * (1.0 + 1e-9)) ** 2
         n_box = 4
     else:
-        euler_h, rwh = _ca_airflow(ca, euler, v, s.hover_speed)
-        d_euler = ca.jacobian(euler_h, v)
-        d_frame = ca.jacobian(ca.vec(rwh), v)
-        rate = ca.fmax(ca.norm_fro(d_euler), ca.norm_fro(d_frame) / np.sqrt(2.0))
-        if s.hover_speed <= 0.0:
-            rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= TINY_SPEED**2, ca.inf, rate)
-        x = ca.vertcat(rpm, euler_h, _ca_norm(ca, v))
+        x, rwh, rate = _ca_gp_frame(ca, rpm, euler, v, s.hover_speed)
+        if s.half_turn:  # from behind, the state's half-turn image (frames.half_turn)
+            turned = ca.vertcat(euler[0] + np.pi, -euler[1], -euler[2])
+            image = _ca_gp_frame(ca, rpm[[2, 3, 0, 1]], turned, v, s.hover_speed)
+            back = ca.cos(x[4]) < 0
+            pairs = zip(image, (x, rwh, rate), strict=True)
+            x, rwh, rate = (ca.if_else(back, a, b) for a, b in pairs)
         steady = rate <= MAX_FRAME_RATE
         n_box = 8
     lo, hi = s.box_lo, s.box_hi
@@ -356,6 +356,18 @@ def _ca_rot(ca, yaw, pitch, roll):
         ca.horzcat(sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
         ca.horzcat(-sp, cp * sr, cp * cr),
     )
+
+
+def _ca_gp_frame(ca, rpm, euler, v, h):
+    """The GP's input ``x_H``, ``R_WH`` and the airflow frame's turn rate (CasADi's Jacobian
+    of the frame and the angles in the air velocity)."""
+    euler_h, rwh = _ca_airflow(ca, euler, v, h)
+    d_euler = ca.jacobian(euler_h, v)
+    d_frame = ca.jacobian(ca.vec(rwh), v)
+    rate = ca.fmax(ca.norm_fro(d_euler), ca.norm_fro(d_frame) / np.sqrt(2.0))
+    if h <= 0.0:
+        rate = ca.if_else(v[0] ** 2 + v[1] ** 2 <= TINY_SPEED**2, ca.inf, rate)
+    return ca.vertcat(rpm, euler_h, _ca_norm(ca, v)), rwh, rate
 
 
 def _ca_wind_axes(ca, d):

@@ -385,6 +385,8 @@ class Layout:
     global_mean: dict[str, np.ndarray] | None  # xs, coef (GlobalMean's arrays)
     bins: Bins | None
     correction: Correction | None = None  # a model corrected by flights: what it adds
+    # airflow from behind read at the state's half-turn image (Surrogate.half_turn)
+    half_turn: bool = False
     record: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -512,6 +514,7 @@ def spec(sur: Surrogate, *, variance: bool = True, max_bytes: int | None = None)
         model=sur.model_name,
         frame=sur.frame,
         hover_speed=float(sur.hover_speed),
+        half_turn=bool(sur.half_turn),
         ball_radius=float(sur.ball_radius) if sur.frame == "body" else float("inf"),
         x_lo=_f64(norm.x_lo),
         half=_f64(norm.half_range),
@@ -881,6 +884,7 @@ def _with_record(s: Layout) -> Layout:
         "of each (N^2, (N*m)^2, dB^2) in the same frame",
         "levels": list(s.level_names),
         "hover_speed": s.hover_speed,
+        "half_turn": s.half_turn,
         **({"ball_radius": s.ball_radius} if s.frame == "body" else {}),
         "max_frame_rate": MAX_FRAME_RATE,
     }

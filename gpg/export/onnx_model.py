@@ -251,6 +251,19 @@ def _to_airflow(g: _Graph, euler, v, h: float):
     return [yaw, pitch, roll], rwh
 
 
+def _half_turn(g: _Graph, rpm, euler, v, eh, rwh, h: float):
+    """Where the airflow comes from behind (``cos ψ_H < 0``), the state's half-turn image
+    (:func:`gpg.quadrotor.frames.half_turn`): its rotor speeds, attitude, ``euler_H``, ``R_WH``."""
+    back = g.op("Less", g.op("Cos", eh[0]), g.num(0.0))
+    turned = [g.add(euler[0], g.num(np.pi)), g.op("Neg", euler[1]), g.op("Neg", euler[2])]
+    eh_t, rwh_t = _to_airflow(g, turned, v, h)
+    pick = lambda a, b: g.where(back, a, b)  # noqa: E731
+    return ([pick(rpm[(i + 2) % 4], rpm[i]) for i in range(4)],
+            [pick(a, b) for a, b in zip(turned, euler, strict=True)],
+            [pick(a, b) for a, b in zip(eh_t, eh, strict=True)],
+            [[pick(rwh_t[i][j], rwh[i][j]) for j in range(3)] for i in range(3)])  # fmt: skip
+
+
 def _frame_rate(g: _Graph, euler, v, h: float):
     """:func:`gpg.quadrotor.frames.airflow_frame_rate` by central differences (N, 1)."""
     step = RATE_STEP
@@ -676,9 +689,12 @@ def _build(onnx, s: Layout, batch: bool = True):
         n_box = 4  # the rotor speeds; the ball is the test of u, v, w
     else:
         eh, rwh = _to_airflow(g, euler, v, s.hover_speed)
+        gp_rpm, gp_euler = rpm, euler
+        if s.half_turn:
+            gp_rpm, gp_euler, eh, rwh = _half_turn(g, rpm, euler, v, eh, rwh, s.hover_speed)
         speed = g.sqrt0(g.add(g.add(g.sq(v[0]), g.sq(v[1])), g.sq(v[2])))
-        x = g.cat(rpm + eh + [speed])  # (N, 8)
-        rate = _frame_rate(g, euler, v, s.hover_speed)
+        x = g.cat(gp_rpm + eh + [speed])  # (N, 8)
+        rate = _frame_rate(g, gp_euler, v, s.hover_speed)
         steady = g.op("LessOrEqual", rate, g.num(MAX_FRAME_RATE))
         n_box = 8
     box_lo, box_hi = s.box_lo[:n_box], s.box_hi[:n_box]

@@ -55,9 +55,9 @@ from gpg.gp.inducing import (
     project,
 )
 from gpg.gp.predictor import Predictor, plain
-from gpg.quadrotor.frames import R_WB, matvec, to_airflow_frame
+from gpg.quadrotor.frames import R_WB, matvec
 from gpg.quadrotor.simple_model import SimpleModel
-from gpg.surrogate import Surrogate
+from gpg.surrogate import Surrogate, gp_inputs
 
 __all__ = [
     "Corrected",
@@ -880,12 +880,7 @@ def gp_rows(
         The (D,) normalised input ``x``, the (6,) normalised load residual and its (6,) noise
         variance.
     """
-    if sur.frame == "body":
-        R = R_WB(euler)
-        x = jnp.concatenate([rpm, matvec(R.T, v_air)])
-    else:
-        euler_h, speed, R = to_airflow_frame(euler, v_air, sur.hover_speed)
-        x = jnp.concatenate([rpm, euler_h, speed[None]])
+    x, R, _ = gp_inputs(sur, rpm, euler, v_air)  # the half-turn image's where sur reads it
     f, tau = force, torque
     if sur.simple is not None:
         y_m = sur.simple(jnp.concatenate([rpm, euler]))

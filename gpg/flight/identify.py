@@ -196,6 +196,7 @@ class Identification:
         *,
         cache_dir: str | Path = "data/cache",
         progress: bool = True,
+        half_turn: bool = False,
     ) -> Surrogate:
         """The simulator's prior of the identified vehicle: its data generated (cached by the
         vehicle file's hash, as every dataset: :func:`gpg.data.cache.ensure`) and the
@@ -209,18 +210,28 @@ class Identification:
             config: overrides of the model's options.
             cache_dir: the dataset cache.
             progress: progress bars while generating.
+            half_turn: the prior reads airflow from behind at the state's half-turn image
+                (:meth:`gpg.Surrogate.fit`): the identified vehicle must be its own image; its
+                data carry no levels unless every microphone is its own image
+                (:meth:`data_config`).
 
         Returns:
             The fitted :class:`~gpg.Surrogate` (its ``M`` is the identified vehicle's).
+
+        Raises:
+            ValueError: as :meth:`gpg.Surrogate.fit` raises it (a vehicle that is not its own
+                image under ``half_turn``, naming what differs).
         """
         from gpg.data.cache import ensure
         from gpg.surrogate import Surrogate
 
-        _, train, _, _, _ = ensure(self.data_config(data), self.config, cache_dir,
-                                   progress=progress)  # fmt: skip
-        return Surrogate.fit(train, model, config, vehicle=self.vehicle)
+        _, train, _, _, _ = ensure(self.data_config(data, half_turn=half_turn), self.config,
+                                   cache_dir, progress=progress)  # fmt: skip
+        return Surrogate.fit(train, model, config, vehicle=self.vehicle, half_turn=half_turn)
 
-    def data_config(self, data: str | Mapping[str, Any] = "default") -> dict[str, Any]:
+    def data_config(
+        self, data: str | Mapping[str, Any] = "default", *, half_turn: bool = False
+    ) -> dict[str, Any]:
         """The ``data`` config the identified vehicle's prior is generated with: ``data`` with
         an identified ``generator.wake_gain`` in its ``generator`` mapping, and its rotor
         speeds' box in the identified curve's speeds (:meth:`speeds`) where ``motor.gain`` or
@@ -228,6 +239,9 @@ class Identification:
 
         Args:
             data: a ``data`` config of the package (``"default"``, ``"smoke"``) or its mapping.
+            half_turn: for a prior that reads airflow from behind at the half-turn image:
+                ``noise: false`` unless every microphone is its own image (a level elsewhere
+                has no microphone at its image, and the flights read no levels).
 
         Returns:
             The mapping (a copy).
@@ -242,6 +256,9 @@ class Identification:
             # the box in the identified speeds, as the vehicle file's motor range
             lo, hi = np.asarray(self.speeds(jnp.asarray(cfg["bounds"]["rpm"], float)))
             cfg["bounds"] = {**cfg["bounds"], "rpm": [round(float(lo), 3), round(float(hi), 3)]}
+        if half_turn and any("microphone" in m for m in self.vehicle.half_turn_asymmetries(
+                levels=True)):  # fmt: skip
+            cfg["noise"] = False
         return cfg
 
     def summary(self) -> str:

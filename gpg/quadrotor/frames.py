@@ -33,6 +33,7 @@ __all__ = [
     "airflow_frame",
     "airflow_frame_rate",
     "euler_from_R",
+    "half_turn",
     "matmul",
     "matvec",
     "safe_atan2",
@@ -42,6 +43,10 @@ __all__ = [
 # Below this horizontal speed (m/s) the heading is taken as zero. Far below any physical
 # airspeed; only there to keep atan2 and its gradient defined at the origin.
 TINY_SPEED = 1e-9  # also the exports' (C, CasADi, ONNX): the same frame everywhere
+
+# Rotor order r1..r4 (rear-right, rear-left, front-left, front-right): a half turn about the
+# body z axis takes each hub to its diagonal opposite, r1 <-> r3 and r2 <-> r4.
+HALF_TURN_ROTORS = (2, 3, 0, 1)
 
 
 def rot_x(a: Float[ArrayLike, ""]) -> Float[Array, "3 3"]:
@@ -147,6 +152,28 @@ def safe_norm(v: Float[ArrayLike, "*n"]) -> Float[Array, ""]:
     sq = jnp.sum(v * v)
     zero = sq <= 0.0
     return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, sq)))
+
+
+def half_turn(
+    rpm: Float[ArrayLike, "4"], euler: Float[ArrayLike, "3"]
+) -> tuple[Float[Array, "4"], Float[Array, "3"]]:
+    """The same vehicle state described with the body frame turned half a turn about its z
+    axis and the rotors relabelled: ``R_WB Rz(π)`` and ``r1 ↔ r3``, ``r2 ↔ r4``.
+
+    For a vehicle whose diagonal hubs are each other's image under the half turn and spin the
+    same way, both descriptions are one physical state: the world-frame loads are equal. With
+    ``R_WB = Rz(ψ) Ry(θ) Rx(φ)``, ``R_WB Rz(π) = Rz(ψ + π) Ry(−θ) Rx(−φ)``, so the angles are
+    ``(ψ + π, −θ, −φ)`` (yaw not wrapped: every use of it is periodic).
+
+    Args:
+        rpm: (4,) rotor speeds r1..r4.
+        euler: (3,) attitude ``(yaw, pitch, roll)`` (rad).
+
+    Returns:
+        The rotor speeds relabelled and the angles of the turned body frame.
+    """
+    rpm, euler = jnp.asarray(rpm), jnp.asarray(euler)
+    return rpm[jnp.array(HALF_TURN_ROTORS)], jnp.stack([euler[0] + jnp.pi, -euler[1], -euler[2]])
 
 
 def euler_from_R(R: Float[ArrayLike, "3 3"]) -> Float[Array, "3"]:

@@ -135,6 +135,40 @@ class Vehicle(eqx.Module):
             )
         return self
 
+    def half_turn_asymmetries(self, *, levels: bool = False) -> list[str]:
+        """What keeps this vehicle from being its own image under a half turn about the body
+        z axis with the rotors relabelled (:func:`gpg.quadrotor.frames.half_turn`): empty when
+        a surrogate may use that symmetry.
+
+        The hubs ``r1, r2`` must be the images of ``r3, r4`` (to a micrometre per metre of the
+        layout), each diagonal pair spin the same way, and, where the noise levels are
+        predicted, each microphone lie on the body z axis (its own image: a microphone off the
+        axis has no microphone at its image, so its level there is unknown).
+
+        Args:
+            levels: also require the microphones to be their own images.
+
+        Returns:
+            One sentence per mismatch, naming the rotors or microphones.
+        """
+        pos, spin = np.asarray(self.positions, float), np.asarray(self.spin)
+        tol = 1e-6 * max(float(np.abs(pos).max()), 1e-3)
+        image = pos * np.array([-1.0, -1.0, 1.0])
+        out = []
+        for i, j in ((0, 2), (1, 3)):
+            if np.abs(image[i] - pos[j]).max() > tol:
+                out.append(f"hub r{j + 1} {pos[j].tolist()} is not the image of r{i + 1}'s "
+                           f"{pos[i].tolist()} under the half turn")  # fmt: skip
+            if spin[i] != spin[j]:
+                out.append(f"rotors r{i + 1} and r{j + 1} spin opposite ways")
+        if levels and self.mic_positions is not None:
+            mics = np.asarray(self.mic_positions, float)
+            for k, m in enumerate(mics):
+                if np.hypot(m[0], m[1]) > 1e-6 * max(float(np.abs(m).max()), 1e-3):
+                    out.append(f"microphone {k} at {m.round(4).tolist()} m is off the body z "
+                               "axis: its level has no microphone at its image")  # fmt: skip
+        return out
+
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> Vehicle:
         """Build from the mapping of a vehicle YAML file (plain dict).

@@ -1,10 +1,13 @@
 """Small fitted surrogates of every exportable kind (40 cases, fixed hyperparameters), fitted
 once per test session, and the query states the export tests share."""
 
+import dataclasses
 import functools
 
+import jax.numpy as jnp
 import numpy as np
 
+from gpg.quadrotor.frames import half_turn, to_airflow_frame
 from gpg.surrogate import Surrogate
 from tests.helpers import synthetic_body_dataset, synthetic_dataset
 
@@ -29,9 +32,13 @@ def dataset():
 @functools.cache
 def fitted(kind: str) -> Surrogate:
     """``kind`` on the airflow-frame cases; ``"<kind>_body"`` on body-frame cases (inputs
-    ``rpm, u, v, w``, the ball of air velocities)."""
+    ``rpm, u, v, w``, the ball of air velocities); ``"<kind>_half"`` reading airflow from
+    behind at the state's half-turn image (what the exports must repeat; the synthetic
+    data's levels are not the image's, which does not matter to that)."""
     import warnings
 
+    if kind.endswith("_half"):
+        return dataclasses.replace(fitted(kind.removesuffix("_half")), half_turn=True)
     if kind.endswith("_body"):
         base = kind.removesuffix("_body")
         ds = synthetic_body_dataset(40, seed=3)[0]
@@ -53,6 +60,20 @@ def states(n, seed, body=False):
     if body:
         v[-(n // 5) :] *= 2.5
     return rpm, euler, v
+
+
+def gp_attitude(sur, rpm, euler, v):
+    """The attitude the surrogate's GP reads a state at (the half-turn image's where it reads
+    airflow from behind), for the frame-rate margins; un-jitted, to vmap."""
+    if not sur.half_turn:
+        return jnp.asarray(euler)
+    eh = to_airflow_frame(euler, v, sur.hover_speed)[0]
+    return jnp.where(jnp.cos(eh[0]) < 0, half_turn(rpm, euler)[1], jnp.asarray(euler))
+
+
+def seam(sur, euler, v):
+    """``|cos ψ_H|`` per state: how far from the half turn's seam (1 without it); un-jitted."""
+    return jnp.abs(jnp.cos(to_airflow_frame(euler, v, sur.hover_speed)[0][0]))
 
 
 def rel_err(got, want):

@@ -7,14 +7,13 @@ import ctypes
 import subprocess
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from gpg import export
 from gpg.quadrotor.frames import airflow_frame_rate
 from gpg.surrogate import MAX_FRAME_RATE
-from tests.export.models import fitted, rel_err, states
+from tests.export.models import fitted, gp_attitude, rel_err, seam, states
 from tests.helpers import variance_rtol
 
 D = ctypes.POINTER(ctypes.c_double)
@@ -51,7 +50,8 @@ def compiled(sur, tmp_path, dtype, cflags=(), **kw):
 
 @pytest.mark.parametrize(
     "kind, dtype",
-    [("gpg", "double"), ("gpgs_hybrid", "float"), ("gpgs_hybrid_body", "double"), *OTHER_KINDS],
+    [("gpg", "double"), ("gpgs_hybrid", "float"), ("gpgs_hybrid_body", "double"),
+     ("gpgs_hybrid_half", "double"), *OTHER_KINDS],
 )  # fmt: skip
 def test_exported_c_equals_predict(tmp_path, kind, dtype):
     """Mean: double to rounding (1e-10 of each output's scale); float: the GP's arrays and
@@ -59,7 +59,8 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
     Variance: within the bound of ``variance_rtol`` (the stored factor's dtype, or float for
     a float export, and the conditioning of ``σ − ‖F k‖²``). ``in_domain`` equal wherever the
     frame rate is not within 1e-6 of its threshold (the C code takes central differences, the
-    library its closed form)."""
+    library its closed form). ``_half``: airflow from behind read at the state's half-turn
+    image, its frame rate there; the states are all 1e-6 off that choice's seam."""
     sur = fitted(kind)
     out, call = compiled(sur, tmp_path, dtype)
     rpm, euler, v = states(50, 1, body=sur.frame == "body")
@@ -67,8 +68,9 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
     if sur.frame == "body":  # no frame rate: in_domain is the rotor box and the ball
         rate = np.zeros(len(rpm))
     else:
-        rate = np.asarray(jax.jit(jax.vmap(lambda e, w: airflow_frame_rate(e, w, sur.hover_speed)))(
-            jnp.asarray(euler), jnp.asarray(v)))  # fmt: skip
+        rate = np.asarray(jax.jit(jax.vmap(lambda r, e, w: airflow_frame_rate(
+            gp_attitude(sur, r, e, w), w, sur.hover_speed)))(rpm, euler, v))  # fmt: skip
+        assert np.all(np.asarray(jax.vmap(lambda e, w: seam(sur, e, w))(euler, v)) > 1e-6)
     rtol = 1e-10 if dtype == "double" else 1e-5
     vtol = variance_rtol(sur, rpm, euler, v, None if dtype == "double" else 2.0**-24)
 
@@ -95,7 +97,10 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
             assert [check(other, j) for j in range(10)] == flags[:10]
     text = out["h"].read_text()
     assert out["record"]["arrays_sha256"] in text and "int quad_predict(" in text
-    assert out["variance"] and out["record"]["model"] == kind.removesuffix("_body")
+    assert out["variance"] and out["record"]["model"] == kind.removesuffix("_body").removesuffix(
+        "_half"
+    )
+    assert out["record"]["half_turn"] == kind.endswith("_half")
     assert out["record"]["gp_frame"] == sur.frame
     d = np.asarray(sur.box_lo).size
     assert f"#define QUAD_N_INPUTS {d}" in text and f"quad_box_lo[{d}]" in text

@@ -11,7 +11,7 @@ import pytest
 
 from gpg import export
 from gpg.surrogate import predict_state
-from tests.export.models import fitted, rel_err, states
+from tests.export.models import fitted, rel_err, seam, states
 from tests.helpers import variance_rtol
 
 ca = pytest.importorskip("casadi")
@@ -22,6 +22,7 @@ ca = pytest.importorskip("casadi")
     [
         ("gpgs_hybrid", "world"),
         ("gpgs_hybrid_body", "world"),
+        ("gpgs_hybrid_half", "body"),
         pytest.param("gpgs", "body", marks=pytest.mark.slow),
     ],
 )  # the binned kind's own fit: the slow set, for the fast budget
@@ -29,7 +30,8 @@ def test_casadi_function_equals_predict_and_its_jacobians(kind, frame):
     """Values to rounding (1e-10 of each output's scale), variances within
     ``variance_rtol``; the Jacobian of force and torque in (rpm, euler, v_air) to 1e-8 of its
     largest entry, and, for gpgs (float64 factors), of the variance too; ``in_domain`` as the
-    library's (both autodiff the frame)."""
+    library's (both autodiff the frame). ``_half``: airflow from behind read at the state's
+    half-turn image (the states 1e-6 off the seam of that choice), in the body frame."""
     sur = fitted(kind)
     f = export.to_casadi(sur, frame=frame)
     body = frame == "body"
@@ -46,6 +48,8 @@ def test_casadi_function_equals_predict_and_its_jacobians(kind, frame):
     wrt = ca.vertcat(*syms)
     jf = ca.Function("j", syms, [ca.jacobian(ca.vertcat(out[0], out[1], out[3]), wrt)])
     rpm, euler, v = states(30, 2, body=sur.frame == "body")
+    if sur.half_turn:
+        assert np.all(np.asarray(jax.vmap(lambda e, w: seam(sur, e, w))(euler, v)) > 1e-6)
     vtol = variance_rtol(sur, rpm, euler, v)
     seen = set()
     for i in range(len(rpm)):

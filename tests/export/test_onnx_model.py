@@ -8,8 +8,8 @@ import pytest
 
 from gpg import export
 from gpg.quadrotor.frames import R_WB, airflow_frame_rate, to_airflow_frame
-from gpg.surrogate import MAX_FRAME_RATE
-from tests.export.models import fitted, rel_err, states
+from gpg.surrogate import MAX_FRAME_RATE, gp_inputs
+from tests.export.models import fitted, gp_attitude, rel_err, seam, states
 from tests.helpers import variance_rtol
 
 ort = pytest.importorskip("onnxruntime")
@@ -24,10 +24,13 @@ def run(path, rpm, euler, v):
 
 
 @pytest.mark.parametrize(
-    "kind", ["gpgs_hybrid", "gpgs_hybrid_body", pytest.param("gpgs", marks=pytest.mark.slow)]
-)
+    "kind",
+    ["gpgs_hybrid", "gpgs_hybrid_body", "gpgs_hybrid_half",
+     pytest.param("gpgs", marks=pytest.mark.slow)],
+)  # fmt: skip
 def test_onnx_runtime_equals_predict(tmp_path, kind):
-    """The batched graph, airflow and body frame (``assert_equals_predict``'s bounds)."""
+    """The batched graph, airflow and body frame, and airflow from behind read at the
+    half-turn image (``assert_equals_predict``'s bounds)."""
     sur = fitted(kind)
     out = export.to_onnx(sur, tmp_path / "m.onnx")
     rpm, euler, v = states(60, 4, body=sur.frame == "body")
@@ -112,10 +115,10 @@ def assert_equals_predict(sur, got, rpm, euler, v):
             x = r
             ball = jnp.abs(jnp.linalg.norm(R_WB(e).T @ w) - sur.ball_radius)
             rate = jnp.zeros(())
-        else:
-            eh, speed, _ = to_airflow_frame(e, w, sur.hover_speed)
-            x = jnp.concatenate([r, eh, speed[None]])
-            ball, rate = jnp.inf, airflow_frame_rate(e, w, sur.hover_speed)
+        else:  # the half-turn image's where it is read; the seam 1e-3 away (float32's choice)
+            x = gp_inputs(sur, r, e, w)[0]
+            ball, rate = jnp.inf, airflow_frame_rate(gp_attitude(sur, r, e, w), w, sur.hover_speed)
+            ball = jnp.where(seam(sur, e, w) > 1e-3, ball, 0.0)
         n = x.size
         face = jnp.min(jnp.abs(jnp.concatenate([x - sur.box_lo[:n], sur.box_hi[:n] - x])))
         return jnp.minimum(face, ball), rate

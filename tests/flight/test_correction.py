@@ -1320,3 +1320,68 @@ def test_online_update_in_c_equals_jax(corrected, flights, tmp_path):
             ],
         )
         np.testing.assert_allclose(got[k, 1:7], np.concatenate([f, t]), rtol=1e-15, atol=1e-15)
+
+
+def test_half_turn_corrected_reads_airflow_from_behind_at_its_image(
+    synthetic_surrogate, corrected, flights, tmp_path
+):
+    """A corrected model whose surrogate reads airflow from behind at the half-turn image
+    (:func:`gpg.quadrotor.frames.half_turn`): a label flown from behind gives the training
+    rows of its image (to the rounding of the angles and of ``M`` at the two), the model
+    predicts there as at the image, and its C, CasADi and ONNX exports predict as it does at
+    such states."""
+    from gpg.quadrotor.frames import half_turn
+
+    turn = jax.vmap(half_turn)
+    rpm, euler = (np.asarray(a) for a in turn(flights.rpm, flights.euler))
+    back = dataclasses.replace(flights, rpm=rpm, euler=euler)  # the same flight, from behind
+    half = dataclasses.replace(synthetic_surrogate, half_turn=True)
+    X, Y, V = fc.training_rows(synthetic_surrogate, flights)
+    Xb, Yb, Vb = fc.training_rows(half, back)
+    np.testing.assert_allclose(Xb, X, rtol=0, atol=1e-12)  # the angles' rounding (|x| <~ 1)
+    np.testing.assert_allclose(Yb, Y, rtol=0, atol=1e-12 * np.abs(Y).max())
+    np.testing.assert_allclose(Vb, V, rtol=1e-12)
+    model = dataclasses.replace(corrected, half_turn=True)
+    p = model.predict_batch(rpm, euler, flights.v_air)
+    q = corrected.predict_batch(flights.rpm, flights.euler, flights.v_air)
+    for key in ("force", "torque", "variance"):
+        want = np.asarray(getattr(q, key))
+        np.testing.assert_allclose(getattr(p, key), want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_array_equal(p.in_domain, q.in_domain)
+    _exports_equal_predict(model, back, tmp_path, "double", n=20, n_casadi=4)
+    # adaptation from behind in C: its label rows read at the image as the library's
+    import ctypes
+    import subprocess
+
+    from gpg.export import to_c
+
+    m_ind, n = 8, 30
+    adapted = fc.adapt(model, inducing=m_ind, tau=5.0)
+    cols = [np.asarray(c, float)[:n] for c in back.columns()]
+    final, _ = jax.jit(lambda s, xs: jax.lax.scan(lambda c, r: (fc.update(c, *r), None), s, xs))(
+        adapted, tuple(jnp.asarray(c) for c in cols)
+    )
+    to_c(adapted, tmp_path, name="ht")
+    res = subprocess.run(["cc", "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror", "-shared",
+                          "-fPIC", "-o", str(tmp_path / "ht.so"), str(tmp_path / "ht.c"), "-lm"],
+                         capture_output=True, text=True)  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    lib = ctypes.CDLL(str(tmp_path / "ht.so"))
+
+    class State(ctypes.Structure):
+        _fields_ = [("mean", ctypes.c_double * (6 * m_ind)),
+                    ("cov", ctypes.c_double * (6 * m_ind * m_ind)),
+                    ("t", ctypes.c_double)]  # fmt: skip
+
+    st = State()
+    lib.ht_online_init(ctypes.byref(st))
+    ptr = ctypes.POINTER(ctypes.c_double)
+    for k in range(n):
+        a = [np.ascontiguousarray(c[k], dtype=float).ctypes.data_as(ptr) for c in cols[1:]]
+        assert lib.ht_online_update(ctypes.byref(st), ctypes.c_double(cols[0][k]), *a) == 1
+    o = final.model.online
+    scale = max(1.0, float(np.abs(o.mean).max()))
+    np.testing.assert_allclose(np.ctypeslib.as_array(st.mean).reshape(6, m_ind), o.mean, rtol=0,
+                               atol=1e-9 * scale)  # fmt: skip
+    np.testing.assert_allclose(np.ctypeslib.as_array(st.cov).reshape(6, m_ind, m_ind), o.cov,
+                               rtol=0, atol=1e-9)  # fmt: skip

@@ -227,6 +227,9 @@ def test_motor_curve_bend_and_wake_gain_recovered(identified):
                             "bounds": {"rpm": [0.0, 7000.0], "airspeed": [0.0, 20.0]}})  # fmt: skip
     assert data["generator"] == {"n_radial": 6, "wake_gain": out.physics.wake_gain}
     assert "generator" not in identified.data_config({"name": "x"})  # not freed: as given
+    # a half-turn prior: no levels (the file's side microphones are not their own images)
+    assert identified.data_config({"name": "x", "noise": True}, half_turn=True)["noise"] is False
+    assert identified.data_config({"name": "x", "noise": True})["noise"] is True
     # The prior's box and the vehicle's motor range in the identified speeds, in closed form.
     p, r = out.motor_exponent, out.rpm_ref
     top = r * (7000.0 / r) ** p  # motor.gain not freed: 1

@@ -277,3 +277,28 @@ def test_airflow_frame_rate_at_the_singular_sets():
     # y_perp ≈ 1e-6 m/s: float64 rounding of ≈ 1e-16 m/s in it, 1e-10 of the rate; 1e-6 asked
     np.testing.assert_allclose(near, float(_autodiff_rate(jnp.zeros(3), v, h)), rtol=1e-6)
     assert float(rate(jnp.zeros(3), jnp.array([-(s + 1e-3), 1e-6, 0.0]), h)) < 1e3
+
+
+def test_half_turn_is_the_body_turned_about_z_with_the_rotors_relabelled(rng):
+    """``R_WB(image) = R_WB Rz(π)`` (closed form), the rotors r1 <-> r3 and r2 <-> r4, twice
+    the identity; above the hover blend the airflow frame is the same and the attitude in it
+    is ``(ψ_H + π, −θ_H, −φ_H)``: what the surrogate's half turn reads."""
+    Rz = np.diag([-1.0, -1.0, 1.0])
+    for e in random_euler(rng, 20):
+        rpm = rng.uniform(1000, 5000, 4)
+        r2, e2 = frames.half_turn(rpm, e)
+        np.testing.assert_array_equal(r2, rpm[[2, 3, 0, 1]])
+        np.testing.assert_allclose(frames.R_WB(e2), np.asarray(frames.R_WB(e)) @ Rz, atol=1e-14)
+        r3, e3 = frames.half_turn(r2, e2)
+        np.testing.assert_array_equal(r3, rpm)
+        np.testing.assert_allclose(frames.R_WB(e3), frames.R_WB(e), atol=1e-14)
+        v = rng.normal(size=3) * 8.0
+        v[:2] += 3.0 * np.sign(v[:2])  # horizontal airspeed well above the hover blend's 2 m/s
+        eh, _, R = frames.to_airflow_frame(e, v, 2.0)
+        eh2, _, R2 = frames.to_airflow_frame(e2, v, 2.0)
+        np.testing.assert_allclose(R2, R, atol=1e-14)
+        np.testing.assert_allclose(frames.R_WB(eh2), np.asarray(frames.R_WB(eh)) @ Rz, atol=1e-13)
+        if abs(eh[1]) < 1.5:  # away from gimbal lock the angles themselves
+            turned = np.array([eh[0] + np.pi, -eh[1], -eh[2]])
+            wrap = (np.asarray(eh2) - turned + np.pi) % (2 * np.pi) - np.pi
+            np.testing.assert_allclose(wrap, 0.0, atol=1e-12)

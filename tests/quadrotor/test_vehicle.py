@@ -108,3 +108,24 @@ def test_shipped_vehicles_are_found_by_name_and_paths_are_not_names(tmp_path):
     # A path that is not a file is not taken for the name of a shipped vehicle.
     with pytest.raises(ValueError, match="no vehicle file"):
         load_vehicle(tmp_path / "sui_endurance")
+
+
+def test_half_turn_asymmetries_name_the_rotors_and_microphones(cfg):
+    """The shipped vehicle is its own image under the half turn (hubs and spins); its
+    microphones on the side are not (the one below is), and a moved hub or a swapped spin is
+    named."""
+    v = Vehicle.from_config(cfg)
+    assert v.half_turn_asymmetries() == []
+    mics = v.half_turn_asymmetries(levels=True)
+    assert len(mics) == 2 and "microphone 0" in mics[0] and "microphone 1" in mics[1]
+    spun = copy.deepcopy(cfg)
+    spun["layout"]["spin"] = [1, -1, -1, 1]
+    assert Vehicle.from_config(spun).half_turn_asymmetries() == [
+        "rotors r1 and r3 spin opposite ways", "rotors r2 and r4 spin opposite ways"]  # fmt: skip
+    moved = copy.deepcopy(cfg)
+    p = np.asarray(v.positions).tolist()
+    p[2][0] += 0.01  # r3 a centimetre forward
+    moved["layout"].pop("arm")
+    moved["layout"]["positions"] = p
+    bad = Vehicle.from_config(moved).half_turn_asymmetries()
+    assert len(bad) == 1 and bad[0].startswith("hub r3 ") and "image of r1" in bad[0]

@@ -135,7 +135,7 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     ]
     for key in ("prior", "corrected_regression", "values_only", "identified_prior", "identified",
                 "identified_rho", "identified_estimated_wind", "identified_true_air",
-                "oracle"):  # fmt: skip
+                "oracle", "oracle_mean_air"):  # fmt: skip
         assert res["tests"][0][f"{key}_mse"] > 0
     # the guide's band split into its terms, the gust's wind among them
     for r, wind in zip(res["tests"], ([], ["wind"]), strict=True):

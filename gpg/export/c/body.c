@@ -216,11 +216,13 @@ HOT_MEAN FUSED static void global_mean(const double xn[D_IN], double yn[N_OUT]) 
 
 /*@CORRECTION@*/
 
-/* the GP's input x (physical units) and R_WH of a world-frame state */
+/* the GP's input x (physical units) and R_WH of a world-frame state; eg the attitude the GP
+ * reads it at (the half-turn image's, HALF_TURN, where the airflow comes from behind) */
 static void gp_input(const double rpm[4], const double euler[3], const double v_air[3],
-                     double x[D_IN], double rwh[3][3]) {
+                     double x[D_IN], double rwh[3][3], double eg[3]) {
   int i;
   for (i = 0; i < 4; i++) x[i] = rpm[i];
+  for (i = 0; i < 3; i++) eg[i] = euler[i];
 #if BODY_FRAME
   /* the GP's frame is the body's: x = (rpm, R_WB^T v_air) */
   rot_wb(euler[0], euler[1], euler[2], rwh);
@@ -230,6 +232,13 @@ static void gp_input(const double rpm[4], const double euler[3], const double v_
   {
     double eh[3];
     to_airflow(euler, v_air, eh, rwh);
+#if HALF_TURN
+    if (cos(eh[0]) < 0.0) { /* the body turned half a turn about z, r1 <-> r3 and r2 <-> r4 */
+      eg[0] = euler[0] + 3.141592653589793; eg[1] = -euler[1]; eg[2] = -euler[2];
+      for (i = 0; i < 4; i++) x[i] = rpm[(i + 2) % 4];
+      to_airflow(eg, v_air, eh, rwh);
+    }
+#endif
     for (i = 0; i < 3; i++) x[4 + i] = eh[i];
     x[7] = norm3(v_air);
   }
@@ -261,7 +270,7 @@ static int binned_mean(const double xn[D_IN], int b, real *k, double yn[N_OUT]) 
 static int evaluate(const double rpm[4], const double euler[3], const double v_air[3],
                     double force[3], double torque[3], double *levels,
                     double *variance ONLINE_ARG) {
-  double rwh[3][3], x[D_IN], xn[D_IN], yn[N_OUT], y[N_OUT], span, tol, latent = 0.0;
+  double rwh[3][3], x[D_IN], xn[D_IN], yn[N_OUT], y[N_OUT], eg[3], span, tol, latent = 0.0;
   int i, j, b = 0, nr = 0, in_domain = 1;
 #if HAS_BINS
   real k[MAX_ROWS];
@@ -274,7 +283,7 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   if (variance) for (i = 0; i < N_OUT; i++) variance[i] = 0.0;
   for (i = 0; i < 4; i++) if (!isfinite(rpm[i])) return 0;
   for (i = 0; i < 3; i++) if (!isfinite(euler[i]) || !isfinite(v_air[i])) return 0;
-  gp_input(rpm, euler, v_air, x, rwh);
+  gp_input(rpm, euler, v_air, x, rwh, eg);
 #if BODY_FRAME
   /* in domain inside the ball */
   if (x[4] * x[4] + x[5] * x[5] + x[6] * x[6] >
@@ -288,7 +297,7 @@ static int evaluate(const double rpm[4], const double euler[3], const double v_a
   }
   for (i = 0; i < 4; i++) if (rpm[i] < 0.0) in_domain = 0;
 #if !BODY_FRAME
-  if (in_domain && !(frame_rate(euler, v_air) <= MAX_FRAME_RATE)) in_domain = 0;
+  if (in_domain && !(frame_rate(eg, v_air) <= MAX_FRAME_RATE)) in_domain = 0;
 #endif
   for (i = 0; i < D_IN; i++) xn[i] = (x[i] - X_LO[i]) / HALF[i] - 1.0;
 #if HAS_BINS
