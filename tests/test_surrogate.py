@@ -455,8 +455,8 @@ def test_half_turn_reads_airflow_from_behind_at_its_image(data, rng, tmp_path):
     from tests.helpers import synthetic_body_dataset
 
     quiet = data.without("noise")
-    plain = Surrogate.fit(quiet, "gpgs_hybrid", BINNED)
     sur = Surrogate.fit(quiet, "gpgs_hybrid", BINNED, half_turn=True)
+    plain = dataclasses.replace(sur, half_turn=False)
     assert sur.half_turn and not plain.half_turn
     n = 40
     rpm = rng.uniform(2500, 4500, (n, 4))

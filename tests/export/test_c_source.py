@@ -21,6 +21,8 @@ D = ctypes.POINTER(ctypes.c_double)
 # with a binned mean (each a fit of its own) in the slow set, to keep the fast budget.
 OTHER_KINDS = [pytest.param(k, d, marks=pytest.mark.slow)
                for k, d in (("gpg_pic", "float"), ("gpgs_schur", "double"))]  # fmt: skip
+# The half turn's export here in the slow set: the fast set has it through the corrected
+# model's (tests/flight/test_correction.py), whose C, CasADi and ONNX read it too.
 
 
 def compiled(sur, tmp_path, dtype, cflags=(), **kw):
@@ -51,7 +53,7 @@ def compiled(sur, tmp_path, dtype, cflags=(), **kw):
 @pytest.mark.parametrize(
     "kind, dtype",
     [("gpg", "double"), ("gpgs_hybrid", "float"), ("gpgs_hybrid_body", "double"),
-     ("gpgs_hybrid_half", "double"), *OTHER_KINDS],
+     pytest.param("gpgs_hybrid_half", "double", marks=pytest.mark.slow), *OTHER_KINDS],
 )  # fmt: skip
 def test_exported_c_equals_predict(tmp_path, kind, dtype):
     """Mean: double to rounding (1e-10 of each output's scale); float: the GP's arrays and

@@ -22,7 +22,7 @@ ca = pytest.importorskip("casadi")
     [
         ("gpgs_hybrid", "world"),
         ("gpgs_hybrid_body", "world"),
-        ("gpgs_hybrid_half", "body"),
+        pytest.param("gpgs_hybrid_half", "body", marks=pytest.mark.slow),
         pytest.param("gpgs", "body", marks=pytest.mark.slow),
     ],
 )  # the binned kind's own fit: the slow set, for the fast budget

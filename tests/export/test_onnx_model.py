@@ -25,7 +25,7 @@ def run(path, rpm, euler, v):
 
 @pytest.mark.parametrize(
     "kind",
-    ["gpgs_hybrid", "gpgs_hybrid_body", "gpgs_hybrid_half",
+    ["gpgs_hybrid", "gpgs_hybrid_body", pytest.param("gpgs_hybrid_half", marks=pytest.mark.slow),
      pytest.param("gpgs", marks=pytest.mark.slow)],
 )  # fmt: skip
 def test_onnx_runtime_equals_predict(tmp_path, kind):

@@ -1348,7 +1348,7 @@ def test_half_turn_corrected_reads_airflow_from_behind_at_its_image(
         want = np.asarray(getattr(q, key))
         np.testing.assert_allclose(getattr(p, key), want, rtol=0, atol=1e-12 * np.abs(want).max())
     np.testing.assert_array_equal(p.in_domain, q.in_domain)
-    _exports_equal_predict(model, back, tmp_path, "double", n=20, n_casadi=4)
+    _exports_equal_predict(model, back, tmp_path, "double", n=12, n_casadi=2)
     # adaptation from behind in C: its label rows read at the image as the library's
     import ctypes
     import subprocess
