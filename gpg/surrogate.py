@@ -884,10 +884,11 @@ def _in_own_dtype(sur: Surrogate, *arrays):
 
 def gp_inputs(
     sur: Surrogate, rpm: Float[Array, "4"], euler: Float[Array, "3"], v_air: Float[Array, "3"]
-) -> tuple[Float[Array, " D"], Float[Array, "3 3"], Bool[Array, ""]]:
+) -> tuple[Float[Array, " D"], Float[Array, "3 3"]]:
     """The GP's input at a world-frame state, as :func:`predict_state` reads it: the paper's
     ``x_H = (r1..r4, ψ_H, θ_H, φ_H, ‖v_air‖)`` (the half-turn image's where the surrogate
-    reads airflow from behind there), or ``x_B``; un-jitted, to vmap or jit.
+    reads airflow from behind there), or ``x_B``; un-jitted, to vmap or jit. No domain test
+    (the prediction's ``in_domain`` has it).
 
     Args:
         sur: the surrogate.
@@ -896,10 +897,26 @@ def gp_inputs(
         v_air: (3,) world-frame air velocity, m/s.
 
     Returns:
-        ``x`` in physical units (before the normaliser), ``R_WH`` (world from the frame the
-        GP's loads live in) and whether the inputs are in the data's domain.
+        ``x`` in physical units (before the normaliser) and ``R_WH`` (world from the frame the
+        GP's loads live in).
     """
-    return _inputs(sur, rpm, euler, v_air)
+    return _frame(sur, rpm, euler, v_air)[:2]
+
+
+def _frame(sur: Surrogate, rpm, euler, v_air):
+    """``x_h``, ``R_WH``, and the rotor speeds and attitude the GP reads the state at (the
+    half-turn image's, where it applies)."""
+    if sur.frame == "body":
+        R_WH = R_WB(euler)  # the GP's frame is the body's
+        return jnp.concatenate([rpm, matvec(R_WH.T, v_air)]), R_WH, rpm, euler
+    euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
+    if sur.half_turn:  # from behind: the same state, its body frame turned (fit's doc)
+        rpm_t, euler_t = half_turn(rpm, euler)
+        euler_ht, _, R_WHt = to_airflow_frame(euler_t, v_air, sur.hover_speed)
+        back = jnp.cos(euler_h[0]) < 0.0
+        rpm, euler = jnp.where(back, rpm_t, rpm), jnp.where(back, euler_t, euler)
+        euler_h, R_WH = jnp.where(back, euler_ht, euler_h), jnp.where(back, R_WHt, R_WH)
+    return jnp.concatenate([rpm, euler_h, speed[None]]), R_WH, rpm, euler
 
 
 def _inputs(sur: Surrogate, rpm, euler, v_air):
@@ -910,28 +927,19 @@ def _inputs(sur: Surrogate, rpm, euler, v_air):
     )
     span = sur.box_hi - sur.box_lo
     tol = 1e-9 * jnp.maximum(span, 1.0)
+    x_h, R_WH, rpm_g, euler_g = _frame(sur, rpm, euler, v_air)
     if sur.frame == "body":
-        R_WH = R_WB(euler)  # the GP's frame is the body's
-        x_h = jnp.concatenate([rpm, matvec(R_WH.T, v_air)])
         inside = jnp.all(
             (x_h[:4] >= sur.box_lo[:4] - tol[:4]) & (x_h[:4] <= sur.box_hi[:4] + tol[:4])
         )
         inside = inside & (jnp.sum(x_h[4:] ** 2) <= (sur.ball_radius * (1.0 + 1e-9)) ** 2)
         steady = jnp.asarray(True)  # no coordinate singularity to stay away from
     else:
-        euler_h, speed, R_WH = to_airflow_frame(euler, v_air, sur.hover_speed)
-        if sur.half_turn:  # from behind: the same state, its body frame turned (fit's doc)
-            rpm_t, euler_t = half_turn(rpm, euler)
-            euler_ht, _, R_WHt = to_airflow_frame(euler_t, v_air, sur.hover_speed)
-            back = jnp.cos(euler_h[0]) < 0.0
-            rpm, euler = jnp.where(back, rpm_t, rpm), jnp.where(back, euler_t, euler)
-            euler_h, R_WH = jnp.where(back, euler_ht, euler_h), jnp.where(back, R_WHt, R_WH)
-        x_h = jnp.concatenate([rpm, euler_h, speed[None]])
         inside = jnp.all((x_h >= sur.box_lo - tol) & (x_h <= sur.box_hi + tol))
         # Near the airflow frame's singular sets the data's coordinates of the query swing
         # with millimetres per second of air, and a prediction with them: not in domain there.
-        steady = airflow_frame_rate(euler, v_air, sur.hover_speed) <= MAX_FRAME_RATE
-    return x_h, R_WH, finite & jnp.all(rpm >= 0) & inside & steady
+        steady = airflow_frame_rate(euler_g, v_air, sur.hover_speed) <= MAX_FRAME_RATE
+    return x_h, R_WH, finite & jnp.all(rpm_g >= 0) & inside & steady
 
 
 def _check_half_turn(dataset: Dataset, vehicle: Vehicle) -> None:

@@ -880,7 +880,7 @@ def gp_rows(
         The (D,) normalised input ``x``, the (6,) normalised load residual and its (6,) noise
         variance.
     """
-    x, R, _ = gp_inputs(sur, rpm, euler, v_air)  # the half-turn image's where sur reads it
+    x, R = gp_inputs(sur, rpm, euler, v_air)  # the half-turn image's where sur reads it
     f, tau = force, torque
     if sur.simple is not None:
         y_m = sur.simple(jnp.concatenate([rpm, euler]))
