@@ -1106,14 +1106,16 @@ def _prior_band(prior: Surrogate, parts: list[Labels], max_labels, X, cal):
     the corrected band for ``ρ = 1``), and whether each row's state is in the prior's domain
     (``in_domain`` of its prediction)."""
     lab = Labels.concatenate(parts)
-    inside = np.asarray(prior.predict_batch(lab.rpm, lab.euler, lab.v_air, mean_only=True)
-                        .in_domain)  # fmt: skip
+    rows = np.arange(len(lab))  # the calibration rows' labels, thinned as _label_rows thins
     if max_labels is not None:
-        inside = inside[_thin(inside.size, int(max_labels))]
+        rows = rows[_thin(rows.size, int(max_labels))]
+    rows = rows[cal]
+    states = (np.asarray(a)[rows] for a in (lab.rpm, lab.euler, lab.v_air))
+    inside = np.asarray(prior.predict_batch(*states, mean_only=True).in_domain)
     _, var = prior.model.predict(jnp.asarray(X[cal]))
     share = np.maximum(np.asarray(var, float), 0.0)[:, None] * np.asarray(
         prior.model.output_scale, float)[:N_LOADS]  # fmt: skip
-    return share, inside[cal]
+    return share, inside
 
 
 def _physics(prior: Surrogate) -> PhysicalBasis:

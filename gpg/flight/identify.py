@@ -256,8 +256,8 @@ class Identification:
             # the box in the identified speeds, as the vehicle file's motor range
             lo, hi = np.asarray(self.speeds(jnp.asarray(cfg["bounds"]["rpm"], float)))
             cfg["bounds"] = {**cfg["bounds"], "rpm": [round(float(lo), 3), round(float(hi), 3)]}
-        if half_turn and any("microphone" in m for m in self.vehicle.half_turn_asymmetries(
-                levels=True)):  # fmt: skip
+        veh = self.vehicle  # more asymmetries with the levels: microphones off the axis
+        if half_turn and veh.half_turn_asymmetries(levels=True) != veh.half_turn_asymmetries():
             cfg["noise"] = False
         return cfg
 
