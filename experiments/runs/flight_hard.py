@@ -237,11 +237,13 @@ def _band_parts(sur: Surrogate, test: _Test) -> dict[str, Any]:
 
 def _coefficients(sur: Surrogate) -> dict[str, list[float]]:
     """A physical-basis correction's scale ``ρ`` per load output, its held-out calibration
-    factor per output (on the discrepancy's variance and the coefficients'), ``κ`` and the
-    physical coefficients ``β`` (outputs by :data:`gpg.flight.basis.TERMS`)."""
+    factors per output (``c`` on the discrepancy's variance and the coefficients', ``q`` on
+    the prior's share), ``κ`` and the physical coefficients ``β`` (outputs by
+    :data:`gpg.flight.basis.TERMS`)."""
     m = sur.model
     return {"rho": np.asarray(m.scale)[:6].tolist(),
             "calibration": [float(d.output_scale[0]) for d in m.delta],
+            "prior_share": sur.config["flight_correction"]["prior_share"],
             "kappa": np.asarray(m.kappa).tolist(),
             "beta": np.asarray(m.explicit.beta).tolist(),
             "basis_prior": sur.config["flight_correction"]["basis_prior"]}  # fmt: skip
@@ -995,7 +997,9 @@ def _report(res) -> str:
                      f"{c['basis_prior']['factors']} per output (basis_prior)")  # fmt: skip
         if "held_out_coverage95" in c["basis_prior"]:
             lines.append(
-                f"    calibration {np.round(c['calibration'], 2).tolist()}; each wind "
+                f"    calibration {np.round(c['calibration'], 2).tolist()}, the prior's share "
+                f"{None if c['prior_share'] is None else np.round(c['prior_share'], 3).tolist()}"
+                "; each wind "
                 "held out, the share of its labels in the 95 % band, per output: "
                 f"{np.round(c['basis_prior']['held_out_coverage95'], 3).tolist()}"
             )

@@ -79,6 +79,10 @@ LENGTHSCALE_MIN, LENGTHSCALE_MAX = 1e-2, 1e2
 # basis_prior="held_out") chooses among per load output: from the terms nearly held at zero
 # (the prior's physics as it is) to three times the stated prior.
 BASIS_PRIOR_GRID = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+# The least factor correct's held-out calibration puts on the prior's share of the band
+# (where the labels' noise alone covers a held-out flight's errors): the prior's variance is
+# still what says how far a state is from its data.
+PRIOR_SHARE_FLOOR = 1e-3
 # The standard normal's upper 2.5-percent point: a 95-percent band's half-width in standard
 # deviations.
 Z95 = 1.959963984540054
@@ -842,7 +846,23 @@ def base(sur: Surrogate) -> Surrogate:
     m = sur.model
     if not isinstance(m, Corrected):
         return sur
-    return dataclasses.replace(sur, model=m.prior, model_name=_base_name(sur.model_name))
+    prior = m.prior
+    scale = sur.config.get("flight_correction", {}).get("prior_output_scale")
+    if scale is not None:  # the held-out calibration's q undone
+        prior = prior.with_output_scale(jnp.asarray(scale, prior.output_scale.dtype))
+    return dataclasses.replace(sur, model=prior, model_name=_base_name(sur.model_name))
+
+
+def _narrowed(model, share):
+    """The prior's ``model`` with its output scale times the held-out calibration's ``q``
+    (:func:`_held_out_scale`) on the load outputs: every part of the corrected model and its
+    exports reads the prior's share through that scale. ``share`` None: the model itself."""
+    if share is None or all(q == 1.0 for q in share):
+        return model
+    os = model.output_scale
+    q = np.ones(os.shape[0])
+    q[:N_LOADS] = share
+    return model.with_output_scale(os * jnp.asarray(q, os.dtype))
 
 
 def _base_name(name: str) -> str:
@@ -983,15 +1003,21 @@ def correct(
         calibrate: with ``basis="physical"`` and labels of two flights or more, scale each
             component's discrepancy and coefficient variance by the ``c`` under which every
             flight, held out and predicted from the others, is covered as the band the model
-            predicts says: the mean of ``e² / (c v + p + n)`` is 1 over their labels in the
-            prior's domain (``v`` the latent variance, ``p`` the prior's share ``ρ²
-            var_prior``, which ``c`` does not scale, ``n`` the labels' noise; only widened,
-            never narrowed): a band honest for a flight in conditions the others did not
-            have, not only within them. Outside the prior's domain ``p`` is its kernel's
-            whole variance, which says nothing of the discrepancy's width; with no held-out
-            label inside it, every label counts. False: the discrepancies' own band
-            (``basis_prior`` chooses as with True: its candidates are scored under the
-            discrepancy's own held-out factor either way).
+            predicts says: the mean of ``e² / (c v + q p + n)`` is 1 over their labels in
+            the prior's domain (``v`` the latent variance, ``p`` the prior's share ``ρ²
+            var_prior``, ``n`` the labels' noise; ``c`` only widens): a band honest for a
+            flight in conditions the others did not have, not only within them. Where every
+            flight held out is covered more widely than that, the prior's share is narrowed
+            instead: ``q`` at most 1 (at least :data:`PRIOR_SHARE_FLOOR`) on the prior's
+            output scale, the largest factor on ``v + p`` that any one held-out flight needs
+            (the prior's near-set variance is a bound, which flights of the vehicle can show
+            several times too wide); recorded with the scale before it
+            (``flight_correction.prior_share``, ``prior_output_scale``), which :func:`base`
+            restores. Outside the prior's domain ``p`` is its kernel's whole variance, which
+            says nothing of the discrepancy's width; with no held-out label inside it, every
+            label counts. False: the discrepancies' own band and the prior's (``basis_prior``
+            chooses as with True: its candidates are scored under the discrepancy's own
+            held-out factor either way).
         basis_prior: with ``basis="physical"``, the prior of the physical terms'
             coefficients: a factor on :data:`~gpg.flight.basis.PRIORS`'s standard deviations;
             ``"auto"``: ``"held_out"`` where the prior's physics is taken as it is
@@ -1069,8 +1095,9 @@ def correct(
             prior_band=band,
         )  # fmt: skip
     rho[:N_LOADS] = rho6
+    share = (choice or {}).get("prior_share") if calibrate else None
     model = Corrected(
-        prior=prior.model,
+        prior=_narrowed(prior.model, share),
         scale=jnp.asarray(rho),
         delta=deltas,
         kappa=None if simple is None else jnp.asarray(kappa),
@@ -1087,6 +1114,10 @@ def correct(
         "inducing": None if Z is None else int(Z.shape[0]),
         "flights": [p.name for p in parts],
         "hyperparameters": hyperparameters,
+        # the factor q on the prior's share of the band per load output (held-out
+        # calibration), and the prior's output scale before it, which base() restores
+        "prior_share": share,
+        "prior_output_scale": None if share is None else plain(prior.model.output_scale),
         # basis_prior's candidates, the factor chosen per load output and, where flights
         # were held out, each candidate's score: the worst-predicted flight's mean negative
         # log predictive density (nats per label)
@@ -1127,36 +1158,52 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
 
 def _held_out_scale(
     X, H, y, noise, hyper: Hyper, b, sd, groups, widen: bool = True, prior=None
-) -> tuple[float, float, list[float]]:
-    """The factor ``c`` on the latent variance that makes each flight, predicted from the
-    others (:func:`_held_out`), covered as the band the model predicts says; the largest
-    over the flights of a held-out flight's mean negative log predictive density (nats per
-    label: what the basis's prior is chosen by); and each held-out flight's share of labels
-    inside the predicted band ``Z95²(c v + p + n)`` (``widen`` False: without ``c``; one
-    pooled ``c`` can cover one flight loosely and another tightly: the spread says how far
-    the band's width carries from one condition to the next).
+) -> tuple[float, float, list[float], float]:
+    """The factor ``c`` on the latent variance and the factor ``q`` on the prior's share that
+    make each flight, predicted from the others (:func:`_held_out`), covered as the band the
+    model predicts says; the largest over the flights of a held-out flight's mean negative
+    log predictive density (nats per label: what the basis's prior is chosen by); and each
+    held-out flight's share of labels inside the predicted band ``Z95²(c v + q p + n)``
+    (``widen`` False: without ``c`` and ``q``; one pooled ``c`` can cover one flight loosely
+    and another tightly: the spread says how far the band's width carries from one condition
+    to the next).
 
     ``prior``: ``(p, inside)``, the prior's share of the band at each label (``ρ²
-    var_prior``, which ``c`` does not scale: the prior is not refitted without a flight) and
-    whether the label is in the prior's domain; None: no prior's share. ``c`` is the root of
-    mean ``e² / (c v + p + n)`` = 1 over the held-out labels in the domain (``e`` the error,
-    ``v`` the latent variance, ``n`` the label's noise), at least 1: solved with ``p + n``
-    beside ``c v``, since the mean of ``e² / (v + n)`` taken as ``c`` leaves a band too
-    narrow by about ``n / v`` where the labels' noise outweighs the latent variance, and a
-    ``c`` solved without ``p`` widens the discrepancy for errors the prior's variance
-    already covers. The score is the band of the discrepancy and the coefficients alone,
-    under their own such factor (``p`` = 0): it judges the basis's mean beyond the flights,
-    which ``p``, the same for every candidate, would only dilute."""
+    var_prior``: the prior is not refitted without a flight) and whether the label is in the
+    prior's domain; None: no prior's share (``q`` = 1). Over the held-out labels in the
+    domain (``e`` the error, ``v`` the latent variance, ``n`` the label's noise):
+
+    - ``q`` (:func:`_share`) narrows the prior's share where every flight's band is wider
+      than its errors: the largest over the flights of the factor on the whole latent band
+      ``v + p`` at which that flight's mean ``e² / (f (v + p) + n)`` is 1, at most 1, and
+      applied to ``p`` alone. The prior's variance (GP-G's near-set bound) can be several
+      times what the prior misses where the flights went; the flights measure it. The
+      worst-covered flight sets it (a pooled mean is the easy flights'), and ``v`` is not
+      narrowed with it, so that the band a flight beyond the others gets is no narrower
+      than the worst held-out flight's calibrated one.
+    - ``c`` is then the root of the pooled mean ``e² / (c v + q p + n)`` = 1, at least 1:
+      solved with ``q p + n`` beside ``c v``, since the mean of ``e² / (v + n)`` taken as
+      ``c`` leaves a band too narrow by about ``n / v`` where the labels' noise outweighs
+      the latent variance, and a ``c`` solved without ``p`` widens the discrepancy for
+      errors the prior's variance already covers. One of the two is 1: a flight under-
+      covered at ``q`` = 1 keeps ``q`` = 1, and with ``q`` < 1 every flight's mean, so
+      the pooled one, is at most 1 at ``c`` = 1.
+
+    The score is the band of the discrepancy and the coefficients alone, under their own
+    such factor (``p`` = 0): it judges the basis's mean beyond the flights, which ``p``,
+    the same for every candidate, would only dilute."""
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
     if not parts:
-        return 1.0, 0.0, []
+        return 1.0, 0.0, [], 1.0
     p, inside = (np.zeros(len(y)), np.ones(len(y), bool)) if prior is None else prior
     te_all = np.concatenate([np.nonzero(te)[0] for te, *_ in parts])
     e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, *_ in parts])
     v = np.concatenate([var for _, _, var, *_ in parts])
     n = noise[te_all]
     k = inside[te_all] if inside[te_all].any() else np.ones(te_all.size, bool)
-    c = _factor(e2[k], v[k], n[k] + p[te_all][k])
+    flight = np.concatenate([np.full(int(te.sum()), i) for i, (te, *_) in enumerate(parts)])
+    q = 1.0 if prior is None else _share(e2[k], v[k], n[k], p[te_all][k], flight[k])
+    c = _factor(e2[k], v[k], n[k] + q * p[te_all][k])
     own = c if prior is None else _factor(e2, v, n)
     # The worst-predicted flight's score: a prior that predicts the flights within the others'
     # conditions well and the one beyond them badly is the one not to extrapolate with.
@@ -1165,9 +1212,30 @@ def _held_out_scale(
         s2 = own * var + noise[te]
         e2g = (y[te] - mean) ** 2
         worst = max(worst, float(np.mean(0.5 * np.log(2.0 * np.pi * s2) + 0.5 * e2g / s2)))
-        band = (c if widen else 1.0) * var + noise[te] + p[te]
+        band = (c * var + q * p[te] if widen else var + p[te]) + noise[te]
         coverage.append(float(np.mean(e2g <= Z95**2 * band)))
-    return c, worst, coverage
+    return c, worst, coverage, q
+
+
+def _share(e2, v, n, p, flight) -> float:
+    """``q`` of :func:`_held_out_scale`: the largest over the ``flight`` groups of the ``f``
+    at which that group's mean ``e² / (f (v + p) + n)`` is 1, at most 1 and at least
+    :data:`PRIOR_SHARE_FLOOR` (where the labels' noise alone covers a flight's errors)."""
+    from scipy.optimize import brentq
+
+    q = PRIOR_SHARE_FLOOR
+    for g in np.unique(flight):
+        i = flight == g
+        lat = v[i] + p[i]
+
+        def excess(f: float, i=i, lat=lat) -> float:
+            return float(np.mean(e2[i] / (f * lat + n[i]))) - 1.0
+
+        if excess(1.0) >= 0.0:
+            return 1.0
+        if excess(q) > 0.0:  # a root above the largest so far; excess falls in f
+            q = float(brentq(excess, q, 1.0, rtol=1e-12))
+    return q
 
 
 def _factor(e2: np.ndarray, v: np.ndarray, n: np.ndarray) -> float:
@@ -1305,6 +1373,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     held = held and (calibrate or len(grid) > 1)  # flights held out only for what reads them
     kc = np.arange(X.shape[0]) if cal is None else cal
     factors, scores, widths = np.ones(n_out), np.zeros((n_out, len(grid))), np.ones(n_out)
+    shares = np.ones(n_out)
     coverage: list[list[float]] = []
     for j in range(n_out):
         H = _basis_columns(mu if fixed_rho is None else None, m, phys, j)
@@ -1318,18 +1387,18 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
             sd = _scale_terms(sd0, f)
             beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
             hyper = _delta_hyper(X, y - H @ beta0, V[:, j], subset_size, max_steps, seed + j, Zh)
-            c, nlpd, cover = (1.0, 0.0, [])
+            c, nlpd, cover, q = (1.0, 0.0, [], 1.0)
             if held:
                 share = None  # ρ² var_prior, ρ as first estimated, and the prior's domain
                 if prior_band is not None:
                     r2 = (beta0[0] if fixed_rho is None else float(fixed_rho)) ** 2
                     share = (r2 * prior_band[0][:, j], prior_band[1])
-                c, nlpd, cover = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b, sd,
-                                                 groups[kc], calibrate, share)  # fmt: skip
+                c, nlpd, cover, q = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b,
+                                                    sd, groups[kc], calibrate, share)  # fmt: skip
             scores[j, i] = nlpd
             if best is None or nlpd < best[0]:
-                best = (nlpd, f, sd, hyper, c, cover)
-        _, factors[j], sd, hyper, c, cover = best
+                best = (nlpd, f, sd, hyper, c, cover, q)
+        _, factors[j], sd, hyper, c, cover, shares[j] = best
         coverage.append(cover)
         if Z is None:
             both = ExactGP.fit(X, np.column_stack([H, y]), hyper=hyper, row_noise=V[:, j])
@@ -1372,6 +1441,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         choice["held_out_nlpd"] = scores.tolist()
         choice["held_out_coverage95"] = coverage
         choice["held_out_factor"] = widths.tolist()  # c per output, applied or not
+        choice["prior_share"] = shares.tolist()  # q per output, applied or not
     return rho, kappa, tuple(deltas), explicit, choice
 
 

@@ -829,6 +829,44 @@ def _pushed_flights(synthetic_surrogate, flights):
     return prior, a, b_
 
 
+def _held_out_reference(cal, prior, lab, groups, j):
+    """NumPy: each label of ``lab`` predicted by load output ``j``'s physical basis and
+    discrepancy of ``cal`` (``ρ = 1``; its hyperparameters and terms' prior as chosen)
+    fitted on the other group's labels, the coefficients integrated out; returns the squared
+    error ``e²``, the latent variance ``v`` (with ``ν²``), the label's noise ``n`` and the
+    uncorrected ``prior``'s share ``p`` of the band (its own output scale)."""
+    from gpg.flight.basis import PRIORS, TERMS
+
+    m = cal.model
+    f = cal.config["flight_correction"]["basis_prior"]["factors"][j]
+    X, Y, V = fc.training_rows(cal, lab)
+    Y, V = Y[:, j], V[:, j]
+    h = m.delta[j].hyper
+    ls, s2, nu = np.asarray(h.lengthscale), float(h.variance), float(h.noise)
+    Y = Y - np.asarray(m.prior.predict_mean(X))[:, j]  # ρ = 1: the prior's mean moved over
+    Xj = jnp.asarray(X)
+    simple, phys = jax.vmap(m.basis)(Xj)[:, j], jax.vmap(m.explicit.physics)(Xj)[:, j]
+    H = np.column_stack([np.asarray(simple), np.asarray(phys)])
+    assert m.explicit.columns == ("simple", *TERMS)
+    sd = np.array([PRIORS[c] * (f if c in TERMS else 1.0) for c in m.explicit.columns])
+    np.testing.assert_array_equal(fc._chosen_prior(cal, False, True)[j], sd)  # fit_drift's
+    e2v = []
+    for g in np.unique(groups):
+        tr, te = groups != g, groups == g
+        Ki = np.linalg.inv(_rbf(X[tr], X[tr], s2, ls) + np.diag(V[tr] + nu))
+        A = np.diag(1 / sd**2) + H[tr].T @ Ki @ H[tr]
+        beta = np.linalg.solve(A, H[tr].T @ Ki @ Y[tr])  # the prior's mean b = 0
+        kq = _rbf(X[te], X[tr], s2, ls)
+        mean = H[te] @ beta + kq @ Ki @ (Y[tr] - H[tr] @ beta)
+        R = H[te] - kq @ Ki @ H[tr]
+        var = s2 - np.einsum("qn,nm,qm->q", kq, Ki, kq) + nu
+        var += np.einsum("qp,pr,qr->q", R, np.linalg.inv(A), R)
+        e2v.append(np.column_stack([(Y[te] - mean) ** 2, var, V[te]]))
+    e2, v, n = np.concatenate(e2v).T
+    p = np.asarray(prior.model.predict(Xj)[1]) * float(prior.model.output_scale[j])
+    return e2, v, n, p
+
+
 def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monkeypatch):
     """Labels of two flights, the second pushed by a steady force the first did not have:
     each component's discrepancy and coefficient variance scaled by the ``c`` (at least 1)
@@ -838,9 +876,9 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     latent variance; the physical terms' prior the candidate under which the worse-predicted
     held-out flight is predicted best by the discrepancy's own band (the factor solved
     without the prior's share). Both written out here in NumPy for the most widened
-    component; calibrate=False keeps 1 and chooses the terms' prior as before."""
-    from gpg.flight.basis import PRIORS, TERMS
-
+    component; calibrate=False keeps 1 and chooses the terms' prior as before. A component
+    that both flights over-cover keeps ``c = 1`` and has the prior's share narrowed instead
+    (:func:`_check_prior_share`)."""
     # two candidates keep the test's fits few; the rule is the same for any grid
     monkeypatch.setattr(fc, "BASIS_PRIOR_GRID", (0.01, 1.0))
     prior, a, b_ = _pushed_flights(synthetic_surrogate, flights)
@@ -857,37 +895,11 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     raw = fc.correct(prior, [a, b_], basis="physical", scale=False,
                      calibrate=False, basis_prior=f, **FIT)  # fmt: skip
     assert raw.config["flight_correction"]["basis_prior"]["factors"] == [f] * 6
-    X, Y, V = fc.training_rows(cal, Labels.concatenate([a, b_]))
-    Y, V = Y[:, j], V[:, j]
-    groups = np.repeat([0, 1], [half, len(flights) - half])
-    d = m.delta[j]
-    h = d.hyper
-    ls, s2, nu = np.asarray(h.lengthscale), float(h.variance), float(h.noise)
-    Y = Y - np.asarray(m.prior.predict_mean(X))[:, j]  # ρ = 1: the prior's mean moved over
-    Xj = jnp.asarray(X)
-    simple, phys = jax.vmap(m.basis)(Xj)[:, j], jax.vmap(m.explicit.physics)(Xj)[:, j]
-    H = np.column_stack([np.asarray(simple), np.asarray(phys)])
-    assert m.explicit.columns == ("simple", *TERMS)
-    sd = np.array([PRIORS[c] * (f if c in TERMS else 1.0) for c in m.explicit.columns])
-    np.testing.assert_array_equal(fc._chosen_prior(cal, False, True)[j], sd)  # fit_drift's
-    b = np.zeros(sd.size)
-    e2v = []
-    for g in (0, 1):
-        tr, te = groups != g, groups == g
-        Ki = np.linalg.inv(_rbf(X[tr], X[tr], s2, ls) + np.diag(V[tr] + nu))
-        A = np.diag(1 / sd**2) + H[tr].T @ Ki @ H[tr]
-        beta = np.linalg.solve(A, H[tr].T @ Ki @ Y[tr] + b / sd**2)
-        kq = _rbf(X[te], X[tr], s2, ls)
-        mean = H[te] @ beta + kq @ Ki @ (Y[tr] - H[tr] @ beta)
-        R = H[te] - kq @ Ki @ H[tr]
-        var = s2 - np.einsum("qn,nm,qm->q", kq, Ki, kq) + nu
-        var += np.einsum("qp,pr,qr->q", R, np.linalg.inv(A), R)
-        e2v.append(np.column_stack([(Y[te] - mean) ** 2, var, V[te]]))
-    e2, v, n = np.concatenate(e2v).T
-    # the prior's share of the band (ρ = 1) and its domain, at the labels (in the rows' order)
     lab = Labels.concatenate([a, b_])
+    groups = np.repeat([0, 1], [half, len(flights) - half])
+    e2, v, n, p = _held_out_reference(cal, prior, lab, groups, j)
+    # the prior's domain at the labels (in the rows' order)
     dom = np.asarray(prior.predict_batch(lab.rpm, lab.euler, lab.v_air).in_domain)
-    p = np.asarray(m.prior.predict(Xj)[1]) * float(m.prior.output_scale[j])
     assert 0 < dom.sum() < dom.size  # both kinds of label, so that the domain is read
     assert np.median(p / v) > 0.1  # a share the solve must not ignore
 
@@ -903,7 +915,9 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     assert 1.0 < c < own  # each flight misses the other's push; the prior's share covers some
     # the labels out of the domain left out of the solve: with them, another factor
     assert abs(factor(e2, v, n + p) - c) > 0.02 * c
-    np.testing.assert_allclose(float(d.output_scale[0]), c, rtol=1e-6)
+    np.testing.assert_allclose(float(m.delta[j].output_scale[0]), c, rtol=1e-6)
+    assert choice["prior_share"][j] == 1.0  # a flight under-covered: the prior's share kept
+    assert float(m.prior.output_scale[j]) == float(prior.model.output_scale[j])
     # the chosen candidate's score: the worse of the two held-out flights' mean negative log
     # Gaussian density under the discrepancy's own band
     s2o = own * v + n
@@ -946,6 +960,49 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     assert not np.any(np.abs(e2 / (1.959964**2 * (v + n + p)) - 1) < 1e-6)
     want = [inside1[:half].mean(), inside1[half:].mean()]
     np.testing.assert_allclose(mine["held_out_coverage95"][j], want, rtol=0, atol=1e-12)
+    _check_prior_share(cal, own, prior, lab, groups, dom)
+
+
+def _check_prior_share(cal, own, prior, lab, groups, dom):
+    """The component of ``cal`` with the least ``q``: every flight held out covered more widely
+    than its band says, so ``c = 1`` and the prior's share is narrowed by the largest over the
+    flights of the ``f`` at which that flight's mean ``e² / (f (v + p) + n)`` over its labels
+    in the domain is 1 (NumPy, by bisection); the prior's output scale times ``q`` there,
+    what :func:`fc.base` undoes exactly; ``own`` (calibrate=False) keeps the prior's."""
+    choice = cal.config["flight_correction"]["basis_prior"]
+    k = int(np.argmin(choice["prior_share"]))
+    q = choice["prior_share"][k]
+    assert fc.PRIOR_SHARE_FLOOR < q < 1.0 and choice["held_out_factor"][k] == 1.0
+    e2, v, n, p = _held_out_reference(cal, prior, lab, groups, k)
+
+    def root(i):  # mean(e² / (f (v + p) + n)) = 1 over the rows i, by bisection on log f
+        lo, hi = np.log(fc.PRIOR_SHARE_FLOOR), 0.0
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if np.mean(e2[i] / (np.exp(mid) * (v[i] + p[i]) + n[i])) > 1 else (
+                lo, mid)  # fmt: skip
+        return float(np.exp(lo))
+
+    fs = [root((groups == g) & dom) for g in (0, 1)]
+    assert fs[0] != pytest.approx(fs[1], rel=0.05)  # the larger one, not a pooled one
+    np.testing.assert_allclose(q, max(fs), rtol=1e-6)
+    inside = e2 <= 1.959964**2 * (v + q * p + n)  # c = 1
+    assert not np.any(np.abs(e2 / (1.959964**2 * (v + q * p + n)) - 1) < 1e-6)
+    want = [inside[groups == g].mean() for g in (0, 1)]
+    np.testing.assert_allclose(choice["held_out_coverage95"][k], want, rtol=0, atol=1e-12)
+    # the prior's share of the predicted band: q times the uncalibrated model's, per output
+    qs = np.ones(prior.model.n_outputs)
+    qs[:6] = cal.config["flight_correction"]["prior_share"]
+    os0 = np.asarray(prior.model.output_scale)
+    np.testing.assert_allclose(np.asarray(cal.model.prior.output_scale), os0 * qs, rtol=1e-12)
+    assert cal.config["flight_correction"]["prior_output_scale"] == os0.tolist()
+    np.testing.assert_array_equal(np.asarray(fc.base(cal).model.output_scale), os0)
+    xs = jnp.asarray(fc.training_rows(cal, lab)[0][:5])
+    parts = [jax.vmap(s.model.mean_var_one)(xs)[1] for s in (cal, own)]
+    got, ref = (s.model.variance_parts(v)["prior"] for s, v in zip((cal, own), parts, strict=True))
+    np.testing.assert_allclose(np.asarray(got), np.asarray(ref) * qs, rtol=1e-12)
+    assert own.config["flight_correction"]["prior_share"] is None
+    np.testing.assert_array_equal(np.asarray(own.model.prior.output_scale), os0)
 
 
 def test_thinned_labels_calibrated_as_the_labels_kept(synthetic_surrogate, flights, monkeypatch):
@@ -965,6 +1022,8 @@ def test_thinned_labels_calibrated_as_the_labels_kept(synthetic_surrogate, fligh
     got, want = np.array(got), np.array(want)
     assert got.max() > 1.0  # a factor that the domain and the band move
     np.testing.assert_allclose(got, want, rtol=1e-9)
+    shares = [m.config["flight_correction"]["prior_share"] for m in (thinned, own)]
+    np.testing.assert_allclose(*shares, rtol=1e-9)
     # shares of labels: a refit's rounding may move one label across its band's edge
     np.testing.assert_allclose(
         thinned.config["flight_correction"]["basis_prior"]["held_out_coverage95"],
