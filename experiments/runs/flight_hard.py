@@ -583,8 +583,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         jax.clear_caches()
     truth = _truth_parameters(real_cfg, base_cfg, h["real"])
     params = {k: {**v, "truth": truth.get(k)} for k, v in ident.parameters.items()}
-    P_F_real, _ = hover_coefficients(real, BEMTConfig())
-    P_F_id = float(ident.config["simple_model"]["thrust_coefficient"])
+    truth_coefficients = dict(zip(("thrust_coefficient", "torque_coefficient"),
+                                  hover_coefficients(real, BEMTConfig()), strict=True))  # fmt: skip
     thrust = _thrust_per_command(calm, (ident.vehicle, ident.physics, id_curve),
                                  (real, physics, sensors.curve))  # fmt: skip
     results = {
@@ -598,7 +598,10 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
             "steps": ident.steps,
             "converged": ident.converged,
             "residual_rms": ident.residual_rms.tolist(),
-            "thrust_coefficient": {"identified": P_F_id, "truth": P_F_real},
+            **{
+                k: {**c, "identified": c["value"], "truth": truth_coefficients[k]}
+                for k, c in ident.coefficients.items()
+            },
             "thrust_per_command": thrust,
         },
         "curve": dataclasses.asdict(curve),
@@ -983,9 +986,16 @@ def _report(res) -> str:
             f"file {p['nominal']:.4g}){'' if p['identified'] else ' NOT IDENTIFIED'}"
         )
     th = ident["thrust_per_command"]
+    for k in ("thrust_coefficient", "torque_coefficient"):
+        c = ident[k]
+        lines.append(
+            f"  {k} identified {c['identified']:.4g} ± {c['se']:.2g} (labels alone "
+            f"± {c['se_data']:.2g}), truth {c['truth']:.4g} "
+            f"({100 * (c['identified'] / c['truth'] - 1):+.1f} %, "
+            f"{(c['identified'] - c['truth']) / c['se']:+.1f} se)"
+        )
     lines.append(
-        f"  P_F identified {ident['thrust_coefficient']['identified']:.4g}, truth "
-        f"{ident['thrust_coefficient']['truth']:.4g}; thrust per rotor at the calm "
+        "  thrust per rotor at the calm "
         "flight's 10/50/90 % commands "
         + " / ".join(
             f"{a:.3g} N against {b:.3g} ({100 * e:+.1f} %)"

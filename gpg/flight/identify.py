@@ -146,6 +146,13 @@ class Identification:
         considered: the parameters held at the file's values whose uncertainty ``se``
             carries, with their standard deviations in the prior's units (``identify``'s
             ``consider``).
+        coefficients: ``M``'s ``thrust_coefficient`` (``P_F``, N/rpm²) and
+            ``torque_coefficient`` (``T_z``, N·m/rpm²) of the identified vehicle's hover, as
+            its file holds them, each with ``value``, ``se`` and ``se_data`` (through the
+            parameters' covariance and the considered ones' uncertainty, to first order),
+            ``nominal`` (the starting file's physics') and ``unit``. Per rotor speed of the
+            identified curve (:meth:`speeds`): with commands only the flights fix the thrust
+            per command, and ``se`` says how well that pins ``P_F``.
     """
 
     vehicle: Vehicle
@@ -162,6 +169,7 @@ class Identification:
     motor_exponent: float = 1.0
     rpm_ref: float = 1.0
     considered: dict[str, float] = field(default_factory=dict)
+    coefficients: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def curve(self, curve: MotorCurve) -> MotorCurve:
         """A motor curve with the identified gain and exponent applied (``motor.gain``,
@@ -274,6 +282,9 @@ class Identification:
                 f"{k:30s} {p['value']:12.5g} {p['se']:10.2g} {p['nominal']:12.5g} {p['unit']}"
                 + flag
             )
+        for k, p in self.coefficients.items():
+            lines.append(f"{k:30s} {p['value']:12.5g} {p['se']:10.2g} {p['nominal']:12.5g} "
+                         f"{p['unit']} (M's, of the identified hover)")  # fmt: skip
         if self.unidentified:
             lines.append("not identified by these flights: " + ", ".join(self.unidentified))
         if self.considered:
@@ -548,11 +559,12 @@ def identify(
     considered = _considered(consider, names)
     cfg0 = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
     veh0 = Vehicle.from_config(cfg0).require_generator()
-    physics = bemt.BEMTConfig() if physics is None else physics
+    physics0 = physics = bemt.BEMTConfig() if physics is None else physics
     fit, theta, model_var, steps, converged, info, weak = _fit_and_flag(
         veh0, physics, names, data, passes, max_steps
     )
-    se_theta, se_data = fit.standard_errors(theta, model_var, info, names, weak, considered)
+    cov, S = fit.covariances(theta, model_var, info, names, weak, considered)
+    se_theta, se_data = _errors(cov, S, considered)
     _warn(converged, max_steps, weak, names, se_theta / se_data, considered)
     theta[fit.free[_weak_mask(names, weak)]] = 0.0
     params, cfg, motor, physics = _identified_file(
@@ -574,6 +586,7 @@ def identify(
         motor_exponent=motor["motor.exponent"],
         rpm_ref=float(data["rpm_ref"]),
         considered=considered,
+        coefficients=_coefficients(veh0, physics0, theta, fit.free, (cov, S), considered, cfg),
     )
 
 
@@ -752,21 +765,21 @@ class _Fit:
         J = self.residuals(theta, model_var)[1][:, self.free]
         return J.T @ J
 
-    def standard_errors(self, theta, model_var, info, names, weak, considered):
-        """The free parameters' standard errors with the considered ones' uncertainty, and
-        the labels' alone (θ's units)."""
+    def covariances(self, theta, model_var, info, names, weak, considered):
+        """The free parameters' covariance from the labels alone and their estimate's linear
+        sensitivity to the considered parameters (θ's units): the covariance with the
+        considered ones' uncertainty is ``C + S Σ_c Sᵀ``."""
         cov = np.linalg.inv(info + np.diag(1.0 / self.sd_all[self.free] ** 2))
-        se_data = np.sqrt(np.diag(cov))
+        S = np.zeros((len(names), len(considered)))
         if considered:
-            cov = cov + self.consider_covariance(theta, model_var, info, names, weak, considered)
-        return np.sqrt(np.diag(cov)), se_data
+            S = self.consider_sensitivity(theta, model_var, info, names, weak, considered)
+        return cov, S
 
-    def consider_covariance(self, theta, model_var, info, names, weak, considered):
-        """What the considered parameters' uncertainty adds to the free ones' covariance:
-        ``S Σ_c Sᵀ`` with ``S = −(I + P)⁻¹ I_c`` the estimate's linear sensitivity to them
-        (``I_c`` the whitened Jacobians' cross-information, divided by the residuals'
-        correlation factor as ``I`` is; Tapley, Schutz and Born, chapter 6). The weak
-        parameters, held at the file's values, get none.
+    def consider_sensitivity(self, theta, model_var, info, names, weak, considered):
+        """``S = −(I + P)⁻¹ I_c``: the estimate's linear sensitivity to the considered
+        parameters (``I_c`` the whitened Jacobians' cross-information, divided by the
+        residuals' correlation factor as ``I`` is; Tapley, Schutz and Born, chapter 6). The
+        weak parameters, held at the file's values, get none.
 
         The derivatives along the considered parameters come from the fit's own compiled
         program: its directions hold as many columns as the fit frees, so the considered
@@ -788,10 +801,17 @@ class _Fit:
         Jt = self.residuals(theta, model_var)[1][:, self.free[keep]]
         factor = self.correlation_factor(theta, model_var)
         H = info[np.ix_(keep, keep)] + np.diag(1.0 / self.sd_all[self.free[keep]] ** 2)
-        S = -np.linalg.solve(H, Jt.T @ Jc / factor)
-        out = np.zeros((len(names), len(names)))
-        out[np.ix_(keep, keep)] = S @ np.diag(list(considered.values())) ** 2 @ S.T
+        out = np.zeros((len(names), len(idx)))
+        # Jt is the residuals' Jacobian (minus the loads'), Jc the loads': Jtᵀ Jc = −I_c.
+        out[keep] = np.linalg.solve(H, Jt.T @ Jc / factor)
         return out
+
+
+def _errors(cov: np.ndarray, S: np.ndarray, considered: Mapping[str, float]):
+    """The standard errors with the considered parameters' uncertainty, and the labels'
+    alone (θ's units)."""
+    sd_c = np.array(list(considered.values()), float)
+    return np.sqrt(np.diag(cov + (S * sd_c**2) @ S.T)), np.sqrt(np.diag(cov))
 
 
 def _identified_file(cfg0, names, theta, errors, weak, physics, rpm_ref):
@@ -836,6 +856,57 @@ def _identified_file(cfg0, names, theta, errors, weak, physics, rpm_ref):
     return params, cfg, motor, physics
 
 
+HOVER_RPM = np.arange(2000.0, 6001.0, 500.0)  # the hover sweep M's coefficients are fitted to
+
+
+@eqx.filter_jit
+@highest
+def _hover_jacobian(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: Float[Array, " P"]):
+    """``(P_F, T_z)`` of the hover sweep with ``θ`` applied (:func:`hover_coefficients`'
+    least squares, the wake gain's θ included) and their (2, P) Jacobian in ``θ``."""
+    rpm = jnp.asarray(HOVER_RPM)
+    r2 = jnp.repeat(rpm**2, 4)
+
+    def coefficients(th):
+        veh = _apply(vehicle, ALL, th)
+        wake = cfg.wake_gain * jnp.exp(th[ALL.index("generator.wake_gain")])
+
+        def one(r):
+            res = bemt.aero(veh, cfg, jnp.full(4, r), jnp.eye(3), jnp.zeros(3), wake_gain=wake)
+            return res.rotors.thrust, res.rotors.torque
+
+        T, Q = jax.vmap(one)(rpm)
+        out = jnp.stack([r2 @ T.ravel(), r2 @ Q.ravel()]) / (r2 @ r2)
+        return out, out
+
+    J, out = jax.jacfwd(coefficients, has_aux=True)(theta)
+    return out, J
+
+
+def _coefficients(veh0, physics, theta, free, covariances, considered, cfg):
+    """``M``'s coefficients of the identified file with standard errors, to first order:
+    ``g C gᵀ`` from the labels (``g`` their gradient in the free θ), plus ``(g S + g_c) Σ_c
+    (g S + g_c)ᵀ`` from the considered parameters, which move them directly (``g_c``: a
+    radius held fixed) and through the free ones' estimates (``S``): where the flights fix the
+    thrust, a chord that makes up for the radius leaves ``P_F`` where it was."""
+    cov, S = covariances
+    _, J = _hover_jacobian(veh0, physics, jnp.asarray(theta))
+    J = np.asarray(J)
+    g, g_c = J[:, free], J[:, [ALL.index(n) for n in considered]]
+    sd_c = np.array(list(considered.values()), float)
+    lever = g @ S + g_c
+    var_data = np.einsum("ip,pq,iq->i", g, cov, g)
+    var = var_data + np.einsum("ic,c,ic->i", lever, sd_c**2, lever)
+    nominal = hover_coefficients(veh0, physics)
+    out = {}
+    for i, (key, unit) in enumerate((("thrust_coefficient", "N/rpm²"),
+                                     ("torque_coefficient", "N·m/rpm²"))):  # fmt: skip
+        out[key] = {"value": float(cfg["simple_model"][key]), "se": float(np.sqrt(var[i])),
+                    "se_data": float(np.sqrt(var_data[i])), "nominal": float(nominal[i]),
+                    "unit": unit}  # fmt: skip
+    return out
+
+
 def _weak_mask(names: tuple[str, ...], weak: Sequence[str]) -> np.ndarray:
     """(P,) True for the parameters in ``weak``."""
     return np.array([n in weak for n in names])
@@ -876,6 +947,5 @@ def hover_coefficients(vehicle: Vehicle, cfg: bemt.BEMTConfig | None = None) -> 
     Returns:
         ``P_F`` (N/rpm²) and ``T_z`` (N·m/rpm²).
     """
-    rpm = np.arange(2000.0, 6001.0, 500.0)
-    T, Q = _hover(vehicle, bemt.BEMTConfig() if cfg is None else cfg, jnp.asarray(rpm))
-    return fit_coefficients(np.repeat(rpm, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())
+    T, Q = _hover(vehicle, bemt.BEMTConfig() if cfg is None else cfg, jnp.asarray(HOVER_RPM))
+    return fit_coefficients(np.repeat(HOVER_RPM, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())

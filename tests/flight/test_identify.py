@@ -22,7 +22,7 @@ from gpg.flight.identify import (
 from gpg.flight.labels import Labels, MotorCurve
 from gpg.flight.synthetic import perturbed
 from gpg.quadrotor import bemt
-from gpg.quadrotor.vehicle import load_vehicle, vehicle_config
+from gpg.quadrotor.vehicle import Vehicle, load_vehicle, vehicle_config
 
 # A coarser blade grid for the truth and the fit alike: the identification is checked, not
 # the physics' resolution (the inflow's iterations are the generator's: fewer do not converge).
@@ -240,23 +240,31 @@ def test_motor_curve_bend_and_wake_gain_recovered(identified):
     assert identified.config["motor"]["rpm_max"] == file_motor["rpm_max"]  # not freed: as given
 
 
-def test_considered_parameters_widen_the_errors_by_the_estimates_sensitivity(identified):
+RADIUS_STEP = 0.004  # log-factor: the radius of the fit that measures the estimate's sensitivity
+
+
+@pytest.fixture(scope="module")
+def shifted():
+    """The fixture's fit again with the file's radius ``RADIUS_STEP`` (log) larger, nothing
+    considered: the difference is the estimate's sensitivity to the radius."""
+    lab = _labels(_theta(TRUE), N, seed=0)
+    cfg = vehicle_config("sui_endurance")
+    cfg["rotor"]["radius"] *= math.exp(RADIUS_STEP)
+    return identify(lab, cfg, free=tuple(TRUE), physics=PHYSICS, max_steps=30, passes=2)
+
+
+def test_considered_parameters_widen_the_errors_by_the_estimates_sensitivity(identified, shifted):
     """A parameter held at the file's value with a standard deviation (``consider``, the
     fixture's radius): each free parameter's variance grows by ``(s σ)²``, ``s`` the
     estimate's sensitivity to it, here checked against the difference of a fit whose file
     holds the radius 0.4 % larger; the summary names it."""
-    lab = _labels(_theta(TRUE), N, seed=0)
-    h = 0.004
-    cfg = vehicle_config("sui_endurance")
-    cfg["rotor"]["radius"] *= math.exp(h)
-    shifted = identify(lab, cfg, free=tuple(TRUE), physics=PHYSICS, max_steps=30,
-                       passes=2).parameters  # fmt: skip
+    h = RADIUS_STEP
     assert identified.considered == {"rotor.radius": CONSIDER_SD}
     assert "rotor.radius (sd 0.02" in identified.summary()
     moved = []
     for name in TRUE:
         p = identified.parameters[name]
-        s = math.log(shifted[name]["value"] / p["value"]) / h
+        s = math.log(shifted.parameters[name]["value"] / p["value"]) / h
         extra = (p["se"] / p["value"]) ** 2 - (p["se_data"] / p["value"]) ** 2
         # One-sided: the curvature's O(h) share (6 % at h = 0.01, 2.5 % here: it halves with
         # h), the fits' 1e-4 convergence in θ (under 1 % of s h) and the refitted model-error
@@ -264,6 +272,45 @@ def test_considered_parameters_widen_the_errors_by_the_estimates_sensitivity(ide
         assert math.sqrt(extra) == pytest.approx(abs(s) * CONSIDER_SD, rel=0.1), (name, s)
         moved.append(abs(s) * h)
     assert max(moved) > 0.01  # the radius matters here: the check can fail
+
+
+def _hover_of(config, chord=0.0, radius=0.0):
+    """``(P_F, T_z)`` of a vehicle file with its chord and radius scaled by ``e^chord`` and
+    ``e^radius``, through the file and the public hover fit."""
+    cfg = {**config, "rotor": dict(config["rotor"])}
+    cfg["rotor"]["chord_in"] = [c * math.exp(chord) for c in cfg["rotor"]["chord_in"]]
+    cfg["rotor"]["radius"] = cfg["rotor"]["radius"] * math.exp(radius)
+    return np.array(hover_coefficients(Vehicle.from_config(cfg), PHYSICS))
+
+
+def test_coefficients_carry_the_parameters_errors(identified, shifted):
+    """``M``'s coefficients of the identified file with standard errors: the labels' part is
+    the chord's error through the hover's slope in it (the drag areas do not enter a hover),
+    and the considered radius's part goes through its direct effect and the chord's response
+    to it, which cancel where the labels fix the thrust: ``P_F``'s error is then far under
+    what the chord's error alone implies. References: central differences of the public
+    hover fit of the written file and the refit's sensitivity."""
+    e = 1e-3
+    g_c = (_hover_of(identified.config, chord=e) - _hover_of(identified.config, chord=-e)) / (2 * e)
+    g_r = (_hover_of(identified.config, radius=e) - _hover_of(identified.config, radius=-e)) / (
+        2 * e
+    )
+    chord = identified.parameters["rotor.chord"]
+    s = math.log(shifted.parameters["rotor.chord"]["value"] / chord["value"]) / RADIUS_STEP
+    nominal = hover_coefficients(load_vehicle("sui_endurance"), PHYSICS)
+    for i, key in enumerate(("thrust_coefficient", "torque_coefficient")):
+        c = identified.coefficients[key]
+        assert c["value"] == identified.config["simple_model"][key]
+        assert c["value"] == pytest.approx(_hover_of(identified.config)[i], rel=1e-12)
+        assert c["nominal"] == pytest.approx(nominal[i], rel=1e-12)
+        # The difference's O(e²) truncation (1e-6 here) and the inflow's fixed iterations.
+        assert c["se_data"] == pytest.approx(abs(g_c[i]) * chord["se_data"] / chord["value"],
+                                             rel=1e-4)  # fmt: skip
+        lever = math.sqrt(c["se"] ** 2 - c["se_data"] ** 2) / CONSIDER_SD
+        # s is held to 10 % in the test above: that much of g_c s, in the difference
+        assert abs(lever - abs(g_c[i] * s + g_r[i])) <= 0.1 * abs(g_c[i] * s), (key, lever)
+        assert c["se"] < 0.25 * abs(g_c[i]) * chord["se"] / chord["value"]  # the cancellation
+    assert "thrust_coefficient" in identified.summary()
 
 
 def test_errors_owed_to_the_considered_parameters_named(identified_and_warnings):

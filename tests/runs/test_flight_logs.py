@@ -155,6 +155,9 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     load_vehicle(tmp_path / "identified_vehicle.yaml").require_generator()
     assert len(res["wind"]) == 4 and all(np.isfinite(w["rms_error"]) for w in res["wind"])
     assert set(res["identification"]["parameters"]) == set(cfg["hard"]["identify"]["free"])
+    for k in ("thrust_coefficient", "torque_coefficient"):  # M's, with standard errors
+        c = res["identification"][k]
+        assert c["truth"] > 0 and 0 < c["se_data"] <= c["se"] < c["identified"]
     ad = res["adaptation"]
     assert [r["test"] for r in ad["tests"]] == ["steady", "gust"] and finite_numbers(ad["tests"])
     assert ad["tracked_update"]["bytes_start"] == ad["tracked_update"]["bytes_end"]
