@@ -857,30 +857,30 @@ def _identified_file(cfg0, names, theta, errors, weak, physics, rpm_ref):
 
 
 HOVER_RPM = np.arange(2000.0, 6001.0, 500.0)  # the hover sweep M's coefficients are fitted to
+# θ's units: a central difference errs by O(step²) of the hover's curvature (1e-8 relative),
+# its rounding by float64's 1e-16 over the step (1e-12)
+HOVER_STEP = 1e-4
 
 
-@eqx.filter_jit
-@highest
-def _hover_jacobian(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: Float[Array, " P"]):
-    """``(P_F, T_z)`` of the hover sweep with ``θ`` applied (:func:`hover_coefficients`'
-    least squares, the wake gain's θ included) and their (2, P) Jacobian in ``θ``."""
-    rpm = jnp.asarray(HOVER_RPM)
-    r2 = jnp.repeat(rpm**2, 4)
+def _hover_theta(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: np.ndarray) -> np.ndarray:
+    """``(P_F, T_z)`` of the hover sweep with ``θ`` applied (the wake gain's included)."""
+    T, Q = _hover(vehicle, cfg, jnp.asarray(HOVER_RPM), jnp.asarray(theta, float))
+    return np.array(fit_coefficients(np.repeat(HOVER_RPM, 4), np.asarray(T).ravel(),
+                                     np.asarray(Q).ravel()))  # fmt: skip
 
-    def coefficients(th):
-        veh = _apply(vehicle, ALL, th)
-        wake = cfg.wake_gain * jnp.exp(th[ALL.index("generator.wake_gain")])
 
-        def one(r):
-            res = bemt.aero(veh, cfg, jnp.full(4, r), jnp.eye(3), jnp.zeros(3), wake_gain=wake)
-            return res.rotors.thrust, res.rotors.torque
-
-        T, Q = jax.vmap(one)(rpm)
-        out = jnp.stack([r2 @ T.ravel(), r2 @ Q.ravel()]) / (r2 @ r2)
-        return out, out
-
-    J, out = jax.jacfwd(coefficients, has_aux=True)(theta)
-    return out, J
+def _hover_gradient(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: np.ndarray, columns):
+    """(2, C) derivatives of ``(P_F, T_z)`` in θ's ``columns``, by central differences of the
+    compiled hover sweep (0.25 s for nine columns): the sweep's derivative by ``jax.jacfwd``
+    compiled for 7.6 s, a fifth of the hard benchmark's identification, for a first-order
+    error that a difference gives to 1e-8."""
+    out = np.zeros((2, len(columns)))
+    for k, j in enumerate(columns):
+        step = np.zeros(len(ALL))
+        step[j] = HOVER_STEP
+        out[:, k] = (_hover_theta(vehicle, cfg, theta + step)
+                     - _hover_theta(vehicle, cfg, theta - step)) / (2 * HOVER_STEP)  # fmt: skip
+    return out
 
 
 def _coefficients(veh0, physics, theta, free, covariances, considered, cfg):
@@ -890,9 +890,8 @@ def _coefficients(veh0, physics, theta, free, covariances, considered, cfg):
     radius held fixed) and through the free ones' estimates (``S``): where the flights fix the
     thrust, a chord that makes up for the radius leaves ``P_F`` where it was."""
     cov, S = covariances
-    _, J = _hover_jacobian(veh0, physics, jnp.asarray(theta))
-    J = np.asarray(J)
-    g, g_c = J[:, free], J[:, [ALL.index(n) for n in considered]]
+    g = _hover_gradient(veh0, physics, theta, free)
+    g_c = _hover_gradient(veh0, physics, theta, [ALL.index(n) for n in considered])
     sd_c = np.array(list(considered.values()), float)
     lever = g @ S + g_c
     var_data = np.einsum("ip,pq,iq->i", g, cov, g)
@@ -928,9 +927,13 @@ def _weak_parameters(info: np.ndarray, sd: np.ndarray, names: tuple[str, ...]) -
 
 @eqx.filter_jit  # one compiled program: op by op, the sweep took seconds every call
 @highest
-def _hover(vehicle: Vehicle, cfg: bemt.BEMTConfig, rpm: Float[Array, " S"]):
+def _hover(vehicle: Vehicle, cfg: bemt.BEMTConfig, rpm: Float[Array, " S"], theta):
+    """Each rotor's thrust and torque at hover at each speed, ``θ`` applied (zeros: none)."""
+    vehicle = _apply(vehicle, ALL, theta)
+    wake = cfg.wake_gain * jnp.exp(theta[ALL.index("generator.wake_gain")])
+
     def one(r):
-        res = bemt.aero(vehicle, cfg, jnp.full(4, r), jnp.eye(3), jnp.zeros(3))
+        res = bemt.aero(vehicle, cfg, jnp.full(4, r), jnp.eye(3), jnp.zeros(3), wake_gain=wake)
         return res.rotors.thrust, res.rotors.torque
 
     return jax.vmap(one)(rpm)
@@ -947,5 +950,7 @@ def hover_coefficients(vehicle: Vehicle, cfg: bemt.BEMTConfig | None = None) -> 
     Returns:
         ``P_F`` (N/rpm²) and ``T_z`` (N·m/rpm²).
     """
-    T, Q = _hover(vehicle, bemt.BEMTConfig() if cfg is None else cfg, jnp.asarray(HOVER_RPM))
+    cfg = bemt.BEMTConfig() if cfg is None else cfg
+    # θ = 0 traced, as where the coefficients' derivatives are taken: one compiled sweep
+    T, Q = _hover(vehicle, cfg, jnp.asarray(HOVER_RPM), jnp.zeros(len(ALL)))
     return fit_coefficients(np.repeat(HOVER_RPM, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())
