@@ -871,9 +871,9 @@ def _hover_theta(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: np.ndarray) -> n
 
 def _hover_gradient(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: np.ndarray, columns):
     """(2, C) derivatives of ``(P_F, T_z)`` in θ's ``columns``, by central differences of the
-    compiled hover sweep (0.25 s for nine columns): the sweep's derivative by ``jax.jacfwd``
-    compiled for 7.6 s, a fifth of the hard benchmark's identification, for a first-order
-    error that a difference gives to 1e-8."""
+    compiled hover sweep: ``jax.jacfwd`` through it compiles a program of its own, a large
+    share of an identification's time (the design notes), for a first-order error that a
+    difference gives to 1e-8."""
     out = np.zeros((2, len(columns)))
     for k, j in enumerate(columns):
         step = np.zeros(len(ALL))
