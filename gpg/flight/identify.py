@@ -862,11 +862,10 @@ HOVER_RPM = np.arange(2000.0, 6001.0, 500.0)  # the hover sweep M's coefficients
 HOVER_STEP = 1e-4
 
 
-def _hover_theta(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: np.ndarray) -> np.ndarray:
+def _hover_fit(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta) -> tuple[float, float]:
     """``(P_F, T_z)`` of the hover sweep with ``θ`` applied (the wake gain's included)."""
-    T, Q = _hover(vehicle, cfg, jnp.asarray(HOVER_RPM), jnp.asarray(theta, float))
-    return np.array(fit_coefficients(np.repeat(HOVER_RPM, 4), np.asarray(T).ravel(),
-                                     np.asarray(Q).ravel()))  # fmt: skip
+    T, Q = _hover(vehicle, cfg, jnp.asarray(HOVER_RPM), theta)
+    return fit_coefficients(np.repeat(HOVER_RPM, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())
 
 
 def _hover_gradient(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: np.ndarray, columns):
@@ -878,8 +877,9 @@ def _hover_gradient(vehicle: Vehicle, cfg: bemt.BEMTConfig, theta: np.ndarray, c
     for k, j in enumerate(columns):
         step = np.zeros(len(ALL))
         step[j] = HOVER_STEP
-        out[:, k] = (_hover_theta(vehicle, cfg, theta + step)
-                     - _hover_theta(vehicle, cfg, theta - step)) / (2 * HOVER_STEP)  # fmt: skip
+        up, down = (np.array(_hover_fit(vehicle, cfg, jnp.asarray(theta + s)))
+                    for s in (step, -step))  # fmt: skip
+        out[:, k] = (up - down) / (2 * HOVER_STEP)
     return out
 
 
@@ -950,7 +950,5 @@ def hover_coefficients(vehicle: Vehicle, cfg: bemt.BEMTConfig | None = None) -> 
     Returns:
         ``P_F`` (N/rpm²) and ``T_z`` (N·m/rpm²).
     """
-    cfg = bemt.BEMTConfig() if cfg is None else cfg
     # θ = 0 traced, as where the coefficients' derivatives are taken: one compiled sweep
-    T, Q = _hover(vehicle, cfg, jnp.asarray(HOVER_RPM), jnp.zeros(len(ALL)))
-    return fit_coefficients(np.repeat(HOVER_RPM, 4), np.asarray(T).ravel(), np.asarray(Q).ravel())
+    return _hover_fit(vehicle, bemt.BEMTConfig() if cfg is None else cfg, jnp.zeros(len(ALL)))
