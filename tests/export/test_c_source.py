@@ -66,7 +66,7 @@ def test_exported_c_equals_predict(tmp_path, kind, dtype):
     sur = fitted(kind)
     out, call = compiled(sur, tmp_path, dtype)
     rpm, euler, v = states(50, 1, body=sur.frame == "body")
-    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    ref = sur.predict_batch(rpm, euler, v)
     if sur.frame == "body":  # no frame rate: in_domain is the rotor box and the ball
         rate = np.zeros(len(rpm))
     else:
@@ -211,7 +211,7 @@ def test_converted_data_export_with_their_directions(tmp_path):
     assert sur.model.local.bases is not None
     _, call = compiled(sur, tmp_path, "double")
     rpm, euler, v = states(20, 3, body=True)
-    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    ref = sur.predict_batch(rpm, euler, v)
     for i in range(len(rpm)):
         ok, f, t, _, var = call(rpm[i], euler[i], v[i])
         assert rel_err(f, ref.force[i]) <= 1e-10 and rel_err(t, ref.torque[i]) <= 1e-10

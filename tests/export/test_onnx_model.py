@@ -91,7 +91,7 @@ def assert_equals_predict(sur, got, rpm, euler, v):
     included), and the last products are float32 (16 u). ``in_domain`` equal except within
     1e-3 of the frame-rate threshold (a float32 central difference) or 1e-5 of a box face
     (or of the body frame's ball)."""
-    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    ref = sur.predict_batch(rpm, euler, v)
     for key in ("force", "torque", "levels"):
         assert np.all(rel_err(got[key], getattr(ref, key)) <= 1e-5), key
     want_var = np.asarray(ref.variance)

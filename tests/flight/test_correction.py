@@ -221,8 +221,9 @@ def test_corrected_checkpoint_and_export(corrected, regression, flights, tmp_pat
 
     path = checkpoint.save(tmp_path / "c", corrected)
     back = checkpoint.load(path)
-    a = corrected.predict_batch(flights.rpm[:9], flights.euler[:9], flights.v_air[:9])
-    b = back.predict_batch(flights.rpm[:9], flights.euler[:9], flights.v_air[:9])
+    # at every label: the batch other tests predict, so that its program is compiled once
+    a = corrected.predict_batch(flights.rpm, flights.euler, flights.v_air)
+    b = back.predict_batch(flights.rpm, flights.euler, flights.v_air)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
     assert "flight_correction" in checkpoint.read_metadata(path)
@@ -301,7 +302,7 @@ def _exports_equal_predict(sur, flights, tmp_path, dtype, *, n=40, n_casadi=8, j
 
     u32 = 2.0**-24
     rpm, euler, v = (np.asarray(a, np.float32).astype(float) for a in _export_states(flights, n))
-    ref = jax.jit(jax.vmap(sur.predict))(rpm, euler, v)
+    ref = sur.predict_batch(rpm, euler, v)
     want_var = np.asarray(ref.variance)
     vtol = variance_rtol(fc.base(sur), rpm, euler, v, None if dtype == "double" else u32)
     out, call = compiled(sur, tmp_path, dtype)
@@ -552,7 +553,7 @@ def test_shared_band_takes_the_online_prior_out_of_the_offline_band(corrected, f
     st = State()
     lib.model_online_init(ctypes.byref(st))  # the exported state: the updated one
     rpm, euler, v = _export_states(flights, 12)
-    ref = jax.jit(jax.vmap(s_run.predict))(rpm, euler, v)
+    ref = s_run.predict_batch(rpm, euler, v)
     _, var, ok = _c_predict(lib.model_online_predict, st, rpm, euler, v)
     np.testing.assert_array_equal(ok, np.asarray(ref.in_domain))
     np.testing.assert_allclose(var[:, :6], ref.variance[:, :6], rtol=1e-7)
@@ -563,8 +564,8 @@ def test_shared_band_takes_the_online_prior_out_of_the_offline_band(corrected, f
 
     u32 = 2.0**-24
     rpm, euler, v = (np.asarray(a, np.float32).astype(float) for a in (rpm, euler, v))
-    ref = jax.jit(jax.vmap(s_run.predict))(rpm, euler, v)
-    offline = jax.vmap(corrected.predict)(rpm, euler, v)
+    ref = s_run.predict_batch(rpm, euler, v)
+    offline = corrected.predict_batch(rpm, euler, v)
     scale = np.asarray(ref.variance) + np.asarray(offline.variance)
     pytest.importorskip("casadi")
     f = to_casadi(s_run)
@@ -1336,7 +1337,7 @@ def test_online_update_in_c_equals_jax(corrected, flights, tmp_path):
     assert lib.model_online_update(ctypes.byref(st), ctypes.c_double(1e4), *a) == 0
     assert np.array_equal(np.ctypeslib.as_array(st.mean), before) and st.t == float(o.t)
     rpm, euler, v = _export_states(flights, 8)
-    ref = jax.jit(jax.vmap(final.predict))(rpm, euler, v)
+    ref = final.predict_batch(rpm, euler, v)
     assert_c_predicts(lib.model_online_predict, st, ref, rpm, euler, v, 1e-7)
     # the example loop on the first minute, each prediction made before its update
     csv = tmp_path / "labels.csv"
