@@ -63,7 +63,7 @@ from gpg._precision import highest
 from gpg.flight.labels import Labels, MotorCurve
 from gpg.quadrotor import bemt
 from gpg.quadrotor.frames import R_WB
-from gpg.quadrotor.simple_model import fit_coefficients
+from gpg.quadrotor.simple_model import HOVER_RPM, fit_coefficients
 from gpg.quadrotor.vehicle import Vehicle, vehicle_config
 
 __all__ = [
@@ -856,7 +856,6 @@ def _identified_file(cfg0, names, theta, errors, weak, physics, rpm_ref):
     return params, cfg, motor, physics
 
 
-HOVER_RPM = np.arange(2000.0, 6001.0, 500.0)  # the hover sweep M's coefficients are fitted to
 # θ's units: a central difference errs by O(step²) of the hover's curvature (1e-8 relative),
 # its rounding by float64's 1e-16 over the step (1e-12)
 HOVER_STEP = 1e-4

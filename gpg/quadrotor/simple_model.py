@@ -34,6 +34,11 @@ if TYPE_CHECKING:
 
 __all__ = ["SimpleModel", "fit_to_generator", "hover_sweep"]
 
+# fit_to_generator's default sweep, rpm: the paper's hover condition and its margins (also
+# the sweep gpg.flight.identify fits an identified vehicle's coefficients to)
+HOVER_RPM = np.arange(2000.0, 6001.0, 500.0)
+HOVER_RPM.setflags(write=False)  # shared by every default fit: no caller may change it
+
 
 class SimpleModel(eqx.Module):
     """``M``: thrust and drag-torque coefficients plus the rotor layout (body FRD)."""
@@ -248,7 +253,7 @@ def fit_to_generator(
     Returns:
         ``M`` of the generator's vehicle with the fitted ``P_F`` and ``T_z``.
     """
-    rpm = np.arange(2000.0, 6001.0, 500.0) if rpm is None else np.asarray(rpm, dtype=float)
+    rpm = HOVER_RPM if rpm is None else np.asarray(rpm, dtype=float)
     T, Q = hover_sweep(generator, rpm)
     P_F, T_z = fit_coefficients(np.repeat(rpm, 4), T.ravel(), Q.ravel())
     return SimpleModel.from_vehicle(generator.vehicle, P_F, T_z)
