@@ -43,7 +43,11 @@ identified model adapted by the inducing-point term and by its tracked coefficie
 inducing-point term on ``corrected_regression`` (:func:`today_rows`), each reading the labels
 and every sample of the log.
 
-Also: the identified parameters against the truth, the wind estimates' RMS error per training
+Also: the identified parameters against the truth; the identification again from the same
+training flights, once with the ESC telemetry's rotor speeds in their logs
+(``hard.with_speeds``, written as ``logs/<flight>_esc.csv``) and once with the commands read
+through a motor curve measured on a bench (``hard.bench_curve``) in place of the hover's: what
+each tells that the commands and a hover cannot; the wind estimates' RMS error per training
 flight, and the seconds each stage took.
 """
 
@@ -69,9 +73,9 @@ from gpg.data.cache import ensure
 from gpg.flight import correction as fc
 from gpg.flight.bank import adapt_bank
 from gpg.flight.forgetting import fit_bank, fit_forgetting
-from gpg.flight.identify import hover_coefficients, identify, physics_loads
+from gpg.flight.identify import Identification, hover_coefficients, identify, physics_loads
 from gpg.flight.labels import Labels, MotorCurve, label
-from gpg.flight.log import FlightLogWarning, read_csv, write_csv
+from gpg.flight.log import FlightLog, FlightLogWarning, read_csv, write_csv
 from gpg.flight.synthetic import Flight, Sensors, figure_eight, fly, perturbed_config, random_plan
 from gpg.flight.tracking import fit_drift, gusts, prequential, score_drift, track
 from gpg.flight.wind import estimate_wind, wind_variance, with_wind
@@ -100,7 +104,23 @@ class _Test:
     wind_sd: np.ndarray | None = None
 
 
-def _flight(h, real, ctrl, physics, sensors, name, wind: Wind, kind, seed, logs, wind_in_log):
+def _flight(
+    h,
+    real,
+    ctrl,
+    physics,
+    sensors,
+    name,
+    wind: Wind,
+    kind,
+    seed,
+    logs,
+    wind_in_log,
+    esc: bool = False,
+) -> tuple[Flight, FlightLog | None]:
+    """One flight of ``kind`` read back from its CSV log as ``sensors`` record it; with ``esc``
+    also the same flight's log with the ESC telemetry's rotor speeds (``<name>_esc.csv``).
+    The telemetry's noise is drawn whether or not it is logged: both logs are of one flight."""
     dur = float(h["flight_s"])
     rng = np.random.default_rng(seed)
     if kind == "eight":
@@ -120,10 +140,12 @@ def _flight(h, real, ctrl, physics, sensors, name, wind: Wind, kind, seed, logs,
         r = h["random_walk"]
         plan = random_plan(rng, dur, box=float(r["box"]), step=tuple(r["step"]),
                            leg_time=tuple(r["leg_time"]))  # fmt: skip
-    f = fly(real, ctrl, plan, wind, dur, sensors=sensors, seed=seed, bemt_config=physics,
+    recorded = dataclasses.replace(sensors, rpm_logged=sensors.rpm_logged or esc)
+    f = fly(real, ctrl, plan, wind, dur, sensors=recorded, seed=seed, bemt_config=physics,
             name=name, wind_in_log=wind_in_log)  # fmt: skip
-    path = write_csv(f.log, logs / f"{name}.csv")
-    return dataclasses.replace(f, log=read_csv(path))
+    log = f.log if sensors.rpm_logged else f.log.replace(rpm=None)
+    flight = dataclasses.replace(f, log=read_csv(write_csv(log, logs / f"{name}.csv")))
+    return flight, (read_csv(write_csv(f.log, logs / f"{name}_esc.csv")) if esc else None)
 
 
 def _test(name: str, f: Flight, user, simple, opts, gust) -> _Test:
@@ -171,6 +193,55 @@ def _thrust_per_command(calm: Flight, identified, truth) -> dict[str, list[float
         out[key] = (-np.asarray(loads)[:, 2] / 4).tolist()
     out["relative_error"] = (np.array(out["identified"]) / out["truth"] - 1).tolist()
     return out
+
+
+def _identify_with_speeds(esc_logs, user, user_cfg, simple, h) -> Identification:
+    """:func:`gpg.flight.identify` on the training flights' logs with the ESC telemetry's
+    rotor speeds (``hard.with_speeds``): no motor curve between the commands and the speeds,
+    so no ``motor.*`` parameter is free, and the labels' delay is estimated."""
+    labels = [label(log, user, reference=simple, rate=float(h["label_rate"]), source="velocity")
+              for log in esc_logs]  # fmt: skip
+    return _identify_variant(labels, user_cfg, h["with_speeds"], h["identify"])
+
+
+def _bench_curve(spec, sensors: Sensors, user: Vehicle, seed: int) -> MotorCurve:
+    """The real motors' curve as a bench measures it (``hard.bench_curve``): a tachometer's
+    steady speeds at each command, ``readings`` times with a relative ``noise``, at the
+    supply's ``voltage``, fitted by :meth:`MotorCurve.fit_speeds` with the motors' lag
+    (``time_constant``; None: the vehicle file's): a bench curve is static, the flights'
+    rotors lag it."""
+    rng = np.random.default_rng(seed)
+    u = np.repeat(np.asarray(spec["commands"], float), int(spec["readings"]))[:, None]
+    u = u * np.ones((1, 4))
+    volt = np.full(u.shape[0], float(spec["voltage"]))
+    rpm = sensors.curve.rpm(u, volt) * (1 + float(spec["noise"]) * rng.normal(size=u.shape))
+    tau = spec.get("time_constant")
+    tau = float(user.motor_time_constant) if tau is None else float(tau)
+    return MotorCurve.fit_speeds(u, rpm, volt, time_constant=tau)
+
+
+def _identify_variant(labels, user_cfg, spec, idc) -> Identification:
+    """:func:`gpg.flight.identify` with a variant's ``free`` and ``consider`` (``spec``), the
+    main identification's label count and steps (``idc``)."""
+    return identify(labels, user_cfg, free=tuple(spec["free"]),
+                    max_labels=int(idc["max_labels"]), max_steps=int(idc["max_steps"]),
+                    consider=dict(spec.get("consider") or {}))  # fmt: skip
+
+
+def _identification(ident: Identification, truth: dict[str, float]) -> dict[str, Any]:
+    """An identification for ``results.json``: each parameter and ``M``'s coefficients with
+    its standard errors and the real vehicle's value (``truth``; None where it has none)."""
+    return {
+        "parameters": {k: {**v, "truth": truth.get(k)} for k, v in ident.parameters.items()},
+        "unidentified": list(ident.unidentified),
+        "steps": ident.steps,
+        "converged": ident.converged,
+        "residual_rms": ident.residual_rms.tolist(),
+        **{
+            k: {**c, "identified": c["value"], "truth": truth[k]}
+            for k, c in ident.coefficients.items()
+        },
+    }
 
 
 def _at_labels(f: Flight, lab: Labels):
@@ -310,9 +381,10 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     # Training flights: each wind, a figure-eight and a random walk; the wind known (a tunnel).
     plan = [(w, kind) for w in h["train_winds"] for kind in ("eight", "walk")]
     bar = tqdm(total=len(plan) + 2, desc="flying", disable=not progress)
-    train = []
+    train, esc_logs = [], []
+    with_speeds = h.get("with_speeds")
     for i, (w, kind) in enumerate(plan):
-        f = _flight(
+        f, esc = _flight(
             h,
             real,
             ctrl,
@@ -324,19 +396,21 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
             seed + i,
             logs,
             True,
+            esc=bool(with_speeds),
         )
         train.append((float(w), f))
+        esc_logs.append(esc)
         bar.update()
     gust = h["gust"]
     tests_raw = {
         "steady": _flight(h, real, ctrl, physics, sensors, "test_steady",
                           Wind.constant(np.array([float(h["test_wind"]), 0.0, 0.0])), "eight",
-                          seed + 100, logs, True),
+                          seed + 100, logs, True)[0],
         "gust": _flight(h, real, ctrl, physics, sensors, "test_gust",
                         Wind(np.array([float(gust["mean"]), 0.0, 0.0]),
                              np.array([float(gust["amplitude"]), 0.0, 0.0]),
                              np.asarray(float(gust["period_s"])), np.asarray(0.0)),
-                        "eight", seed + 101, logs, True),
+                        "eight", seed + 101, logs, True)[0],
     }  # fmt: skip
     bar.update(2)
     bar.close()
@@ -350,7 +424,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     def labelled(c: MotorCurve, veh: Vehicle = user) -> tuple[list[Labels], dict[str, _Test]]:
         opts = {"rate": float(h["label_rate"]), "source": "velocity", "curve": c}
         with warnings.catch_warnings():  # the curve's range is the hover's: counted, not news
-            warnings.filterwarnings("ignore", "command.*extrapolated", FlightLogWarning)
+            warnings.filterwarnings("ignore", r".*command.*extrapolated", FlightLogWarning)
             return [label(f.log, veh, reference=simple, **opts) for _, f in train], {
                 name: _test(name, f, veh, simple, opts, gust) for name, f in tests_raw.items()
             }
@@ -385,7 +459,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     stream_opts = {"rate": float(st["rate"]), "source": "velocity", "curve": id_curve,
                    "saturation": float(st["saturation"])}  # fmt: skip
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "command.*extrapolated", FlightLogWarning)
+        warnings.filterwarnings("ignore", r".*command.*extrapolated", FlightLogWarning)
         id_streams = {name: _test(name, f, ident.vehicle, simple, stream_opts, gust)
                       for name, f in tests_raw.items()}  # fmt: skip
         # the same samples through the hover curve and the user's file: today's route
@@ -398,6 +472,22 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
             id_train_streams = [label(f.log, ident.vehicle, reference=simple, **stream_opts)
                                 for _, f in train]  # fmt: skip
     stages["identify_s"] = time.perf_counter() - t1
+    # The same training flights with their ESC telemetry: what logging the rotor speeds tells
+    # that commands cannot (with commands only, the curve's gain and P_F trade).
+    speeds_ident = None
+    if with_speeds:
+        t1 = time.perf_counter()
+        speeds_ident = _identify_with_speeds(esc_logs, user, user_cfg, simple, h)
+        stages["identify_speeds_s"] = time.perf_counter() - t1
+    # The same commands through a curve measured on the bench, in place of the hover's.
+    bench = None
+    if h.get("bench_curve"):
+        t1 = time.perf_counter()
+        b_curve = _bench_curve(h["bench_curve"], sensors, user, seed + 200)
+        b_labels, _ = labelled(b_curve)
+        b_ident = _identify_variant(b_labels, user_cfg, h["bench_curve"], idc)
+        bench = (b_curve, b_ident)
+        stages["identify_bench_s"] = time.perf_counter() - t1
 
     data_cfg = conf.load(h["data"], "data")
     half = bool(h.get("half_turn", False))
@@ -581,10 +671,9 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         row["noise_floor"] = float(np.mean(np.sum(test.labels.force_var, 1)))
         rows.append(row)
         jax.clear_caches()
-    truth = _truth_parameters(real_cfg, base_cfg, h["real"])
-    params = {k: {**v, "truth": truth.get(k)} for k, v in ident.parameters.items()}
-    truth_coefficients = dict(zip(("thrust_coefficient", "torque_coefficient"),
-                                  hover_coefficients(real, BEMTConfig()), strict=True))  # fmt: skip
+    truth = {**_truth_parameters(real_cfg, base_cfg, h["real"]),
+             **dict(zip(("thrust_coefficient", "torque_coefficient"),
+                        hover_coefficients(real, BEMTConfig()), strict=True))}  # fmt: skip
     thrust = _thrust_per_command(calm, (ident.vehicle, ident.physics, id_curve),
                                  (real, physics, sensors.curve))  # fmt: skip
     results = {
@@ -592,17 +681,20 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         "machine": machine(),
         "tests": rows,
         "adaptation": adaptive,
-        "identification": {
-            "parameters": params,
-            "unidentified": list(ident.unidentified),
-            "steps": ident.steps,
-            "converged": ident.converged,
-            "residual_rms": ident.residual_rms.tolist(),
-            **{
-                k: {**c, "identified": c["value"], "truth": truth_coefficients[k]}
-                for k, c in ident.coefficients.items()
-            },
-            "thrust_per_command": thrust,
+        "identification": {**_identification(ident, truth), "thrust_per_command": thrust},
+        "identification_with_speeds": (
+            None if speeds_ident is None else _identification(speeds_ident, truth)
+        ),
+        "identification_with_bench_curve": None
+        if bench is None
+        else {
+            **_identification(bench[1], truth),
+            "curve": dataclasses.asdict(bench[0]),
+            "thrust_per_command": _thrust_per_command(
+                calm,
+                (bench[1].vehicle, bench[1].physics, bench[1].curve(bench[0])),
+                (real, physics, sensors.curve),
+            ),
         },
         "curve": dataclasses.asdict(curve),
         "wind": wind_rows,
@@ -966,6 +1058,35 @@ def _spread_text(drift: dict[str, Any]) -> str:
     return "{" + ", ".join(f"{c} {v:.3g}" for c, v in zip(drift["columns"], s, strict=True)) + "}"
 
 
+def _identification_lines(ident: dict[str, Any]) -> list[str]:
+    """The report's lines of one identification: each parameter and ``M``'s coefficients
+    against the truth, in standard errors."""
+    lines = []
+    for k, p in ident["parameters"].items():
+        lines.append(
+            f"  {k}: {p['value']:.4g} ± {p['se']:.2g} (labels alone ± {p['se_data']:.2g}; "
+            f"truth {p['truth']}, "
+            f"file {p['nominal']:.4g}){'' if p['identified'] else ' NOT IDENTIFIED'}"
+        )
+    for k in ("thrust_coefficient", "torque_coefficient"):
+        c = ident[k]
+        lines.append(
+            f"  {k} identified {c['identified']:.4g} ± {c['se']:.2g} (labels alone "
+            f"± {c['se_data']:.2g}), truth {c['truth']:.4g} "
+            f"({100 * (c['identified'] / c['truth'] - 1):+.1f} %, "
+            f"{(c['identified'] - c['truth']) / c['se']:+.1f} se)"
+        )
+    return lines
+
+
+def _thrust_line(th: dict[str, list[float]]) -> str:
+    """The report's line of :func:`_thrust_per_command`."""
+    return "  thrust per rotor at the calm flight's 10/50/90 % commands " + " / ".join(
+        f"{a:.3g} N against {b:.3g} ({100 * e:+.1f} %)"
+        for a, b, e in zip(th["identified"], th["truth"], th["relative_error"], strict=True)
+    )
+
+
 def _report(res) -> str:
     cols = [("test", "test", "s")]
     for m in ("prior", "corrected_regression", "values_only", "flights_physical",
@@ -979,29 +1100,16 @@ def _report(res) -> str:
         cols.append((f"{m}_coverage95", f"{m} cov95", ".3f"))  # fmt: skip
     lines = ["hard scenario, force MSE (N²) against the truth:", table(res["tests"], cols)]
     ident = res["identification"]
-    for k, p in ident["parameters"].items():
-        lines.append(
-            f"  {k}: {p['value']:.4g} ± {p['se']:.2g} (labels alone ± {p['se_data']:.2g}; "
-            f"truth {p['truth']}, "
-            f"file {p['nominal']:.4g}){'' if p['identified'] else ' NOT IDENTIFIED'}"
-        )
-    th = ident["thrust_per_command"]
-    for k in ("thrust_coefficient", "torque_coefficient"):
-        c = ident[k]
-        lines.append(
-            f"  {k} identified {c['identified']:.4g} ± {c['se']:.2g} (labels alone "
-            f"± {c['se_data']:.2g}), truth {c['truth']:.4g} "
-            f"({100 * (c['identified'] / c['truth'] - 1):+.1f} %, "
-            f"{(c['identified'] - c['truth']) / c['se']:+.1f} se)"
-        )
-    lines.append(
-        "  thrust per rotor at the calm "
-        "flight's 10/50/90 % commands "
-        + " / ".join(
-            f"{a:.3g} N against {b:.3g} ({100 * e:+.1f} %)"
-            for a, b, e in zip(th["identified"], th["truth"], th["relative_error"], strict=True)
-        )
-    )
+    lines += _identification_lines(ident)
+    lines.append(_thrust_line(ident["thrust_per_command"]))
+    if res.get("identification_with_speeds") is not None:
+        lines.append("  the same flights with the ESC telemetry's rotor speeds (hard.with_speeds):")
+        lines += _identification_lines(res["identification_with_speeds"])
+    if res.get("identification_with_bench_curve") is not None:
+        b = res["identification_with_bench_curve"]
+        lines.append("  the same commands through a bench's motor curve (hard.bench_curve):")
+        lines += _identification_lines(b)
+        lines.append(_thrust_line(b["thrust_per_command"]))
     for name, c in res["coefficients"].items():
         lines.append(f"  {name}: the physical terms' prior times "
                      f"{c['basis_prior']['factors']} per output (basis_prior)")  # fmt: skip

@@ -211,24 +211,35 @@ class MotorCurve:
 
     @classmethod
     def fit_speeds(
-        cls, command: np.ndarray, rpm: np.ndarray, voltage: np.ndarray | None = None
+        cls,
+        command: np.ndarray,
+        rpm: np.ndarray,
+        voltage: np.ndarray | None = None,
+        *,
+        time_constant: float = 0.0,
     ) -> MotorCurve:
         """Fit the curve to measured rotor speeds by least squares.
 
         Idle commands (at most 0.02, the ESC's own floor) are left out; ``v_ref`` is the
-        median voltage, so that ``s = u`` at a typical battery.
+        median voltage, so that ``s = u`` at a typical battery. The readings are taken as
+        steady (a bench's, each speed settled at its command): the fit is the static curve.
+        Read on a flight's commands, the rotors lag it by the motors' time constant: give it
+        (the vehicle file's ``motor.time_constant``), or :func:`label` warns.
 
         Args:
             command: (T, 4) motor commands, 0..1.
             rpm: (T, 4) the rotor speeds measured with them.
             voltage: (T,) battery voltage, V; None: no voltage scaling.
+            time_constant: s, the motors' first-order lag behind the static curve, kept in the
+                curve for the flights it reads (0: none).
 
         Returns:
             The fitted curve (``source="speeds"``), with its RMS residual and command range.
 
         Raises:
             ValueError: commands and speeds of other shapes than (T, 4) each (or a voltage
-                not (T,)), NaN or inf, or fewer than two command levels above idle.
+                not (T,)), NaN or inf, fewer than two command levels above idle, or a
+                negative ``time_constant``.
         """
         command = as_float_array("command", command, ndim=2)
         rpm = as_float_array("rpm", rpm, ndim=2)
@@ -257,7 +268,7 @@ class MotorCurve:
         (c1, c2), *_ = np.linalg.lstsq(A, w[keep], rcond=None)
         res = float(np.sqrt(np.mean((A @ [c1, c2] - w[keep]) ** 2)))
         rng = (float(u[keep].min()), float(u[keep].max()))
-        return cls(float(c1), float(c2), v_ref, rng, res, "speeds")
+        return cls(float(c1), float(c2), v_ref, rng, res, "speeds", float(time_constant))
 
     @classmethod
     def fit_hover(
@@ -658,7 +669,9 @@ def label(
     m, g = float(vehicle.mass), float(vehicle.gravity)
     rpm = log.rpm
     if rpm is None:
-        curve = MotorCurve.fit_hover(log, vehicle, simple) if curve is None else curve
+        if curve is None:
+            curve = MotorCurve.fit_hover(log, vehicle, simple)
+        _warn_unlagged(log.name, curve, vehicle)
         rpm = curve.rpm(log.command, log.voltage, log.t)
     _check_rpm_unit(log.name, rpm, simple, m * g)
     thrust_M = (rpm**2).sum(1) * float(simple.P_F)
@@ -693,6 +706,22 @@ def label(
         )
     loads = (F_B[rows], F_var_B[rows], tau_B[rows], tau_var_B[rows])
     return _labels(log, rows, R[rows], rpm[rows], loads, reference, simple, drop, lag, src)
+
+
+def _warn_unlagged(name: str, curve: MotorCurve, vehicle: Vehicle) -> None:
+    """A :class:`~gpg.flight.log.FlightLogWarning` where a curve without a lag reads the
+    commands of a vehicle whose motors have one: its speeds lead the rotors' by the time
+    constant, a bias the identification then spreads over the rotor and the drag."""
+    tau = float(vehicle.motor_time_constant)
+    if curve.time_constant == 0.0 and tau > 0.0:
+        warnings.warn(
+            f"{name}: the motor curve has no lag (time_constant 0) but the vehicle's "
+            f"motor.time_constant is {tau:g} s: its speeds lead the rotors' by that much (a "
+            f"bench curve is static); give the curve time_constant={tau:g} "
+            "(MotorCurve.fit_speeds(..., time_constant=...))",
+            FlightLogWarning,
+            stacklevel=3,
+        )
 
 
 def _source(log: FlightLog, source: str) -> str:

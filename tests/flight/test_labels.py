@@ -2,6 +2,7 @@
 delays, motor curves and calibration."""
 
 import dataclasses
+import warnings
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -256,6 +257,42 @@ def test_motor_curve_fits(veh, M):
     np.testing.assert_allclose(fit.rpm(u, V[:, None]), rpm, rtol=1e-9)
     with pytest.warns(FlightLogWarning, match="outside the calibration's range"):
         fit.rpm(np.full((2, 4), 0.99), np.full((2, 1), 16.0))
+
+
+def test_a_curve_without_the_motors_lag_warns(veh, M):
+    """A static (bench) curve read on a flight's commands leads the rotors by the motors' time
+    constant: ``label`` names it. ``fit_speeds(..., time_constant=τ)`` keeps the lag, and the
+    labels' speeds are then the curve's lagged ones (a first-order lag written out here)."""
+    tau = float(veh.motor_time_constant)
+    assert tau > 0  # the file's motors lag: the case the warning is for
+    rng = np.random.default_rng(5)
+    bench = rng.uniform(0.2, 0.9, (60, 4))
+    static = MotorCurve(c1=5200.0, c2=2100.0).rpm(bench)
+    n = int(6 * RATE)
+    t = np.arange(n) / RATE
+    s_hover = (-5200.0 + np.sqrt(5200.0**2 + 4 * 2100.0 * _hover_rpm(veh, M))) / (2 * 2100.0)
+    # a command step at 3 s: the lag shows where the command changes
+    u = np.where(t[:, None] < 3.0, s_hover, s_hover * 1.05) * np.ones((1, 4))
+    log = _log(veh, M, T=6.0).replace(rpm=None, command=u)
+    with pytest.warns(FlightLogWarning, match=r"no lag \(time_constant 0\).*time_constant=0\.05"):
+        label(log, veh, reference=M, curve=MotorCurve.fit_speeds(bench, static))
+    lagged = MotorCurve.fit_speeds(bench, static, time_constant=tau)
+    assert lagged.time_constant == tau
+    with pytest.raises(ValueError, match="time_constant must be >= 0"):
+        MotorCurve.fit_speeds(bench, static, time_constant=-tau)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FlightLogWarning)
+        lab = label(log, veh, reference=M, curve=lagged)
+    # the first-order lag's exact solution for the curve's speed held over each interval
+    q = lagged.rpm(u)
+    want = np.empty_like(q)
+    want[0] = q[0]
+    a = np.exp(-np.diff(t) / tau)[:, None]
+    for k in range(1, n):
+        want[k] = a[k - 1] * want[k - 1] + (1 - a[k - 1]) * q[k]
+    i = np.searchsorted(t, lab.t)
+    np.testing.assert_allclose(lab.rpm, want[i], rtol=1e-9)
+    assert np.max(np.abs(lab.rpm / q[i] - 1)) > 1e-3  # labels just after the step: it lags
 
 
 def test_calibration_from_hover_labels_zero_within_noise(veh, M):

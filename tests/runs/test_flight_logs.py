@@ -155,9 +155,20 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     load_vehicle(tmp_path / "identified_vehicle.yaml").require_generator()
     assert len(res["wind"]) == 4 and all(np.isfinite(w["rms_error"]) for w in res["wind"])
     assert set(res["identification"]["parameters"]) == set(cfg["hard"]["identify"]["free"])
-    for k in ("thrust_coefficient", "torque_coefficient"):  # M's, with standard errors
-        c = res["identification"][k]
-        assert c["truth"] > 0 and 0 < c["se_data"] <= c["se"] < c["identified"]
+    # the same flights with their rotor speeds logged: no motor curve, the ESC logs kept
+    speeds = res["identification_with_speeds"]
+    assert set(speeds["parameters"]) == set(cfg["hard"]["with_speeds"]["free"])
+    assert not any(k.startswith("motor.") for k in speeds["parameters"])
+    assert len(list((tmp_path / "logs").glob("train*_esc.csv"))) == 4
+    # and the commands through a bench's curve, which keeps the file's motor lag
+    bench = res["identification_with_bench_curve"]
+    assert set(bench["parameters"]) == set(cfg["hard"]["bench_curve"]["free"])
+    assert bench["curve"]["source"] == "speeds" and bench["curve"]["time_constant"] > 0
+    assert len(bench["thrust_per_command"]["relative_error"]) == 3
+    for ident in (res["identification"], speeds, bench):
+        for k in ("thrust_coefficient", "torque_coefficient"):  # M's, with standard errors
+            c = ident[k]
+            assert c["truth"] > 0 and 0 < c["se_data"] <= c["se"] < c["identified"]
     ad = res["adaptation"]
     assert [r["test"] for r in ad["tests"]] == ["steady", "gust"] and finite_numbers(ad["tests"])
     assert ad["tracked_update"]["bytes_start"] == ad["tracked_update"]["bytes_end"]
