@@ -643,7 +643,8 @@ def label(
             it roughly: :func:`estimate_delay` gives one lag from many logs.
         curve: motor commands to rotor speeds, for a log without rotor speeds (default: fitted
             from the log's hover, :meth:`MotorCurve.fit_hover`); its ``time_constant`` lags
-            the speeds behind the commands.
+            the speeds behind the commands (one of 0 on a vehicle whose motors lag is warned
+            of: a :class:`~gpg.flight.log.FlightLogWarning`).
         takeoff_s: seconds dropped after each take-off and before each landing.
         saturation: a rotor at this fraction of its speed range (or command) is saturated;
             1.0 keeps every sample short of the bounds themselves (an online filter's
