@@ -421,12 +421,15 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     calm = next(f for w, f in train if w == 0.0)
     curve = MotorCurve.fit_hover(calm.log, user, simple)
 
-    def labelled(c: MotorCurve, veh: Vehicle = user) -> tuple[list[Labels], dict[str, _Test]]:
+    def labelled(
+        c: MotorCurve, veh: Vehicle = user, with_tests: bool = True
+    ) -> tuple[list[Labels], dict[str, _Test]]:
         opts = {"rate": float(h["label_rate"]), "source": "velocity", "curve": c}
         with warnings.catch_warnings():  # the curve's range is the hover's: counted, not news
             warnings.filterwarnings("ignore", r".*command.*extrapolated", FlightLogWarning)
             return [label(f.log, veh, reference=simple, **opts) for _, f in train], {
-                name: _test(name, f, veh, simple, opts, gust) for name, f in tests_raw.items()
+                name: _test(name, f, veh, simple, opts, gust)
+                for name, f in (tests_raw.items() if with_tests else ())
             }
 
     train_labels, tests = labelled(curve)
@@ -484,7 +487,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     if h.get("bench_curve"):
         t1 = time.perf_counter()
         b_curve = _bench_curve(h["bench_curve"], sensors, user, seed + 200)
-        b_labels, _ = labelled(b_curve)
+        b_labels, _ = labelled(b_curve, with_tests=False)  # the training flights only
         b_ident = _identify_variant(b_labels, user_cfg, h["bench_curve"], idc)
         bench = (b_curve, b_ident)
         stages["identify_bench_s"] = time.perf_counter() - t1
