@@ -222,10 +222,11 @@ def _bench_curve(spec, sensors: Sensors, user: Vehicle, seed: int) -> MotorCurve
 
 def _identify_variant(labels, user_cfg, spec, idc) -> Identification:
     """:func:`gpg.flight.identify` with a variant's ``free`` and ``consider`` (``spec``), the
-    main identification's label count and steps (``idc``)."""
+    main identification's label count, steps and body rates (``idc``)."""
     return identify(labels, user_cfg, free=tuple(spec["free"]),
                     max_labels=int(idc["max_labels"]), max_steps=int(idc["max_steps"]),
-                    consider=dict(spec.get("consider") or {}))  # fmt: skip
+                    consider=dict(spec.get("consider") or {}),
+                    body_rates=bool(idc.get("body_rates", True)))  # fmt: skip
 
 
 def _identification(ident: Identification, truth: dict[str, float]) -> dict[str, Any]:
@@ -445,6 +446,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
         max_labels=int(idc["max_labels"]),
         max_steps=int(idc["max_steps"]),
         consider=dict(idc.get("consider") or {}),
+        body_rates=bool(idc.get("body_rates", True)),
     )
     ident.write(out / "identified_vehicle.yaml", overwrite=True)
     # The identified vehicle's rotor speeds are those of the identified curve: every model of

@@ -386,6 +386,7 @@ def physics_loads(
     euler: Float[Array, "N 3"],
     v_air: Float[Array, "N 3"],
     wake_gain: Float[Array, ""] | None = None,
+    rates: Float[Array, "N 3"] | None = None,
 ) -> Float[Array, "N 6"]:
     """The physics' world-frame force and torque at many states (what a label measures).
 
@@ -396,16 +397,19 @@ def physics_loads(
         euler: (N, 3) (yaw, pitch, roll), rad.
         v_air: (N, 3) air velocity, world, m/s.
         wake_gain: the ingested wake's gain in place of ``cfg.wake_gain`` (traceable).
+        rates: (N, 3) body rates, body frame, rad/s: each hub moves at ``ω × p`` through the
+            air (the rotors' rate damping). None: a vehicle that does not rotate.
 
     Returns:
         (N, 6) the force (N) and torque (N·m), world frame.
     """
+    w = jnp.zeros_like(v_air) if rates is None else rates
 
-    def one(r, e, v):
-        res = bemt.aero(vehicle, cfg, r, R_WB(e), v, wake_gain=wake_gain)
+    def one(r, e, v, om):
+        res = bemt.aero(vehicle, cfg, r, R_WB(e), v, om, wake_gain=wake_gain)
         return jnp.concatenate([res.force_W, res.torque_W])
 
-    return jax.vmap(one)(rpm, euler, v_air)
+    return jax.vmap(one)(rpm, euler, v_air, w)
 
 
 ALL = tuple(PARAMETERS)  # θ's order inside: one compiled program serves any choice of free
@@ -431,6 +435,7 @@ def loads_and_jacobian(
     euler: Float[Array, "N 3"],
     v_air: Float[Array, "N 3"],
     rpm_ref: Float[Array, ""] | float = 4000.0,
+    rates: Float[Array, "N 3"] | None = None,
 ) -> tuple[Float[Array, "N 6"], Float[Array, "N 6 F"]]:
     """The physics' loads with ``θ`` applied, and their derivatives along ``directions``.
 
@@ -449,6 +454,7 @@ def loads_and_jacobian(
         euler: (N, 3) attitudes, rad.
         v_air: (N, 3) air velocities, world, m/s.
         rpm_ref: rpm, the speed ``motor.exponent`` leaves unchanged.
+        rates: (N, 3) body rates, rad/s (:func:`physics_loads`); None: zero.
 
     Returns:
         The (N, 6) world-frame force and torque and their (N, 6, F) derivatives.
@@ -460,7 +466,7 @@ def loads_and_jacobian(
         speeds = motor_speeds(rpm, th[ALL.index("motor.gain")], th[ALL.index("motor.exponent")],
                               rpm_ref)  # fmt: skip
         wake = cfg.wake_gain * jnp.exp(th[ALL.index("generator.wake_gain")])
-        out = physics_loads(veh, cfg, speeds, euler, v_air, wake)
+        out = physics_loads(veh, cfg, speeds, euler, v_air, wake, rates)
         return out, out
 
     phi = jnp.zeros(directions.shape[1], theta.dtype)
@@ -520,6 +526,7 @@ def identify(
     max_steps: int = 40,
     passes: int = 3,
     consider: Mapping[str, float | None] | Sequence[str] = (),
+    body_rates: bool = True,
 ) -> Identification:
     """The vehicle's physical parameters from flight labels, by maximum likelihood (module
     docstring).
@@ -544,6 +551,10 @@ def identify(
             the shift's own units; ``None`` or a bare name: :data:`PARAMETERS`' prior). Their
             uncertainty goes into the free parameters' standard errors: ``se`` is the
             Schmidt "consider" covariance's, ``se_data`` the labels' alone.
+        body_rates: read each label's body rates (:attr:`Labels.rates`): the hubs move at
+            ``ω × p`` through the air, as in flight. False: the physics of a vehicle that does
+            not rotate (as labels without rates are read), whose rotors' rate damping the
+            torque coefficient and profile drag then take up.
 
     Returns:
         The :class:`Identification`: the vehicle, its file, the parameters with standard
@@ -555,7 +566,11 @@ def identify(
             or without a positive finite standard deviation.
     """
     names = tuple(free)
+    if not isinstance(body_rates, bool):
+        raise ValueError(f"body_rates must be True or False, got {body_rates!r}")
     data = _data(labels, names, loads, max_labels)
+    if not body_rates:
+        data["rates"] = np.zeros_like(data["rates"])
     considered = _considered(consider, names)
     cfg0 = copy.deepcopy(dict(vehicle) if isinstance(vehicle, Mapping) else vehicle_config(vehicle))
     veh0 = Vehicle.from_config(cfg0).require_generator()
@@ -677,6 +692,8 @@ def _data(labels, names: tuple[str, ...], loads: str, max_labels: int) -> dict[s
         "rpm": np.asarray(lab.rpm, float)[rows],
         "euler": np.asarray(lab.euler, float)[rows],
         "v_air": np.asarray(lab.v_air, float)[rows],
+        # a label without its body rates is read as a vehicle that does not rotate
+        "rates": np.zeros((len(rows), 3)) if lab.rates is None else lab.rates[rows],
         "y": np.concatenate([lab.force, lab.torque], 1)[rows],
         "var": np.concatenate([lab.force_var, lab.torque_var], 1)[rows],
     }
@@ -705,6 +722,7 @@ class _Fit:
         self.columns = np.array([ALL.index(n) for n in (names if columns is None else columns)])
         self.E = jnp.asarray(np.eye(len(ALL))[:, self.columns])
         self.states = tuple(jnp.asarray(data[k]) for k in ("rpm", "euler", "v_air"))
+        self.rates = jnp.asarray(data["rates"])
         # a strong float64, as an array's median is: a weak-typed Python float would compile
         # the physics' program a second time for the same shapes
         self.rpm_ref = jnp.asarray(np.float64(data["rpm_ref"]))
@@ -718,7 +736,7 @@ class _Fit:
         if self._last is not None and np.array_equal(self._last[0], theta):
             return self._last[1]
         out, Jf = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta), self.E,
-                                     *self.states, self.rpm_ref)  # fmt: skip
+                                     *self.states, self.rpm_ref, self.rates)  # fmt: skip
         J = np.zeros((*out.shape, len(ALL)))
         J[:, :, self.columns] = np.asarray(Jf)
         self._last = (np.array(theta), (np.asarray(out), J))
@@ -793,8 +811,8 @@ class _Fit:
             E = np.zeros((len(ALL), width))
             E[chunk, np.arange(len(chunk))] = 1.0
             _, Jc = loads_and_jacobian(self.veh0, self.physics, jnp.asarray(theta),
-                                       jnp.asarray(E), *self.states,
-                                       self.rpm_ref)  # fmt: skip
+                                       jnp.asarray(E), *self.states, self.rpm_ref,
+                                       self.rates)  # fmt: skip
             cols.append(np.asarray(Jc)[:, :, : len(chunk)])
         Jc = (np.concatenate(cols, 2) * w[:, :, None]).reshape(-1, len(idx))
         keep = ~_weak_mask(names, weak)

@@ -352,17 +352,28 @@ class MotorCurve:
 
 
 def first_order_lag(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
-    """``x`` (T, ...) passed through a first-order lag of time constant ``tau`` (s), exactly
-    for inputs held between samples: ``y_k = y_{k−1} + (1 − e^{−Δt/τ}) (x_k − y_{k−1})``,
-    starting at ``x_0``; ``tau`` 0 returns ``x``."""
+    """``x`` (T, ...) passed through a first-order lag of time constant ``tau`` (s), starting
+    at ``x_0``; ``tau`` 0 returns ``x``.
+
+    A log's commands are samples of a faster controller's output, so between two samples the
+    input is taken as the straight line through them (a first-order hold), and the lag is
+    exact for it: with ``h = Δt``, ``e = e^{−h/τ}`` and ``b = 1 − τ (1 − e)/h``,
+    ``y_k = e y_{k−1} + (1 − e − b) x_{k−1} + b x_k``. Holding ``x_k`` over the step before it
+    (an earlier version) made the speeds lead the rotors by about a sample."""
     x = np.asarray(x, float)
     if tau <= 0:
         return x
-    a = -np.expm1(-np.diff(np.asarray(t, float)) / tau)
+    h = np.diff(np.asarray(t, float))
+    e = np.exp(-h / tau)
+    # for h ≪ τ both samples weigh h/(2τ) (the midpoint); b's series there avoids cancellation
+    r = h / tau
+    b = np.where(r < 1e-4, r / 2 - r * r / 6, 1.0 + np.expm1(-r) / np.where(r > 0, r, 1.0))
     y = np.empty_like(x)
     y[0] = x[0]
+    shape = (-1,) + (1,) * (x.ndim - 1)
+    e, b = e.reshape(shape), b.reshape(shape)
     for k in range(1, x.shape[0]):
-        y[k] = y[k - 1] + a[k - 1] * (x[k] - y[k - 1])
+        y[k] = e[k - 1] * y[k - 1] + (1 - e[k - 1] - b[k - 1]) * x[k - 1] + b[k - 1] * x[k]
     return y
 
 
@@ -494,6 +505,9 @@ class Labels:
         delay: s, the rotor-speed channel's lag behind the IMU that was removed.
         source: ``"imu"`` or ``"velocity"``: where the force came from.
         name: the flight's name.
+        rates: (N, 3) the body rates at the labels (the log's gyro), body frame, rad/s: the
+            rotor hubs' motion that :func:`gpg.flight.identify`'s physics reads. None for
+            labels made without them (read as a vehicle that does not rotate).
     """
 
     t: np.ndarray
@@ -510,6 +524,7 @@ class Labels:
     delay: float = 0.0
     source: str = "imu"
     name: str = "flight"
+    rates: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -591,10 +606,17 @@ class Labels:
             The labels of all parts, in order.
 
         Raises:
-            ValueError: ``parts`` is empty.
+            ValueError: ``parts`` is empty, or some parts have body rates and others not.
         """
         if not parts:
             raise ValueError("concatenate needs at least one Labels")
+        with_rates = [p.rates is not None for p in parts]
+        if any(with_rates) and not all(with_rates):
+            raise ValueError(
+                "concatenate: parts "
+                f"{[p.name for p, w in zip(parts, with_rates, strict=True) if not w]} have no "
+                "body rates (rates) where the others have them; label them again"
+            )
         arrays = {
             f.name: np.concatenate([getattr(p, f.name) for p in parts])
             for f in dataclasses.fields(cls)
@@ -831,6 +853,7 @@ def _labels(log, rows, Rk, rpm, loads, reference, simple, drop, lag, src) -> Lab
         delay=lag,
         source=src,
         name=log.name,
+        rates=np.asarray(log.rates, float)[rows],
     )
 
 

@@ -534,8 +534,8 @@ def test_shared_band_takes_the_online_prior_out_of_the_offline_band(corrected, f
         if when == "start":
             np.testing.assert_allclose(post, q0, rtol=1e-12)
             assert np.any(b > q0)  # where η's prior fits inside the band, the band is b's
-        ps = s_run.predict_batch(flights.rpm[:20], flights.euler[:20], flights.v_air[:20])
-        pa = a_run.predict_batch(flights.rpm[:20], flights.euler[:20], flights.v_air[:20])
+        # at the export's states below: its predict_batch compiles once
+        ps, pa = (r.predict_batch(*_export_states(flights, 12)) for r in (s_run, a_run))
         np.testing.assert_array_equal(np.asarray(ps.force), np.asarray(pa.force))
     to_c(s_run, tmp_path, name="model")
     so = tmp_path / "model.so"
@@ -1045,7 +1045,8 @@ def test_every_label_through_inducing_inputs(synthetic_surrogate, corrected, fli
                        exact_labels=N_LABELS // 2, inducing=N_LABELS, **FIT)  # fmt: skip
     assert all(isinstance(d, InducingGP) for d in every.model.delta)
     assert every.config["flight_correction"]["inducing"] == N_LABELS
-    rpm, euler, v_air = _states(np.random.default_rng(5), 20)
+    # off the labels, at their shape: corrected's predict_batch of that shape is compiled
+    rpm, euler, v_air = flights.rpm * 1.02, flights.euler, flights.v_air + 0.5
     pe = corrected.predict_batch(rpm, euler, v_air)
     pi = every.predict_batch(rpm, euler, v_air)
     # The inducing Gram's jitter (1e-8 σ) is the only difference; the labels' Gram has a

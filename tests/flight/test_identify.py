@@ -22,6 +22,7 @@ from gpg.flight.identify import (
 from gpg.flight.labels import Labels, MotorCurve
 from gpg.flight.synthetic import perturbed
 from gpg.quadrotor import bemt
+from gpg.quadrotor.frames import R_WB
 from gpg.quadrotor.vehicle import Vehicle, load_vehicle, vehicle_config
 
 # A coarser blade grid for the truth and the fit alike: the identification is checked, not
@@ -44,6 +45,8 @@ def _labels(theta, n, seed, speed=1.0):
         [rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n)]
     )
     v = speed * np.column_stack([rng.uniform(0, 10, n), rng.normal(0, 2, n), rng.normal(0, 1, n)])
+    # body rates of a manoeuvring vehicle (their own stream: the draws above stay as they were)
+    rates = np.random.default_rng(seed + 1000).normal(0.0, 0.5, (n, 3))
     states = (jnp.asarray(a) for a in (rpm, euler, v))
     # The reference speed identify takes: the labels' median (all N labels are used).
     ref = jnp.asarray(np.median(rpm))
@@ -51,13 +54,14 @@ def _labels(theta, n, seed, speed=1.0):
     # key): identify runs the program compiled here
     with jax.enable_x64(True), jax.default_matmul_precision("highest"):
         y, _ = loads_and_jacobian(BASE, PHYSICS, jnp.asarray(theta), jnp.eye(len(ALL))[:, :3],
-                                  *states, ref)  # fmt: skip
+                                  *states, ref, jnp.asarray(rates))  # fmt: skip
     y = np.asarray(y)
     f = y[:, :3] + SIGMA_F * rng.normal(size=(n, 3))
     t = y[:, 3:] + SIGMA_T * rng.normal(size=(n, 3))
     return Labels(t=np.arange(n) * 0.1, rpm=rpm, euler=euler, v_air=v, force=f, torque=t,
                   force_var=np.full((n, 3), SIGMA_F**2), torque_var=np.full((n, 3), SIGMA_T**2),
-                  model_force=0 * f, model_torque=0 * t, name="synthetic")  # fmt: skip
+                  model_force=0 * f, model_torque=0 * t, name="synthetic",
+                  rates=rates)  # fmt: skip
 
 
 def _theta(values):
@@ -103,6 +107,32 @@ def test_parameters_applied_as_the_vehicle_file_says(real):
     np.testing.assert_allclose(applied.drag_area, real.drag_area, rtol=1e-12)
     np.testing.assert_allclose(applied.rotor.chord, real.rotor.chord, rtol=1e-12)
     np.testing.assert_allclose(applied.rotor.radius, real.rotor.radius, rtol=1e-12)
+
+
+def test_physics_reads_the_body_rates():
+    """The identification's physics (the program ``identify`` runs, at the labels' states)
+    reads each label's body rates: row by row it is :func:`bemt.aero` with them (each hub
+    moving at ω × p; the same float64 sums, 1e-12), and the rates change the loads."""
+    lab = _labels(_theta(TRUE), N, seed=0)
+    theta = jnp.asarray(_theta(TRUE))
+    states = [jnp.asarray(a) for a in (lab.rpm, lab.euler, lab.v_air)]
+    ref = jnp.asarray(np.median(lab.rpm))
+
+    def loads(w):
+        with jax.enable_x64(True), jax.default_matmul_precision("highest"):
+            y, _ = loads_and_jacobian(BASE, PHYSICS, theta, jnp.eye(len(ALL))[:, :3], *states,
+                                      ref, jnp.asarray(w))  # fmt: skip
+        return np.asarray(y)
+
+    got, calm = loads(lab.rates), loads(np.zeros_like(lab.rates))
+    veh = _apply(BASE, ALL, theta)
+    one = jax.jit(lambda r, e, v, w: bemt.aero(veh, PHYSICS, r, R_WB(e), v, w))
+    for i in range(2):
+        r = one(*(jnp.asarray(a[i]) for a in (lab.rpm, lab.euler, lab.v_air, lab.rates)))
+        want = np.concatenate([r.force_W, r.torque_W])
+        np.testing.assert_allclose(got[i], want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+    # rates of 0.5 rad/s: the rotors' damping moves the torques by more than the labels' noise
+    assert np.sqrt(np.mean((got - calm)[:, 3:] ** 2)) > SIGMA_T
 
 
 def test_parameters_recovered_within_their_standard_errors(identified):
@@ -164,6 +194,7 @@ def test_a_pair_the_flights_cannot_tell_apart_is_named():
         ({"free": ("drag_area.w",)}, "free must name distinct parameters"),
         ({"free": ("drag_area.x", "drag_area.x")}, "free must name distinct parameters"),
         ({"loads": "thrust"}, "loads must be"),
+        ({"body_rates": "yes"}, "body_rates must be True or False"),
     ],
 )
 def test_bad_options_named(kw, message):

@@ -262,7 +262,7 @@ def test_motor_curve_fits(veh, M):
 def test_a_curve_without_the_motors_lag_warns(veh, M):
     """A static (bench) curve read on a flight's commands leads the rotors by the motors' time
     constant: ``label`` names it. ``fit_speeds(..., time_constant=τ)`` keeps the lag, and the
-    labels' speeds are then the curve's lagged ones (a first-order lag written out here)."""
+    labels' speeds are then the curve's lagged ones (SciPy's ``lsim`` of the lag)."""
     tau = float(veh.motor_time_constant)
     assert tau > 0  # the file's motors lag: the case the warning is for
     rng = np.random.default_rng(5)
@@ -283,13 +283,13 @@ def test_a_curve_without_the_motors_lag_warns(veh, M):
     with warnings.catch_warnings():
         warnings.simplefilter("error", FlightLogWarning)
         lab = label(log, veh, reference=M, curve=lagged)
-    # the first-order lag's exact solution for the curve's speed held over each interval
+    # the first-order lag 1/(τs + 1) of the curve's speed, its input interpolated linearly
+    # between samples (a first-order hold), by SciPy's lsim: two exact discretisations
+    from scipy import signal
+
     q = lagged.rpm(u)
-    want = np.empty_like(q)
-    want[0] = q[0]
-    a = np.exp(-np.diff(t) / tau)[:, None]
-    for k in range(1, n):
-        want[k] = a[k - 1] * want[k - 1] + (1 - a[k - 1]) * q[k]
+    lag = (np.array([[-1 / tau]]), np.array([[1 / tau]]), np.eye(1), np.zeros((1, 1)))
+    want = np.column_stack([signal.lsim(lag, q[:, j], t, X0=[q[0, j]])[1] for j in range(4)])
     i = np.searchsorted(t, lab.t)
     np.testing.assert_allclose(lab.rpm, want[i], rtol=1e-9)
     assert np.max(np.abs(lab.rpm / q[i] - 1)) > 1e-3  # labels just after the step: it lags
@@ -345,9 +345,16 @@ def test_calibration_from_hover_labels_zero_within_noise(veh, M):
 
 
 def test_labels_first_and_concatenate(veh, M):
+    """Labels carry the log's body rates at their instants (the gyro's, FRD); a part without
+    them is not concatenated with parts that have them."""
     f_B = np.tile([0.0, 0.0, -9.81], (2000, 1))
-    lab = label(_log(veh, M, f_B=f_B), veh, reference=M, delay=0.0)
+    t = np.arange(2000) / RATE
+    w = np.stack([0.3 * np.sin(t), 0.2 * np.cos(t), 0.1 * t], 1)
+    lab = label(_log(veh, M, f_B=f_B, w=w), veh, reference=M, delay=0.0)
     assert isinstance(lab, Labels)
+    np.testing.assert_array_equal(lab.rates, w[np.searchsorted(t, lab.t)])
+    with pytest.raises(ValueError, match=r"\['bare'\] have no body rates"):
+        Labels.concatenate([lab, dataclasses.replace(lab, rates=None, name="bare")])
     assert abs(lab.seconds - 0.1 * len(lab)) < 1e-9
     part = lab.first(3.0)
     assert abs(part.seconds - 3.0) < 0.1 + 1e-9 and len(part) == 30
