@@ -693,10 +693,13 @@ def _data(labels, names: tuple[str, ...], loads: str, max_labels: int) -> dict[s
         "euler": np.asarray(lab.euler, float)[rows],
         "v_air": np.asarray(lab.v_air, float)[rows],
         # a label without its body rates is read as a vehicle that does not rotate
-        "rates": np.zeros((len(rows), 3)) if lab.rates is None else lab.rates[rows],
+        "rates": np.zeros((len(lab), 3)) if lab.rates is None else np.asarray(lab.rates, float),
         "y": np.concatenate([lab.force, lab.torque], 1)[rows],
         "var": np.concatenate([lab.force_var, lab.torque_var], 1)[rows],
     }
+    if out["rates"].shape != (len(lab), 3):
+        raise ValueError(f"labels' rates must be (N, 3), got {out['rates'].shape}")
+    out["rates"] = out["rates"][rows]
     for nm, a in out.items():
         if not np.isfinite(a).all():
             raise ValueError(f"labels hold NaN or inf in {nm}")

@@ -2,6 +2,7 @@
 through gpg's own physics; against labels made by that physics for a vehicle whose values
 are known."""
 
+import dataclasses
 import math
 import warnings
 
@@ -209,6 +210,8 @@ def test_needs_labels_and_a_generator_vehicle():
     lab = _labels(np.zeros(len(ALL)), N, seed=2)
     with pytest.raises(ValueError, match="cannot drive the built-in generator"):
         identify(lab, "minimal_example", physics=PHYSICS)
+    with pytest.raises(ValueError, match=r"rates must be \(N, 3\), got \(3, 3\)"):
+        identify(dataclasses.replace(lab, rates=np.zeros((3, 3))), "sui_endurance")
     assert math.isfinite(PARAMETERS["drag_area.x"].prior)
 
 
