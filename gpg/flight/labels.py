@@ -279,34 +279,44 @@ class MotorCurve:
         *,
         max_speed: float = 1.0,
         max_tilt_deg: float = 10.0,
+        moments: bool = False,
     ) -> MotorCurve:
         """Fit the curve where no rotor speeds are logged, from slow flight (hover by default).
 
         ``M``'s thrust of the curve's rotor speeds balances the measured thrust ``−F_z``
         (body z of the measured aerodynamic force: the accelerometer's specific force times
         the mass, or, without an IMU, the mass times the velocity's spline derivative less
-        gravity, as :func:`label` measures it), and ``M``'s roll and pitch moments balance
-        the measured ones (Euler's equation on the body rates), on samples slower than
-        ``max_speed``, tilted less than ``max_tilt_deg``, rotors turning; the speeds lag the
-        curve by the vehicle file's ``motor.time_constant`` (kept in the curve). Measured, not
-        assumed equal to the weight: the samples of a take-off's transient count as well as
-        a steady hover's, and widen the commands the curve sees. At slow speed the drag is
-        small against the thrust; raise ``max_speed`` to take in a calm flight's manoeuvres.
+        gravity, as :func:`label` measures it) on samples slower than ``max_speed``, tilted
+        less than ``max_tilt_deg``, rotors turning; the speeds lag the curve by the vehicle
+        file's ``motor.time_constant`` (kept in the curve). Measured, not assumed equal to
+        the weight: the samples of a take-off's transient count as well as a steady hover's,
+        and widen the commands the curve sees. At slow speed the drag is small against the
+        thrust; raise ``max_speed`` to take in a calm flight's manoeuvres.
+
+        The thrust needs the weighed mass only. ``moments=True`` also balances ``M``'s roll and
+        pitch moments against the measured ones (Euler's equation on the body rates), which
+        sees each rotor's command apart, but reads the file's inertia and takes every moment
+        for the rotors' thrust difference: where the inertia is a guess, or the rotors' own
+        moments (their rate damping, a wake's) are not small, it bends the curve.
 
         Args:
             log: the flight, with motor commands and slow flight.
-            vehicle: its mass, inertia and gravity.
+            vehicle: its mass and gravity (and inertia, with ``moments``).
             simple: ``M``, whose allocation turns rotor speeds into thrust and moments.
             max_speed: m/s, the fastest samples used.
             max_tilt_deg: deg, the most tilted samples used.
+            moments: also balance the roll and pitch moments.
 
         Returns:
             The fitted curve (``source="hover"``); its residual is the thrust balance's,
             converted to rpm (a relative thrust error ``e`` is a rotor-speed error ``e/2``).
 
         Raises:
-            ValueError: the log has no motor commands, or fewer than 20 samples to fit.
+            ValueError: the log has no motor commands, fewer than 20 samples to fit, or
+                ``moments`` not a bool.
         """
+        if not isinstance(moments, bool):
+            raise ValueError(f"fit_hover: moments must be True or False, got {moments!r}")
         if log.command is None:
             raise ValueError(f"{log.name}: fit_hover needs motor commands in the log")
         m, g = float(vehicle.mass), float(vehicle.gravity)
@@ -331,15 +341,14 @@ class MotorCurve:
         # lag is applied to s and s² once, over the whole log.
         tau = float(vehicle.motor_time_constant)
         s, s2 = (first_order_lag(log.t, a, tau)[hover] for a in (s_all, s_all**2))
-        thrust, moments = -F_B[hover, 2], tau_B[hover, :2]
+        thrust, torque = -F_B[hover, 2], tau_B[hover, :2]
         A = np.asarray(simple.allocation)
 
         def resid(c):
             w = c[0] * s + c[1] * s2
             load = (w * w) @ A.T  # (ΣT, τx, τy, τz)
-            return np.concatenate(
-                [(load[:, 0] - thrust) / (m * g), (load[:, 1:3] - moments).ravel()]
-            )
+            r = (load[:, 0] - thrust) / (m * g)
+            return np.concatenate([r, (load[:, 1:3] - torque).ravel()]) if moments else r
 
         hover_rpm = float(simple.hover_rpm(m * g))
         c0 = np.array([hover_rpm / max(float(np.median(s)), 1e-3), 0.0])

@@ -344,6 +344,44 @@ def test_calibration_from_hover_labels_zero_within_noise(veh, M):
     assert np.sqrt(np.mean(z**2)) < 2.0
 
 
+def test_hover_curve_reads_the_thrust_not_a_guessed_inertia(veh, M):
+    """A hover whose collective and roll/pitch rates move, the rotors' speeds solved from M
+    for the thrust and Euler's moments: the thrust balance alone recovers the curve whatever
+    inertia the file states; balancing the moments too recovers it with the true inertia and
+    bends it with a file's inertia twice the truth (the moments read twice as large: a steeper
+    curve). Noise-free, so the thrust-only fit is the truth to the solver's tolerance."""
+    n = int(12 * RATE)
+    t = np.arange(n) / RATE
+    truth = MotorCurve(c1=5200.0, c2=2100.0)
+    f1, f2 = 2 * np.pi * 0.5, 2 * np.pi * 0.7
+    w = np.stack([0.4 * np.sin(f1 * t), 0.3 * np.sin(f2 * t + 1.0), 0 * t], 1)
+    wd = np.stack([0.4 * f1 * np.cos(f1 * t), 0.3 * f2 * np.cos(f2 * t + 1.0), 0 * t], 1)
+    J = np.asarray(veh.inertia, float)
+    thrust = float(veh.weight) * (1 + 0.05 * np.sin(2 * np.pi * 0.2 * t))
+    load = np.column_stack([thrust, J * wd + np.cross(w, J * w)])
+    rpm2 = np.linalg.solve(np.asarray(M.allocation), load.T).T
+    assert rpm2.min() > 0
+    rpm = np.sqrt(rpm2)
+    u = (-truth.c1 + np.sqrt(truth.c1**2 + 4 * truth.c2 * rpm)) / (2 * truth.c2)
+    f_B = np.column_stack([0 * t, 0 * t, -thrust / float(veh.mass)])
+    log = _log(veh, M, T=12.0, w=w, f_B=f_B).replace(rpm=None, command=u)
+    veh = eqx.tree_at(lambda v: v.motor_time_constant, veh, jnp.asarray(0.0))
+    guessed = eqx.tree_at(lambda v: v.inertia, veh, 2 * veh.inertia)
+    grid = np.linspace(u.min(), u.max(), 7)[:, None] * np.ones((1, 4))
+    want = truth.rpm(grid)
+    # the solver stops at a relative cost change of 1e-8: speeds to ~1e-4 of themselves
+    for v in (veh, guessed):
+        np.testing.assert_allclose(MotorCurve.fit_hover(log, v, M).rpm(grid), want, rtol=1e-4)
+    # the moments' spline derivative of the rates (200 Hz, periods over 1 s): 1e-3 of them
+    both = MotorCurve.fit_hover(log, veh, M, moments=True)
+    np.testing.assert_allclose(both.rpm(grid), want, rtol=3e-3)
+    # five times what the true inertia's fit may bend across the range (2 x 3e-3)
+    bent = MotorCurve.fit_hover(log, guessed, M, moments=True).rpm(grid) / want
+    assert bent[-1, 0] / bent[0, 0] > 1 + 5 * 6e-3, bent[:, 0]
+    with pytest.raises(ValueError, match="moments must be True or False"):
+        MotorCurve.fit_hover(log, veh, M, moments=1)
+
+
 def test_labels_first_and_concatenate(veh, M):
     """Labels carry the log's body rates at their instants (the gyro's, FRD); a part without
     them is not concatenated with parts that have them."""
