@@ -420,7 +420,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
     # The motor curve from the calm figure-eight's hover, labels from the velocity.
     t1 = time.perf_counter()
     calm = next(f for w, f in train if w == 0.0)
-    curve = MotorCurve.fit_hover(calm.log, user, simple, moments=bool(h.get("hover_moments")))
+    curve = MotorCurve.fit_hover(calm.log, user, simple, moments=h.get("hover_moments", False))
 
     def labelled(
         c: MotorCurve, veh: Vehicle = user, with_tests: bool = True
