@@ -80,7 +80,8 @@ LENGTHSCALE_MIN, LENGTHSCALE_MAX = 1e-2, 1e2
 # (the prior's physics as it is) to three times the stated prior.
 BASIS_PRIOR_GRID = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 # The least factor correct's held-out calibration puts on the prior's share of the band
-# (where the labels' noise alone covers a held-out flight's errors): the prior's variance is
+# (where the discrepancy's band and the labels' noise alone cover a held-out flight's
+# errors): the prior's variance is
 # still what says how far a state is from its data.
 PRIOR_SHARE_FLOOR = 1e-3
 # The standard normal's upper 2.5-percent point: a 95-percent band's half-width in standard
@@ -1009,7 +1010,7 @@ def correct(
             flight in conditions the others did not have, not only within them. Where every
             flight held out is covered more widely than that, the prior's share is narrowed
             instead: ``q`` at most 1 (at least :data:`PRIOR_SHARE_FLOOR`) on the prior's
-            output scale, the largest factor on ``v + p`` that any one held-out flight needs
+            output scale, the largest factor on ``p`` that any one held-out flight needs
             (the prior's near-set variance is a bound, which flights of the vehicle can show
             several times too wide); recorded with the scale before it
             (``flight_correction.prior_share``, ``prior_output_scale``), which :func:`base`
@@ -1174,13 +1175,12 @@ def _held_out_scale(
     domain (``e`` the error, ``v`` the latent variance, ``n`` the label's noise):
 
     - ``q`` (:func:`_share`) narrows the prior's share where every flight's band is wider
-      than its errors: the largest over the flights of the factor on the whole latent band
-      ``v + p`` at which that flight's mean ``e² / (f (v + p) + n)`` is 1, at most 1, and
-      applied to ``p`` alone. The prior's variance (GP-G's near-set bound) can be several
-      times what the prior misses where the flights went; the flights measure it. The
-      worst-covered flight sets it (a pooled mean is the easy flights'), and ``v`` is not
-      narrowed with it, so that the band a flight beyond the others gets is no narrower
-      than the worst held-out flight's calibrated one.
+      than its errors: the largest over the flights of the factor ``f`` on ``p`` at which
+      that flight's mean ``e² / (v + f p + n)`` is 1, at most 1: the band the model then
+      predicts for the worst-predicted flight held out is as wide as its errors. The prior's
+      variance (GP-G's near-set bound) can be several times what the prior misses where the
+      flights went; the flights measure it. The worst-covered flight sets it (a pooled mean
+      is the easy flights'), and ``v``, the discrepancy's own, is kept as it is.
     - ``c`` is then the root of the pooled mean ``e² / (c v + q p + n)`` = 1, at least 1:
       solved with ``q p + n`` beside ``c v``, since the mean of ``e² / (v + n)`` taken as
       ``c`` leaves a band too narrow by about ``n / v`` where the labels' noise outweighs
@@ -1219,17 +1219,18 @@ def _held_out_scale(
 
 def _share(e2, v, n, p, flight) -> float:
     """``q`` of :func:`_held_out_scale`: the largest over the ``flight`` groups of the ``f``
-    at which that group's mean ``e² / (f (v + p) + n)`` is 1, at most 1 and at least
-    :data:`PRIOR_SHARE_FLOOR` (where the labels' noise alone covers a flight's errors)."""
+    at which that group's mean ``e² / (v + f p + n)`` is 1, at most 1 and at least
+    :data:`PRIOR_SHARE_FLOOR` (where the discrepancy's band and the labels' noise alone
+    cover a flight's errors)."""
     from scipy.optimize import brentq
 
     q = PRIOR_SHARE_FLOOR
     for g in np.unique(flight):
         i = flight == g
-        lat = v[i] + p[i]
+        rest = v[i] + n[i]
 
-        def excess(f: float, i=i, lat=lat) -> float:
-            return float(np.mean(e2[i] / (f * lat + n[i]))) - 1.0
+        def excess(f: float, i=i, rest=rest) -> float:
+            return float(np.mean(e2[i] / (f * p[i] + rest))) - 1.0
 
         if excess(1.0) >= 0.0:
             return 1.0

@@ -966,27 +966,24 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
 
 def _check_prior_share(cal, own, prior, lab, groups, dom):
     """The component of ``cal`` with the least ``q``: every flight held out covered more widely
-    than its band says, so ``c = 1`` and the prior's share is narrowed by the largest over the
-    flights of the ``f`` at which that flight's mean ``e² / (f (v + p) + n)`` over its labels
-    in the domain is 1 (NumPy, by bisection); the prior's output scale times ``q`` there,
-    what :func:`fc.base` undoes exactly; ``own`` (calibrate=False) keeps the prior's."""
+    than its band says, so ``c = 1`` and the prior's share is narrowed to the largest over the
+    flights of the ``f`` at which that flight's mean ``e² / (v + f p + n)`` over its labels
+    in the domain is 1 (NumPy, by bisection; :data:`fc.PRIOR_SHARE_FLOOR` where ``v + n``
+    alone covers both, as here for the torques, which neither flight pushes; the interior
+    root is :func:`test_prior_share_is_the_worst_flights_root`'s); the prior's output scale
+    times ``q`` there, what :func:`fc.base` undoes exactly; ``own`` (calibrate=False) keeps
+    the prior's."""
     choice = cal.config["flight_correction"]["basis_prior"]
     k = int(np.argmin(choice["prior_share"]))
     q = choice["prior_share"][k]
-    assert fc.PRIOR_SHARE_FLOOR < q < 1.0 and choice["held_out_factor"][k] == 1.0
+    assert q < 1.0 and choice["held_out_factor"][k] == 1.0
     e2, v, n, p = _held_out_reference(cal, prior, lab, groups, k)
-
-    def root(i):  # mean(e² / (f (v + p) + n)) = 1 over the rows i, by bisection on log f
-        lo, hi = np.log(fc.PRIOR_SHARE_FLOOR), 0.0
-        for _ in range(200):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if np.mean(e2[i] / (np.exp(mid) * (v[i] + p[i]) + n[i])) > 1 else (
-                lo, mid)  # fmt: skip
-        return float(np.exp(lo))
-
-    fs = [root((groups == g) & dom) for g in (0, 1)]
-    assert fs[0] != pytest.approx(fs[1], rel=0.05)  # the larger one, not a pooled one
-    np.testing.assert_allclose(q, max(fs), rtol=1e-6)
+    assert np.median(p[dom] / v[dom]) > 0.1  # a share that could have covered the errors
+    z2 = [np.mean((e2 / (v + q * p + n))[(groups == g) & dom]) for g in (0, 1)]
+    if q > fc.PRIOR_SHARE_FLOOR:  # the worse flight's band as wide as its errors
+        np.testing.assert_allclose(max(z2), 1.0, rtol=1e-6)
+    else:  # the floor: each flight covered at it; without the floor, a root below it
+        assert max(z2) < 1.0
     inside = e2 <= 1.959964**2 * (v + q * p + n)  # c = 1
     assert not np.any(np.abs(e2 / (1.959964**2 * (v + q * p + n)) - 1) < 1e-6)
     want = [inside[groups == g].mean() for g in (0, 1)]
@@ -1004,6 +1001,38 @@ def _check_prior_share(cal, own, prior, lab, groups, dom):
     np.testing.assert_allclose(np.asarray(got), np.asarray(ref) * qs, rtol=1e-12)
     assert own.config["flight_correction"]["prior_share"] is None
     np.testing.assert_array_equal(np.asarray(own.model.prior.output_scale), os0)
+
+
+def test_prior_share_is_the_worst_flights_root():
+    """``fc._share``: for each flight the ``f`` at which its mean ``e² / (v + f p + n)`` is 1
+    (NumPy bisection), the largest of them, not a pooled one; 1 where a flight is under-covered
+    with the prior's whole share; the floor where ``v + n`` alone covers every flight."""
+    rng = np.random.default_rng(3)
+    m = 400
+    v, n, p = rng.uniform(0.1, 0.3, 2 * m), rng.uniform(0.05, 0.1, 2 * m), rng.uniform(1, 3, 2 * m)
+    flight = np.repeat([0, 1], m)
+    scale = np.repeat([0.6, 1.2], m)  # the second flight's errors the larger share of p
+    e2 = rng.chisquare(1, 2 * m) * (v + n + scale * 0.3 * p)
+
+    def root(i):  # by bisection on log f over [floor, 1]
+        lo, hi = np.log(fc.PRIOR_SHARE_FLOOR), 0.0
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if np.mean(e2[i] / (v[i] + np.exp(mid) * p[i] + n[i])) > 1 else (
+                lo, mid)  # fmt: skip
+        return float(np.exp(lo))
+
+    fs = [root(flight == g) for g in (0, 1)]
+    assert fc.PRIOR_SHARE_FLOOR < fs[0] < 0.8 * fs[1] < 0.8  # two interior roots, apart
+    q = fc._share(e2, v, n, p, flight)
+    np.testing.assert_allclose(q, fs[1], rtol=1e-9)
+    z2 = [np.mean((e2 / (v + q * p + n))[flight == g]) for g in (0, 1)]
+    np.testing.assert_allclose(z2[1], 1.0, rtol=1e-9)
+    assert z2[0] < 1.0
+    # a flight under-covered even with the whole share keeps it
+    assert fc._share(np.where(flight == 0, e2 * 10, e2), v, n, p, flight) == 1.0
+    # errors the discrepancy's band and the noise cover alone: the floor
+    assert fc._share(0.1 * e2, v, n, p, flight) == fc.PRIOR_SHARE_FLOOR
 
 
 def test_thinned_labels_calibrated_as_the_labels_kept(synthetic_surrogate, flights, monkeypatch):
