@@ -81,8 +81,7 @@ LENGTHSCALE_MIN, LENGTHSCALE_MAX = 1e-2, 1e2
 BASIS_PRIOR_GRID = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 # The least factor correct's held-out calibration puts on the prior's share of the band
 # (where the discrepancy's band and the labels' noise alone cover a held-out flight's
-# errors): the prior's variance is
-# still what says how far a state is from its data.
+# errors): the prior's variance is still what says how far a state is from its data.
 PRIOR_SHARE_FLOOR = 1e-3
 # The standard normal's upper 2.5-percent point: a 95-percent band's half-width in standard
 # deviations.
