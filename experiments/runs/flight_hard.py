@@ -7,10 +7,11 @@ drag areas, a smaller rotor with wider blades (another thrust coefficient), more
 a stronger wake. The user's vehicle file (``hard.vehicle``) is the nearest built-in vehicle
 with the measured mass. The closed-loop simulator flies the real vehicle through
 ``hard.sensors``: logged at 50 Hz, motor commands only (no rotor speeds), no IMU. Training
-flights fly figure-eights and random walks in steady winds along x (``hard.train_winds``, known
-as in a wind tunnel); test flights at a faster wind (``hard.test_wind``) and in a gusting one
-(``hard.gust``) given to the models as its mean only. The motor curve is fitted on the calm
-flight's hover (:meth:`gpg.flight.MotorCurve.fit_hover`) and the labels come from the velocity
+flights fly figure-eights and random walks (``hard.train_kinds``) in steady winds along x
+(``hard.train_winds``, known as in a wind tunnel); test flights at a faster wind
+(``hard.test_wind``) and in a gusting one (``hard.gust``) given to the models as its mean
+only. The motor curve is fitted on the calm figure-eight's hover
+(:meth:`gpg.flight.MotorCurve.fit_hover`) and the labels come from the velocity
 (:func:`gpg.flight.label`, ``source="velocity"``).
 
 Models, each predicting at the test labels' states (the curve's rotor speeds, the log's
@@ -146,6 +147,26 @@ def _flight(
     log = f.log if sensors.rpm_logged else f.log.replace(rpm=None)
     flight = dataclasses.replace(f, log=read_csv(write_csv(log, logs / f"{name}.csv")))
     return flight, (read_csv(write_csv(f.log, logs / f"{name}_esc.csv")) if esc else None)
+
+
+def training_plan(h: dict[str, Any]) -> list[tuple[float, str]]:
+    """The training flights as ``(wind, kind)``: each of ``hard.train_winds`` flown as each of
+    ``hard.train_kinds`` in turn (the i-th flight's seed is ``hard.seed + i``).
+
+    Raises:
+        ValueError: if ``hard.train_kinds`` is empty or names a kind other than ``eight`` and
+            ``walk``, or if no figure-eight flies at a wind of 0 (the motor curve is fitted on
+            the calm figure-eight's hover).
+    """
+    kinds = list(h.get("train_kinds", ["eight", "walk"]))
+    if not kinds or any(k not in ("eight", "walk") for k in kinds):
+        raise ValueError(f"hard.train_kinds must name eight or walk (one or more), got {kinds!r}")
+    winds = [float(w) for w in h["train_winds"]]
+    if 0.0 not in winds or "eight" not in kinds:
+        raise ValueError("hard.train_winds must hold 0 and hard.train_kinds eight: the motor "
+                         f"curve is fitted on the calm figure-eight's hover (winds {winds}, "
+                         f"kinds {kinds})")  # fmt: skip
+    return [(w, k) for w in winds for k in kinds]
 
 
 def _test(name: str, f: Flight, user, simple, opts, gust) -> _Test:
@@ -379,8 +400,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                                for k, v in s["curve"].items()})  # fmt: skip
     sensors = Sensors(**s)
     seed = int(h["seed"])
-    # Training flights: each wind, a figure-eight and a random walk; the wind known (a tunnel).
-    plan = [(w, kind) for w in h["train_winds"] for kind in ("eight", "walk")]
+    # Training flights: at each wind the kinds of hard.train_kinds; the wind known (a tunnel).
+    plan = training_plan(h)
     bar = tqdm(total=len(plan) + 2, desc="flying", disable=not progress)
     train, esc_logs = [], []
     with_speeds = h.get("with_speeds")
@@ -419,7 +440,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
     # The motor curve from the calm figure-eight's hover, labels from the velocity.
     t1 = time.perf_counter()
-    calm = next(f for w, f in train if w == 0.0)
+    pairs = zip(plan, train, strict=True)
+    calm = next(f for (w, kind), (_, f) in pairs if w == 0.0 and kind == "eight")
     curve = MotorCurve.fit_hover(calm.log, user, simple, moments=h.get("hover_moments", False))
 
     def labelled(

@@ -165,6 +165,7 @@ def run(cfg: dict[str, Any], out: Path) -> dict[str, Any]:
     if scenario == "hard":
         from experiments.runs import flight_hard
 
+        flight_hard.training_plan(cfg["hard"])  # checked before any work
         _, prior = flight_setup(cfg, OPTIONS)
         return flight_hard.run(cfg, out, prior)
     fl = cfg["flights"]

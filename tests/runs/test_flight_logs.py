@@ -40,6 +40,10 @@ SMOKE = [
         (["seconds=[5,10,60]", "default_seconds=10"], "seconds go to 60.0 s"),
         (["progress=maybe"], "progress must be true or false"),
         (["scenario=harder"], "scenario must be 'nominal' or 'hard'"),
+        (["scenario=hard", "hard.train_kinds=[eight,loop]"], "hard.train_kinds must name"),
+        (["scenario=hard", "hard.train_kinds=[]"], "hard.train_kinds must name"),
+        (["scenario=hard", "hard.train_kinds=[walk]"], "calm figure-eight's hover"),
+        (["scenario=hard", "hard.train_winds=[4.0,8.0]"], "calm figure-eight's hover"),
     ],
 )
 def test_options_checked_before_any_work(bad, message, tmp_path):
@@ -47,6 +51,17 @@ def test_options_checked_before_any_work(bad, message, tmp_path):
     with pytest.raises(ValueError, match=message):
         flight_logs.run(cfg, tmp_path)
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_hard_training_plan():
+    """Each wind flown as each of ``hard.train_kinds`` in turn: the default is the plan (and so
+    the seeds) of the runs before the option; figure-eights only repeat the eight."""
+    from experiments.runs.flight_hard import training_plan
+
+    h = compose_plain("flight_logs", ["scenario=hard"])["hard"]
+    assert training_plan(h) == [(w, k) for w in (0.0, 4.0, 8.0) for k in ("eight", "walk")]
+    h["train_kinds"] = ["eight", "eight"]
+    assert training_plan(h) == [(w, "eight") for w in (0.0, 0.0, 4.0, 4.0, 8.0, 8.0)]
 
 
 def test_label_offset_from_the_sensors():
