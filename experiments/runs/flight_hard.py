@@ -440,8 +440,7 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
 
     # The motor curve from the calm figure-eight's hover, labels from the velocity.
     t1 = time.perf_counter()
-    pairs = zip(plan, train, strict=True)
-    calm = next(f for (w, kind), (_, f) in pairs if w == 0.0 and kind == "eight")
+    calm = train[plan.index((0.0, "eight"))][1]  # training_plan checked that it flies
     curve = MotorCurve.fit_hover(calm.log, user, simple, moments=h.get("hover_moments", False))
 
     def labelled(
