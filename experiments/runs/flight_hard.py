@@ -525,7 +525,8 @@ def run(cfg: dict[str, Any], out: Path, nominal_prior: Surrogate) -> dict[str, A
                            cache_dir=cfg["cache_dir"], progress=progress)  # fmt: skip
     stages["identified_prior_s"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    keys = ("max_labels", "exact_labels", "inducing", "subset_size", "hyperparameters", "calibrate")
+    keys = ("max_labels", "exact_labels", "inducing", "subset_size", "hyperparameters",
+            "calibrate", "coefficient_spread")  # fmt: skip
     corr = {k: v for k, v in cfg["correct"].items() if k in keys}
     corr["basis_prior"] = basis_prior(cfg["correct"]["basis_prior"])
     # One part per wind: the physical basis's band is calibrated by holding out a whole

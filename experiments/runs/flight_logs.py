@@ -142,7 +142,8 @@ class _Bench:
                 "exact_labels": int(c["exact_labels"]), "inducing": int(c["inducing"]),
                 "subset_size": int(c["subset_size"]), "hyperparameters": c["hyperparameters"],
                 "basis_prior": basis_prior(c["basis_prior"]),
-                "calibrate": bool(c["calibrate"])}  # fmt: skip
+                "calibrate": bool(c["calibrate"]),
+                "coefficient_spread": bool(c["coefficient_spread"])}  # fmt: skip
         return fc.correct(self.prior, labels, **{**opts, **kw})
 
     @property

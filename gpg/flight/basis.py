@@ -120,8 +120,10 @@ class Explicit(eqx.Module):
             inducing-point discrepancy (:class:`gpg.gp.inducing.InducingGP`) ``N`` is its
             ``m`` inducing inputs and ``G = K_mm⁻¹ K_mn K̃⁻¹ H`` (its kernel row is taken
             against them).
-        cov_chol: (6, P, P) a Cholesky factor ``C`` of ``A_j⁻¹``, the coefficients'
-            posterior covariance.
+        cov_chol: (6, P, P) a Cholesky factor ``C`` of the coefficients' covariance:
+            ``A_j⁻¹``, their posterior's (times the held-out calibration's factor), plus
+            their spread between the flights held out where the correction measured it
+            (``gpg.flight.correct``'s ``coefficient_spread``).
         with_prior: the prior's mean is the first column.
         with_simple: ``M``'s loads are a column (after the prior's).
     """

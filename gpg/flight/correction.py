@@ -962,6 +962,7 @@ def correct(
     calibrate: bool = True,
     basis_prior: float | str = "auto",
     hyperparameters: str = "subset",
+    coefficient_spread: bool = True,
 ) -> Surrogate:
     """The surrogate ``prior`` corrected by flight ``labels`` (module docstring).
 
@@ -1035,6 +1036,17 @@ def correct(
             random; ``"all"``: that fit refined on every label by the collapsed bound
             (:func:`gpg.gp.inducing.fit_collapsed`) through ``inducing`` k-means inputs
             (``O(N m²)`` a step).
+        coefficient_spread: with ``basis="physical"`` and labels of two flights or more
+            held out (``calibrate`` or ``basis_prior="held_out"``), the physical
+            coefficients' covariance ``A⁻¹`` plus their spread between the flights: the
+            delete-a-flight jackknife of their posterior means, each flight held out in
+            turn (pass one part per condition, a wind say). ``A⁻¹`` takes the labels as
+            independent given the discrepancy, and shrinks with their number; where the
+            basis is not the truth's form, the coefficients that fit the flights move with
+            the conditions flown, and the band past every flight (a faster wind, where the
+            terms carry the model) is as wide as they move. Within the flights the
+            discrepancy's kernel takes the terms' variance back (``R = h − Gᵀk``). False:
+            ``A⁻¹`` alone.
 
     Returns:
         A :class:`~gpg.Surrogate` whose model is :class:`Corrected`: ``predict`` gives the
@@ -1092,7 +1104,7 @@ def correct(
         rho6, kappa, deltas, explicit, choice = _fit_explicit(
             X, Y, V, mu, m, _physics(prior), fixed_rho, *fit,
             groups=groups, Z=Z, cal=cal, Zh=Zh, basis_prior=basis_prior, calibrate=calibrate,
-            prior_band=band,
+            prior_band=band, spread=bool(coefficient_spread),
         )  # fmt: skip
     rho[:N_LOADS] = rho6
     share = (choice or {}).get("prior_share") if calibrate else None
@@ -1114,6 +1126,8 @@ def correct(
         "inducing": None if Z is None else int(Z.shape[0]),
         "flights": [p.name for p in parts],
         "hyperparameters": hyperparameters,
+        # the physical coefficients' spread between the flights held out in their band
+        "coefficient_spread": bool(coefficient_spread),
         # the factor q on the prior's share of the band per load output (held-out
         # calibration), and the prior's output scale before it, which base() restores
         "prior_share": share,
@@ -1158,15 +1172,16 @@ def _physics(prior: Surrogate) -> PhysicalBasis:
 
 def _held_out_scale(
     X, H, y, noise, hyper: Hyper, b, sd, groups, widen: bool = True, prior=None
-) -> tuple[float, float, list[float], float]:
+) -> tuple[float, float, list[float], float, np.ndarray | None]:
     """The factor ``c`` on the latent variance and the factor ``q`` on the prior's share that
     make each flight, predicted from the others (:func:`_held_out`), covered as the band the
     model predicts says; the largest over the flights of a held-out flight's mean negative
-    log predictive density (nats per label: what the basis's prior is chosen by); and each
+    log predictive density (nats per label: what the basis's prior is chosen by); each
     held-out flight's share of labels inside the predicted band ``Z95²(c v + q p + n)``
     (``widen`` False: without ``c`` and ``q``; one pooled ``c`` can cover one flight loosely
     and another tightly: the spread says how far the band's width carries from one condition
-    to the next).
+    to the next); and the coefficients' spread between the flights held out
+    (:func:`_spread`; None where none could be).
 
     ``prior``: ``(p, inside)``, the prior's share of the band at each label (``ρ²
     var_prior``: the prior is not refitted without a flight) and whether the label is in the
@@ -1193,7 +1208,7 @@ def _held_out_scale(
     the same for every candidate, would only dilute."""
     parts = _held_out(X, H, y, noise, hyper, b, sd, groups)
     if not parts:
-        return 1.0, 0.0, [], 1.0
+        return 1.0, 0.0, [], 1.0, None
     p, inside = (np.zeros(len(y)), np.ones(len(y), bool)) if prior is None else prior
     te_all = np.concatenate([np.nonzero(te)[0] for te, *_ in parts])
     e2 = np.concatenate([(y[te] - mean) ** 2 for te, mean, *_ in parts])
@@ -1213,7 +1228,23 @@ def _held_out_scale(
         worst = max(worst, float(np.mean(0.5 * np.log(2.0 * np.pi * s2) + 0.5 * e2g / s2)))
         band = (c * var + q * p[te] if widen else var + p[te]) + noise[te]
         coverage.append(float(np.mean(e2g <= Z95**2 * band)))
-    return c, worst, coverage, q
+    return c, worst, coverage, q, _spread([beta for *_, beta in parts])
+
+
+def _spread(betas: list[np.ndarray]) -> np.ndarray | None:
+    """The delete-a-group jackknife covariance of the coefficients (P, P), from their
+    posterior means with each group held out in turn: ``(G − 1)/G Σ_g (β̄₋g − β̃)(β̄₋g −
+    β̃)ᵀ``, ``β̃`` their mean (None with fewer than two groups). The posterior ``A⁻¹`` takes
+    the labels as independent given the discrepancy; the labels of one wind share its
+    unmodelled aerodynamics, and where the basis is not the truth's form the coefficients
+    that fit the flights move with the conditions they were flown in. The jackknife measures
+    that from the flights, without the assumption: the coefficients' width where the basis
+    carries the model past every flight."""
+    if len(betas) < 2:
+        return None
+    B = np.stack(betas)
+    d = B - B.mean(0)
+    return (len(B) - 1) / len(B) * d.T @ d
 
 
 def _share(e2, v, n, p, flight) -> float:
@@ -1273,12 +1304,13 @@ def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None, at=None
     predicts a group is conditioned on the other groups' labels alone either way.
 
     Returns:
-        A list of ``(mask, mean, variance, cov, latent)``: the group's rows (of ``at``'s where
-        given), their held-out
+        A list of ``(mask, mean, variance, cov, latent, beta)``: the group's rows (of ``at``'s
+        where given), their held-out
         mean and latent variance (the discrepancy's, its ``ν²`` and the coefficients'; not the
-        labels' noise), the coefficients' posterior covariance without the group (P, P), and
-        the discrepancy's own latent variance alone (its posterior's, without ``ν²`` or the
-        coefficients'). A group whose complement has fewer than 8 labels is left out.
+        labels' noise), the coefficients' posterior covariance without the group (P, P), the
+        discrepancy's own latent variance alone (its posterior's, without ``ν²`` or the
+        coefficients'), and the coefficients' posterior mean without the group (P,). A group
+        whose complement has fewer than 8 labels is left out.
     """
     from scipy.linalg import cho_factor, cho_solve, solve_triangular
 
@@ -1306,7 +1338,7 @@ def _held_out(X, H, y, noise, hyper: Hyper, b, sd, groups, predict=None, at=None
         r = Ha[te] - kq @ KiH
         latent = np.maximum(s2 - np.sum(v * v, 0), 0)
         var = latent + nu + np.sum((r @ chol) ** 2, 1)
-        out.append((te, mean, var, chol @ chol.T, latent))
+        out.append((te, mean, var, chol @ chol.T, latent, beta))
     return out
 
 
@@ -1349,7 +1381,8 @@ def _cases(d: ExactGP | InducingGP) -> int:
 # the prior, the calibration and the assembly of the result.
 def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size, max_steps,
                   seed, *, groups=None, Z=None, cal=None, Zh=None,
-                  basis_prior="held_out", calibrate=True, prior_band=None):  # fmt: skip
+                  basis_prior="held_out", calibrate=True, prior_band=None,
+                  spread=True):  # fmt: skip
     """The physical basis with integrated coefficients (:mod:`gpg.flight.basis`), per load
     output: ``β`` first by weighted least squares under its prior with the labels' noise, the
     discrepancy's hyperparameters on what is left, then ``β``'s posterior given that GP and
@@ -1360,8 +1393,10 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     (two or more), the physical terms' prior is the one of ``basis_prior``'s candidates
     under which the worst-predicted group held out is predicted best, and (``calibrate``)
     the band widened by the held-out factor, solved with the prior's share of the band
-    (``prior_band``: :func:`_prior_band` at the rows ``cal``) beside it; returned last: the
-    candidates, the factor chosen per output and the candidates' held-out scores."""
+    (``prior_band``: :func:`_prior_band` at the rows ``cal``) beside it; with ``spread`` the
+    coefficients' covariance also holds their spread between the groups held out
+    (:func:`_spread`); returned last: the candidates, the factor chosen per output, the
+    candidates' held-out scores and the spread's standard deviations."""
     phys = _host.each_row(physics, X)  # (N, 6, T)
     n_out = N_LOADS
     rho = np.zeros(n_out) if fixed_rho is None else np.full(n_out, float(fixed_rho))
@@ -1375,6 +1410,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
     factors, scores, widths = np.ones(n_out), np.zeros((n_out, len(grid))), np.ones(n_out)
     shares = np.ones(n_out)
     coverage: list[list[float]] = []
+    spreads: list[list[float] | None] = []
     for j in range(n_out):
         H = _basis_columns(mu if fixed_rho is None else None, m, phys, j)
         y = Y[:, j] - (0.0 if fixed_rho is None else float(fixed_rho)) * mu[:, j]
@@ -1387,18 +1423,19 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
             sd = _scale_terms(sd0, f)
             beta0, _ = posterior(H, H * w[:, None], y * w, b, sd)
             hyper = _delta_hyper(X, y - H @ beta0, V[:, j], subset_size, max_steps, seed + j, Zh)
-            c, nlpd, cover, q = (1.0, 0.0, [], 1.0)
+            c, nlpd, cover, q, J = (1.0, 0.0, [], 1.0, None)
             if held:
                 share = None  # ρ² var_prior, ρ as first estimated, and the prior's domain
                 if prior_band is not None:
                     r2 = (beta0[0] if fixed_rho is None else float(fixed_rho)) ** 2
                     share = (r2 * prior_band[0][:, j], prior_band[1])
-                c, nlpd, cover, q = _held_out_scale(X[kc], H[kc], y[kc], V[kc, j], hyper, b,
-                                                    sd, groups[kc], calibrate, share)  # fmt: skip
+                c, nlpd, cover, q, J = _held_out_scale(
+                    X[kc], H[kc], y[kc], V[kc, j], hyper, b, sd, groups[kc], calibrate, share
+                )
             scores[j, i] = nlpd
             if best is None or nlpd < best[0]:
-                best = (nlpd, f, sd, hyper, c, cover, q)
-        _, factors[j], sd, hyper, c, cover, shares[j] = best
+                best = (nlpd, f, sd, hyper, c, cover, q, J if spread else None)
+        _, factors[j], sd, hyper, c, cover, shares[j], J = best
         coverage.append(cover)
         if Z is None:
             both = ExactGP.fit(X, np.column_stack([H, y]), hyper=hyper, row_noise=V[:, j])
@@ -1420,6 +1457,10 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         c = c if calibrate else 1.0  # the choice above scored under c all the same
         deltas.append(gp.with_output_scale(jnp.full(1, c)))
         chol = chol * np.sqrt(c)
+        if J is not None:  # the posterior's (calibrated) and the spread between the groups
+            cov = chol @ chol.T + J
+            chol = np.linalg.cholesky(0.5 * (cov + cov.T))
+        spreads.append(None if J is None else np.sqrt(np.diag(J)).tolist())
         k = 0
         if fixed_rho is None:
             rho[j], k = beta[0], 1
@@ -1442,6 +1483,7 @@ def _fit_explicit(X, Y, V, mu, m, physics: PhysicalBasis, fixed_rho, subset_size
         choice["held_out_coverage95"] = coverage
         choice["held_out_factor"] = widths.tolist()  # c per output, applied or not
         choice["prior_share"] = shares.tolist()  # q per output, applied or not
+        choice["coefficient_spread"] = spreads  # per output: the spread's sd per column
     return rho, kappa, tuple(deltas), explicit, choice
 
 

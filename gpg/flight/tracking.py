@@ -793,7 +793,7 @@ def _held_out_sequences(sur: Surrogate, parts: list[Labels], max_labels: int,
     for j, d in enumerate(sur.model.delta):
         outs = fc._held_out(X, H[:, j], Y[:, j], V[:, j], d.hyper, b, sd_j[j], groups, refit,
                             at=(Xr, Hr[:, j], gr))  # fmt: skip
-        for te, mean, held_var, cov, latent in outs:
+        for te, mean, held_var, cov, latent, _ in outs:
             resid[te, j] = Yr[te, j] - mean
             c0[te, j, :p, :p] = cov
             DL[te, j] = float(d.output_scale[0]) * latent

@@ -834,8 +834,9 @@ def _held_out_reference(cal, prior, lab, groups, j):
     """NumPy: each label of ``lab`` predicted by load output ``j``'s physical basis and
     discrepancy of ``cal`` (``ρ = 1``; its hyperparameters and terms' prior as chosen)
     fitted on the other group's labels, the coefficients integrated out; returns the squared
-    error ``e²``, the latent variance ``v`` (with ``ν²``), the label's noise ``n`` and the
-    uncorrected ``prior``'s share ``p`` of the band (its own output scale)."""
+    error ``e²``, the latent variance ``v`` (with ``ν²``), the label's noise ``n``, the
+    uncorrected ``prior``'s share ``p`` of the band (its own output scale) and the
+    coefficients' posterior mean with each group held out (G, P)."""
     from gpg.flight.basis import PRIORS, TERMS
 
     m = cal.model
@@ -851,12 +852,13 @@ def _held_out_reference(cal, prior, lab, groups, j):
     assert m.explicit.columns == ("simple", *TERMS)
     sd = np.array([PRIORS[c] * (f if c in TERMS else 1.0) for c in m.explicit.columns])
     np.testing.assert_array_equal(fc._chosen_prior(cal, False, True)[j], sd)  # fit_drift's
-    e2v = []
+    e2v, betas = [], []
     for g in np.unique(groups):
         tr, te = groups != g, groups == g
         Ki = np.linalg.inv(_rbf(X[tr], X[tr], s2, ls) + np.diag(V[tr] + nu))
         A = np.diag(1 / sd**2) + H[tr].T @ Ki @ H[tr]
         beta = np.linalg.solve(A, H[tr].T @ Ki @ Y[tr])  # the prior's mean b = 0
+        betas.append(beta)
         kq = _rbf(X[te], X[tr], s2, ls)
         mean = H[te] @ beta + kq @ Ki @ (Y[tr] - H[tr] @ beta)
         R = H[te] - kq @ Ki @ H[tr]
@@ -865,7 +867,7 @@ def _held_out_reference(cal, prior, lab, groups, j):
         e2v.append(np.column_stack([(Y[te] - mean) ** 2, var, V[te]]))
     e2, v, n = np.concatenate(e2v).T
     p = np.asarray(prior.model.predict(Xj)[1]) * float(prior.model.output_scale[j])
-    return e2, v, n, p
+    return e2, v, n, p, np.array(betas)
 
 
 def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monkeypatch):
@@ -898,7 +900,12 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     assert raw.config["flight_correction"]["basis_prior"]["factors"] == [f] * 6
     lab = Labels.concatenate([a, b_])
     groups = np.repeat([0, 1], [half, len(flights) - half])
-    e2, v, n, p = _held_out_reference(cal, prior, lab, groups, j)
+    e2, v, n, p, betas = _held_out_reference(cal, prior, lab, groups, j)
+    # the coefficients' spread between the flights held out: the delete-a-flight jackknife
+    # (G − 1)/G Σ_g (β₋g − β̃)(β₋g − β̃)ᵀ; with two flights, (β₋₁ − β₋₂)(β₋₁ − β₋₂)ᵀ / 4
+    d = betas[0] - betas[1]
+    J = np.outer(d, d) / 4
+    assert np.sqrt(np.max(np.diag(J))) > 1e-3 * np.max(np.abs(betas))  # a spread to add
     # the prior's domain at the labels (in the rows' order)
     dom = np.asarray(prior.predict_batch(lab.rpm, lab.euler, lab.v_air).in_domain)
     assert 0 < dom.sum() < dom.size  # both kinds of label, so that the domain is read
@@ -939,9 +946,20 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     )
     assert len(choice["held_out_coverage95"]) == 6
     assert float(raw.model.delta[j].output_scale[0]) == 1.0
-    np.testing.assert_allclose(
-        np.asarray(m.explicit.cov_chol[j]), np.asarray(raw.model.explicit.cov_chol[j]) * np.sqrt(c),
-        rtol=1e-6, atol=1e-12)  # fmt: skip
+
+    # the coefficients' covariance: the posterior's times c, plus the spread (raw held no
+    # flight out: its posterior's alone); compared as covariances, to the refit's rounding
+    # against the largest entry (a Cholesky factor's small entries carry its differences)
+    def cov(sur):
+        C = np.asarray(sur.model.explicit.cov_chol[j])
+        return C @ C.T
+
+    def close(got, want):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.max(np.abs(want)))
+
+    close(cov(cal), c * cov(raw) + J)
+    np.testing.assert_allclose(choice["coefficient_spread"][j], np.sqrt(np.diag(J)),
+                               rtol=1e-6, atol=1e-9 * np.sqrt(np.max(np.diag(J))))  # fmt: skip
     np.testing.assert_allclose(choice["held_out_factor"][j], c, rtol=1e-6)
     # calibrate=False leaves the band as the discrepancies give it; the terms' prior is chosen
     # as before (the candidates scored under their own factor), and the held-out shares are of
@@ -954,9 +972,20 @@ def test_band_calibrated_on_held_out_flights(synthetic_surrogate, flights, monke
     np.testing.assert_allclose(mine["held_out_nlpd"], choice["held_out_nlpd"], rtol=1e-9)
     np.testing.assert_allclose(mine["held_out_factor"], choice["held_out_factor"], rtol=1e-9)
     assert all(float(d.output_scale[0]) == 1.0 for d in own.model.delta)
-    np.testing.assert_allclose(
-        np.asarray(m.explicit.cov_chol[j]), np.asarray(own.model.explicit.cov_chol[j]) * np.sqrt(c),
-        rtol=1e-6, atol=1e-12)  # fmt: skip
+    close(cov(own), cov(raw) + J)  # the spread without c
+    # coefficient_spread=False: the posterior's alone, c times, and the same mean
+    bare = fc.correct(prior, [a, b_], basis="physical", scale=False,
+                      coefficient_spread=False, **FIT)  # fmt: skip
+    assert bare.config["flight_correction"]["coefficient_spread"] is False
+    assert cal.config["flight_correction"]["coefficient_spread"] is True
+    close(cov(bare), c * cov(raw))
+    # at the labels' states and at twice their airspeed (past every flight)
+    for k in (1.0, 2.0):
+        pc, pb = (s.predict_batch(lab.rpm[:16], lab.euler[:16], k * lab.v_air[:16])
+                  for s in (cal, bare))  # fmt: skip
+        np.testing.assert_allclose(np.asarray(pc.force), np.asarray(pb.force), rtol=1e-9,
+                                   atol=1e-12)  # fmt: skip
+        assert np.all(np.asarray(pc.variance) >= np.asarray(pb.variance) * (1 - 1e-9))
     inside1 = e2 <= 1.959964**2 * (v + n + p)
     assert not np.any(np.abs(e2 / (1.959964**2 * (v + n + p)) - 1) < 1e-6)
     want = [inside1[:half].mean(), inside1[half:].mean()]
@@ -977,7 +1006,7 @@ def _check_prior_share(cal, own, prior, lab, groups, dom):
     k = int(np.argmin(choice["prior_share"]))
     q = choice["prior_share"][k]
     assert q < 1.0 and choice["held_out_factor"][k] == 1.0
-    e2, v, n, p = _held_out_reference(cal, prior, lab, groups, k)
+    e2, v, n, p, _ = _held_out_reference(cal, prior, lab, groups, k)
     assert np.median(p[dom] / v[dom]) > 0.1  # a share that could have covered the errors
     z2 = [np.mean((e2 / (v + q * p + n))[(groups == g) & dom]) for g in (0, 1)]
     if q > fc.PRIOR_SHARE_FLOOR:  # the worse flight's band as wide as its errors
@@ -1001,6 +1030,18 @@ def _check_prior_share(cal, own, prior, lab, groups, dom):
     np.testing.assert_allclose(np.asarray(got), np.asarray(ref) * qs, rtol=1e-12)
     assert own.config["flight_correction"]["prior_share"] is None
     np.testing.assert_array_equal(np.asarray(own.model.prior.output_scale), os0)
+
+
+def test_coefficient_spread_is_the_grouped_jackknife():
+    """For an estimate that is the groups' mean (each group's own ``b_g``), the delete-a-group
+    jackknife of :func:`fc._spread` is the groups' sample covariance over ``G``, the variance
+    of their mean (closed form); one group gives none."""
+    rng = np.random.default_rng(5)
+    b = rng.normal(size=(4, 3)) * np.array([1.0, 0.1, 10.0])
+    held = [(b.sum(0) - b[g]) / 3 for g in range(4)]  # each group held out in turn
+    np.testing.assert_allclose(fc._spread(held), np.cov(b.T, ddof=1) / 4, rtol=1e-12,
+                               atol=1e-14 * np.max(b**2))  # fmt: skip
+    assert fc._spread(held[:1]) is None
 
 
 def test_prior_share_is_the_worst_flights_root():
