@@ -14,7 +14,9 @@ in-plane force ``∝ Ω_i v_⊥``), the thrust's change with the inflow through 
 mean is ``hᵀβ̄ + k_*ᵀ K⁻¹ (y − Hβ̄)`` and the variance adds ``Rᵀ A⁻¹ R`` to the GP's, with
 ``A = B⁻¹ + Hᵀ K⁻¹ H``, ``β̄ = A⁻¹ (Hᵀ K⁻¹ y + B⁻¹ b)`` and ``R = h_* − Hᵀ K⁻¹ k_*``: the band
 widens where the basis extrapolates (a wind faster than any flight's), instead of reverting to
-the GP's mean with the GP's confidence.
+the GP's mean with the GP's confidence. Where the correction held flights out, the
+coefficients' covariance is ``A⁻¹`` plus their spread between those flights
+(``gpg.flight.correct``'s ``coefficient_spread``), in place of ``A⁻¹`` below.
 
 Units: the physics' columns are in newtons (N·m for torques) per unit coefficient before the
 outputs' normalisation; a column and the targets are divided by the same output scale, so the
@@ -168,7 +170,8 @@ class Explicit(eqx.Module):
 
     @highest
     def variance(self, h: Float[Array, "6 P"], k: Float[Array, "6 N"]) -> Float[Array, " 6"]:
-        """``Rᵀ A⁻¹ R`` per output, ``R = h_* − Gᵀ k_*``.
+        """``Rᵀ Σ_β R`` per output, ``R = h_* − Gᵀ k_*``, ``Σ_β`` the coefficients'
+        covariance (:attr:`cov_chol`).
 
         Args:
             h: (6, P) all the columns at the query.

@@ -341,7 +341,8 @@ class Corrected(Predictor):
     are followed online, :mod:`gpg.flight.tracking`); :meth:`predictive_variance` turns it into
     the per-output predictive variance ``ρ² var_prior + var_δ + var_η + var_β + var_w``: the
     prior's latent variance (its value noise is the simulator data's), each ``δ``'s with its
-    own value noise (the flights'), ``η``'s, ``Rᵀ A⁻¹ R`` of the coefficients; where they are
+    own value noise (the flights'), ``η``'s, ``Rᵀ Σ_β R`` of the coefficients (their
+    covariance, ``A⁻¹`` and their spread between the flights held out); where they are
     tracked, ``hᵀ Σ_w h`` of their drift, its noise ``v`` and each ``δ``'s latent variance in
     place of the prior's, the coefficients' and ``δ``'s ``ν²``.
 
@@ -733,7 +734,7 @@ class Corrected(Predictor):
             (..., M) each, normalised units, summing to :meth:`predictive_variance`:
             ``"prior"`` (``ρ² var_prior``, its output scale), ``"discrepancy"`` (each ``δ``'s
             latent variance, the held-out factor in it), ``"discrepancy_noise"`` (its
-            ``ν²``) and ``"basis"`` (the coefficients' ``Rᵀ A⁻¹ R``), the last three where
+            ``ν²``) and ``"basis"`` (the coefficients' ``Rᵀ Σ_β R``), the last three where
             the model has them (zeros beyond the loads).
 
         Raises:

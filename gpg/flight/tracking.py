@@ -16,7 +16,8 @@ with ``a = e^{−Δt/τ}`` for the basis's coefficients and ``e^{−Δt/τ_b}`` 
 
     w ← a ⊙ w,    Σ ← (a aᵀ) ⊙ (Σ − Σ_∞) + Σ_∞,    Σ_∞ = C₀ + diag(s² σ_B², s_b²),
 
-with ``C₀`` the coefficients' offline posterior covariance (the physical basis's ``A⁻¹``; zero
+with ``C₀`` the coefficients' offline covariance (the physical basis's ``A⁻¹``, with their
+spread between the flights held out where the correction measured it; zero
 for the regression form and the bias), ``σ_B`` their prior standard deviations
 (:data:`gpg.flight.basis.PRIORS`), ``s`` the drift's spread in those units (one per column:
 a term the flights do not move stays near its offline value) and ``s_b`` the bias's. A
@@ -395,9 +396,10 @@ def _rates(dt, tau, bias_taus, n_basis: int):
 
 
 def _offline_cov(m, p: int, with_simple: bool) -> np.ndarray:
-    """The offline posterior covariance of the tracked columns' coefficients (6, P, P): the
-    physical basis's ``A⁻¹`` where the correction integrated it (its columns placed by name
-    among the prior's mean, ``M``'s loads where ``with_simple``, the terms), zeros elsewhere."""
+    """The offline covariance of the tracked columns' coefficients (6, P, P): the physical
+    basis's where the correction integrated it (``A⁻¹``, with their spread between the parts
+    held out where it measured one; its columns placed by name among the prior's mean,
+    ``M``'s loads where ``with_simple``, the terms), zeros elsewhere."""
     out = np.zeros((N_LOADS, p, p))
     e = m.explicit
     if e is None:
