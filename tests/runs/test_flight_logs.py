@@ -167,6 +167,9 @@ def test_flight_logs_hard_scenario(smoke_cache, tmp_path):
     for m in co.values():
         bp = m["basis_prior"]
         assert set(bp["factors"]) <= set(bp["grid"]) and len(bp["held_out_nlpd"]) == 6
+        # the coefficients' spread between the winds held out: an sd per output and column
+        spread = np.asarray(bp["coefficient_spread"])
+        assert spread.shape[0] == 6 and np.all(spread >= 0) and np.any(spread > 0)
     load_vehicle(tmp_path / "identified_vehicle.yaml").require_generator()
     assert len(res["wind"]) == 4 and all(np.isfinite(w["rms_error"]) for w in res["wind"])
     assert set(res["identification"]["parameters"]) == set(cfg["hard"]["identify"]["free"])
