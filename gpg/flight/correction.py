@@ -1046,7 +1046,7 @@ def correct(
             basis is not the truth's form, the coefficients that fit the flights move with
             the conditions flown, and the band past every flight (a faster wind, where the
             terms carry the model) is as wide as they move. Within the flights the
-            discrepancy's kernel takes the terms' variance back (``R = h − Gᵀk``). False:
+            discrepancy's kernel takes much of it back (``R = h − Gᵀk``), not all. False:
             ``A⁻¹`` alone.
 
     Returns:
