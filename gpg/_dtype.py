@@ -28,11 +28,30 @@ def _widen(x):
     return x
 
 
+def _narrow(x) -> bool:
+    return (
+        isinstance(x, jax.Array)
+        and jnp.issubdtype(x.dtype, jnp.floating)
+        and x.dtype != jnp.float64
+    )
+
+
+@jax.jit
+def _widen_all(tree):
+    # One program for a module's narrow leaves: cast one by one outside a trace, each leaf's
+    # shape compiled a conversion of its own (a surrogate's float32 factors, dozens of shapes).
+    return jax.tree.map(lambda x: x.astype(jnp.float64), tree)
+
+
 def _widen_arg(a):
     """A JAX array or an equinox module (a Hyper, a Generator) widened; anything else as it is
-    (mapping over a plain dict would rebuild it with its keys sorted)."""
+    (mapping over a plain dict would rebuild it with its keys sorted). A module's float64
+    arrays are kept as they are, not copied."""
     if isinstance(a, eqx.Module):
-        return jax.tree.map(_widen, a)
+        narrow, rest = eqx.partition(a, _narrow)
+        if not jax.tree.leaves(narrow):
+            return a
+        return eqx.combine(_widen_all(narrow), rest)
     return _widen(a)
 
 

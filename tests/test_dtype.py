@@ -143,6 +143,45 @@ def test_astype_casts_every_float_leaf_in_one_program(caplog):
     assert all(a is b for a, b in zip(jax.tree.leaves(sur32), jax.tree.leaves(same), strict=True))
 
 
+def test_float64_wrapper_widens_a_module_in_one_program(caplog):
+    """A module's float32 leaves widened exactly (float32 to float64 is exact), its float64
+    and integer leaves the same objects (not copied); the casts compiled as one program for
+    the module, where op by op each leaf's shape compiled one, and none the second time."""
+    import logging
+
+    import equinox as eqx
+
+    class Mixed(eqx.Module):
+        narrow: tuple
+        wide: jax.Array
+        index: jax.Array
+
+    rng = np.random.default_rng(1)
+    narrow = tuple(jnp.asarray(rng.normal(size=(k + 2, k + 1)), jnp.float32) for k in range(12))
+    m = Mixed(narrow, jnp.asarray(rng.normal(size=7)), jnp.arange(5))
+
+    @float64
+    def probe(module):
+        return module
+
+    def compiles(fn):
+        caplog.clear()
+        with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
+            out = fn()
+        return out, len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
+
+    out, n = compiles(lambda: probe(m))
+    assert n <= 1
+    for a, b in zip(m.narrow, out.narrow, strict=True):
+        assert b.dtype == jnp.float64
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(a).astype(np.float64))
+    assert out.wide is m.wide and out.index is m.index
+    _, n = compiles(lambda: probe(m))
+    assert n == 0
+    wide = probe(out)  # nothing narrow: the module itself
+    assert wide is out
+
+
 def test_float64_wrapper_keeps_plain_containers_as_they_are():
     """Only arrays and modules are rebuilt: a config dict keeps its key order."""
 

@@ -1960,7 +1960,7 @@ def _whitening(Z: np.ndarray, var: np.ndarray, ls: np.ndarray) -> np.ndarray:
     """``L⁻¹`` of each output's ``K_ZZ`` (6, m, m), a little jitter on the diagonal."""
     out = []
     for j in range(N_LOADS):
-        K = np.array(_cross(jnp.asarray(Z), jnp.asarray(Z), var[j], ls[j]))
+        K = np.array(_cross_jit(Z, Z, var[j], ls[j]))
         K[np.diag_indices_from(K)] += 1e-8 * var[j]
         out.append(np.linalg.solve(np.linalg.cholesky(K), np.eye(Z.shape[0])))
     return np.stack(out)
@@ -1969,3 +1969,8 @@ def _whitening(Z: np.ndarray, var: np.ndarray, ls: np.ndarray) -> np.ndarray:
 def _cross(A: Float[Array, "P D"], B: Float[Array, "Q D"], var, ls) -> Float[Array, "P Q"]:
     """The RBF kernel (:func:`gpg.gp.kernels.rbf`) between every row of ``A`` and of ``B``."""
     return jax.vmap(lambda a: jax.vmap(lambda b: kernels.rbf(a, b, var, ls))(B))(A)
+
+
+# On the host (a factor's set-up): one compiled program for the six outputs, where the nested
+# vmap outside a trace compiled each of its operations on its own.
+_cross_jit = jax.jit(_cross)

@@ -336,6 +336,11 @@ def _dense_loss(p, args):
     return _finite(-lml / scale)
 
 
+# The loss before and after the fit (its warning's and its result's), one compiled program
+# for both: run op by op, each of its operations compiled on its own at every new shape.
+_dense_loss_jit = eqx.filter_jit(_dense_loss)
+
+
 def _stochastic_loss(p, args):
     """The stochastic negative log marginal likelihood per target at log-parameters ``p``."""
     fixed, Xs, Ybar, init, grad_var, floor, grad_dims, scale, sto = args
@@ -506,11 +511,11 @@ def fit_hyperparameters(
         # fits) reuse one traced and compiled optimiser instead of tracing it per call.
         dense = (Xs, Ybar, sub_noise, init, grad_var, noise_floor, data.grad_dims, scale,
                  _Host(rows), _Host(sub_bases))  # fmt: skip
-        nll0 = float(_dense_loss(params, dense))
+        nll0 = float(_dense_loss_jit(params, dense))
         sol = optx.minimise(_dense_loss, solver, params, args=dense, max_steps=max_steps,
                             throw=False)  # fmt: skip
         value, status, steps = sol.value, sol.result, int(sol.stats["num_steps"])
-        nll1 = float(_dense_loss(value, dense))
+        nll1 = float(_dense_loss_jit(value, dense))
     else:
         sto = Stochastic() if opts.stochastic is None else opts.stochastic
         args = sto.arguments(Xs, len(data.grad_dims), Ybar.shape[0])

@@ -11,7 +11,10 @@ slices a larger buffer, which on the CPU would copy it first.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -122,8 +125,7 @@ class BlockTriangular(eqx.Module):
         """
         n = F.shape[0]
         edges = np.linspace(0, n, min(n_blocks, max(n, 1)) + 1).astype(int)
-        blocks = tuple(F[a:b, :b] for a, b in zip(edges[:-1], edges[1:], strict=True))
-        return cls(blocks=blocks, n=n, lower=True)
+        return cls(blocks=_bands(F, tuple(int(e) for e in edges)), n=n, lower=True)
 
     def _starts(self) -> list[int]:
         out, a = [], 0
@@ -268,6 +270,13 @@ class BlockTriangular(eqx.Module):
             else:
                 out[a:b, a:] = np.asarray(blk)
         return out
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _bands(F: Float[Array, "n n"], edges: tuple[int, ...]) -> tuple[Array, ...]:
+    """The lower bands ``F[a:b, :b]`` between consecutive ``edges``: one compiled program,
+    where each slice outside a trace compiled on its own for its shape."""
+    return tuple(F[a:b, :b] for a, b in zip(edges[:-1], edges[1:], strict=True))
 
 
 class BorderedTriangular(eqx.Module):

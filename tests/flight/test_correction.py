@@ -1025,7 +1025,8 @@ def _check_prior_share(cal, own, prior, lab, groups, dom):
     assert cal.config["flight_correction"]["prior_output_scale"] == os0.tolist()
     np.testing.assert_array_equal(np.asarray(fc.base(cal).model.output_scale), os0)
     xs = jnp.asarray(fc.training_rows(cal, lab)[0][:5])
-    parts = [jax.vmap(s.model.mean_var_one)(xs)[1] for s in (cal, own)]
+    latent = jax.jit(lambda g: jax.vmap(g.mean_var_one)(xs)[1])  # compiled, not op by op
+    parts = [latent(s.model) for s in (cal, own)]
     got, ref = (s.model.variance_parts(v)["prior"] for s, v in zip((cal, own), parts, strict=True))
     np.testing.assert_allclose(np.asarray(got), np.asarray(ref) * qs, rtol=1e-12)
     assert own.config["flight_correction"]["prior_share"] is None

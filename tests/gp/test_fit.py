@@ -31,26 +31,27 @@ def _data(seed, n=14):
 
 
 def test_fits_of_one_shape_share_the_optimiser(traces):
-    """A second fit on other data of the same shape and layout runs the likelihood only for its
-    two eager evaluations (first and last point): the optimiser is not traced again. Another
-    layout of observed gradients is another program, and the results are the data's own."""
+    """A second fit on other data of the same shape and layout does not run the likelihood's
+    Python at all: neither the optimiser nor the loss at the first and last point (one
+    compiled program, not run op by op) is traced again. Another layout of observed
+    gradients is another program, and the results are the data's own."""
     X, Y, dY = _data(0)
     observed = np.ones((14, 2), bool)
     observed[::3, 1] = False
     first = fit_hyperparameters(X, Y, dY, observed=observed, max_steps=5, on_failure="ignore")
     n_first = traces["n"]
-    assert n_first > 2  # eager start and end, and the solve's own trace(s)
+    assert n_first >= 2  # the start's and end's loss, and the solve's own trace(s)
     X2, Y2, dY2 = _data(1)
     second = fit_hyperparameters(X2, Y2, dY2, observed=observed.copy(), max_steps=5,
                                  on_failure="ignore")  # fmt: skip
-    assert traces["n"] - n_first == 2
+    assert traces["n"] == n_first
     assert not np.allclose(np.asarray(first.hyper.lengthscale),
                            np.asarray(second.hyper.lengthscale))  # fmt: skip
     other = observed.copy()
     other[1, 1] = False
     n_before = traces["n"]
     fit_hyperparameters(X2, Y2, dY2, observed=other, max_steps=5, on_failure="ignore")
-    assert traces["n"] - n_before > 2  # another row layout: traced anew
+    assert traces["n"] - n_before >= 2  # another row layout: both traced anew
 
 
 def test_host_arrays_compare_by_content():
