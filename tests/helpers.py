@@ -1,10 +1,13 @@
 """Test helpers: synthetic datasets with analytic gradients (no generator needed, fast to
-build), configs composed as the entry points do, and a check of JSON results."""
+build), configs composed as the entry points do, a check of JSON results, and a count of the
+programs a call compiles."""
 
+import logging
 import math
 from collections.abc import Sequence
 from typing import Any
 
+import jax
 import numpy as np
 
 from gpg.data.bounds import Bounds
@@ -13,6 +16,15 @@ from gpg.data.sampling import FDSteps, latin_hypercube, raw_samples
 from gpg.quadrotor.vehicle import vehicle_config
 
 LO, HI = Bounds().arrays()
+
+
+def compiles(caplog, fn):
+    """``fn()`` and how many XLA programs it compiled (JAX's compile log, which ``caplog``
+    captures): what a test of "one compiled program, none the second time" counts."""
+    caplog.clear()
+    with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
+        out = fn()
+    return out, len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
 
 
 def smooth(x, W):

@@ -12,7 +12,7 @@ import pytest
 
 from gpg._dtype import float64
 from gpg.surrogate import Surrogate
-from tests.helpers import synthetic_dataset
+from tests.helpers import compiles, synthetic_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 # A small likelihood fit (the part that must run in float64) and a cheap model to predict with.
@@ -116,20 +116,12 @@ def test_astype_casts_every_float_leaf_in_one_program(caplog):
     """Every float array rounded once to float32 (bit for bit NumPy's rounding), every other
     leaf the same object, float32 already there kept as it is; the conversions compiled as one
     program for the model (op by op, one for each leaf's shape), none the second time."""
-    import logging
-
     data = synthetic_dataset(50, seed=3)[0]
     sur = Surrogate.fit(data, "gpgs_hybrid", FIXED)
     floats = sum(jnp.issubdtype(x.dtype, jnp.floating) for x in jax.tree.leaves(sur))
     assert floats > 10  # enough leaves of enough shapes that op by op would show
 
-    def compiles(fn):
-        caplog.clear()
-        with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
-            out = fn()
-        return out, len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
-
-    sur32, n = compiles(lambda: sur.astype(jnp.float32))
+    sur32, n = compiles(caplog, lambda: sur.astype(jnp.float32))
     assert n <= 1
     for a, b in zip(jax.tree.leaves(sur), jax.tree.leaves(sur32), strict=True):
         if jnp.issubdtype(a.dtype, jnp.floating):
@@ -137,7 +129,7 @@ def test_astype_casts_every_float_leaf_in_one_program(caplog):
             np.testing.assert_array_equal(np.asarray(b), np.asarray(a).astype(np.float32))
         else:
             assert b is a
-    again, n = compiles(lambda: sur.astype(jnp.float32))
+    again, n = compiles(caplog, lambda: sur.astype(jnp.float32))
     assert n == 0
     same = sur32.astype(jnp.float32)  # nothing to convert: the same arrays
     assert all(a is b for a, b in zip(jax.tree.leaves(sur32), jax.tree.leaves(same), strict=True))
@@ -147,8 +139,6 @@ def test_float64_wrapper_widens_a_module_in_one_program(caplog):
     """A module's float32 leaves widened exactly (float32 to float64 is exact), its float64
     and integer leaves the same objects (not copied); the casts compiled as one program for
     the module, where op by op each leaf's shape compiled one, and none the second time."""
-    import logging
-
     import equinox as eqx
 
     class Mixed(eqx.Module):
@@ -164,19 +154,13 @@ def test_float64_wrapper_widens_a_module_in_one_program(caplog):
     def probe(module):
         return module
 
-    def compiles(fn):
-        caplog.clear()
-        with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
-            out = fn()
-        return out, len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
-
-    out, n = compiles(lambda: probe(m))
+    out, n = compiles(caplog, lambda: probe(m))
     assert n <= 1
     for a, b in zip(m.narrow, out.narrow, strict=True):
         assert b.dtype == jnp.float64
         np.testing.assert_array_equal(np.asarray(b), np.asarray(a).astype(np.float64))
     assert out.wide is m.wide and out.index is m.index
-    _, n = compiles(lambda: probe(m))
+    _, n = compiles(caplog, lambda: probe(m))
     assert n == 0
     wide = probe(out)  # nothing narrow: the module itself
     assert wide is out

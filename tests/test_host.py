@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from gpg import _host
+from tests.helpers import compiles
 
 
 def _same(a, b):
@@ -103,16 +104,10 @@ def test_each_row_is_vmap_in_one_program(rng, caplog):
         # a sum of three products of O(1) terms, rounded in another order
         np.testing.assert_allclose(g, w, rtol=0, atol=8 * np.finfo(float).eps * 10)
 
-    def compiles(fn):
-        caplog.clear()
-        with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
-            fn()
-        return len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
-
     X2 = rng.normal(size=(13, 3))
-    assert compiles(lambda: _host.each_row(f, X2)) == 1
+    assert compiles(caplog, lambda: _host.each_row(f, X2))[1] == 1
     g = _Affine(jnp.asarray(rng.normal(size=(4, 3))), jnp.asarray(rng.normal(size=4)))
-    assert compiles(lambda: _host.each_row(g, X2)) == 0
-    assert compiles(lambda: _host.each_row(_Affine(g.A, g.b, square=True), X2)) == 1
+    assert compiles(caplog, lambda: _host.each_row(g, X2))[1] == 0
+    assert compiles(caplog, lambda: _host.each_row(_Affine(g.A, g.b, square=True), X2))[1] == 1
     X3 = jnp.asarray(rng.normal(size=(17, 3)))
-    assert compiles(lambda: jax.vmap(g)(X3)) > 1
+    assert compiles(caplog, lambda: jax.vmap(g)(X3))[1] > 1

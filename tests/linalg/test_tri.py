@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from gpg.linalg.tri import BlockTriangular, BorderedTriangular
+from tests.helpers import compiles
 
 
 @pytest.mark.parametrize("lower", [True, False])
@@ -107,21 +108,13 @@ def test_bands_from_a_buffer_are_the_rows_before_their_release():
 def test_bands_of_a_device_factor_are_its_lower_rows_in_one_program(rng, caplog):
     """``from_device``: the bands are ``F``'s lower rows (its products those of ``F``), cut in
     one compiled program for ``F``'s shape (op by op, one slice each), none the second time."""
-    import logging
-
     n = 37
     F = jnp.asarray(np.tril(rng.normal(size=(n, n))))
 
-    def compiles(fn):
-        caplog.clear()
-        with jax.log_compiles(True), caplog.at_level(logging.WARNING, logger="jax"):
-            out = fn()
-        return out, len([r for r in caplog.records if "Finished XLA compilation" in r.getMessage()])
-
-    T, k = compiles(lambda: BlockTriangular.from_device(F, n_blocks=6))
+    T, k = compiles(caplog, lambda: BlockTriangular.from_device(F, n_blocks=6))
     assert len(T.blocks) == 6 and k <= 1
     np.testing.assert_array_equal(T.to_dense(), np.asarray(F))
-    _, k = compiles(lambda: BlockTriangular.from_device(F + 1.0, n_blocks=6))
+    _, k = compiles(caplog, lambda: BlockTriangular.from_device(F + 1.0, n_blocks=6))
     assert k <= 1  # the sum's own program, not the bands'
-    _, k = compiles(lambda: BlockTriangular.from_device(F, n_blocks=6))
+    _, k = compiles(caplog, lambda: BlockTriangular.from_device(F, n_blocks=6))
     assert k == 0
