@@ -20,20 +20,23 @@ estimated from the residuals (so that the standard errors carry what the physics
 The maximum is found by Levenberg-Marquardt on the whitened residuals, with the Jacobian of
 the physics by ``jax.jacfwd`` (one compiled program for every choice of free parameters: the
 loop itself is a handful of NumPy solves of the parameters' size). The standard errors come from
-the posterior's Gauss-Newton curvature ``(JᵀJ + P)⁻¹``, the data's part divided by
-``(1 + ρ)/(1 − ρ)`` for the lag-one correlation ``ρ`` of consecutive labels' residuals (what
-the physics misses varies slowly along a flight: correlated residuals inform less than as many
-independent ones). Those errors hold the parameters that are not free at the file's values
-as if they were exact; ``consider`` names the ones that are not (a measured rotor radius, a
-wake gain no flight separates from the drag), each with a standard deviation, and adds
+the sandwich ``H⁻¹ (B + P) H⁻¹``: ``H = JᵀJ + P`` the Gauss-Newton curvature, ``B`` the
+long-run covariance of the labels' scores ``Jₜᵀ rₜ`` along each flight (Newey and West's
+Bartlett window; what the physics misses varies along a flight and differs between labels,
+and such residuals inform less than as many independent ones of the stated variance). With
+independent labels of the stated variances ``B → JᵀJ``, and the errors are the curvature's.
+Those errors hold the parameters that are not free at the file's values as if they were
+exact; ``consider`` names the ones that are not (a measured rotor radius, a wake gain no
+flight separates from the drag), each with a standard deviation, and adds
 ``S Σ Sᵀ`` to the covariance, ``S`` the estimate's linear sensitivity to them (the "consider"
 covariance of orbit determination): errors that say what holding them fixed costs. A
 parameter whose direction the flights do not determine (an eigenvalue of the data's
-information, in units of the prior's, under :data:`IDENTIFIABLE`) is named in
-:attr:`Identification.unidentified`: it keeps its prior value, the others are fitted again
-beside it, and the vehicle file says so. With commands only, ``motor.gain`` and the rotor's
-size are such a pair: a rotor that gives more thrust per rpm and a curve that gives fewer rpm
-per command explain the same flights (measure the radius, free the gain).
+effective information ``H (B + P)⁻¹ H − P``, in units of the prior's, under
+:data:`IDENTIFIABLE`) is named in :attr:`Identification.unidentified`: it keeps its prior
+value, the others are fitted again beside it, and the vehicle file says so. With commands
+only, ``motor.gain`` and the rotor's size are such a pair: a rotor that gives more thrust per
+rpm and a curve that gives fewer rpm per command explain the same flights (measure the
+radius, free the gain).
 """
 
 from __future__ import annotations
@@ -657,15 +660,13 @@ def _fit_and_flag(veh0, physics, names, data, passes: int, max_steps: int):
     θ, the model-error variances, the steps, convergence, the information and the weak."""
     fit = _Fit(veh0, physics, names, data)
     theta, model_var, steps, converged = fit.run(passes, max_steps)
-    # Residuals correlated in time (what the physics misses varies slowly along a flight)
-    # carry less information than as many independent ones: the AR(1) effective count.
-    info = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
+    info = fit.information(theta, model_var)
     weak = _weak_parameters(info, fit.sd_all[fit.free], names)
     if weak and len(weak) < len(names):
         fit = _Fit(veh0, physics, tuple(n for n in names if n not in weak), data, columns=names)
         theta, model_var, n, converged = fit.run(passes, max_steps)
         steps += n
-        kept = fit.information(theta, model_var) / fit.correlation_factor(theta, model_var)
+        kept = fit.information(theta, model_var)
         keep = np.array([n not in weak for n in names])
         info = np.zeros((len(names), len(names)))
         info[np.ix_(keep, keep)] = kept
@@ -688,7 +689,11 @@ def _data(labels, names: tuple[str, ...], loads: str, max_labels: int) -> dict[s
     if len(lab) < 2 * len(names):
         raise ValueError(f"identify needs at least {2 * len(names)} labels, got {len(lab)}")
     rows = _pick(lab, max_labels)
+    part = np.repeat(np.arange(len(parts)), [len(p) for p in parts])
     out = {
+        # each label's flight and instant: the scores' correlation is summed along a flight
+        "part": part[rows],
+        "t": np.asarray(lab.t, float)[rows],
         "rpm": np.asarray(lab.rpm, float)[rows],
         "euler": np.asarray(lab.euler, float)[rows],
         "v_air": np.asarray(lab.v_air, float)[rows],
@@ -771,20 +776,22 @@ class _Fit:
             model_var = self.model_var(theta)
         return theta, model_var, steps, converged
 
-    def correlation_factor(self, theta: np.ndarray, model_var: np.ndarray) -> float:
-        """``(1 + ρ)/(1 − ρ)`` for the lag-one correlation ``ρ`` of consecutive labels'
-        whitened residuals (the used components pooled; ``ρ`` clipped to [0, 0.98], so the
-        factor is between 1 and 99)."""
-        r = self.residuals(theta, model_var)[0].reshape(-1, 6)[:, self.data["use"]]
-        r = r - r.mean(0)
-        rho = float(np.sum(r[1:] * r[:-1]) / max(np.sum(r * r), 1e-300))
-        rho = min(max(rho, 0.0), 0.98)
-        return (1 + rho) / (1 - rho)
-
     def information(self, theta: np.ndarray, model_var: np.ndarray) -> np.ndarray:
-        """The data's Fisher information over the free parameters, ``JᵀJ``."""
-        J = self.residuals(theta, model_var)[1][:, self.free]
-        return J.T @ J
+        """The data's effective information over the free parameters: ``H (B + P)⁻¹ H − P``
+        (its negative eigenvalues cut to zero), so that ``(info + P)⁻¹`` is the sandwich
+        ``H⁻¹ (B + P) H⁻¹`` of the estimate, ``H = JᵀJ + P`` the objective's curvature and
+        ``B`` the scores' long-run covariance (:func:`_long_run`). With independent labels
+        whose variances the model states, ``B → JᵀJ`` and ``info → JᵀJ``."""
+        r, J = self.residuals(theta, model_var)
+        n = self.data["y"].shape[0]
+        J = J[:, self.free]
+        scores = np.einsum("tcp,tc->tp", J.reshape(n, 6, -1), r.reshape(n, 6))
+        B, _ = _long_run(scores, self.data["part"], self.data["t"])
+        P = np.diag(1.0 / self.sd_all[self.free] ** 2)
+        H = J.T @ J + P
+        eff = H @ np.linalg.solve(B + P, H) - P
+        lam, vec = np.linalg.eigh(0.5 * (eff + eff.T))
+        return (vec * np.maximum(lam, 0.0)) @ vec.T
 
     def covariances(self, theta, model_var, info, names, weak, considered):
         """The free parameters' covariance from the labels alone and their estimate's linear
@@ -793,14 +800,15 @@ class _Fit:
         cov = np.linalg.inv(info + np.diag(1.0 / self.sd_all[self.free] ** 2))
         S = np.zeros((len(names), len(considered)))
         if considered:
-            S = self.consider_sensitivity(theta, model_var, info, names, weak, considered)
+            S = self.consider_sensitivity(theta, model_var, names, weak, considered)
         return cov, S
 
-    def consider_sensitivity(self, theta, model_var, info, names, weak, considered):
-        """``S = −(I + P)⁻¹ I_c``: the estimate's linear sensitivity to the considered
-        parameters (``I_c`` the whitened Jacobians' cross-information, divided by the
-        residuals' correlation factor as ``I`` is; Tapley, Schutz and Born, chapter 6). The
-        weak parameters, held at the file's values, get none.
+    def consider_sensitivity(self, theta, model_var, names, weak, considered):
+        """``S = −H⁻¹ I_c``: the estimate's linear sensitivity to the considered parameters
+        (``H = JᵀJ + P`` the objective's curvature, ``I_c`` the whitened Jacobians'
+        cross-information; Tapley, Schutz and Born, chapter 6: how far the optimum moves,
+        whatever the labels' correlation). The weak parameters, held at the file's values,
+        get none.
 
         The derivatives along the considered parameters come from the fit's own compiled
         program: its directions hold as many columns as the fit frees, so the considered
@@ -820,11 +828,10 @@ class _Fit:
         Jc = (np.concatenate(cols, 2) * w[:, :, None]).reshape(-1, len(idx))
         keep = ~_weak_mask(names, weak)
         Jt = self.residuals(theta, model_var)[1][:, self.free[keep]]
-        factor = self.correlation_factor(theta, model_var)
-        H = info[np.ix_(keep, keep)] + np.diag(1.0 / self.sd_all[self.free[keep]] ** 2)
+        H = Jt.T @ Jt + np.diag(1.0 / self.sd_all[self.free[keep]] ** 2)
         out = np.zeros((len(names), len(idx)))
         # Jt is the residuals' Jacobian (minus the loads'), Jc the loads': Jtᵀ Jc = −I_c.
-        out[keep] = np.linalg.solve(H, Jt.T @ Jc / factor)
+        out[keep] = np.linalg.solve(H, Jt.T @ Jc)
         return out
 
 
@@ -929,6 +936,53 @@ def _coefficients(veh0, physics, theta, free, covariances, considered, cfg):
 def _weak_mask(names: tuple[str, ...], weak: Sequence[str]) -> np.ndarray:
     """(P,) True for the parameters in ``weak``."""
     return np.array([n in weak for n in names])
+
+
+def _long_run(
+    scores: Float[np.ndarray, "N P"], part: np.ndarray, t: np.ndarray
+) -> tuple[Float[np.ndarray, "P P"], int]:
+    """The long-run covariance ``B = Σ_|l|≤L (1 − |l|/(L+1)) Γ_l`` of the labels' scores
+    (Newey and West's Bartlett window: positive semi-definite), ``Γ_l`` the lag-``l``
+    cross-products of each flight's scores in time (no lag spans two flights).
+
+    The lags ``L`` are the larger of Newey and West's (1994) rule ``⌊4 (N/100)^{2/9}⌋`` and
+    Andrews' (1991) AR(1) plug-in ``⌈1.1447 (α N)^{1/3}⌉``, at most a flight's labels: the
+    rule sums the weak correlation spread over many lags that a misfit varying along the
+    flights gives (the hard benchmark's, whose lag-one correlation is near zero), the plug-in
+    follows a strong one.
+
+    Returns:
+        ``B`` and ``L``.
+    """
+    order = np.lexsort((t, part))
+    g, part = scores[order], part[order]
+    n = len(g)
+    longest = int(np.max(np.unique(part, return_counts=True)[1]))
+    lags = min(max(int(4 * (n / 100) ** (2 / 9)), _andrews(g, part, n)), longest - 1)
+    B = g.T @ g
+    for lag in range(1, lags + 1):
+        same = part[lag:] == part[:-lag]
+        G = g[lag:][same].T @ g[:-lag][same]
+        B += (1 - lag / (lags + 1)) * (G + G.T)
+    return B, lags
+
+
+def _andrews(g: np.ndarray, part: np.ndarray, n: int) -> int:
+    """Andrews' AR(1) plug-in lags for the Bartlett window: each score's lag-one
+    coefficient ``ρ_p`` and innovation variance ``σ_p²`` within the flights, ``α = Σ 4ρ²σ⁴ /
+    ((1−ρ)⁶(1+ρ)²) / Σ σ⁴/(1−ρ)⁴`` (``ρ`` clipped to ±0.97: a score that does not vary
+    along a flight is not a random walk)."""
+    same = part[1:] == part[:-1]
+    if not same.any():
+        return 0
+    a, b = g[1:][same], g[:-1][same]
+    rho = np.clip(np.sum(a * b, 0) / np.maximum(np.sum(b * b, 0), 1e-300), -0.97, 0.97)
+    s2 = np.mean((a - rho * b) ** 2, 0)
+    den = np.sum(s2**2 / (1 - rho) ** 4)
+    if den <= 0:
+        return 0
+    alpha = np.sum(4 * rho**2 * s2**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)) / den
+    return int(math.ceil(1.1447 * (alpha * n) ** (1 / 3)))
 
 
 def _weak_parameters(info: np.ndarray, sd: np.ndarray, names: tuple[str, ...]) -> list[str]:
